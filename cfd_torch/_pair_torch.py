@@ -1,0 +1,177 @@
+"""Batched tensor form of the pair solve and of its closed-form derivatives (any device).
+
+The solve mirrors ``_pair_numba.solve_pairs`` (same start, damping rule and stopping test) as masked tensor code
+over the still-active pairs, so it runs unchanged on CUDA. The derivative formulas here are also what the autograd
+backward of ``pair_potential`` uses on every device.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ._geometry import triangle_closest_points
+
+CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
+_STALL_TOL = 1e-8
+_NOISE = 64 * torch.finfo(torch.float64).eps
+_MAX_DAMP = 1e30
+
+
+def _sign(X: torch.Tensor) -> torch.Tensor:
+    return torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
+
+
+def gaps(X: torch.Tensor, P: torch.Tensor, half_delta: float) -> torch.Tensor:
+    """(K, 6) vertex gaps s_k = sg_k (n . x_k + d) - delta/2 for planes P (K, 4)."""
+    return _sign(X) * (torch.einsum("kvc,kc->kv", X, P[:, :3]) + P[:, 3:]) - half_delta
+
+
+def energy(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float) -> torch.Tensor:
+    """(K,) E(p), +inf outside the feasible set."""
+    r = torch.linalg.vector_norm(P[:, :3], dim=-1)
+    s = gaps(X, P, half_delta)
+    feasible = (r < 1.0) & (s > 0).all(-1)
+    e = lam / (1.0 - r) + (1.0 / s).sum(-1)
+    return torch.where(feasible, e, torch.full_like(e, float("inf")))
+
+
+def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
+    """dE/dp (K, 4), d2E/dp2 (K, 4, 4), the magnitude scale of each gradient component (K, 4), gaps (K, 6).
+
+    grad_p E = lam/(1-r)^2 [u; 0] - sum_k abar_k / s_k^2,  abar_k = sg_k [x_k; 1]
+    hess_pp E = sum_k 2 abar_k abar_k^T / s_k^3 + lam [[Hn, 0], [0, 0]],
+                Hn = 2/(1-r)^3 u u^T + (I - u u^T) / ((1-r)^2 r)
+    """
+    n = P[:, :3]
+    r = torch.linalg.vector_norm(n, dim=-1, keepdim=True)  # (K, 1)
+    u = n / r
+    om = 1.0 - r
+    s = gaps(X, P, half_delta)
+    abar = _sign(X)[:, None] * torch.cat([X, torch.ones_like(X[..., :1])], -1)  # (K, 6, 4)
+    w1 = 1.0 / (s * s)
+    terms = abar * w1[..., None]  # (K, 6, 4)
+    gn = lam / (om * om) * u
+    g = torch.cat([gn, torch.zeros_like(r)], -1) - terms.sum(1)
+    scale = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + terms.abs().sum(1)
+    H = torch.einsum("kv,kvi,kvj->kij", 2.0 * w1 / s, abar, abar)
+    eye = torch.eye(3, dtype=X.dtype, device=X.device)
+    uu = u[:, :, None] * u[:, None, :]
+    Hn = (2.0 / om**3)[..., None] * uu + (eye - uu) / (om * om * r)[..., None]
+    H[:, :3, :3] += lam * Hn
+    return g, H, scale, s
+
+
+def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Strictly feasible start from the exact closest points (SPEC section 2); returns planes (K, 4) and dist (K,).
+
+    With the mid-gap plane along n0 = (qa - qb)/|qa - qb| scaled by alpha = (delta/2 + 1)/(dist/2 + 1), every gap is
+    >= (dist - delta)/2 / (dist/2 + 1) > 0 and |n| = alpha < 1 whenever dist > delta.
+    """
+    dist, qa, qb = triangle_closest_points(X[:, :3], X[:, 3:])
+    safe = torch.where(dist > 0, dist, torch.ones_like(dist))
+    alpha = (0.5 * delta + 1.0) / (0.5 * safe + 1.0) / safe
+    n = alpha[:, None] * (qa - qb)
+    d = -(n * 0.5 * (qa + qb)).sum(-1, keepdim=True)
+    return torch.cat([n, d], -1), dist
+
+
+def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max_iter: int):
+    """Masked batched Levenberg-Marquardt over all pairs.
+
+    Args:
+        X: (K, 6, 3) float64 vertices a0, a1, a2, b0, b1, b2.
+
+    Returns:
+        P (K, 4) planes, E (K,) energies (+inf where infeasible), status (K,) int8, resid (K,) relative gradients.
+    """
+    half_delta = 0.5 * delta
+    K = X.shape[0]
+    P, dist = start_planes(X, delta)
+    E = energy(X, P, half_delta, lam)
+    E = torch.where(dist > delta, E, torch.full_like(E, float("inf")))
+    status = torch.full((K,), NOT_CONVERGED, dtype=torch.int8, device=X.device)
+    status[torch.isinf(E)] = INFEASIBLE
+    resid = torch.zeros(K, dtype=X.dtype, device=X.device)
+    act = torch.nonzero(status == NOT_CONVERGED).squeeze(-1)
+    damp = torch.zeros(act.shape[0], dtype=X.dtype, device=X.device)
+    n_accepted = torch.zeros(act.shape[0], dtype=torch.int64, device=X.device)
+    for _ in range(max_iter * 8):  # accepted steps are capped by max_iter; rejected trials by the damping cap
+        if act.numel() == 0:
+            break
+        Xa, Pa, Ea = X[act], P[act], E[act]
+        g, H, scale, _ = plane_grad_hess(Xa, Pa, half_delta, lam)
+        rel = (g.abs() / scale).amax(-1)
+        resid[act] = rel
+        done = rel <= tol
+        stalled = damp > _MAX_DAMP
+        capped = n_accepted >= max_iter
+        finished = done | stalled | capped
+        ok = done | (stalled & (rel <= _STALL_TOL))
+        status[act[finished & ok]] = CONVERGED
+        keep = ~finished
+        act, damp, n_accepted = act[keep], damp[keep], n_accepted[keep]
+        Xa, Pa, Ea, g, H = Xa[keep], Pa[keep], Ea[keep], g[keep], H[keep]
+        if act.numel() == 0:
+            break
+        diag = torch.diagonal(H, dim1=-2, dim2=-1)
+        Hd = H + torch.diag_embed(diag * damp[:, None])
+        L, info = torch.linalg.cholesky_ex(Hd)
+        spd = info == 0
+        L = torch.where(spd[:, None, None], L, torch.eye(4, dtype=X.dtype, device=X.device))
+        step = torch.cholesky_solve(-g[..., None], L).squeeze(-1)
+        trial = Pa + step
+        Et = energy(Xa, trial, half_delta, lam)
+        pred = -(g * step).sum(-1)
+        noise = _NOISE * Ea
+        accept = spd & ((Et <= Ea) | ((pred <= noise) & (Et <= Ea + noise)))
+        P[act] = torch.where(accept[:, None], trial, Pa)
+        E[act] = torch.where(accept, Et, Ea)
+        n_accepted = n_accepted + accept.to(torch.int64)
+        damp = torch.where(
+            accept,
+            torch.where(damp <= 1e-3, torch.zeros_like(damp), damp * 0.1),
+            torch.where(damp == 0, torch.full_like(damp, 1e-4), damp * 10.0),
+        )
+    return P, E, status, resid
+
+
+def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
+    """Closed-form pieces at the optimal plane: gaps s (K, 6), E_x (K, 6, 3), E_xp (K, 18, 4), E_pp (K, 4, 4).
+
+    dE/dx_k    = -sg_k n / s_k^2
+    d2E/dx_k2  = 2 n n^T / s_k^3            (block diagonal)
+    d2E/dx_k dp = -sg_k [I3 | 0] / s_k^2 + 2 n [x_k^T | 1] / s_k^3
+    """
+    _, Epp, _, s = plane_grad_hess(X, P, half_delta, lam)
+    n = P[:, :3]
+    sg = _sign(X)
+    w1 = 1.0 / (s * s)
+    w2 = 2.0 * w1 / s
+    Ex = -(sg * w1)[..., None] * n[:, None, :]  # (K, 6, 3)
+    xh = torch.cat([X, torch.ones_like(X[..., :1])], -1)  # (K, 6, 4)
+    eye = torch.eye(3, 4, dtype=X.dtype, device=X.device)
+    Exp = -(sg * w1)[..., None, None] * eye + w2[..., None, None] * n[:, None, :, None] * xh[:, :, None, :]
+    return s, Ex, Exp.reshape(-1, 18, 4), Epp  # Exp: (K, 18, 4)
+
+
+def pair_hessian_torch(X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: float, lam: float) -> torch.Tensor:
+    """(K, 18, 18) hess_x P = mu (E_xx - E_xp E_pp^-1 E_px) (implicit function theorem)."""
+    s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
+    n = P[:, :3]
+    L = torch.linalg.cholesky(Epp)
+    W = torch.linalg.solve_triangular(L, Exp.transpose(1, 2), upper=False)  # (K, 4, 18) = L^-1 E_px
+    Hs = -W.transpose(1, 2) @ W
+    blocks = (2.0 / s**3)[..., None, None] * n[:, None, :, None] * n[:, None, None, :]  # (K, 6, 3, 3)
+    Hs.view(-1, 6, 3, 6, 3).diagonal(dim1=1, dim2=3).add_(blocks.permute(0, 2, 3, 1))
+    return mu * Hs
+
+
+def pair_hessian_vjp(X: torch.Tensor, P: torch.Tensor, v: torch.Tensor, mu: float, half_delta: float, lam: float):
+    """(K, 18) v^T hess_x P without forming the 18 x 18 Hessian: mu (v^T E_xx - (v^T E_xp) E_pp^-1 E_px)."""
+    s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
+    n = P[:, :3]
+    v6 = v.reshape(-1, 6, 3)
+    direct = (2.0 / s**3 * (v6 * n[:, None, :]).sum(-1))[..., None] * n[:, None, :]  # (K, 6, 3)
+    y = torch.einsum("ki,kij->kj", v, Exp)  # (K, 4)
+    z = torch.cholesky_solve(y[..., None], torch.linalg.cholesky(Epp)).squeeze(-1)
+    return mu * (direct.reshape(-1, 18) - torch.einsum("kij,kj->ki", Exp, z))

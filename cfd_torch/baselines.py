@@ -1,0 +1,145 @@
+"""The peers' locally supported contact potentials between two triangles, as baselines.
+
+Both vanish identically, with their gradients, beyond their activation distance ``dhat``; that is the failure the
+long-range potential of this library fixes (SPEC sections 1-2).
+
+- IPC (Li et al. 2020; ipc-toolkit ``BarrierPotential``): the scalar barrier on the squared distance,
+  ``kappa * b(d^2; dhat^2)``, ``b(x; xh) = -(x - xh)^2 ln(x / xh)`` for 0 < x < xh, 0 beyond, +inf at x <= 0.
+- SDRS-style local plane barrier: the separating-plane construction of the exact potential with every term replaced
+  by ``B(y) = -(y - dhat)^2 ln(y / dhat) / y`` (0 for y >= dhat), normal weight 1::
+
+      P_sdrs = kappa * min_p [ B(1 - |n|) + sum_k B(sg_k (n.x_k + d) - delta/2) ]
+
+  Once some plane leaves every vertex more than dhat + delta/2 away (and |n| <= 1 - dhat) the minimum is exactly 0.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ._geometry import triangle_closest_points
+from ._validate import check_positive, check_triangles
+
+__all__ = ["ipc_barrier", "ipc_pair_barrier", "sdrs_barrier", "sdrs_pair_potential"]
+
+
+def ipc_barrier(x: torch.Tensor, xhat: float) -> torch.Tensor:
+    """IPC scalar barrier ``-(x - xhat)^2 ln(x / xhat)`` on (0, xhat), 0 beyond, +inf at x <= 0 (C2 at xhat)."""
+    inside = (x > 0) & (x < xhat)
+    xs = torch.where(inside, x, torch.full_like(x, xhat))
+    b = -((xs - xhat) ** 2) * torch.log(xs / xhat)
+    return torch.where(x <= 0, torch.full_like(x, float("inf")), b)
+
+
+def sdrs_barrier(y: torch.Tensor, dhat: float) -> torch.Tensor:
+    """SDRS barrier ``-(y - dhat)^2 ln(y / dhat) / y`` on (0, dhat), 0 beyond, +inf at y <= 0 (C2 at dhat)."""
+    inside = (y > 0) & (y < dhat)
+    ys = torch.where(inside, y, torch.full_like(y, dhat))
+    b = -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys
+    return torch.where(y <= 0, torch.full_like(y, float("inf")), b)
+
+
+def ipc_pair_barrier(
+    tri_a: torch.Tensor, tri_b: torch.Tensor, *, dhat: float = 1e-2, kappa: float = 1.0
+) -> torch.Tensor:
+    """IPC barrier on the triangle-triangle distance, ``kappa b(d^2; dhat^2)``; differentiable by autograd.
+
+    Args:
+        tri_a, tri_b: (K, 3, 3) triangles [m].
+        dhat: activation distance [m]; value and gradient are exactly 0 for d >= dhat.
+        kappa: stiffness.
+
+    Returns:
+        (K,) barrier values.
+    """
+    check_triangles(tri_a, "tri_a")
+    check_triangles(tri_b, "tri_b")
+    check_positive(dhat, "dhat")
+    with torch.no_grad():
+        _, qa, qb = triangle_closest_points(tri_a.detach(), tri_b.detach())
+    # Distance as a differentiable function of the vertices: express the closest points by their barycentric
+    # coordinates (held fixed: first-order exact, since the distance is stationary in them).
+    wa = _barycentric(tri_a.detach(), qa)
+    wb = _barycentric(tri_b.detach(), qb)
+    pa = torch.einsum("kv,kvc->kc", wa, tri_a)
+    pb = torch.einsum("kv,kvc->kc", wb, tri_b)
+    d2 = ((pa - pb) ** 2).sum(-1)
+    return kappa * ipc_barrier(d2, dhat * dhat)
+
+
+def _barycentric(tri: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """(K, 3) barycentric coordinates of points q (K, 3) in the planes of triangles tri (K, 3, 3)."""
+    e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
+    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    dw1, dw2 = (w * e1).sum(-1), (w * e2).sum(-1)
+    den = d11 * d22 - d12 * d12
+    v = (d22 * dw1 - d12 * dw2) / den
+    t = (d11 * dw2 - d12 * dw1) / den
+    return torch.stack([1 - v - t, v, t], -1)
+
+
+def _sdrs_energy(p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float) -> torch.Tensor:
+    sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
+    s = sg * (torch.einsum("kvc,kc->kv", X, p[:, :3]) + p[:, 3:]) - margin / 2
+    r = torch.linalg.vector_norm(p[:, :3], dim=-1)
+    return sdrs_barrier(1.0 - r, dhat) + sdrs_barrier(s, dhat).sum(-1)
+
+
+def sdrs_pair_potential(
+    tri_a: torch.Tensor,
+    tri_b: torch.Tensor,
+    *,
+    dhat: float = 1e-2,
+    margin: float = 1e-3,
+    kappa: float = 1.0,
+    iters: int = 60,
+) -> torch.Tensor:
+    """SDRS-style local plane barrier, minimised over the plane by damped Newton (autograd Hessians).
+
+    The value's gradient with respect to the vertices follows from the envelope theorem: the plane is detached
+    at the optimum and the energy re-evaluated, so autograd gives ``kappa sum_k B'(s_k) sg_k n``.
+
+    Args:
+        tri_a, tri_b: (K, 3, 3) triangles [m], separated by more than ``margin``.
+        dhat: support of the barrier [m]; beyond it value and gradient are exactly zero.
+        margin: delta, as in the exact potential.
+        kappa: stiffness.
+        iters: Newton iterations (the demo's configurations converge in far fewer).
+
+    Returns:
+        (K,) values; first-order differentiable in the vertices.
+    """
+    check_triangles(tri_a, "tri_a")
+    check_triangles(tri_b, "tri_b")
+    X = torch.cat([tri_a, tri_b], 1).to(torch.float64)
+    Xd = X.detach()
+    from ._pair_torch import start_planes
+
+    p, dist = start_planes(Xd, margin)
+    if bool((dist <= margin).any()):
+        raise ValueError("sdrs_pair_potential: some triangle pairs are within the margin")
+    # The start has |n| < 1 and all gaps > 0; enlarge |n| toward 1 - dhat/2 so far pairs start in the zero region.
+    p = p * ((1.0 - 0.5 * dhat) / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
+    p = torch.where(torch.isfinite(_sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0])
+
+    def total(q: torch.Tensor) -> torch.Tensor:
+        return _sdrs_energy(q, Xd, dhat, margin).sum()
+
+    for _ in range(iters):
+        e = _sdrs_energy(p, Xd, dhat, margin)
+        if bool((e == 0).all()):
+            break
+        g = torch.func.grad(total)(p)
+        H = torch.func.vmap(torch.func.hessian(lambda q, x: _sdrs_energy(q[None], x[None], dhat, margin)[0]))(p, Xd)
+        H = H + 1e-12 * torch.eye(4, dtype=X.dtype) * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None]
+        step = torch.linalg.solve(H + 1e-30 * torch.eye(4, dtype=X.dtype), -g[..., None]).squeeze(-1)
+        a = torch.ones_like(e)
+        for _ls in range(40):
+            e_new = _sdrs_energy(p + a[:, None] * step, Xd, dhat, margin)
+            bad = ~(e_new <= e)
+            if not bool(bad.any()):
+                break
+            a = torch.where(bad, 0.5 * a, a)
+        ok = e_new <= e
+        p = torch.where(ok[:, None], p + a[:, None] * step, p)
+    return kappa * _sdrs_energy(p.detach(), X, dhat, margin).to(tri_a.dtype)
