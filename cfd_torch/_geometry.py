@@ -6,33 +6,33 @@ Two forms of one algorithm:
 - :func:`tri_tri_closest_nb`: scalar numba kernel for one pair, allocation-free, callable from ``njit`` and
   ``prange`` code.
 
-Method. Two solid triangles that do not intersect have their closest points on one of 15 features: a vertex of one
-triangle against the other triangle (6) or an edge of one against an edge of the other (9) (Ericson, Real-Time
-Collision Detection, 5.1.5 ClosestPtPointTriangle and 5.1.9 ClosestPtSegmentSegment). Each feature is solved
-exactly and the smallest distance wins; on an exact tie the first feature in this order wins:
-``a0-B, a1-B, a2-B, A-b0, A-b1, A-b2`` then the edge pairs ``(a_i a_i+1, b_j b_j+1)`` for ``i, j`` in row-major
-order. Both forms follow the same order and the same formulas, so they agree to rounding.
+Method. Two solid triangles that do not intersect have their closest points on one of 15 features: a vertex
+of one triangle against the other triangle (6) or an edge of one against an edge of the other (9) (Ericson,
+Real-Time Collision Detection, 5.1.5 ClosestPtPointTriangle and 5.1.9 ClosestPtSegmentSegment). Each feature
+is solved exactly and the smallest distance wins; on an exact tie the first feature in this order wins:
+``a0-B, a1-B, a2-B, A-b0, A-b1, A-b2``, then the edge pairs ``(a_i a_i+1, b_j b_j+1)`` with ``(i, j)`` in
+row-major order. Both forms use the same formulas in the same order, so they return the same points.
 
 Robustness:
 
-- Everything is computed relative to the first vertex of triangle a, so rounding errors scale with the size of the
-  configuration (triangle extents plus gap), not with the distance of the pair from the world origin. The returned
-  distance is computed in that frame; ``|qa - qb|`` recomputed from the returned world points differs from it by
-  rounding of the world coordinates.
-- Segment-segment solves the line-line parameter with the cross product, ``s = ((p2 - p1) x d2).n / |n|^2`` with
-  ``n = d1 x d2``, rather than with Ericson's Gram determinant ``a e - b^2``: the relative error of ``|n|^2`` is
-  ``O(eps / sin(angle))`` instead of ``O(eps / sin(angle)^2)``, so nearly parallel edges that cross stay accurate.
-  Segments are treated as parallel only below ``sin(angle) <= eps`` and as points below
-  ``|d|^2 <= eps^2 (|d1|^2 + |d2|^2)`` (relative epsilons, ``eps`` of the dtype); any parameter then works, and the
-  clamping that follows (Ericson's) picks the right one.
-- Point-triangle is Ericson's Voronoi-region test. In the face region the barycentric weights are clamped to be
-  non-negative, so the point always lies in the triangle even when rounding makes the region tests disagree; a
-  zero-area triangle falls back to its first vertex there. Edge pairs cover every vertex-edge distance, so the minimum
-  is still exact for degenerate (zero-area, zero-length) triangles.
+- Everything is computed relative to the first vertex of triangle a, so rounding errors scale with the size
+  of the configuration (triangle extents plus gap), not with its distance from the world origin. The
+  returned distance is computed in that frame; ``|qa - qb|`` recomputed from the returned world points
+  differs from it by the rounding of world coordinates.
+- Segment-segment gets the line-line parameter from cross products, ``s = ((p2 - p1) x d2).n / |n|^2`` with
+  ``n = d1 x d2``, rather than from Ericson's Gram determinant ``a e - b^2``: the relative error of ``|n|^2``
+  is ``O(eps / sin(angle))`` instead of ``O(eps / sin(angle)^2)``, so nearly parallel edges that cross stay
+  accurate. Segments count as parallel only when ``sin(angle) <= eps`` and as points when
+  ``|d|^2 <= eps^2 (|d1|^2 + |d2|^2)`` (relative epsilons, ``eps`` of the dtype); any parameter then does,
+  and Ericson's clamping that follows picks the right end.
+- Point-triangle is Ericson's Voronoi-region test. In the face region the barycentric weights are clamped to
+  be non-negative, so the point lies in the triangle even where rounding makes the region tests disagree; a
+  zero-area triangle falls back to its first vertex there. The edge pairs cover every vertex-edge distance,
+  so the minimum stays exact for degenerate (zero-area, zero-length) triangles.
 
-Intersecting triangles are outside the contract: the result is the minimum over the 15 features, which is positive
-when an edge pierces the other triangle's interior. Callers detect intersection separately. Non-finite input gives
-unspecified output.
+Intersecting triangles are outside the contract: the result is the minimum over the 15 features, which is
+positive when an edge pierces the other triangle's interior. Callers detect intersection separately.
+Non-finite input gives unspecified output.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TriangleClosestPoints", "triangle_closest_points", "tri_tri_closest_nb"]
+__all__ = ["TriangleClosestPoints", "tri_tri_closest_nb", "triangle_closest_points"]
 
 
 class TriangleClosestPoints(NamedTuple):
@@ -61,19 +61,34 @@ class TriangleClosestPoints(NamedTuple):
     qb: Tensor
 
 
-# ----------------------------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------------------
 # torch
 
 
-def _dot(u: Tensor, v: Tensor) -> Tensor:
-    # Written out (not .sum(-1)) so the summation order matches the numba kernel.
-    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+# Vectors are (x, y, z) tuples of broadcastable tensors: every op then runs on contiguous memory (several
+# times faster than strided components of (..., 3) tensors) and broadcasting stands in for expand/repeat.
+Vec = tuple[Tensor, Tensor, Tensor]
 
 
-def _cross(u: Tensor, v: Tensor) -> Tensor:
-    ux, uy, uz = u.unbind(-1)
-    vx, vy, vz = v.unbind(-1)
-    return torch.stack((uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx), dim=-1)
+def _sub(u: Vec, v: Vec) -> Vec:
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+def _dot(u: Vec, v: Vec) -> Tensor:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _cross(u: Vec, v: Vec) -> Vec:
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+def _axpy(p: Vec, d: Vec, s: Tensor) -> Vec:
+    """p + d * s."""
+    return (p[0] + d[0] * s, p[1] + d[1] * s, p[2] + d[2] * s)
+
+
+def _where(cond: Tensor, u: Vec, v: Vec) -> Vec:
+    return (torch.where(cond, u[0], v[0]), torch.where(cond, u[1], v[1]), torch.where(cond, u[2], v[2]))
 
 
 def _safe_div(num: Tensor, den: Tensor, ok: Tensor) -> Tensor:
@@ -81,74 +96,63 @@ def _safe_div(num: Tensor, den: Tensor, ok: Tensor) -> Tensor:
     return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
-def _closest_point_triangle(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+def _closest_point_triangle(p: Vec, a: Vec, b: Vec, c: Vec) -> Vec:
     """Closest point to p on triangle abc (Ericson 5.1.5), branch-free.
 
     Args:
-        p, a, b, c: (..., 3) query point and triangle vertices.
+        p, a, b, c: query point and triangle vertices, components broadcastable to a common shape S.
 
     Returns:
-        (..., 3) closest point on the triangle.
+        Closest point on the triangle, components of shape S.
     """
-    ab = b - a
-    ac = c - a
-    ap = p - a
+    ab = _sub(b, a)
+    ac = _sub(c, a)
+    ap = _sub(p, a)
     d1 = _dot(ab, ap)
     d2 = _dot(ac, ap)
-    bp = p - b
+    bp = _sub(p, b)
     d3 = _dot(ab, bp)
     d4 = _dot(ac, bp)
-    cp = p - c
+    cp = _sub(p, c)
     d5 = _dot(ab, cp)
     d6 = _dot(ac, cp)
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
 
-    # Ericson tests the regions in the order A, B, AB, C, AC, BC, face and returns at the first hit; apply them in
-    # reverse so the earliest test overrides.
+    # Ericson tests the regions in the order A, B, AB, C, AC, BC, face and returns at the first hit; apply
+    # them in reverse so the earliest test overrides.
     vap, vbp, vcp = va.clamp_min(0), vb.clamp_min(0), vc.clamp_min(0)
     den = vap + vbp + vcp
     ok = den > 0
-    q = a + ab * _safe_div(vbp, den, ok)[..., None] + ac * _safe_div(vcp, den, ok)[..., None]
+    q = _axpy(_axpy(a, ab, _safe_div(vbp, den, ok)), ac, _safe_div(vcp, den, ok))
 
     e43 = d4 - d3
     e56 = d5 - d6
     den = e43 + e56
-    in_bc = (va <= 0) & (e43 >= 0) & (e56 >= 0)
-    q = torch.where(in_bc[..., None], b + (c - b) * _safe_div(e43, den, den > 0)[..., None], q)
-
+    q = _where((va <= 0) & (e43 >= 0) & (e56 >= 0), _axpy(b, _sub(c, b), _safe_div(e43, den, den > 0)), q)
     den = d2 - d6
-    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    q = torch.where(in_ac[..., None], a + ac * _safe_div(d2, den, den > 0)[..., None], q)
-
-    in_c = (d6 >= 0) & (d5 <= d6)
-    q = torch.where(in_c[..., None], c, q)
-
+    q = _where((vb <= 0) & (d2 >= 0) & (d6 <= 0), _axpy(a, ac, _safe_div(d2, den, den > 0)), q)
+    q = _where((d6 >= 0) & (d5 <= d6), c, q)
     den = d1 - d3
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    q = torch.where(in_ab[..., None], a + ab * _safe_div(d1, den, den > 0)[..., None], q)
-
-    in_b = (d3 >= 0) & (d4 <= d3)
-    q = torch.where(in_b[..., None], b, q)
-
-    in_a = (d1 <= 0) & (d2 <= 0)
-    return torch.where(in_a[..., None], a, q)
+    q = _where((vc <= 0) & (d1 >= 0) & (d3 <= 0), _axpy(a, ab, _safe_div(d1, den, den > 0)), q)
+    q = _where((d3 >= 0) & (d4 <= d3), b, q)
+    return _where((d1 <= 0) & (d2 <= 0), a, q)
 
 
-def _closest_segment_segment(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+def _closest_segment_segment(p1: Vec, q1: Vec, p2: Vec, q2: Vec, eps: float) -> tuple[Vec, Vec]:
     """Closest points of segments p1q1 and p2q2 (Ericson 5.1.9), branch-free.
 
     Args:
-        p1, q1, p2, q2: (..., 3) segment end points.
+        p1, q1, p2, q2: segment end points, components broadcastable to a common shape S.
         eps: machine epsilon of the dtype.
 
     Returns:
-        c1, c2: (..., 3) closest points on the first and on the second segment.
+        c1, c2: closest points on the first and on the second segment, components of shape S.
     """
-    d1 = q1 - p1
-    d2 = q2 - p2
-    r = p1 - p2
+    d1 = _sub(q1, p1)
+    d2 = _sub(q2, p2)
+    r = _sub(p1, p2)
     a = _dot(d1, d1)
     e = _dot(d2, d2)
     f = _dot(d2, r)
@@ -161,7 +165,7 @@ def _closest_segment_segment(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor, eps
     n = _cross(d1, d2)
     nn = _dot(n, n)
     line = nn > tiny * a * e  # not parallel: sin(angle) > eps
-    s = _safe_div(_dot(_cross(p2 - p1, d2), n), nn, line).clamp(0, 1)
+    s = _safe_div(_dot(_cross(_sub(p2, p1), d2), n), nn, line).clamp(0, 1)
     t = _safe_div(b * s + f, e, ~deg2)
     s_lo = _safe_div(-c, a, ~deg1).clamp(0, 1)  # closest on segment 1 to p2 (t = 0)
     s_hi = _safe_div(b - c, a, ~deg1).clamp(0, 1)  # closest on segment 1 to q2 (t = 1)
@@ -172,24 +176,25 @@ def _closest_segment_segment(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor, eps
     zero = torch.zeros_like(s)
     s = torch.where(deg1, zero, torch.where(deg2, s_lo, s))
     t = torch.where(deg2, zero, torch.where(deg1, t_pt, t))
-    return p1 + d1 * s[..., None], p2 + d2 * t[..., None]
+    return _axpy(p1, d1, s), _axpy(p2, d2, t)
 
 
 def triangle_closest_points(tri_a: Tensor, tri_b: Tensor) -> TriangleClosestPoints:
     """Closest points between K pairs of solid triangles.
 
     Exact up to rounding for non-intersecting pairs: the minimum over the 6 vertex-triangle and 9 edge-edge
-    features (see the module docstring for robustness and for intersecting input). Computes in the input dtype on
-    the input device with no host synchronisation. Autograd passes through (piecewise smooth, no nan/inf gradients
-    from unselected branches) but is not validated; ``dist`` has a zero gradient where it is exactly 0.
+    features (see the module docstring for robustness and for intersecting input). Computes in the input
+    dtype on the input device, without host synchronisation. Autograd passes through (piecewise smooth, no
+    nan/inf gradients from unselected branches) but is only checked at generic configurations; ``dist`` has
+    a zero gradient where it is exactly 0.
 
     Args:
         tri_a: (K, 3, 3) vertices of triangles a (vertex index, then xyz).
         tri_b: (K, 3, 3) vertices of triangles b, same dtype and device.
 
     Returns:
-        TriangleClosestPoints ``(dist, qa, qb)``: dist (K,) distance, qa (K, 3) point on triangle a, qb (K, 3) point
-        on triangle b, with ``|qa - qb| = dist`` up to rounding.
+        TriangleClosestPoints ``(dist, qa, qb)``: dist (K,) distance, qa (K, 3) point on triangle a,
+        qb (K, 3) point on triangle b, with ``|qa - qb| = dist`` up to rounding.
 
     Raises:
         ValueError: on a shape other than (K, 3, 3), a non-float dtype, or mismatched dtype, device or K.
@@ -210,43 +215,48 @@ def triangle_closest_points(tri_a: Tensor, tri_b: Tensor) -> TriangleClosestPoin
 
     k = tri_a.shape[0]
     eps = torch.finfo(tri_a.dtype).eps
-    origin = tri_a[:, :1, :]  # (K, 1, 3)
-    a = tri_a - origin
-    b = tri_b - origin
+    origin = tri_a[:, 0]  # (K, 3)
+    # Components relative to the origin, each (K, 3) over the vertices.
+    ax, ay, az = (tri_a - origin[:, None]).permute(2, 0, 1).contiguous().unbind(0)
+    bx, by, bz = (tri_b - origin[:, None]).permute(2, 0, 1).contiguous().unbind(0)
+    a: Vec = (ax, ay, az)
+    b: Vec = (bx, by, bz)
 
-    # Vertex-triangle: the 3 vertices of a against b, then the 3 vertices of b against a.
-    p = torch.cat((a, b), dim=1)  # (K, 6, 3)
-    t0, t1, t2 = (torch.cat((b[:, i : i + 1].expand(k, 3, 3), a[:, i : i + 1].expand(k, 3, 3)), 1) for i in range(3))
-    q = _closest_point_triangle(p, t0, t1, t2)  # (K, 6, 3)
-    qa_vt = torch.cat((a, q[:, 3:]), dim=1)
-    qb_vt = torch.cat((q[:, :3], b), dim=1)
+    def vertex(v: Vec, i: int) -> Vec:  # vertex i of every triangle, components (K, 1)
+        return (v[0][:, i : i + 1], v[1][:, i : i + 1], v[2][:, i : i + 1])
 
-    # Edge-edge: edge i of a is (a_i, a_i+1); pairs (i, j) row-major.
-    a_next = a.roll(-1, dims=1)
-    b_next = b.roll(-1, dims=1)
+    def unsqueeze(v: Vec, dim: int) -> Vec:
+        return (v[0].unsqueeze(dim), v[1].unsqueeze(dim), v[2].unsqueeze(dim))
+
+    def roll(v: Vec) -> Vec:  # vertex i + 1 in place of vertex i
+        return (v[0].roll(-1, 1), v[1].roll(-1, 1), v[2].roll(-1, 1))
+
+    def features(vt: Vec, tv: Vec, ee: Vec) -> Vec:  # the 15 features in order, components (K, 15)
+        x, y, z = (torch.cat((vt[i], tv[i], ee[i].reshape(k, 9)), dim=1) for i in range(3))
+        return (x, y, z)
+
+    # Vertex-triangle: the 3 vertices of a against b, then the 3 vertices of b against a; components (K, 3).
+    q_ab = _closest_point_triangle(a, vertex(b, 0), vertex(b, 1), vertex(b, 2))
+    q_ba = _closest_point_triangle(b, vertex(a, 0), vertex(a, 1), vertex(a, 2))
+    # Edge-edge: edge i of a is (a_i, a_i+1), edge j of b likewise; components (K, 3, 3) over (i, j).
     c1, c2 = _closest_segment_segment(
-        a[:, :, None].expand(k, 3, 3, 3).reshape(k, 9, 3),
-        a_next[:, :, None].expand(k, 3, 3, 3).reshape(k, 9, 3),
-        b[:, None].expand(k, 3, 3, 3).reshape(k, 9, 3),
-        b_next[:, None].expand(k, 3, 3, 3).reshape(k, 9, 3),
-        eps,
+        unsqueeze(a, 2), unsqueeze(roll(a), 2), unsqueeze(b, 1), unsqueeze(roll(b), 1), eps
     )
 
-    qa_all = torch.cat((qa_vt, c1), dim=1)  # (K, 15, 3)
-    qb_all = torch.cat((qb_vt, c2), dim=1)  # (K, 15, 3)
-    diff = qa_all - qb_all
+    qa_all = features(a, q_ba, c1)
+    qb_all = features(q_ab, b, c2)
+    diff = _sub(qa_all, qb_all)
     d2_all = _dot(diff, diff)  # (K, 15)
     idx = d2_all.argmin(dim=1, keepdim=True)  # (K, 1), first minimum on ties
     d2 = d2_all.gather(1, idx)[:, 0]
-    gidx = idx[:, :, None].expand(k, 1, 3)
-    qa = qa_all.gather(1, gidx)[:, 0] + origin[:, 0]
-    qb = qb_all.gather(1, gidx)[:, 0] + origin[:, 0]
+    qa = torch.cat([x.gather(1, idx) for x in qa_all], dim=1) + origin
+    qb = torch.cat([x.gather(1, idx) for x in qb_all], dim=1) + origin
     pos = d2 > 0
     dist = torch.where(pos, torch.where(pos, d2, torch.ones_like(d2)).sqrt(), torch.zeros_like(d2))
     return TriangleClosestPoints(dist, qa, qb)
 
 
-# ----------------------------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------------------
 # numba: the same formulas on scalars, in the same order.
 
 _EPS64 = float(np.finfo(np.float64).eps)
@@ -256,7 +266,7 @@ _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
 @numba.njit(**_JIT)
 def _closest_point_triangle_nb(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Closest point to p on triangle abc; scalar twin of :func:`_closest_point_triangle`. Returns (qx, qy, qz)."""
+    """Closest point (qx, qy, qz) to p on triangle abc; scalar twin of :func:`_closest_point_triangle`."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
     apx, apy, apz = px - ax, py - ay, pz - az
@@ -305,9 +315,7 @@ def _closest_point_triangle_nb(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @numba.njit(**_JIT)
-def _closest_segment_segment_nb(
-    p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z
-):
+def _closest_segment_segment_nb(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
     """Segment parameters (s, t) of the closest points; scalar twin of :func:`_closest_segment_segment`."""
     d1x, d1y, d1z = q1x - p1x, q1y - p1y, q1z - p1z
     d2x, d2y, d2z = q2x - p2x, q2y - p2y, q2z - p2z
@@ -367,13 +375,13 @@ def tri_tri_closest_nb(A, B, out):
 
     # Vertices of A against B, then vertices of B against A.
     for side in range(2):
-        P = A if side == 0 else B
-        T = B if side == 0 else A
-        tax, tay, taz = T[0, 0] - ox, T[0, 1] - oy, T[0, 2] - oz
-        tbx, tby, tbz = T[1, 0] - ox, T[1, 1] - oy, T[1, 2] - oz
-        tcx, tcy, tcz = T[2, 0] - ox, T[2, 1] - oy, T[2, 2] - oz
+        pts = A if side == 0 else B
+        tri = B if side == 0 else A
+        tax, tay, taz = tri[0, 0] - ox, tri[0, 1] - oy, tri[0, 2] - oz
+        tbx, tby, tbz = tri[1, 0] - ox, tri[1, 1] - oy, tri[1, 2] - oz
+        tcx, tcy, tcz = tri[2, 0] - ox, tri[2, 1] - oy, tri[2, 2] - oz
         for i in range(3):
-            px, py, pz = P[i, 0] - ox, P[i, 1] - oy, P[i, 2] - oz
+            px, py, pz = pts[i, 0] - ox, pts[i, 1] - oy, pts[i, 2] - oz
             qx, qy, qz = _closest_point_triangle_nb(px, py, pz, tax, tay, taz, tbx, tby, tbz, tcx, tcy, tcz)
             dx, dy, dz = px - qx, py - qy, pz - qz
             d2 = dx * dx + dy * dy + dz * dz

@@ -20,8 +20,9 @@ from ._geometry import tri_tri_closest_nb
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 
-_STALL_TOL = 1e-8
-_NOISE = 64 * 2.220446049250313e-16  # relative resolution of E below which decreases cannot be measured  # a pair whose relative gradient is below this when no step can decrease E any more is done
+_STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when no step can decrease E any more
+_EPS_RES = 16 * 2.220446049250313e-16  # rounding of E, relative to the magnitudes it is computed from
+_GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component, relative to its scale sc
 
 
 @numba.njit(cache=True, inline="always")
@@ -42,7 +43,10 @@ def _energy(X, n0, n1, n2, d, half_delta, lam):
 
 @numba.njit(cache=True, inline="always")
 def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
-    """Gradient g (4), Hessian H (4, 4), per-component magnitude scale sc (4) and gaps s (6) of E at p."""
+    """Gradient g (4), Hessian H (4, 4), per-component rounding scale sc (4) and gaps s (6) of E at p.
+
+    Returns the rounding resolution of E at p: sum_k eps (|n.x_k| + |d| + delta/2) / s_k^2 (each gap s_k is the
+    difference of terms of that size) plus the resolution of the sum itself."""
     n0, n1, n2, d = p[0], p[1], p[2], p[3]
     r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     u0, u1, u2 = n0 / r, n1 / r, n2 / r
@@ -61,6 +65,7 @@ def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
         H[i, 3] = 0.0
         H[3, i] = 0.0
     H[3, 3] = 0.0
+    e_res = lam / om
     for k in range(6):
         sg = 1.0 if k < 3 else -1.0
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
@@ -68,17 +73,23 @@ def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
         s[k] = sk
         w1 = 1.0 / (sk * sk)
         w2 = 2.0 * w1 / sk
-        # abar = sg [x; 1]; grad -= abar / s^2; hess += 2 abar abar^T / s^3 (sg^2 = 1)
+        # abar = sg [x; 1]; grad -= abar / s^2; hess += 2 abar abar^T / s^3 (sg^2 = 1).
+        # sc: rounding-noise scale of each gradient component; s_k carries an absolute rounding error of about
+        # eps (|n.x_k| + |d|), amplified in 1/s^2 by 2 (|n.x_k| + |d|) / s_k.
+        mag = abs(n0 * x0) + abs(n1 * x1) + abs(n2 * x2) + abs(d) + half_delta
+        amp = 1.0 + 2.0 * mag / sk
+        e_res += mag * w1
         a = (x0, x1, x2, 1.0)
         for i in range(4):
             gi = sg * a[i] * w1
             g[i] -= gi
-            sc[i] += abs(gi)
+            sc[i] += abs(gi) * amp
             for j in range(i, 4):
                 H[i, j] += w2 * a[i] * a[j]
     for i in range(4):
         for j in range(i):
             H[i, j] = H[j, i]
+    return _EPS_RES * e_res
 
 
 @numba.njit(cache=True, inline="always")
@@ -174,15 +185,19 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                         for j in range(18):
                             hess[k, i, j] = 0.0
                 continue
-            # ---- damped Newton (Levenberg-Marquardt on the diagonal)
+            # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
+            #   rel <= tol                    relative gradient (each component against its rounding scale sc);
+            #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
+            #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
+            #                                 nothing representable is left (stiff near-margin pairs).
             damp = 0.0
             st = NOT_CONVERGED
             rel = math.inf
             for _it in range(max_iter + 1):
-                _grad_hess(Xk, p, half_delta, lam, g, H, sc, s)
+                e_res = _grad_hess(Xk, p, half_delta, lam, g, H, sc, s)
                 rel = 0.0
                 for i in range(4):
-                    r_i = abs(g[i]) / sc[i]
+                    r_i = abs(g[i]) / sc[i] if sc[i] > 0.0 else 0.0  # 0/0: an exact zero component
                     if r_i > rel:
                         rel = r_i
                 if rel <= tol:
@@ -191,24 +206,36 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                 if _it == max_iter:
                     break
                 accepted = False
+                done = False
                 for _try in range(60):
                     if _cholesky4(H, L, damp):
                         for i in range(4):
                             m[i] = -g[i]
                         _chol_solve4(L, m, step)
+                        dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
+                        for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
+                            acc = _GRAD_EPS * sc[i]
+                            for t in range(i):
+                                acc -= L[i, t] * m[t]
+                            m[i] = acc / L[i, i]
+                        noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
+                        if damp == 0.0 and (dec2 <= tol * tol * e or dec2 <= noise2):
+                            done = True
+                            break
                         e_new = _energy(
                             Xk, p[0] + step[0], p[1] + step[1], p[2] + step[2], p[3] + step[3], half_delta, lam
                         )
-                        # Accept a decrease; or, once the predicted decrease -g.step is below the resolution
-                        # of E, a step that keeps E within that resolution (the quadratic endgame of Newton).
-                        pred = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
-                        noise = _NOISE * e
-                        if e_new <= e or (pred <= noise and e_new <= e + noise):
+                        # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
+                        # keeps E within that resolution (the quadratic endgame of Newton).
+                        if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
                             accepted = True
                             break
                     damp = 1e-4 if damp == 0.0 else damp * 10.0
+                if done:
+                    st = CONVERGED
+                    break
                 if not accepted:
-                    if rel <= _STALL_TOL:  # at machine precision: no representable decrease is left
+                    if rel <= _STALL_TOL:  # no representable decrease is left
                         st = CONVERGED
                     break
                 for i in range(4):

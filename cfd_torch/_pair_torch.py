@@ -12,8 +12,9 @@ import torch
 from ._geometry import triangle_closest_points
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
-_STALL_TOL = 1e-8
-_NOISE = 64 * torch.finfo(torch.float64).eps
+_STALL_TOL = 1e-8  # see _pair_numba
+_EPS_RES = 16 * torch.finfo(torch.float64).eps
+_GRAD_EPS = 16 * torch.finfo(torch.float64).eps
 _MAX_DAMP = 1e30
 
 
@@ -36,7 +37,8 @@ def energy(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float) -> t
 
 
 def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
-    """dE/dp (K, 4), d2E/dp2 (K, 4, 4), the magnitude scale of each gradient component (K, 4), gaps (K, 6).
+    """dE/dp (K, 4), d2E/dp2 (K, 4, 4), rounding scale of each gradient component (K, 4), gaps (K, 6) and the
+    rounding resolution of E (K,).
 
     grad_p E = lam/(1-r)^2 [u; 0] - sum_k abar_k / s_k^2,  abar_k = sg_k [x_k; 1]
     hess_pp E = sum_k 2 abar_k abar_k^T / s_k^3 + lam [[Hn, 0], [0, 0]],
@@ -52,13 +54,17 @@ def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: fl
     terms = abar * w1[..., None]  # (K, 6, 4)
     gn = lam / (om * om) * u
     g = torch.cat([gn, torch.zeros_like(r)], -1) - terms.sum(1)
-    scale = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + terms.abs().sum(1)
+    # rounding-noise scale per component: s carries an error of eps (|n.x| + |d|), amplified by 2 (...) / s
+    mag = (X.abs() * n.abs()[:, None, :]).sum(-1) + P[:, 3:].abs() + half_delta  # (K, 6)
+    amp = 1.0 + 2.0 * mag / s
+    scale = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + (terms.abs() * amp[..., None]).sum(1)
+    e_res = _EPS_RES * (lam / om.squeeze(-1) + (mag * w1).sum(-1))  # rounding resolution of E (see _pair_numba)
     H = torch.einsum("kv,kvi,kvj->kij", 2.0 * w1 / s, abar, abar)
     eye = torch.eye(3, dtype=X.dtype, device=X.device)
     uu = u[:, :, None] * u[:, None, :]
     Hn = (2.0 / om**3)[..., None] * uu + (eye - uu) / (om * om * r)[..., None]
     H[:, :3, :3] += lam * Hn
-    return g, H, scale, s
+    return g, H, scale, s, e_res
 
 
 def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,35 +101,33 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
     act = torch.nonzero(status == NOT_CONVERGED).squeeze(-1)
     damp = torch.zeros(act.shape[0], dtype=X.dtype, device=X.device)
     n_accepted = torch.zeros(act.shape[0], dtype=torch.int64, device=X.device)
+    eye4 = torch.eye(4, dtype=X.dtype, device=X.device)
     for _ in range(max_iter * 8):  # accepted steps are capped by max_iter; rejected trials by the damping cap
         if act.numel() == 0:
             break
         Xa, Pa, Ea = X[act], P[act], E[act]
-        g, H, scale, _ = plane_grad_hess(Xa, Pa, half_delta, lam)
-        rel = (g.abs() / scale).amax(-1)
+        g, H, scale, _, e_res = plane_grad_hess(Xa, Pa, half_delta, lam)
+        rel = torch.where(scale > 0, g.abs() / scale, torch.zeros_like(g)).amax(-1)  # 0/0: an exact zero
         resid[act] = rel
-        done = rel <= tol
-        stalled = damp > _MAX_DAMP
-        capped = n_accepted >= max_iter
-        finished = done | stalled | capped
-        ok = done | (stalled & (rel <= _STALL_TOL))
-        status[act[finished & ok]] = CONVERGED
-        keep = ~finished
-        act, damp, n_accepted = act[keep], damp[keep], n_accepted[keep]
-        Xa, Pa, Ea, g, H = Xa[keep], Pa[keep], Ea[keep], g[keep], H[keep]
-        if act.numel() == 0:
-            break
-        diag = torch.diagonal(H, dim1=-2, dim2=-1)
-        Hd = H + torch.diag_embed(diag * damp[:, None])
+        Hd = H + torch.diag_embed(torch.diagonal(H, dim1=-2, dim2=-1) * damp[:, None])
         L, info = torch.linalg.cholesky_ex(Hd)
         spd = info == 0
-        L = torch.where(spd[:, None, None], L, torch.eye(4, dtype=X.dtype, device=X.device))
+        L = torch.where(spd[:, None, None], L, eye4)
         step = torch.cholesky_solve(-g[..., None], L).squeeze(-1)
+        dec2 = -(g * step).sum(-1)
+        y = torch.linalg.solve_triangular(L, (_GRAD_EPS * scale)[..., None], upper=False).squeeze(-1)
+        noise2 = (y * y).sum(-1)
+        # the stopping rules of _pair_numba.solve_pairs
+        done = (rel <= tol) | (spd & (damp == 0) & ((dec2 <= tol * tol * Ea) | (dec2 <= noise2)))
+        stalled = damp > _MAX_DAMP
+        finished = done | stalled | (n_accepted >= max_iter)
+        status[act[done | (stalled & (rel <= _STALL_TOL))]] = CONVERGED
+        keep = ~finished
+        act, damp, n_accepted = act[keep], damp[keep], n_accepted[keep]
+        Xa, Pa, Ea, step, dec2, spd, e_res = Xa[keep], Pa[keep], Ea[keep], step[keep], dec2[keep], spd[keep], e_res[keep]
         trial = Pa + step
         Et = energy(Xa, trial, half_delta, lam)
-        pred = -(g * step).sum(-1)
-        noise = _NOISE * Ea
-        accept = spd & ((Et <= Ea) | ((pred <= noise) & (Et <= Ea + noise)))
+        accept = spd & ((Et <= Ea) | ((dec2 <= e_res) & (Et <= Ea + e_res)))
         P[act] = torch.where(accept[:, None], trial, Pa)
         E[act] = torch.where(accept, Et, Ea)
         n_accepted = n_accepted + accept.to(torch.int64)
@@ -142,7 +146,7 @@ def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, l
     d2E/dx_k2  = 2 n n^T / s_k^3            (block diagonal)
     d2E/dx_k dp = -sg_k [I3 | 0] / s_k^2 + 2 n [x_k^T | 1] / s_k^3
     """
-    _, Epp, _, s = plane_grad_hess(X, P, half_delta, lam)
+    _, Epp, _, s, _ = plane_grad_hess(X, P, half_delta, lam)
     n = P[:, :3]
     sg = _sign(X)
     w1 = 1.0 / (s * s)

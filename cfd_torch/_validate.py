@@ -40,24 +40,27 @@ def check_triangles(tri: object, name: str) -> None:
         raise ValueError(f"{name} must have shape (..., 3, 3) (three vertices, xyz), got {tuple(tri.shape)}")
     if tri.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name} must be float32 or float64, got {tri.dtype}")
-    bad = ~torch.isfinite(tri).flatten(-2).all(-1)
-    if bool(bad.any()):
-        raise ValueError(
-            f"{name} contains NaN or inf coordinates (triangle at batch index {_index_str(bad)}, "
-            f"{int(bad.sum())} triangles)"
-        )
+    # One pass: the shape test below is False for NaN/inf coordinates as well, so finiteness is only diagnosed
+    # (an extra pass) when something failed.
     e1 = tri[..., 1, :] - tri[..., 0, :]
     e2 = tri[..., 2, :] - tri[..., 0, :]
     e3 = tri[..., 2, :] - tri[..., 1, :]
-    twice_area = torch.linalg.vector_norm(torch.linalg.cross(e1, e2), dim=-1)
-    longest_sq = torch.stack([(e * e).sum(-1) for e in (e1, e2, e3)], -1).amax(-1)
+    area2_sq = (torch.linalg.cross(e1, e2) ** 2).sum(-1)  # (2 area)^2
+    longest_sq = torch.maximum(torch.maximum((e1 * e1).sum(-1), (e2 * e2).sum(-1)), (e3 * e3).sum(-1))
     tol = _DEGENERACY_EPS_MULTIPLE * torch.finfo(tri.dtype).eps
-    degenerate = ~(twice_area > tol * longest_sq)  # also catches longest_sq == 0 (coincident vertices)
-    if bool(degenerate.any()):
+    bad = ~(area2_sq > (tol * longest_sq) ** 2)  # also True for coincident vertices (0 > 0) and for NaN
+    if not bool(bad.any()):
+        return
+    nonfinite = ~torch.isfinite(tri).flatten(-2).all(-1)
+    if bool(nonfinite.any()):
         raise ValueError(
-            f"{name} has degenerate triangles (collinear or coincident vertices relative to the triangle's size), "
-            f"first at batch index {_index_str(degenerate)}, {int(degenerate.sum())} in all"
+            f"{name} contains NaN or inf coordinates (triangle at batch index {_index_str(nonfinite)}, "
+            f"{int(nonfinite.sum())} triangles)"
         )
+    raise ValueError(
+        f"{name} has degenerate triangles (collinear or coincident vertices relative to the triangle's size), "
+        f"first at batch index {_index_str(bad)}, {int(bad.sum())} in all"
+    )
 
 
 def check_positive(value: float, name: str) -> None:

@@ -23,7 +23,6 @@ import mmap
 from typing import NamedTuple
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from . import _pair_torch
 from ._validate import check_positive, check_triangles
@@ -152,20 +151,39 @@ class _PairGradFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, X, P, feasible, mu, margin):  # X (K, 6, 3), P (K, 4), feasible (K,) bool
         Xs, Ps = _safe_rows(X, P, feasible)
-        ctx.save_for_backward(Xs, Ps, feasible)
+        ctx.save_for_backward(X, P, feasible)
         ctx.params = (mu, margin)
         _, Ex, _, _ = _pair_torch.pair_derivative_parts(Xs, Ps, 0.5 * margin, LAMBDA)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
 
     @staticmethod
-    @once_differentiable  # third derivatives are refused loudly
     def backward(ctx, v):
         # d/dx (v . grad_x P) = v^T hess_x P; with p*(x) implicit: hess = mu (E_xx - E_xp E_pp^-1 E_px).
         X, P, feasible = ctx.saved_tensors
         mu, margin = ctx.params
-        hv = _pair_torch.pair_hessian_vjp(X, P, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
-        hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
-        return hv.reshape(-1, 6, 3), None, None, None, None
+        with torch.no_grad():
+            Xs, Ps = _safe_rows(X, P, feasible)
+            hv = _pair_torch.pair_hessian_vjp(Xs, Ps, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
+            hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
+        hv = hv.reshape(-1, 6, 3)
+        if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
+            hv = _RefuseThirdOrder.apply(hv, X, v)
+        return hv, None, None, None, None
+
+
+class _RefuseThirdOrder(torch.autograd.Function):
+    """Identity on the Hessian-vector product whose backward (a third derivative) raises."""
+
+    @staticmethod
+    def forward(ctx, hv, X, v):
+        return hv.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        raise RuntimeError(
+            "pair_potential: third derivatives are not implemented; the second derivative (implicit Hessian) "
+            "is exact but cannot be differentiated again"
+        )
 
 
 class _PairPotentialFn(torch.autograd.Function):
