@@ -223,7 +223,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                             done = True
                             break
                         e_new = _energy(
-                            Xk, p[0] + step[0], p[1] + step[1], p[2] + step[2], p[3] + step[3], half_delta, lam
+                            Xk,
+                            p[0] + step[0],
+                            p[1] + step[1],
+                            p[2] + step[2],
+                            p[3] + step[3],
+                            half_delta,
+                            lam,
                         )
                         # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
                         # keeps E within that resolution (the quadratic endgame of Newton).
@@ -280,7 +286,12 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                             W[row, i] = acc / L[i, i]
                 for a_ in range(18):
                     for b_ in range(a_, 18):
-                        acc = W[a_, 0] * W[b_, 0] + W[a_, 1] * W[b_, 1] + W[a_, 2] * W[b_, 2] + W[a_, 3] * W[b_, 3]
+                        acc = (
+                            W[a_, 0] * W[b_, 0]
+                            + W[a_, 1] * W[b_, 1]
+                            + W[a_, 2] * W[b_, 2]
+                            + W[a_, 3] * W[b_, 3]
+                        )
                         ka, kb = a_ // 3, b_ // 3
                         if ka == kb:
                             acc -= n[a_ - 3 * ka] * n[b_ - 3 * kb] * 2.0 / (s[ka] * s[ka] * s[ka])

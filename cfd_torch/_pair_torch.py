@@ -58,7 +58,9 @@ def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: fl
     mag = (X.abs() * n.abs()[:, None, :]).sum(-1) + P[:, 3:].abs() + half_delta  # (K, 6)
     amp = 1.0 + 2.0 * mag / s
     scale = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + (terms.abs() * amp[..., None]).sum(1)
-    e_res = _EPS_RES * (lam / om.squeeze(-1) + (mag * w1).sum(-1))  # rounding resolution of E (see _pair_numba)
+    e_res = _EPS_RES * (
+        lam / om.squeeze(-1) + (mag * w1).sum(-1)
+    )  # rounding resolution of E (see _pair_numba)
     H = torch.einsum("kv,kvi,kvj->kij", 2.0 * w1 / s, abar, abar)
     eye = torch.eye(3, dtype=X.dtype, device=X.device)
     uu = u[:, :, None] * u[:, None, :]
@@ -124,7 +126,15 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         status[act[done | (stalled & (rel <= _STALL_TOL))]] = CONVERGED
         keep = ~finished
         act, damp, n_accepted = act[keep], damp[keep], n_accepted[keep]
-        Xa, Pa, Ea, step, dec2, spd, e_res = Xa[keep], Pa[keep], Ea[keep], step[keep], dec2[keep], spd[keep], e_res[keep]
+        Xa, Pa, Ea, step, dec2, spd, e_res = (
+            Xa[keep],
+            Pa[keep],
+            Ea[keep],
+            step[keep],
+            dec2[keep],
+            spd[keep],
+            e_res[keep],
+        )
         trial = Pa + step
         Et = energy(Xa, trial, half_delta, lam)
         accept = spd & ((Et <= Ea) | ((dec2 <= e_res) & (Et <= Ea + e_res)))
@@ -158,7 +168,9 @@ def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, l
     return s, Ex, Exp.reshape(-1, 18, 4), Epp  # Exp: (K, 18, 4)
 
 
-def pair_hessian_torch(X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: float, lam: float) -> torch.Tensor:
+def pair_hessian_torch(
+    X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: float, lam: float
+) -> torch.Tensor:
     """(K, 18, 18) hess_x P = mu (E_xx - E_xp E_pp^-1 E_px) (implicit function theorem)."""
     s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
     n = P[:, :3]
@@ -170,7 +182,9 @@ def pair_hessian_torch(X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: 
     return mu * Hs
 
 
-def pair_hessian_vjp(X: torch.Tensor, P: torch.Tensor, v: torch.Tensor, mu: float, half_delta: float, lam: float):
+def pair_hessian_vjp(
+    X: torch.Tensor, P: torch.Tensor, v: torch.Tensor, mu: float, half_delta: float, lam: float
+):
     """(K, 18) v^T hess_x P without forming the 18 x 18 Hessian: mu (v^T E_xx - (v^T E_xp) E_pp^-1 E_px)."""
     s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
     n = P[:, :3]

@@ -24,7 +24,9 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
     bad = torch.isnan(x) if allow_inf else ~torch.isfinite(x)
     if bool(bad.any()):
         what = "NaN" if allow_inf else "NaN or inf"
-        raise ValueError(f"{name} contains {what} (first at index {_index_str(bad)}, {int(bad.sum())} entries)")
+        raise ValueError(
+            f"{name} contains {what} (first at index {_index_str(bad)}, {int(bad.sum())} entries)"
+        )
 
 
 def check_triangles(tri: object, name: str) -> None:

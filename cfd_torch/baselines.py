@@ -120,7 +120,9 @@ def sdrs_pair_potential(
         raise ValueError("sdrs_pair_potential: some triangle pairs are within the margin")
     # The start has |n| < 1 and all gaps > 0; enlarge |n| toward 1 - dhat/2 so far pairs start in the zero region.
     p = p * ((1.0 - 0.5 * dhat) / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
-    p = torch.where(torch.isfinite(_sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0])
+    p = torch.where(
+        torch.isfinite(_sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0]
+    )
 
     def total(q: torch.Tensor) -> torch.Tensor:
         return _sdrs_energy(q, Xd, dhat, margin).sum()
@@ -130,8 +132,13 @@ def sdrs_pair_potential(
         if bool((e == 0).all()):
             break
         g = torch.func.grad(total)(p)
-        H = torch.func.vmap(torch.func.hessian(lambda q, x: _sdrs_energy(q[None], x[None], dhat, margin)[0]))(p, Xd)
-        H = H + 1e-12 * torch.eye(4, dtype=X.dtype) * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None]
+        H = torch.func.vmap(torch.func.hessian(lambda q, x: _sdrs_energy(q[None], x[None], dhat, margin)[0]))(
+            p, Xd
+        )
+        H = (
+            H
+            + 1e-12 * torch.eye(4, dtype=X.dtype) * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None]
+        )
         step = torch.linalg.solve(H + 1e-30 * torch.eye(4, dtype=X.dtype), -g[..., None]).squeeze(-1)
         a = torch.ones_like(e)
         for _ls in range(40):

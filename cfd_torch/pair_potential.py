@@ -192,7 +192,14 @@ class _PairPotentialFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, X, mu, margin, tol, max_iter, backend):
         val, P, _, _ = _solve(
-            X, mu=mu, margin=margin, tol=tol, max_iter=max_iter, want_grad=False, want_hess=False, backend=backend
+            X,
+            mu=mu,
+            margin=margin,
+            tol=tol,
+            max_iter=max_iter,
+            want_grad=False,
+            want_hess=False,
+            backend=backend,
         )
         feasible = torch.isfinite(val)
         ctx.save_for_backward(X, P, feasible)

@@ -80,7 +80,9 @@ def main() -> None:
                     torch.cuda.synchronize()
                 times.append(time.perf_counter() - t0)
             med = statistics.median(times)
-            rows.append({"K": k, "dtype": dt, "mode": mode, "median_s": med, "pairs_per_s": k / med, "times_s": times})
+            rows.append(
+                {"K": k, "dtype": dt, "mode": mode, "median_s": med, "pairs_per_s": k / med, "times_s": times}
+            )
 
     meta = {
         "torch": torch.__version__,

@@ -67,7 +67,9 @@ def main() -> None:
     gaps = torch.logspace(math.log10(args.margin * 1.5), 4, args.points, dtype=torch.float64)
     ours_v, ours_f = normal_force(lambda a, b: pair_potential(a, b, mu=args.mu, margin=args.margin), gaps)
     ipc_v, ipc_f = normal_force(lambda a, b: ipc_pair_barrier(a, b, dhat=args.dhat), gaps)
-    sdrs_v, sdrs_f = normal_force(lambda a, b: sdrs_pair_potential(a, b, dhat=args.dhat, margin=args.margin), gaps)
+    sdrs_v, sdrs_f = normal_force(
+        lambda a, b: sdrs_pair_potential(a, b, dhat=args.dhat, margin=args.margin), gaps
+    )
     # Scale the peers so that their force equals ours at the smallest gap.
     k_ipc = float(ours_f[0] / ipc_f[0])
     k_sdrs = float(ours_f[0] / sdrs_f[0])
@@ -77,7 +79,9 @@ def main() -> None:
     centroid_dist = (ta.mean(1) - tb.mean(1)).norm(dim=-1)
     pc = central_potential(centroid_dist, mu=args.mu)
 
-    assert bool((ours_f > 0).all()), "the long-range potential must push the triangles apart at every distance"
+    assert bool((ours_f > 0).all()), (
+        "the long-range potential must push the triangles apart at every distance"
+    )
     last_ipc = float(gaps[ipc_f > 0].max())
     last_sdrs = float(gaps[sdrs_f > 0].max())
 
@@ -108,8 +112,18 @@ def main() -> None:
         "dhat": args.dhat,
         "gap": gaps.tolist(),
         "ours": {"value": ours_v.tolist(), "force": ours_f.tolist()},
-        "ipc": {"value": ipc_v.tolist(), "force": ipc_f.tolist(), "scale": k_ipc, "last_nonzero_gap": last_ipc},
-        "sdrs": {"value": sdrs_v.tolist(), "force": sdrs_f.tolist(), "scale": k_sdrs, "last_nonzero_gap": last_sdrs},
+        "ipc": {
+            "value": ipc_v.tolist(),
+            "force": ipc_f.tolist(),
+            "scale": k_ipc,
+            "last_nonzero_gap": last_ipc,
+        },
+        "sdrs": {
+            "value": sdrs_v.tolist(),
+            "force": sdrs_f.tolist(),
+            "scale": k_sdrs,
+            "last_nonzero_gap": last_sdrs,
+        },
     }
     (args.out / "pair_demo.json").write_text(json.dumps(record))
     print(f"{'gap [m]':>10} {'ours F':>12} {'IPC F':>12} {'SDRS F':>12}")

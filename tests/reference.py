@@ -46,7 +46,9 @@ def max_margin_plane(X: np.ndarray) -> tuple[np.ndarray, float]:
         {"type": "ineq", "fun": lambda z: SIGN * (X @ z[:3] + z[3]) - z[4]},
         {"type": "ineq", "fun": lambda z: 1.0 - z[:3] @ z[:3]},
     ]
-    res = minimize(lambda z: -z[4], z0, constraints=cons, method="SLSQP", options={"ftol": 1e-15, "maxiter": 500})
+    res = minimize(
+        lambda z: -z[4], z0, constraints=cons, method="SLSQP", options={"ftol": 1e-15, "maxiter": 500}
+    )
     z = res.x
     nn = np.linalg.norm(z[:3])
     return np.concatenate([z[:3], [z[3]]]) / nn, float(np.min(SIGN * (X @ z[:3] + z[3])) / nn)

@@ -82,7 +82,9 @@ def test_closed_form_derivatives_equal_autograd_and_finite_differences(backend):
     d = pair_potential_derivatives(a, b, mu=1.0, margin=MARGIN, backend=backend)
     assert (d.grad.abs().amax(-1) > 0).all()
     assert (d.hessian.abs().amax((-1, -2)) > 0).all()
-    torch.testing.assert_close(d.hessian, d.hessian.transpose(-1, -2), rtol=0, atol=1e-12 * d.hessian.abs().max())
+    torch.testing.assert_close(
+        d.hessian, d.hessian.transpose(-1, -2), rtol=0, atol=1e-12 * float(d.hessian.abs().max())
+    )
 
     # autograd (first and second order) against the closed forms
     x = torch.cat([a, b], 1).reshape(K, 18).requires_grad_(True)
@@ -90,8 +92,8 @@ def test_closed_form_derivatives_equal_autograd_and_finite_differences(backend):
     (g,) = torch.autograd.grad(val.sum(), x, create_graph=True)
     H = torch.stack([torch.autograd.grad(g[:, j].sum(), x, retain_graph=True)[0] for j in range(18)], 1)
     torch.testing.assert_close(d.value, val.detach(), rtol=1e-14, atol=0)
-    torch.testing.assert_close(d.grad, g.detach(), rtol=1e-12, atol=1e-12 * g.abs().max())
-    torch.testing.assert_close(d.hessian, H, rtol=1e-10, atol=1e-10 * H.abs().max())
+    torch.testing.assert_close(d.grad, g.detach(), rtol=1e-12, atol=1e-12 * float(g.detach().abs().max()))
+    torch.testing.assert_close(d.hessian, H, rtol=1e-10, atol=1e-10 * float(H.abs().max()))
 
     # central finite differences of the value (gradient) and of the closed-form gradient (Hessian)
     h = 1e-6
@@ -102,8 +104,12 @@ def test_closed_form_derivatives_equal_autograd_and_finite_differences(backend):
         e = torch.zeros(18, dtype=F64)
         e[j] = h
         xp, xm = x0 + e, x0 - e
-        dp = pair_potential_derivatives(xp[:, :9].reshape(K, 3, 3), xp[:, 9:].reshape(K, 3, 3), mu=1.0, hessian=False)
-        dm = pair_potential_derivatives(xm[:, :9].reshape(K, 3, 3), xm[:, 9:].reshape(K, 3, 3), mu=1.0, hessian=False)
+        dp = pair_potential_derivatives(
+            xp[:, :9].reshape(K, 3, 3), xp[:, 9:].reshape(K, 3, 3), mu=1.0, hessian=False
+        )
+        dm = pair_potential_derivatives(
+            xm[:, :9].reshape(K, 3, 3), xm[:, 9:].reshape(K, 3, 3), mu=1.0, hessian=False
+        )
         gfd[:, j] = (dp.value - dm.value) / (2 * h)
         hfd[:, :, j] = (dp.grad - dm.grad) / (2 * h)
     scale_g = d.grad.abs().amax(-1, keepdim=True)
@@ -118,8 +124,8 @@ def test_backends_agree():
     dt = pair_potential_derivatives(a, b, backend="torch")
     torch.testing.assert_close(dn.value, dt.value, rtol=1e-12, atol=0)
     torch.testing.assert_close(dn.plane, dt.plane, rtol=1e-9, atol=1e-12)
-    torch.testing.assert_close(dn.grad, dt.grad, rtol=1e-8, atol=1e-10 * dt.grad.abs().max())
-    torch.testing.assert_close(dn.hessian, dt.hessian, rtol=1e-7, atol=1e-9 * dt.hessian.abs().max())
+    torch.testing.assert_close(dn.grad, dt.grad, rtol=1e-8, atol=1e-10 * float(dt.grad.abs().max()))
+    torch.testing.assert_close(dn.hessian, dt.hessian, rtol=1e-7, atol=1e-9 * float(dt.hessian.abs().max()))
 
 
 # ---------------------------------------------------------------- identities and invariances
@@ -165,9 +171,11 @@ def test_symmetric_and_rigid_motion_invariant(backend):
     torch.testing.assert_close(moved, val, rtol=1e-11, atol=0)
     # the gradient rotates with the bodies
     d0 = pair_potential_derivatives(a, b, hessian=False, backend=backend)
-    d1 = pair_potential_derivatives(a @ R.transpose(1, 2) + t, b @ R.transpose(1, 2) + t, hessian=False, backend=backend)
+    d1 = pair_potential_derivatives(
+        a @ R.transpose(1, 2) + t, b @ R.transpose(1, 2) + t, hessian=False, backend=backend
+    )
     rotated = (d0.grad.reshape(300, 6, 3) @ R.transpose(1, 2)).reshape(300, 18)
-    torch.testing.assert_close(d1.grad, rotated, rtol=1e-8, atol=1e-9 * d0.grad.abs().max())
+    torch.testing.assert_close(d1.grad, rotated, rtol=1e-8, atol=1e-9 * float(d0.grad.abs().max()))
 
 
 def test_batch_equals_per_item_and_broadcasts():
@@ -194,7 +202,9 @@ def test_float32_inputs_solve_in_float64_and_return_float32():
     a32, b32 = a.float(), b.float()
     v32 = pair_potential(a32, b32)
     d32 = pair_potential_derivatives(a32, b32)
-    assert v32.dtype == torch.float32 and d32.grad.dtype == torch.float32 and d32.hessian.dtype == torch.float32
+    assert (
+        v32.dtype == torch.float32 and d32.grad.dtype == torch.float32 and d32.hessian.dtype == torch.float32
+    )
     v64 = pair_potential(a32.double(), b32.double())  # same (rounded) geometry in float64
     torch.testing.assert_close(v32, v64.float(), rtol=1e-6, atol=0)
     bb = b32.clone().requires_grad_(True)
@@ -259,7 +269,9 @@ def test_sweep_over_feature_cases_and_gaps(backend):
     for gap in gaps:
         a, b = _adversarial(gap)
         d = pair_potential_derivatives(a, b, mu=1e-8, margin=MARGIN, backend=backend)
-        assert torch.isfinite(d.value).all() and torch.isfinite(d.grad).all() and torch.isfinite(d.hessian).all()
+        assert (
+            torch.isfinite(d.value).all() and torch.isfinite(d.grad).all() and torch.isfinite(d.hessian).all()
+        )
         assert (d.value > 12e-8).all()
         # the upper triangle b is pushed up (+z; +x for the coplanar case), the lower one down
         push = d.grad[:, 9:].reshape(-1, 3, 3).sum(1)
@@ -316,10 +328,22 @@ FAR = GOOD + torch.tensor([0.0, 0.0, 2.0], dtype=F64)
         (GOOD.to(torch.int64), FAR, r"tri_a must be float32 or float64"),
         (GOOD, FAR.to(torch.float16), r"tri_b must be float32 or float64"),
         (GOOD.float(), FAR, r"share a dtype"),
-        (torch.stack([GOOD, GOOD.clone().fill_(float("nan"))]), FAR, r"tri_a contains NaN or inf.*index \(1\)"),
+        (
+            torch.stack([GOOD, GOOD.clone().fill_(float("nan"))]),
+            FAR,
+            r"tri_a contains NaN or inf.*index \(1\)",
+        ),
         (GOOD, torch.stack([FAR, FAR, FAR + float("inf")]), r"tri_b contains NaN or inf.*index \(2\)"),
-        (torch.stack([GOOD, _tri([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]])]), FAR, r"tri_a has degenerate.*index \(1\)"),
-        (GOOD, torch.stack([FAR, _tri([[0, 0, 5], [0, 0, 5], [1, 0, 5.0]])]), r"tri_b has degenerate.*index \(1\)"),
+        (
+            torch.stack([GOOD, _tri([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]])]),
+            FAR,
+            r"tri_a has degenerate.*index \(1\)",
+        ),
+        (
+            GOOD,
+            torch.stack([FAR, _tri([[0, 0, 5], [0, 0, 5], [1, 0, 5.0]])]),
+            r"tri_b has degenerate.*index \(1\)",
+        ),
         (GOOD.expand(2, 3, 3, 3), FAR.expand(4, 3, 3), r"do not broadcast"),
     ],
 )
