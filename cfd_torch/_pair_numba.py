@@ -20,12 +20,17 @@ from ._geometry import tri_tri_closest_nb
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 
+# error_model="numpy": IEEE division (1/0 = inf) without Python's per-division zero checks. fastmath is limited to
+# FMA contraction and reciprocal multiplication: no-NaN/no-inf assumptions would break the +inf barrier.
+_JIT = {"cache": True, "error_model": "numpy", "fastmath": {"contract", "arcp"}}
+_JIT_INLINE = {**_JIT, "inline": "always"}
+
 _STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when no step can decrease E any more
 _EPS_RES = 16 * 2.220446049250313e-16  # rounding of E, relative to the magnitudes it is computed from
 _GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component, relative to its scale sc
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(**_JIT_INLINE)
 def _energy(X, n0, n1, n2, d, half_delta, lam):
     """E(p) or +inf outside the feasible set."""
     r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
@@ -41,7 +46,7 @@ def _energy(X, n0, n1, n2, d, half_delta, lam):
     return e
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(**_JIT_INLINE)
 def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
     """Gradient g (4), Hessian H (4, 4), per-component rounding scale sc (4) and gaps s (6) of E at p.
 
@@ -49,50 +54,64 @@ def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
     difference of terms of that size) plus the resolution of the sum itself."""
     n0, n1, n2, d = p[0], p[1], p[2], p[3]
     r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-    u0, u1, u2 = n0 / r, n1 / r, n2 / r
+    inv_r = 1.0 / r
+    u0, u1, u2 = n0 * inv_r, n1 * inv_r, n2 * inv_r
     om = 1.0 - r
-    gl = lam / (om * om)
-    g[0], g[1], g[2], g[3] = gl * u0, gl * u1, gl * u2, 0.0
-    sc[0], sc[1], sc[2], sc[3] = abs(g[0]), abs(g[1]), abs(g[2]), 0.0
+    inv_om = 1.0 / om
+    gl = lam * inv_om * inv_om
+    g0, g1, g2, g3 = gl * u0, gl * u1, gl * u2, 0.0
+    sc0, sc1, sc2, sc3 = abs(g0), abs(g1), abs(g2), 0.0
     # lambda Hn = lambda [2/(1-r)^3 u u^T + (I - u u^T) / ((1-r)^2 r)]
-    c1 = 2.0 * lam / (om * om * om)
-    c2 = gl / r
-    u = (u0, u1, u2)
-    for i in range(3):
-        for j in range(3):
-            H[i, j] = (c1 - c2) * u[i] * u[j]
-        H[i, i] += c2
-        H[i, 3] = 0.0
-        H[3, i] = 0.0
-    H[3, 3] = 0.0
-    e_res = lam / om
+    c2 = gl * inv_r
+    c12 = 2.0 * gl * inv_om - c2
+    h00, h01, h02 = c12 * u0 * u0 + c2, c12 * u0 * u1, c12 * u0 * u2
+    h11, h12, h22 = c12 * u1 * u1 + c2, c12 * u1 * u2, c12 * u2 * u2 + c2
+    h03 = h13 = h23 = h33 = 0.0
+    e_res = lam * inv_om
     for k in range(6):
         sg = 1.0 if k < 3 else -1.0
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
         sk = sg * (n0 * x0 + n1 * x1 + n2 * x2 + d) - half_delta
         s[k] = sk
-        w1 = 1.0 / (sk * sk)
-        w2 = 2.0 * w1 / sk
+        inv = 1.0 / sk
+        w1 = inv * inv
+        w2 = 2.0 * w1 * inv
         # abar = sg [x; 1]; grad -= abar / s^2; hess += 2 abar abar^T / s^3 (sg^2 = 1).
         # sc: rounding-noise scale of each gradient component; s_k carries an absolute rounding error of about
         # eps (|n.x_k| + |d|), amplified in 1/s^2 by 2 (|n.x_k| + |d|) / s_k.
         mag = abs(n0 * x0) + abs(n1 * x1) + abs(n2 * x2) + abs(d) + half_delta
-        amp = 1.0 + 2.0 * mag / sk
         e_res += mag * w1
-        a = (x0, x1, x2, 1.0)
-        for i in range(4):
-            gi = sg * a[i] * w1
-            g[i] -= gi
-            sc[i] += abs(gi) * amp
-            for j in range(i, 4):
-                H[i, j] += w2 * a[i] * a[j]
-    for i in range(4):
-        for j in range(i):
-            H[i, j] = H[j, i]
+        sw = sg * w1
+        aw = abs(w1) * (1.0 + 2.0 * mag * inv)
+        g0 -= sw * x0
+        g1 -= sw * x1
+        g2 -= sw * x2
+        g3 -= sw
+        sc0 += aw * abs(x0)
+        sc1 += aw * abs(x1)
+        sc2 += aw * abs(x2)
+        sc3 += aw
+        wx0, wx1, wx2 = w2 * x0, w2 * x1, w2 * x2
+        h00 += wx0 * x0
+        h01 += wx0 * x1
+        h02 += wx0 * x2
+        h03 += wx0
+        h11 += wx1 * x1
+        h12 += wx1 * x2
+        h13 += wx1
+        h22 += wx2 * x2
+        h23 += wx2
+        h33 += w2
+    g[0], g[1], g[2], g[3] = g0, g1, g2, g3
+    sc[0], sc[1], sc[2], sc[3] = sc0, sc1, sc2, sc3
+    H[0, 0], H[0, 1], H[0, 2], H[0, 3] = h00, h01, h02, h03
+    H[1, 0], H[1, 1], H[1, 2], H[1, 3] = h01, h11, h12, h13
+    H[2, 0], H[2, 1], H[2, 2], H[2, 3] = h02, h12, h22, h23
+    H[3, 0], H[3, 1], H[3, 2], H[3, 3] = h03, h13, h23, h33
     return _EPS_RES * e_res
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(**_JIT_INLINE)
 def _cholesky4(A, L, damp):
     """L L^T = A + damp diag(A); returns False if not positive definite."""
     for j in range(4):
@@ -113,7 +132,7 @@ def _cholesky4(A, L, damp):
     return True
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(**_JIT_INLINE)
 def _chol_solve4(L, b, x):
     """x = (L L^T)^-1 b."""
     for i in range(4):
@@ -128,7 +147,7 @@ def _chol_solve4(L, b, x):
         x[i] = acc / L[i, i]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(parallel=True, **_JIT)
 def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid):
     """Solve K pair problems and write their value / plane / derivatives in place.
 
@@ -153,7 +172,7 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
         p = np.empty(4)
         s = np.empty(6)
         q = np.empty(6)
-        W = np.empty((18, 4))
+        WT = np.empty((4, 18))
         m = np.empty(4)
         lo = c * K // nchunks
         hi = (c + 1) * K // nchunks
@@ -213,15 +232,16 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                             m[i] = -g[i]
                         _chol_solve4(L, m, step)
                         dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
-                        for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
-                            acc = _GRAD_EPS * sc[i]
-                            for t in range(i):
-                                acc -= L[i, t] * m[t]
-                            m[i] = acc / L[i, i]
-                        noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
-                        if damp == 0.0 and (dec2 <= tol * tol * e or dec2 <= noise2):
-                            done = True
-                            break
+                        if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
+                            for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
+                                acc = _GRAD_EPS * sc[i]
+                                for t in range(i):
+                                    acc -= L[i, t] * m[t]
+                                m[i] = acc / L[i, i]
+                            noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
+                            if dec2 <= tol * tol * e or dec2 <= noise2:
+                                done = True
+                                break
                         e_new = _energy(
                             Xk,
                             p[0] + step[0],
@@ -267,33 +287,41 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                 # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
                 # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
                 _cholesky4(H, L, 0.0)
+                il0, il1, il2, il3 = 1.0 / L[0, 0], 1.0 / L[1, 1], 1.0 / L[2, 2], 1.0 / L[3, 3]
                 for kk in range(6):
                     sg = 1.0 if kk < 3 else -1.0
-                    w1 = 1.0 / (s[kk] * s[kk])
-                    w2 = 2.0 * w1 / s[kk]
+                    inv = 1.0 / s[kk]
+                    w1 = inv * inv
+                    w2 = 2.0 * w1 * inv
+                    xa, xb, xc = Xk[kk, 0], Xk[kk, 1], Xk[kk, 2]
                     for j in range(3):
                         row = 3 * kk + j
                         # E_xp row: -sg e_j^T [I|0] / s^2 + 2 n_j [x^T | 1] / s^3
-                        for cc in range(3):
-                            m[cc] = n[j] * Xk[kk, cc] * w2
-                        m[3] = n[j] * w2
-                        m[j] -= sg * w1
-                        # forward substitution: W[row] = L^-1 m
-                        for i in range(4):
-                            acc = m[i]
-                            for t in range(i):
-                                acc -= L[i, t] * W[row, t]
-                            W[row, i] = acc / L[i, i]
+                        nw = n[j] * w2
+                        m0, m1, m2, m3 = nw * xa, nw * xb, nw * xc, nw
+                        if j == 0:
+                            m0 -= sg * w1
+                        elif j == 1:
+                            m1 -= sg * w1
+                        else:
+                            m2 -= sg * w1
+                        # forward substitution, stored transposed: WT[:, row] = L^-1 m
+                        t0 = m0 * il0
+                        t1 = (m1 - L[1, 0] * t0) * il1
+                        t2 = (m2 - L[2, 0] * t0 - L[2, 1] * t1) * il2
+                        t3 = (m3 - L[3, 0] * t0 - L[3, 1] * t1 - L[3, 2] * t2) * il3
+                        WT[0, row], WT[1, row], WT[2, row], WT[3, row] = t0, t1, t2, t3
+                # rows written in order (contiguous, vectorisable): hess = mu (E_xx - W W^T)
+                hk = hess[k]
+                # (products before scaling by -mu keep the result exactly symmetric)
                 for a_ in range(18):
-                    for b_ in range(a_, 18):
-                        acc = (
-                            W[a_, 0] * W[b_, 0]
-                            + W[a_, 1] * W[b_, 1]
-                            + W[a_, 2] * W[b_, 2]
-                            + W[a_, 3] * W[b_, 3]
+                    wa0, wa1, wa2, wa3 = WT[0, a_], WT[1, a_], WT[2, a_], WT[3, a_]
+                    for b_ in range(18):
+                        hk[a_, b_] = -mu * (
+                            wa0 * WT[0, b_] + wa1 * WT[1, b_] + wa2 * WT[2, b_] + wa3 * WT[3, b_]
                         )
-                        ka, kb = a_ // 3, b_ // 3
-                        if ka == kb:
-                            acc -= n[a_ - 3 * ka] * n[b_ - 3 * kb] * 2.0 / (s[ka] * s[ka] * s[ka])
-                        hess[k, a_, b_] = -mu * acc
-                        hess[k, b_, a_] = -mu * acc
+                for kk in range(6):
+                    c = 2.0 * mu / (s[kk] * s[kk] * s[kk])
+                    for i in range(3):
+                        for j in range(3):
+                            hk[3 * kk + i, 3 * kk + j] += c * n[i] * n[j]

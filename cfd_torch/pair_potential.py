@@ -20,6 +20,7 @@ never vanishes.
 from __future__ import annotations
 
 import mmap
+import sys
 from typing import NamedTuple
 
 import torch
@@ -55,11 +56,17 @@ class PairDerivatives(NamedTuple):
     plane: torch.Tensor
 
 
-def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-    """Uninitialised CPU tensor; large ones are backed by transparent huge pages.
+_HESS_POOL: list[mmap.mmap] = []  # recycled huge-page buffers of large outputs (at most _POOL_SIZE)
+_POOL_SIZE = 2
 
-    A fresh (K, 18, 18) float64 Hessian at K = 1e5 is 260 MB; faulting it in with 4 kB pages costs several times
-    the arithmetic that fills it. Where the kernel allows it, MADV_HUGEPAGE makes that 2 MB pages.
+
+def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """Uninitialised CPU tensor; large ones are backed by recycled transparent-huge-page buffers.
+
+    A fresh (K, 18, 18) float64 Hessian at K = 1e5 is 260 MB; having the kernel fault in and zero that much
+    memory costs as much as the arithmetic that fills it. Large outputs therefore live in anonymous mappings
+    advised MADV_HUGEPAGE, and up to two such buffers are kept and reused once no tensor refers to them any more
+    (the pool holds at most the two largest recent outputs).
     """
     numel = 1
     for d in shape:
@@ -68,11 +75,18 @@ def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     advice = getattr(mmap, "MADV_HUGEPAGE", None)
     if nbytes < _HUGEPAGE_MIN_BYTES or advice is None:
         return torch.empty(shape, dtype=dtype)
+    for buf in _HESS_POOL:
+        # references: the pool list, the loop variable and getrefcount's argument; more means a tensor holds it
+        if nbytes <= len(buf) <= 2 * nbytes and sys.getrefcount(buf) == 3:
+            return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)
     buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     try:
         buf.madvise(advice)
     except OSError:
         pass
+    _HESS_POOL.append(buf)
+    if len(_HESS_POOL) > _POOL_SIZE:
+        _HESS_POOL.pop(0)
     return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)  # the tensor keeps buf alive
 
 
