@@ -324,4 +324,4 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                     c = 2.0 * mu / (s[kk] * s[kk] * s[kk])
                     for i in range(3):
                         for j in range(3):
-                            hk[3 * kk + i, 3 * kk + j] += c * n[i] * n[j]
+                            hk[3 * kk + i, 3 * kk + j] += c * (n[i] * n[j])
