@@ -31,29 +31,22 @@ _GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component
 
 
 @numba.njit(**_JIT_INLINE)
-def _energy(X, n0, n1, n2, d, half_delta, lam):
-    """E(p) or +inf outside the feasible set."""
-    r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-    if not r < 1.0:
-        return math.inf
-    e = lam / (1.0 - r)
-    for i in range(6):
-        sg = 1.0 if i < 3 else -1.0
-        s = sg * (n0 * X[i, 0] + n1 * X[i, 1] + n2 * X[i, 2] + d) - half_delta
-        if not s > 0.0:
-            return math.inf
-        e += 1.0 / s
-    return e
+def _eval(X, p, half_delta, lam, g, H, sc, s):
+    """E at p with its gradient g (4), Hessian H (4, 4), per-component rounding scale sc (4) and gaps s (6).
 
-
-@numba.njit(**_JIT_INLINE)
-def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
-    """Gradient g (4), Hessian H (4, 4), per-component rounding scale sc (4) and gaps s (6) of E at p.
-
-    Returns the rounding resolution of E at p: sum_k eps (|n.x_k| + |d| + delta/2) / s_k^2 (each gap s_k is the
-    difference of terms of that size) plus the resolution of the sum itself."""
+    Returns (E, e_res): E = +inf outside the feasible set (g, H, sc then undefined), and the rounding resolution
+    of E, sum_k eps (|n.x_k| + |d| + delta/2) / s_k^2 (each gap is a difference of terms of that size) plus the
+    resolution of the sum itself."""
     n0, n1, n2, d = p[0], p[1], p[2], p[3]
     r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    if not r < 1.0:
+        return math.inf, 0.0
+    for k in range(6):
+        sg = 1.0 if k < 3 else -1.0
+        sk = sg * (n0 * X[k, 0] + n1 * X[k, 1] + n2 * X[k, 2] + d) - half_delta
+        if not sk > 0.0:
+            return math.inf, 0.0
+        s[k] = sk
     inv_r = 1.0 / r
     u0, u1, u2 = n0 * inv_r, n1 * inv_r, n2 * inv_r
     om = 1.0 - r
@@ -67,13 +60,14 @@ def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
     h00, h01, h02 = c12 * u0 * u0 + c2, c12 * u0 * u1, c12 * u0 * u2
     h11, h12, h22 = c12 * u1 * u1 + c2, c12 * u1 * u2, c12 * u2 * u2 + c2
     h03 = h13 = h23 = h33 = 0.0
-    e_res = lam * inv_om
+    e = lam * inv_om
+    e_res = e
     for k in range(6):
         sg = 1.0 if k < 3 else -1.0
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
-        sk = sg * (n0 * x0 + n1 * x1 + n2 * x2 + d) - half_delta
-        s[k] = sk
+        sk = s[k]
         inv = 1.0 / sk
+        e += inv
         w1 = inv * inv
         w2 = 2.0 * w1 * inv
         # abar = sg [x; 1]; grad -= abar / s^2; hess += 2 abar abar^T / s^3 (sg^2 = 1).
@@ -108,12 +102,23 @@ def _grad_hess(X, p, half_delta, lam, g, H, sc, s):
     H[1, 0], H[1, 1], H[1, 2], H[1, 3] = h01, h11, h12, h13
     H[2, 0], H[2, 1], H[2, 2], H[2, 3] = h02, h12, h22, h23
     H[3, 0], H[3, 1], H[3, 2], H[3, 3] = h03, h13, h23, h33
-    return _EPS_RES * e_res
+    return e, _EPS_RES * e_res
 
 
 @numba.njit(**_JIT_INLINE)
-def _cholesky4(A, L, damp):
-    """L L^T = A + damp diag(A); returns False if not positive definite."""
+def _rel_grad(g, sc):
+    """max_i |g_i| / sc_i, the relative gradient (an exactly zero component with zero scale counts as 0)."""
+    rel = 0.0
+    for i in range(4):
+        r_i = abs(g[i]) / sc[i] if sc[i] > 0.0 else 0.0
+        if r_i > rel:
+            rel = r_i
+    return rel
+
+
+@numba.njit(**_JIT_INLINE)
+def _cholesky4(A, L, Li, damp):
+    """L L^T = A + damp diag(A), Li = 1 / diag(L); returns False if not positive definite."""
     for j in range(4):
         acc = A[j, j] * (1.0 + damp)
         for k in range(j):
@@ -122,29 +127,31 @@ def _cholesky4(A, L, damp):
             return False
         ljj = math.sqrt(acc)
         L[j, j] = ljj
+        inv = 1.0 / ljj
+        Li[j] = inv
         for i in range(j + 1, 4):
             acc = A[i, j]
             for k in range(j):
                 acc -= L[i, k] * L[j, k]
-            L[i, j] = acc / ljj
+            L[i, j] = acc * inv
         for i in range(j):
             L[i, j] = 0.0
     return True
 
 
 @numba.njit(**_JIT_INLINE)
-def _chol_solve4(L, b, x):
+def _chol_solve4(L, Li, b, x):
     """x = (L L^T)^-1 b."""
     for i in range(4):
         acc = b[i]
         for k in range(i):
             acc -= L[i, k] * x[k]
-        x[i] = acc / L[i, i]
+        x[i] = acc * Li[i]
     for i in range(3, -1, -1):
         acc = x[i]
         for k in range(i + 1, 4):
             acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
+        x[i] = acc * Li[i]
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -164,10 +171,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
     half_delta = 0.5 * delta
     nchunks = min(K, 256)
     for c in numba.prange(nchunks):
-        g = np.empty(4)
-        sc = np.empty(4)
-        H = np.empty((4, 4))
+        g, g2 = np.empty(4), np.empty(4)
+        sc, sc2 = np.empty(4), np.empty(4)
+        H, H2 = np.empty((4, 4)), np.empty((4, 4))
+        p2 = np.empty(4)
+        s2 = np.empty(6)
         L = np.empty((4, 4))
+        Li = np.empty(4)
         step = np.empty(4)
         p = np.empty(4)
         s = np.empty(6)
@@ -181,6 +191,7 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
             # ---- strictly feasible start from the exact closest points (SPEC section 2)
             dist = math.sqrt(tri_tri_closest_nb(Xk[0:3], Xk[3:6], q))
             e = math.inf
+            e_res = 0.0
             if dist > delta:
                 alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
                 d = 0.0
@@ -189,7 +200,7 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                     p[i] = ni
                     d -= ni * 0.5 * (q[i] + q[3 + i])
                 p[3] = d
-                e = _energy(Xk, p[0], p[1], p[2], p[3], half_delta, lam)
+                e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
             if e == math.inf:
                 status[k] = INFEASIBLE
                 val[k] = math.inf
@@ -211,15 +222,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
             #                                 nothing representable is left (stiff near-margin pairs).
             damp = 0.0
             st = NOT_CONVERGED
-            rel = math.inf
             for _it in range(max_iter + 1):
-                e_res = _grad_hess(Xk, p, half_delta, lam, g, H, sc, s)
-                rel = 0.0
-                for i in range(4):
-                    r_i = abs(g[i]) / sc[i] if sc[i] > 0.0 else 0.0  # 0/0: an exact zero component
-                    if r_i > rel:
-                        rel = r_i
-                if rel <= tol:
+                if (
+                    abs(g[0]) <= tol * sc[0]
+                    and abs(g[1]) <= tol * sc[1]
+                    and abs(g[2]) <= tol * sc[2]
+                    and abs(g[3]) <= tol * sc[3]
+                ):
                     st = CONVERGED
                     break
                 if _it == max_iter:
@@ -227,30 +236,24 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                 accepted = False
                 done = False
                 for _try in range(60):
-                    if _cholesky4(H, L, damp):
+                    if _cholesky4(H, L, Li, damp):
                         for i in range(4):
                             m[i] = -g[i]
-                        _chol_solve4(L, m, step)
+                        _chol_solve4(L, Li, m, step)
                         dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
                         if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
                             for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
                                 acc = _GRAD_EPS * sc[i]
                                 for t in range(i):
                                     acc -= L[i, t] * m[t]
-                                m[i] = acc / L[i, i]
+                                m[i] = acc * Li[i]
                             noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
                             if dec2 <= tol * tol * e or dec2 <= noise2:
                                 done = True
                                 break
-                        e_new = _energy(
-                            Xk,
-                            p[0] + step[0],
-                            p[1] + step[1],
-                            p[2] + step[2],
-                            p[3] + step[3],
-                            half_delta,
-                            lam,
-                        )
+                        for i in range(4):
+                            p2[i] = p[i] + step[i]
+                        e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
                         # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
                         # keeps E within that resolution (the quadratic endgame of Newton).
                         if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
@@ -261,15 +264,15 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                     st = CONVERGED
                     break
                 if not accepted:
-                    if rel <= _STALL_TOL:  # no representable decrease is left
+                    if _rel_grad(g, sc) <= _STALL_TOL:  # no representable decrease is left
                         st = CONVERGED
                     break
-                for i in range(4):
-                    p[i] += step[i]
-                e = e_new
+                # the trial's E, derivatives and gaps become current
+                p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                e, e_res = e_new, e_res_new
                 damp = 0.0 if damp <= 1e-3 else damp * 0.1
             status[k] = st
-            resid[k] = rel
+            resid[k] = _rel_grad(g, sc)
             val[k] = mu * e
             for i in range(4):
                 P[k, i] = p[i]
@@ -286,8 +289,8 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
             if want_hess:
                 # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
                 # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
-                _cholesky4(H, L, 0.0)
-                il0, il1, il2, il3 = 1.0 / L[0, 0], 1.0 / L[1, 1], 1.0 / L[2, 2], 1.0 / L[3, 3]
+                _cholesky4(H, L, Li, 0.0)
+                il0, il1, il2, il3 = Li[0], Li[1], Li[2], Li[3]
                 for kk in range(6):
                     sg = 1.0 if kk < 3 else -1.0
                     inv = 1.0 / s[kk]

@@ -74,8 +74,7 @@ def main() -> None:
     k_ipc = float(ours_f[0] / ipc_f[0])
     k_sdrs = float(ours_f[0] / sdrs_f[0])
     ipc_v, ipc_f, sdrs_v, sdrs_f = k_ipc * ipc_v, k_ipc * ipc_f, k_sdrs * sdrs_v, k_sdrs * sdrs_f
-    centroid_dist = gaps + 0.0  # reference curve: central potential of the centroid distance
-    ta, tb = triangles(gaps)
+    ta, tb = triangles(gaps)  # reference curve: the central potential of the centroid distance
     centroid_dist = (ta.mean(1) - tb.mean(1)).norm(dim=-1)
     pc = central_potential(centroid_dist, mu=args.mu)
 
@@ -128,7 +127,7 @@ def main() -> None:
     (args.out / "pair_demo.json").write_text(json.dumps(record))
     print(f"{'gap [m]':>10} {'ours F':>12} {'IPC F':>12} {'SDRS F':>12}")
     for i in torch.linspace(0, args.points - 1, 9).round().long().tolist():
-        print(f"{gaps[i]:10.3g} {ours_f[i]:12.4g} {ipc_f[i]:12.4g} {sdrs_f[i]:12.4g}")
+        print(f"{gaps[i]:10.3g} {ours_f[i]:12.4g} {ipc_f[i] + 0.0:12.4g} {sdrs_f[i] + 0.0:12.4g}")
     print(f"wrote {args.out / 'pair_demo.png'} and {args.out / 'pair_demo.json'}")
 
 
