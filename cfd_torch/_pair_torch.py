@@ -149,6 +149,12 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
     return P, E, status, resid
 
 
+def pair_vertex_grad(X: torch.Tensor, P: torch.Tensor, half_delta: float) -> torch.Tensor:
+    """(K, 6, 3) dE/dx_k = -sg_k n / s_k^2 at planes P (envelope theorem), without the second-order pieces."""
+    s = gaps(X, P, half_delta)
+    return -(_sign(X) / (s * s))[..., None] * P[:, None, :3]
+
+
 def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
     """Closed-form pieces at the optimal plane: gaps s (K, 6), E_x (K, 6, 3), E_xp (K, 18, 4), E_pp (K, 4, 4).
 

@@ -140,7 +140,7 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend):
     if want_grad or want_hess:
         Xs, Ps = _safe_rows(X, P, feasible)
         if want_grad:
-            _, Ex, _, _ = _pair_torch.pair_derivative_parts(Xs, Ps, 0.5 * margin, LAMBDA)
+            Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
             grad = torch.where(feasible[:, None], mu * Ex.reshape(-1, 18), zero)
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
@@ -167,7 +167,7 @@ class _PairGradFn(torch.autograd.Function):
         Xs, Ps = _safe_rows(X, P, feasible)
         ctx.save_for_backward(X, P, feasible)
         ctx.params = (mu, margin)
-        _, Ex, _, _ = _pair_torch.pair_derivative_parts(Xs, Ps, 0.5 * margin, LAMBDA)
+        Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
 
     @staticmethod
