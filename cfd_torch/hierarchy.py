@@ -1,0 +1,150 @@
+"""Bounding Sphere Hierarchy (BSH) of a rigid body, built once in the body frame (SPEC section 4).
+
+Binary tree, one leaf per triangle. Leaf: centre = triangle centroid, radius = max vertex distance to it. Internal
+node: centre = mean of the distinct vertices below it (so it lies inside their convex hull, which keeps the blend
+repulsive), radius = max distance from that centre to them (the sphere contains the node's hull). Built top-down by
+median splits of the triangle centroids along the axis of largest extent: balanced (depth ceil(log2 F)), so a
+traversal visits O(F) node pairs for quasi-uniform meshes.
+
+Large triangles: with d1 = R_I + R_J a leaf whose sphere is much larger than the partner's triangles makes every
+partner leaf inside it a near pair. ``max_edge`` refines the mesh when the BSH is built (trimesh's
+``subdivide_to_size``: midpoint splits, same surface) so coarse obstacles (floors, boxes, pushers) come in triangles
+comparable to those of the bodies they touch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ._validate import check_triangles
+
+__all__ = ["BSH"]
+
+
+@dataclass(frozen=True, eq=False)
+class BSH:
+    """A body's sphere hierarchy. All tensors are float64 / int64 on the CPU, in the body frame.
+
+    Attributes:
+        vertices: (V, 3) body-frame vertices [m] (after refinement).
+        faces: (F, 3) vertex indices.
+        centre: (M, 3) node centres, M = 2F - 1; node 0 is the root.
+        radius: (M,) node radii.
+        child: (M, 2) children of internal nodes, -1 for leaves.
+        tri: (M,) triangle index of leaves, -1 for internal nodes.
+        depth: (M,) depth of each node (root 0).
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    centre: torch.Tensor
+    radius: torch.Tensor
+    child: torch.Tensor
+    tri: torch.Tensor
+    depth: torch.Tensor
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.centre.shape[0])
+
+    @property
+    def triangles(self) -> torch.Tensor:
+        """(F, 3, 3) body-frame triangle vertices."""
+        return self.vertices[self.faces]
+
+    @classmethod
+    def from_trimesh(cls, mesh, *, max_edge: float | None = None) -> BSH:
+        """Build from a ``trimesh.Trimesh`` (its vertices and faces)."""
+        return cls.build(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_edge=max_edge)
+
+    @classmethod
+    def build(cls, vertices, faces, *, max_edge: float | None = None) -> BSH:
+        """Build the hierarchy of a triangle mesh.
+
+        Args:
+            vertices: (V, 3) body-frame vertices (array-like or tensor).
+            faces: (F, 3) integer vertex indices.
+            max_edge: if given, triangles with an edge longer than this are split (midpoints) until none is.
+
+        Raises:
+            ValueError: bad shapes, NaN/inf vertices, out-of-range indices or degenerate faces (naming the face).
+        """
+        V = np.asarray(
+            vertices.detach().cpu() if isinstance(vertices, torch.Tensor) else vertices, dtype=np.float64
+        )
+        Fc = np.asarray(faces.detach().cpu() if isinstance(faces, torch.Tensor) else faces)
+        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 3:
+            raise ValueError(f"vertices must have shape (V, 3) with V >= 3, got {V.shape}")
+        if Fc.ndim != 2 or Fc.shape[1] != 3 or Fc.shape[0] < 1:
+            raise ValueError(f"faces must have shape (F, 3) with F >= 1, got {Fc.shape}")
+        if not np.issubdtype(Fc.dtype, np.integer):
+            raise ValueError(f"faces must hold integer vertex indices, got dtype {Fc.dtype}")
+        bad = ~np.isfinite(V).all(1)
+        if bad.any():
+            raise ValueError(f"vertices contain NaN or inf (first at vertex {int(np.argmax(bad))})")
+        if Fc.min() < 0 or Fc.max() >= V.shape[0]:
+            raise ValueError(f"faces index vertices out of range [0, {V.shape[0]}) ")
+        Fc = Fc.astype(np.int64)
+        check_triangles(torch.from_numpy(V[Fc]), "faces")
+        if max_edge is not None:
+            if not max_edge > 0:
+                raise ValueError(f"max_edge must be > 0, got {max_edge}")
+            import trimesh.remesh
+
+            V, Fc = trimesh.remesh.subdivide_to_size(V, Fc, max_edge=max_edge, max_iter=64)
+            Fc = np.asarray(Fc, dtype=np.int64)
+        return cls(**_build_tree(np.asarray(V, dtype=np.float64), Fc))
+
+
+def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:
+    F = Fc.shape[0]
+    tris = V[Fc]  # (F, 3, 3)
+    centroids = tris.mean(1)
+    M = 2 * F - 1
+    centre = np.zeros((M, 3))
+    radius = np.zeros(M)
+    child = -np.ones((M, 2), dtype=np.int64)
+    tri = -np.ones(M, dtype=np.int64)
+    depth = np.zeros(M, dtype=np.int64)
+    # explicit stack: (node id, face indices, depth); ids are handed out in creation order
+    next_id = 1
+    stack = [(0, np.arange(F), 0)]
+    while stack:
+        node, idx, dep = stack.pop()
+        depth[node] = dep
+        if idx.shape[0] == 1:
+            f = int(idx[0])
+            c = centroids[f]
+            centre[node] = c
+            radius[node] = np.sqrt(((tris[f] - c) ** 2).sum(1)).max()
+            tri[node] = f
+            continue
+        verts = V[np.unique(Fc[idx].ravel())]
+        c = verts.mean(0)
+        centre[node] = c
+        radius[node] = np.sqrt(((verts - c) ** 2).sum(1)).max()
+        pts = centroids[idx]
+        axis = int(np.argmax(pts.max(0) - pts.min(0)))
+        order = np.argsort(pts[:, axis], kind="stable")
+        half = idx.shape[0] // 2
+        left, right = idx[order[:half]], idx[order[half:]]
+        child[node] = (next_id, next_id + 1)
+        stack.append((next_id, left, dep + 1))
+        stack.append((next_id + 1, right, dep + 1))
+        next_id += 2
+    return {
+        "vertices": torch.from_numpy(V),
+        "faces": torch.from_numpy(Fc),
+        "centre": torch.from_numpy(centre),
+        "radius": torch.from_numpy(radius),
+        "child": torch.from_numpy(child),
+        "tri": torch.from_numpy(tri),
+        "depth": torch.from_numpy(depth),
+    }
