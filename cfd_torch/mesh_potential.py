@@ -1,0 +1,529 @@
+"""BSH contact potential between rigid meshes, with closed-form pose-space gradients and Hessians.
+
+For two bodies with hierarchies a and b at poses q_a, q_b (translation, rotation vector), the potential is the
+recursion of SPEC section 4, started at the two roots::
+
+    P(I, J) = P_c(r)                                  if s >= 1       (far: no descent)
+            = phi P_c(r) + (1 - phi) F(I, J)          otherwise, phi = Phi(s) for s > 0 else 0
+    F(I, J) = P_exact(tri_I, tri_J)                   if both are leaves
+            = sum of P over the child pairs           otherwise (split both, or the larger)
+
+with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / (eps d1).
+
+Unrolled, P is a sum of terms ``w * V`` where V is P_c(r) or P_exact and w is the node pair's own phi (central
+terms) times the (1 - phi) of all its ancestors. The traversal is breadth-first and batched: the frontier of node
+pairs of all body pairs is a set of tensors, classified per level; each frontier element carries its inherited
+weight W with its gradient and Hessian in the 12 pose coordinates of its body pair, so the weights' derivatives
+enter the result exactly (product rule). Leaf pairs of all levels are solved in one batch at the end
+(``pair_potential_derivatives``) and chained to pose space with the second-order rotation terms::
+
+    grad_q = J^T grad_x,   hess_q = J^T hess_x J + sum_k grad_x_k . d2x_k/dq2,   x_k = R(omega) X_k + t.
+
+Coordinates of a body pair's derivatives: [t_a, omega_a, t_b, omega_b].
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import NamedTuple
+
+import torch
+
+from .hierarchy import BSH
+from .pair_potential import DEFAULT_MAX_ITER, DEFAULT_TOL, pair_potential_derivatives
+from .rotation import rotation_derivatives
+
+__all__ = ["MeshDerivatives", "mesh_potential", "mesh_potential_derivatives"]
+
+SPLIT_RULES = ("both", "larger")
+
+
+class MeshDerivatives(NamedTuple):
+    """Value and pose-space derivatives of the BSH potential of a body pair.
+
+    Attributes:
+        value: (...) potential, +inf when some leaf pair is within the margin.
+        grad: (..., 12) d value / d [t_a, omega_a, t_b, omega_b], or None (zero where value is +inf).
+        hessian: (..., 12, 12), or None.
+        stats: counts of the traversal: "node_pairs" (all node pairs visited), "leaf_pairs" (exact solves),
+            "levels".
+    """
+
+    value: torch.Tensor
+    grad: torch.Tensor | None
+    hessian: torch.Tensor | None
+    stats: dict
+
+
+# ---------------------------------------------------------------------------------------------- the forest
+class _Forest(NamedTuple):
+    centre: torch.Tensor  # (M, 3) body-frame node centres of all hierarchies
+    radius: torch.Tensor  # (M,)
+    child: torch.Tensor  # (M, 2) global ids, -1 for leaves
+    tri: torch.Tensor  # (M,) global triangle ids, -1 for internal nodes
+    tris: torch.Tensor  # (T, 3, 3) body-frame triangles
+    roots: torch.Tensor  # (H,) root id of each hierarchy
+
+
+_FOREST_CACHE: OrderedDict = OrderedDict()
+_FOREST_CACHE_SIZE = 8
+
+
+def _forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> _Forest:
+    """Concatenate hierarchies into one node table (cached for the last few hierarchy tuples)."""
+    key = (tuple(id(b) for b in bshes), dtype, device)
+    hit = _FOREST_CACHE.get(key)
+    if hit is not None and all(x is y for x, y in zip(hit[0], bshes, strict=True)):
+        _FOREST_CACHE.move_to_end(key)
+        return hit[1]
+    node_off = tri_off = 0
+    centre, radius, child, tri, tris, roots = [], [], [], [], [], []
+    for b in bshes:
+        centre.append(b.centre)
+        radius.append(b.radius)
+        child.append(torch.where(b.child >= 0, b.child + node_off, b.child))
+        tri.append(torch.where(b.tri >= 0, b.tri + tri_off, b.tri))
+        tris.append(b.triangles)
+        roots.append(node_off)
+        node_off += b.num_nodes
+        tri_off += b.num_faces
+    f = _Forest(
+        torch.cat(centre).to(dtype=dtype, device=device),
+        torch.cat(radius).to(dtype=dtype, device=device),
+        torch.cat(child).to(device),
+        torch.cat(tri).to(device),
+        torch.cat(tris).to(dtype=dtype, device=device),
+        torch.tensor(roots, device=device),
+    )
+    _FOREST_CACHE[key] = (bshes, f)
+    if len(_FOREST_CACHE) > _FOREST_CACHE_SIZE:
+        _FOREST_CACHE.popitem(last=False)
+    return f
+
+
+# ---------------------------------------------------------------------------------------------- kinematics
+def _point_jacobian(dR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """(E, 3, 3) d(R X)/d omega for per-element dR (E, 3, 3, 3) and body-frame points X (E, 3)."""
+    return torch.einsum("eimk,em->eik", dR, X)
+
+
+def _rot_second(d2R: torch.Tensor, X: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(E, 3, 3) sum_i w_i d2(R X)_i / d omega d omega."""
+    return torch.einsum("ei,eimkl,em->ekl", w, d2R, X)
+
+
+def _product(a, da, d2a, b, db, d2b):
+    """Value, gradient, Hessian of a * b (None derivatives are skipped)."""
+    val = a * b
+    grad = hess = None
+    if da is not None:
+        grad = b[:, None] * da + a[:, None] * db
+    if d2a is not None:
+        outer = da[:, :, None] * db[:, None, :]
+        hess = b[:, None, None] * d2a + a[:, None, None] * d2b + outer + outer.transpose(1, 2)
+    return val, grad, hess
+
+
+def _radial(f0, f1, f2, dr, d2r):
+    """Gradient and Hessian of f(r) from f', f'' and the derivatives of r."""
+    grad = f1[:, None] * dr if dr is not None else None
+    hess = None
+    if d2r is not None:
+        hess = f2[:, None, None] * dr[:, :, None] * dr[:, None, :] + f1[:, None, None] * d2r
+    return grad, hess
+
+
+def _smoothstep_derivs(s: torch.Tensor):
+    t = s.clamp(0.0, 1.0)
+    phi = t * t * t * (t * (6.0 * t - 15.0) + 10.0)
+    d1 = 30.0 * t * t * (t - 1.0) ** 2
+    d2 = 60.0 * t * (t - 1.0) * (2.0 * t - 1.0)
+    return phi, d1, d2
+
+
+def _central_derivs(r: torch.Tensor, mu: float):
+    ir = 1.0 / r
+    sq = torch.sqrt(ir)
+    p = 12.0 * mu * (1.0 + sq) ** 2
+    p1 = -12.0 * mu * (ir * sq + ir * ir)
+    p2 = 12.0 * mu * (1.5 * ir * ir * sq + 2.0 * ir * ir * ir)
+    return p, p1, p2
+
+
+# ---------------------------------------------------------------------------------------------- traversal
+def _traverse(
+    forest: _Forest,
+    pair_body: torch.Tensor,
+    pair_root: torch.Tensor,
+    pose: torch.Tensor,
+    *,
+    mu: float,
+    margin: float,
+    eps: float,
+    split: str,
+    order: int,
+    tol: float,
+    max_iter: int,
+):
+    """BSH potential of P body pairs at once.
+
+    Args:
+        forest: concatenated hierarchies.
+        pair_body: (P, 2) indices into ``pose`` of each pair's bodies a and b.
+        pair_root: (P, 2) root node ids of each pair's hierarchies.
+        pose: (Nb, 6) body poses (float64).
+        order: 0 value, 1 value + gradient, 2 value + gradient + Hessian.
+
+    Returns:
+        value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict.
+    """
+    dt, dev = pose.dtype, pose.device
+    P = pair_body.shape[0]
+    R, dR, d2R = rotation_derivatives(pose[:, 3:])
+    if order == 0:
+        dR = d2R = None
+    elif order == 1:
+        d2R = None
+    t = pose[:, :3]
+    value = torch.zeros(P, dtype=dt, device=dev)
+    grad = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
+    hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
+    eye = torch.eye(3, dtype=dt, device=dev)
+
+    # frontier
+    I, J, pid = pair_root[:, 0], pair_root[:, 1], torch.arange(P, device=dev)
+    W = torch.ones(P, dtype=dt, device=dev)
+    dW = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
+    d2W = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
+    leaves: list[tuple] = []
+    n_pairs = levels = 0
+    while I.numel():
+        levels += 1
+        n_pairs += I.numel()
+        ba, bb = pair_body[pid, 0], pair_body[pid, 1]
+        CI, CJ = forest.centre[I], forest.centre[J]
+        d = torch.einsum("eij,ej->ei", R[ba], CI) + t[ba] - torch.einsum("eij,ej->ei", R[bb], CJ) - t[bb]
+        r = torch.linalg.vector_norm(d, dim=-1)
+        d1 = forest.radius[I] + forest.radius[J]
+        width = eps * d1
+        s = (r - d1) / width
+        dr = d2r = None
+        if order >= 1:
+            u = d / r[:, None]
+            dd = torch.cat(
+                [
+                    eye.expand(len(I), 3, 3),
+                    _point_jacobian(dR[ba], CI),
+                    -eye.expand(len(I), 3, 3),
+                    -_point_jacobian(dR[bb], CJ),
+                ],
+                -1,
+            )  # (E, 3, 12)  fmt: skip
+            dr = torch.einsum("ei,eik->ek", u, dd)
+            if order >= 2:
+                d2r = (torch.einsum("eik,eil->ekl", dd, dd) - dr[:, :, None] * dr[:, None, :]) / r[
+                    :, None, None
+                ]
+                d2r[:, 3:6, 3:6] += _rot_second(d2R[ba], CI, u)
+                d2r[:, 9:12, 9:12] -= _rot_second(d2R[bb], CJ, u)
+        phi, phi1, phi2 = _smoothstep_derivs(s)
+        phi1, phi2 = phi1 / width, phi2 / (width * width)
+        central = s > 0  # phi > 0: a central term
+        fine = s < 1  # 1 - phi > 0: descend (or solve the leaf pair)
+        # central terms: W * phi * P_c(r)
+        if bool(central.any()):
+            m = central
+            pc, pc1, pc2 = _central_derivs(r[m], mu)
+            g = phi[m] * pc
+            g1 = phi1[m] * pc + phi[m] * pc1
+            g2 = phi2[m] * pc + 2.0 * phi1[m] * pc1 + phi[m] * pc2
+            dg, d2g = _radial(
+                g, g1, g2, dr[m] if dr is not None else None, d2r[m] if d2r is not None else None
+            )
+            v, gv, hv = _product(
+                W[m], dW[m] if dW is not None else None, d2W[m] if d2W is not None else None, g, dg, d2g
+            )
+            value.index_add_(0, pid[m], v)
+            if gv is not None:
+                grad.index_add_(0, pid[m], gv)
+            if hv is not None:
+                hess.index_add_(0, pid[m], hv)
+        if not bool(fine.any()):
+            break
+        # inherited weight of the fine part: W * (1 - phi)
+        m = fine
+        h = 1.0 - phi[m]
+        dh, d2h = _radial(
+            h, -phi1[m], -phi2[m], dr[m] if dr is not None else None, d2r[m] if d2r is not None else None
+        )
+        Wf, dWf, d2Wf = _product(
+            W[m], dW[m] if dW is not None else None, d2W[m] if d2W is not None else None, h, dh, d2h
+        )
+        If, Jf, pf = I[m], J[m], pid[m]
+        leaf_i, leaf_j = forest.child[If, 0] < 0, forest.child[Jf, 0] < 0
+        both = leaf_i & leaf_j
+        if bool(both.any()):
+            leaves.append(
+                (If[both], Jf[both], pf[both], Wf[both], dWf[both] if dWf is not None else None,
+                 d2Wf[both] if d2Wf is not None else None)
+            )  # fmt: skip
+        go = ~both
+        If, Jf, pf, leaf_i, leaf_j = If[go], Jf[go], pf[go], leaf_i[go], leaf_j[go]
+        Wf = Wf[go]
+        dWf = dWf[go] if dWf is not None else None
+        d2Wf = d2Wf[go] if d2Wf is not None else None
+        # children: candidate (side-I option, side-J option) pairs with validity masks
+        if split == "both":
+            split_i, split_j = ~leaf_i, ~leaf_j
+        else:
+            split_i = ~leaf_i & (leaf_j | (forest.radius[If] >= forest.radius[Jf]))
+            split_j = ~split_i
+        ci = torch.stack([torch.where(split_i, forest.child[If, 0], If), forest.child[If, 1]], 1)  # (E, 2)
+        cj = torch.stack([torch.where(split_j, forest.child[Jf, 0], Jf), forest.child[Jf, 1]], 1)
+        vi = torch.stack([torch.ones_like(split_i), split_i], 1)
+        vj = torch.stack([torch.ones_like(split_j), split_j], 1)
+        cand_i = ci[:, :, None].expand(-1, 2, 2)
+        cand_j = cj[:, None, :].expand(-1, 2, 2)
+        valid = (vi[:, :, None] & vj[:, None, :]).reshape(-1)
+        parent = torch.arange(If.numel(), device=dev)[:, None].expand(-1, 4).reshape(-1)[valid]
+        I = cand_i.reshape(-1)[valid]
+        J = cand_j.reshape(-1)[valid]
+        pid = pf[parent]
+        W = Wf[parent]
+        dW = dWf[parent] if dWf is not None else None
+        d2W = d2Wf[parent] if d2Wf is not None else None
+
+    n_leaf = 0
+    if leaves:
+        LI, LJ, lp, lw, ldw, ld2w = (
+            torch.cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True)
+        )
+        n_leaf = LI.numel()
+        ba, bb = pair_body[lp, 0], pair_body[lp, 1]
+        Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
+        wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
+        wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+        der = pair_potential_derivatives(
+            wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter
+        ) if order >= 1 else None  # fmt: skip
+        if der is None:
+            from .pair_potential import pair_potential
+
+            with torch.no_grad():
+                pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
+            gq = hq = None
+        else:
+            pv = der.value
+            # J (L, 18, 12): x_k = R X_k + t
+            L_ = n_leaf
+            Jx = torch.zeros(L_, 6, 3, 12, dtype=dt, device=dev)
+            Jx[:, :3, :, 0:3] = eye
+            Jx[:, 3:, :, 6:9] = eye
+            Jx[:, :3, :, 3:6] = torch.einsum("eimk,evm->evik", dR[ba], Xa)
+            Jx[:, 3:, :, 9:12] = torch.einsum("eimk,evm->evik", dR[bb], Xb)
+            Jx = Jx.reshape(L_, 18, 12)
+            gx = der.grad  # (L, 18)
+            gq = torch.einsum("ei,eik->ek", gx, Jx)
+            hq = None
+            if order >= 2:
+                hq = Jx.transpose(1, 2) @ der.hessian @ Jx
+                g6 = gx.reshape(L_, 6, 3)
+                hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
+                hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
+        v, gv, hv = _product(lw, ldw, ld2w, pv, gq, hq)
+        value.index_add_(0, lp, v)
+        inf = torch.isinf(pv)
+        if gv is not None:
+            gv = torch.where(inf[:, None], torch.zeros((), dtype=dt, device=dev), gv)
+            grad.index_add_(0, lp, gv)
+        if hv is not None:
+            hv = torch.where(inf[:, None, None], torch.zeros((), dtype=dt, device=dev), hv)
+            hess.index_add_(0, lp, hv)
+    if grad is not None:
+        infp = torch.isinf(value)
+        grad = torch.where(infp[:, None], torch.zeros((), dtype=dt, device=dev), grad)
+        if hess is not None:
+            hess = torch.where(infp[:, None, None], torch.zeros((), dtype=dt, device=dev), hess)
+    stats = {"node_pairs": int(n_pairs), "leaf_pairs": int(n_leaf), "levels": int(levels)}
+    return value, grad, hess, stats
+
+
+# ---------------------------------------------------------------------------------------------- public API
+def _check_pose(pose: object, name: str) -> None:
+    if not isinstance(pose, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
+    if pose.dim() < 1 or pose.shape[-1] != 6:
+        raise ValueError(
+            f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
+        )
+    if not pose.is_floating_point():
+        raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
+    bad = ~torch.isfinite(pose).all(-1)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
+        raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
+
+
+def _check_params(mu, margin, eps, split):
+    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
+        if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
+            raise ValueError(f"{n} must be a finite positive number, got {v!r}")
+    if split not in SPLIT_RULES:
+        raise ValueError(f"split must be one of {SPLIT_RULES}, got {split!r}")
+
+
+def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
+    if not isinstance(bsh_a, BSH) or not isinstance(bsh_b, BSH):
+        raise TypeError("bsh_a and bsh_b must be cfd_torch.BSH")
+    _check_pose(pose_a, "pose_a")
+    _check_pose(pose_b, "pose_b")
+    try:
+        batch = torch.broadcast_shapes(pose_a.shape[:-1], pose_b.shape[:-1])
+    except RuntimeError as err:
+        raise ValueError(
+            f"pose_a {tuple(pose_a.shape)} and pose_b {tuple(pose_b.shape)} do not broadcast"
+        ) from err
+    return batch
+
+
+def _derivs(bsh_a, bsh_b, qa, qb, *, order, mu, margin, eps, split, tol, max_iter):
+    """Closed-form value/grad/Hessian for (B, 6) float64 pose batches."""
+    B = qa.shape[0]
+    forest = _forest((bsh_a, bsh_b), qa.dtype, qa.device)
+    pose = torch.cat([qa, qb])  # bodies: a copies then b copies
+    ar = torch.arange(B, device=qa.device)
+    pair_body = torch.stack([ar, ar + B], 1)
+    pair_root = forest.roots[None, :].expand(B, 2)
+    return _traverse(
+        forest, pair_body, pair_root, pose.detach(), mu=mu, margin=margin, eps=eps, split=split, order=order,
+        tol=tol, max_iter=max_iter,
+    )  # fmt: skip
+
+
+def mesh_potential_derivatives(
+    bsh_a: BSH,
+    pose_a: torch.Tensor,
+    bsh_b: BSH,
+    pose_b: torch.Tensor,
+    *,
+    mu: float = 1e-8,
+    margin: float = 1e-3,
+    eps: float = 0.01,
+    split: str = "both",
+    hessian: bool = True,
+    tol: float = DEFAULT_TOL,
+    max_iter: int = DEFAULT_MAX_ITER,
+) -> MeshDerivatives:
+    """Value, pose gradient and pose Hessian of the BSH potential of two bodies, in closed form.
+
+    Args:
+        bsh_a, bsh_b: the bodies' hierarchies.
+        pose_a, pose_b: (..., 6) poses (translation [m], rotation vector [rad]); leading dims broadcast.
+        mu: contact coefficient. margin: delta [m]. eps: relative width of the blend band.
+        split: "both" (descend both nodes of a pair) or "larger" (only the larger sphere).
+        hessian: form the (..., 12, 12) Hessian.
+        tol, max_iter: inner plane-solve settings of the leaf pairs (see ``pair_potential``).
+
+    Returns:
+        MeshDerivatives(value (...), grad (..., 12), hessian (..., 12, 12) | None, stats), float64 inside, in
+        the poses' dtype. Not connected to autograd (use :func:`mesh_potential` for that).
+    """
+    batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
+    _check_params(mu, margin, eps, split)
+    dt = pose_a.dtype
+    qa = pose_a.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+    qb = pose_b.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+    with torch.no_grad():
+        v, g, h, stats = _derivs(
+            bsh_a, bsh_b, qa, qb, order=2 if hessian else 1, mu=mu, margin=margin, eps=eps, split=split, tol=tol,
+            max_iter=max_iter,
+        )  # fmt: skip
+    return MeshDerivatives(
+        v.reshape(batch).to(dt),
+        g.reshape(*batch, 12).to(dt),
+        h.reshape(*batch, 12, 12).to(dt) if h is not None else None,
+        stats,
+    )
+
+
+class _MeshPotentialFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, qa, qb, bsh_a, bsh_b, params):
+        v, _, _, _ = _derivs(bsh_a, bsh_b, qa, qb, order=0, **params)
+        ctx.save_for_backward(qa, qb)
+        ctx.bodies = (bsh_a, bsh_b)
+        ctx.params = params
+        return v
+
+    @staticmethod
+    def backward(ctx, gout):
+        # d value / d pose in closed form (envelope theorem at the leaves, product rule for the blend weights).
+        # Under create_graph the gradient comes from _MeshGradFn, whose backward is the closed-form Hessian.
+        qa, qb = ctx.saved_tensors
+        bsh_a, bsh_b = ctx.bodies
+        if torch.is_grad_enabled():
+            g = _MeshGradFn.apply(qa, qb, bsh_a, bsh_b, ctx.params)
+        else:
+            _, g, _, _ = _derivs(bsh_a, bsh_b, qa, qb, order=1, **ctx.params)
+        g = gout[:, None] * g
+        return g[:, :6], g[:, 6:], None, None, None
+
+
+class _MeshGradFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, qa, qb, bsh_a, bsh_b, params):
+        _, g, h, _ = _derivs(bsh_a, bsh_b, qa, qb, order=2, **params)
+        ctx.save_for_backward(h)
+        return g
+
+    @staticmethod
+    def backward(ctx, v):
+        (h,) = ctx.saved_tensors
+        hv = torch.einsum("bi,bij->bj", v, h)  # symmetric Hessian: v^T H
+        if torch.is_grad_enabled():
+            hv = _RefuseThirdOrder.apply(hv, v)
+        return hv[:, :6], hv[:, 6:], None, None, None
+
+
+class _RefuseThirdOrder(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, hv, v):
+        return hv.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        raise RuntimeError(
+            "mesh_potential: third derivatives are not implemented; the Hessian is exact but cannot be "
+            "differentiated again"
+        )
+
+
+def mesh_potential(
+    bsh_a: BSH,
+    pose_a: torch.Tensor,
+    bsh_b: BSH,
+    pose_b: torch.Tensor,
+    *,
+    mu: float = 1e-8,
+    margin: float = 1e-3,
+    eps: float = 0.01,
+    split: str = "both",
+    tol: float = DEFAULT_TOL,
+    max_iter: int = DEFAULT_MAX_ITER,
+) -> torch.Tensor:
+    """BSH contact potential of two rigid bodies, differentiable in both poses to first and second order.
+
+    Args: as :func:`mesh_potential_derivatives`.
+
+    Returns:
+        (...) potential in the poses' dtype; +inf when the bodies are within the margin. The backward pass uses
+        the closed-form pose gradient; ``create_graph=True`` then gives the closed-form Hessian; a third
+        derivative raises.
+    """
+    batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
+    _check_params(mu, margin, eps, split)
+    qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+    qb = pose_b.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+    params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
+    v = _MeshPotentialFn.apply(qa, qb, bsh_a, bsh_b, params)
+    return v.reshape(batch).to(pose_a.dtype)
