@@ -46,21 +46,85 @@ def rotation_matrix(omega: torch.Tensor) -> torch.Tensor:
     return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
-def _single(w: torch.Tensor) -> torch.Tensor:
-    return rotation_matrix(w)
+_SERIES_T = 0.25  # below theta^2 = 0.25 the coefficient functions use their Taylor series (16 terms)
+_N_TERMS = 16
+
+
+def _series(t: torch.Tensor, offset: int):
+    """f, f', f'' of f(t) = sum_k (-1)^k t^k / (2k + offset)! (A: offset 1, B: offset 2), by Horner."""
+    import math
+
+    c = [(-1.0) ** k / math.factorial(2 * k + offset) for k in range(_N_TERMS)]
+    f = torch.full_like(t, c[-1])
+    for k in range(_N_TERMS - 2, -1, -1):
+        f = f * t + c[k]
+    c1 = [(k + 1) * c[k + 1] for k in range(_N_TERMS - 1)]
+    f1 = torch.full_like(t, c1[-1])
+    for k in range(_N_TERMS - 3, -1, -1):
+        f1 = f1 * t + c1[k]
+    c2 = [(k + 1) * c1[k + 1] for k in range(_N_TERMS - 2)]
+    f2 = torch.full_like(t, c2[-1])
+    for k in range(_N_TERMS - 4, -1, -1):
+        f2 = f2 * t + c2[k]
+    return f, f1, f2
+
+
+def _coefficient_derivatives(t: torch.Tensor):
+    """A, A', A'', B, B', B'' as functions of t = theta^2 (derivatives with respect to t)."""
+    small = t < _SERIES_T
+    ts = torch.where(small, torch.ones_like(t), t)
+    th = ts.sqrt()
+    s, c = torch.sin(th), torch.cos(th)
+    a = s / th
+    a1 = (th * c - s) / (2.0 * th**3)
+    a2 = (3.0 * s - 3.0 * th * c - ts * s) / (4.0 * th**5)
+    b = (1.0 - c) / ts
+    b1 = (th * s - 2.0 + 2.0 * c) / (2.0 * ts * ts)
+    b2 = (ts * c - 5.0 * th * s + 8.0 - 8.0 * c) / (4.0 * ts**3)
+    sa, sa1, sa2 = _series(t, 1)
+    sb, sb1, sb2 = _series(t, 2)
+    pick = lambda x, y: torch.where(small, x, y)  # noqa: E731
+    return pick(sa, a), pick(sa1, a1), pick(sa2, a2), pick(sb, b), pick(sb1, b1), pick(sb2, b2)
 
 
 def rotation_derivatives(omega: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """R (N, 3, 3), dR (N, 3, 3, 3) with dR[..., i] = dR/d omega_i, d2R (N, 3, 3, 3, 3) = d2R/d omega_i d omega_j.
 
+    Closed form from R = I + A(t) K + B(t) K^2, t = |omega|^2, K = [omega]_x, dK/d omega_i = E_i = [e_i]_x::
+
+        dR_i   = 2 w_i (A' K + B' K^2) + A E_i + B (E_i K + K E_i)
+        d2R_ij = 4 w_i w_j (A'' K + B'' K^2) + 2 delta_ij (A' K + B' K^2)
+                 + 2 w_i (A' E_j + B' (E_j K + K E_j)) + 2 w_j (A' E_i + B' (E_i K + K E_i))
+                 + B (E_i E_j + E_j E_i)
+
     Args:
         omega: (N, 3) rotation vectors.
     """
-    R = rotation_matrix(omega)
-    jac = torch.func.jacfwd(_single)
-    dR = torch.func.vmap(jac)(omega)
-    d2R = torch.func.vmap(torch.func.jacfwd(jac))(omega)
-    return R, dR, d2R
+    dt, dev = omega.dtype, omega.device
+    K = _hat(omega)  # (N, 3, 3)
+    K2 = K @ K
+    t = (omega * omega).sum(-1)
+    a, a1, a2, b, b1, b2 = (x[:, None, None] for x in _coefficient_derivatives(t))
+    eye = torch.eye(3, dtype=dt, device=dev)
+    R = eye + a * K + b * K2
+    E = _hat(eye)  # (3, 3, 3): E[i] = [e_i]_x
+    EK = E[None] @ K[:, None]  # (N, 3, 3, 3): E_i K
+    KE = K[:, None] @ E[None]  # K E_i
+    sym = EK + KE  # (N, i, 3, 3)
+    w = omega
+    lin = a1 * K + b1 * K2  # (N, 3, 3)
+    dR = 2.0 * w[:, :, None, None] * lin[:, None] + a[:, None] * E[None] + b[:, None] * sym  # (N, i, 3, 3)
+    EE = E[:, None] @ E[None, :]  # (i, j, 3, 3)
+    quad = a2 * K + b2 * K2
+    cross = a1[:, None] * E[None] + b1[:, None] * sym  # (N, i, 3, 3): A' E_i + B'(E_i K + K E_i)
+    d2R = (
+        4.0 * (w[:, :, None] * w[:, None, :])[..., None, None] * quad[:, None, None]
+        + 2.0 * eye[None, :, :, None, None] * lin[:, None, None]
+        + 2.0 * w[:, :, None, None, None] * cross[:, None, :]
+        + 2.0 * w[:, None, :, None, None] * cross[:, :, None]
+        + b[:, None, None] * (EE + EE.transpose(0, 1))[None]
+    )  # (N, i, j, 3, 3)
+    return R, dR.permute(0, 2, 3, 1), d2R.permute(0, 3, 4, 1, 2)
 
 
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
