@@ -9,10 +9,21 @@ Public API:
     pair_potential_derivatives(tri_a, tri_b, *, mu, margin)  value, grad (..., 18), Hessian (..., 18, 18), plane
     central_potential(r, *, mu)                              closed form 12 mu (1 + r^-1/2)^2
     smoothstep(s), blend_weight(r, d1, eps)                  quintic C2 blend
-    ipc_pair_barrier, sdrs_pair_potential                    the peers' local barriers (baselines)
+    BSH.build(vertices, faces) / BSH.from_trimesh(mesh)      bounding sphere hierarchy of a rigid body
+    mesh_potential(bsh_a, pose_a, bsh_b, pose_b)             BSH potential of two bodies, 2nd-order autograd
+    mesh_potential_derivatives(...)                          value, grad (..., 12), Hessian (..., 12, 12)
+    mesh_potential_reference(...)                            naive recursive oracle of the same potential
+    contact_potential(bshes, poses, static=, exclude=)       scene sum over body pairs, grad (N, 6), Hessian
+    cfd_torch.baselines: ipc_pair_barrier, sdrs_pair_potential  the peers' local barriers
+
+Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
 from .central import blend_weight, central_potential, smoothstep
+from .contact import ContactPotential, contact_potential
+from .hierarchy import BSH
+from .mesh_potential import MeshDerivatives, mesh_potential, mesh_potential_derivatives
+from .mesh_reference import mesh_potential_reference
 from .pair_potential import (
     LAMBDA,
     PairDerivatives,
@@ -22,7 +33,14 @@ from .pair_potential import (
 )
 
 __all__ = [
+    "BSH",
+    "ContactPotential",
     "LAMBDA",
+    "MeshDerivatives",
+    "contact_potential",
+    "mesh_potential",
+    "mesh_potential_derivatives",
+    "mesh_potential_reference",
     "PairDerivatives",
     "PairSolveError",
     "blend_weight",

@@ -151,6 +151,18 @@ def _central_derivs(r: torch.Tensor, mu: float):
 
 
 # ---------------------------------------------------------------------------------------------- traversal
+def _segment_add(out: torch.Tensor, seg: torch.Tensor, x: torch.Tensor, n: int) -> None:
+    """out[seg[e]] += x[e]. index_add_ serialises when few segments receive many rows; a one-hot matrix
+    product (few segments) or a plain sum (one segment) does the same reduction with BLAS."""
+    if n == 1:
+        out[0] += x.sum(0)
+    elif n <= 64:
+        onehot = (seg[None, :] == torch.arange(n, device=seg.device)[:, None]).to(x.dtype)  # (n, E)
+        out += (onehot @ x.reshape(x.shape[0], -1)).reshape(out.shape)
+    else:
+        out.index_add_(0, seg, x)
+
+
 def _traverse(
     forest: _Forest,
     pair_body: torch.Tensor,
@@ -228,50 +240,38 @@ def _traverse(
                 d2r[:, 9:12, 9:12] -= _rot_second(d2R[bb], CJ, u)
         phi, phi1, phi2 = _smoothstep_derivs(s)
         phi1, phi2 = phi1 / width, phi2 / (width * width)
-        central = s > 0  # phi > 0: a central term
+        # Every element is evaluated unmasked (cheaper than gathering subsets): the central term W phi P_c(r)
+        # is zero where phi = 0 (near), the inherited weight W (1 - phi) is zero where phi = 1 (far).
+        pc, pc1, pc2 = _central_derivs(r, mu)
+        g = phi * pc
+        g1 = phi1 * pc + phi * pc1
+        g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
+        dg, d2g = _radial(g, g1, g2, dr, d2r)
+        v, gv, hv = _product(W, dW, d2W, g, dg, d2g)
+        _segment_add(value, pid, v, P)
+        if gv is not None:
+            _segment_add(grad, pid, gv, P)
+        if hv is not None:
+            _segment_add(hess, pid, hv, P)
         fine = s < 1  # 1 - phi > 0: descend (or solve the leaf pair)
-        # central terms: W * phi * P_c(r)
-        if bool(central.any()):
-            m = central
-            pc, pc1, pc2 = _central_derivs(r[m], mu)
-            g = phi[m] * pc
-            g1 = phi1[m] * pc + phi[m] * pc1
-            g2 = phi2[m] * pc + 2.0 * phi1[m] * pc1 + phi[m] * pc2
-            dg, d2g = _radial(
-                g, g1, g2, dr[m] if dr is not None else None, d2r[m] if d2r is not None else None
-            )
-            v, gv, hv = _product(
-                W[m], dW[m] if dW is not None else None, d2W[m] if d2W is not None else None, g, dg, d2g
-            )
-            value.index_add_(0, pid[m], v)
-            if gv is not None:
-                grad.index_add_(0, pid[m], gv)
-            if hv is not None:
-                hess.index_add_(0, pid[m], hv)
         if not bool(fine.any()):
             break
-        # inherited weight of the fine part: W * (1 - phi)
-        m = fine
-        h = 1.0 - phi[m]
-        dh, d2h = _radial(
-            h, -phi1[m], -phi2[m], dr[m] if dr is not None else None, d2r[m] if d2r is not None else None
-        )
-        Wf, dWf, d2Wf = _product(
-            W[m], dW[m] if dW is not None else None, d2W[m] if d2W is not None else None, h, dh, d2h
-        )
-        If, Jf, pf = I[m], J[m], pid[m]
-        leaf_i, leaf_j = forest.child[If, 0] < 0, forest.child[Jf, 0] < 0
+        h = 1.0 - phi
+        dh, d2h = _radial(h, -phi1, -phi2, dr, d2r)
+        W, dW, d2W = _product(W, dW, d2W, h, dh, d2h)
+        leaf_i, leaf_j = forest.child[I, 0] < 0, forest.child[J, 0] < 0
         both = leaf_i & leaf_j
-        if bool(both.any()):
+        lm = fine & both
+        if bool(lm.any()):
             leaves.append(
-                (If[both], Jf[both], pf[both], Wf[both], dWf[both] if dWf is not None else None,
-                 d2Wf[both] if d2Wf is not None else None)
+                (I[lm], J[lm], pid[lm], W[lm], dW[lm] if dW is not None else None,
+                 d2W[lm] if d2W is not None else None)
             )  # fmt: skip
-        go = ~both
-        If, Jf, pf, leaf_i, leaf_j = If[go], Jf[go], pf[go], leaf_i[go], leaf_j[go]
-        Wf = Wf[go]
-        dWf = dWf[go] if dWf is not None else None
-        d2Wf = d2Wf[go] if d2Wf is not None else None
+        go = fine & ~both
+        If, Jf, pf, leaf_i, leaf_j = I[go], J[go], pid[go], leaf_i[go], leaf_j[go]
+        Wf = W[go]
+        dWf = dW[go] if dW is not None else None
+        d2Wf = d2W[go] if d2W is not None else None
         # children: candidate (side-I option, side-J option) pairs with validity masks
         if split == "both":
             split_i, split_j = ~leaf_i, ~leaf_j
@@ -331,14 +331,14 @@ def _traverse(
                 hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
                 hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
         v, gv, hv = _product(lw, ldw, ld2w, pv, gq, hq)
-        value.index_add_(0, lp, v)
+        _segment_add(value, lp, v, P)
         inf = torch.isinf(pv)
         if gv is not None:
             gv = torch.where(inf[:, None], torch.zeros((), dtype=dt, device=dev), gv)
-            grad.index_add_(0, lp, gv)
+            _segment_add(grad, lp, gv, P)
         if hv is not None:
             hv = torch.where(inf[:, None, None], torch.zeros((), dtype=dt, device=dev), hv)
-            hess.index_add_(0, lp, hv)
+            _segment_add(hess, lp, hv, P)
     if grad is not None:
         infp = torch.isinf(value)
         grad = torch.where(infp[:, None], torch.zeros((), dtype=dt, device=dev), grad)
@@ -446,33 +446,32 @@ def mesh_potential_derivatives(
     )
 
 
-class _MeshPotentialFn(torch.autograd.Function):
+class _ClosedFormPotential(torch.autograd.Function):
+    """value(q) for q (B, n) whose derivatives come from ``evaluate(q, order) -> (value (B,), grad (B, n),
+    hess (B, n, n))`` in closed form. Backward: the closed-form gradient; under create_graph it comes from
+    _ClosedFormGrad, whose backward is the closed-form Hessian-vector product; a third derivative raises."""
+
     @staticmethod
-    def forward(ctx, qa, qb, bsh_a, bsh_b, params):
-        v, _, _, _ = _derivs(bsh_a, bsh_b, qa, qb, order=0, **params)
-        ctx.save_for_backward(qa, qb)
-        ctx.bodies = (bsh_a, bsh_b)
-        ctx.params = params
+    def forward(ctx, q, evaluate):
+        v, _, _ = evaluate(q, 0)
+        ctx.save_for_backward(q)
+        ctx.evaluate = evaluate
         return v
 
     @staticmethod
     def backward(ctx, gout):
-        # d value / d pose in closed form (envelope theorem at the leaves, product rule for the blend weights).
-        # Under create_graph the gradient comes from _MeshGradFn, whose backward is the closed-form Hessian.
-        qa, qb = ctx.saved_tensors
-        bsh_a, bsh_b = ctx.bodies
+        (q,) = ctx.saved_tensors
         if torch.is_grad_enabled():
-            g = _MeshGradFn.apply(qa, qb, bsh_a, bsh_b, ctx.params)
+            g = _ClosedFormGrad.apply(q, ctx.evaluate)
         else:
-            _, g, _, _ = _derivs(bsh_a, bsh_b, qa, qb, order=1, **ctx.params)
-        g = gout[:, None] * g
-        return g[:, :6], g[:, 6:], None, None, None
+            _, g, _ = ctx.evaluate(q, 1)
+        return gout[:, None] * g, None
 
 
-class _MeshGradFn(torch.autograd.Function):
+class _ClosedFormGrad(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, qa, qb, bsh_a, bsh_b, params):
-        _, g, h, _ = _derivs(bsh_a, bsh_b, qa, qb, order=2, **params)
+    def forward(ctx, q, evaluate):
+        _, g, h = evaluate(q, 2)
         ctx.save_for_backward(h)
         return g
 
@@ -482,7 +481,7 @@ class _MeshGradFn(torch.autograd.Function):
         hv = torch.einsum("bi,bij->bj", v, h)  # symmetric Hessian: v^T H
         if torch.is_grad_enabled():
             hv = _RefuseThirdOrder.apply(hv, v)
-        return hv[:, :6], hv[:, 6:], None, None, None
+        return hv, None
 
 
 class _RefuseThirdOrder(torch.autograd.Function):
@@ -493,7 +492,7 @@ class _RefuseThirdOrder(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         raise RuntimeError(
-            "mesh_potential: third derivatives are not implemented; the Hessian is exact but cannot be "
+            "contact potential: third derivatives are not implemented; the Hessian is exact but cannot be "
             "differentiated again"
         )
 
@@ -525,5 +524,10 @@ def mesh_potential(
     qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
     qb = pose_b.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
     params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
-    v = _MeshPotentialFn.apply(qa, qb, bsh_a, bsh_b, params)
+
+    def evaluate(q: torch.Tensor, order: int):
+        v, g, h, _ = _derivs(bsh_a, bsh_b, q[:, :6], q[:, 6:], order=order, **params)
+        return v, g, h
+
+    v = _ClosedFormPotential.apply(torch.cat([qa, qb], -1), evaluate)
     return v.reshape(batch).to(pose_a.dtype)

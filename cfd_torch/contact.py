@@ -1,0 +1,176 @@
+"""Scene-level contact potential: the BSH potential summed over body pairs (SPEC section 4).
+
+Every pair of bodies contributes, however far apart (the non-vanishing property), except pairs of two static
+bodies and pairs the caller excludes (e.g. bodies joined by a joint). All included pairs are traversed in one
+batch: a far pair costs a single root check (its roots are outside each other's blend band, so it is one central
+term), near pairs descend together level by level.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+
+from .hierarchy import BSH
+from .mesh_potential import _check_params, _ClosedFormGrad, _forest, _traverse
+from .pair_potential import DEFAULT_MAX_ITER, DEFAULT_TOL
+
+__all__ = ["ContactPotential", "contact_potential", "body_pairs"]
+
+
+class ContactPotential(NamedTuple):
+    """Scene contact potential.
+
+    Attributes:
+        value: () total potential (connected to autograd when ``poses`` requires grad), +inf on penetration.
+        grad: (N, 6) d value / d poses (rows of static bodies are zero), or None when not computed.
+        hessian: (N * 6, N * 6) second derivative over the flattened poses, or None unless asked for.
+        stats: traversal counts ("body_pairs", "node_pairs", "leaf_pairs", "levels").
+    """
+
+    value: torch.Tensor
+    grad: torch.Tensor | None
+    hessian: torch.Tensor | None
+    stats: dict
+
+
+class _KnownGradPotential(torch.autograd.Function):
+    """Attach an already evaluated value (and gradient, if computed) to autograd: backward reuses the gradient;
+    under create_graph the Hessian comes from _ClosedFormGrad."""
+
+    @staticmethod
+    def forward(ctx, q, value, grad, evaluate):
+        ctx.save_for_backward(q, grad if grad is not None else q.new_zeros(0))
+        ctx.has_grad = grad is not None
+        ctx.evaluate = evaluate
+        return value.clone()
+
+    @staticmethod
+    def backward(ctx, gout):
+        q, g = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            g = _ClosedFormGrad.apply(q, ctx.evaluate)
+        elif not ctx.has_grad:
+            _, g, _ = ctx.evaluate(q, 1)
+        return gout[:, None] * g, None, None, None
+
+
+def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] = ()) -> torch.Tensor:
+    """(P, 2) pairs i < j that interact: not both static and not excluded."""
+    i, j = torch.triu_indices(n, n, offset=1)
+    keep = ~(static[i] & static[j])
+    if exclude:
+        ex = torch.tensor([(min(a, b), max(a, b)) for a, b in exclude], dtype=torch.long)
+        if bool(((ex < 0) | (ex >= n)).any()) or bool((ex[:, 0] == ex[:, 1]).any()):
+            raise ValueError(f"exclude holds invalid body pairs for {n} bodies: {list(exclude)}")
+        hit = ((i[:, None] == ex[None, :, 0]) & (j[:, None] == ex[None, :, 1])).any(1)
+        keep &= ~hit
+    return torch.stack([i[keep], j[keep]], 1)
+
+
+def contact_potential(
+    bshes: Sequence[BSH],
+    poses: torch.Tensor,
+    *,
+    static: Sequence[bool] | torch.Tensor | None = None,
+    exclude: Sequence[tuple[int, int]] = (),
+    mu: float = 1e-8,
+    margin: float = 1e-3,
+    eps: float = 0.01,
+    split: str = "both",
+    grad: bool | None = None,
+    hessian: bool = False,
+    tol: float = DEFAULT_TOL,
+    max_iter: int = DEFAULT_MAX_ITER,
+) -> ContactPotential:
+    """Total contact potential of N rigid bodies and, on request, its gradient and Hessian in closed form.
+
+    Args:
+        bshes: N hierarchies (the same BSH may serve several bodies).
+        poses: (N, 6) poses, translation [m] then rotation vector [rad].
+        static: (N,) which bodies are static (default: none). Static-static pairs are skipped.
+        exclude: body pairs (i, j) to skip.
+        mu, margin, eps, split, tol, max_iter: as in :func:`cfd_torch.mesh_potential`.
+        grad: compute the (N, 6) gradient; default: only when autograd is enabled (not under ``no_grad``).
+        hessian: compute the (6N, 6N) Hessian (implies the gradient).
+
+    Returns:
+        ContactPotential(value, grad, hessian, stats).
+    """
+    if not isinstance(poses, torch.Tensor) or poses.dim() != 2 or poses.shape[1] != 6:
+        raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
+    N = poses.shape[0]
+    if len(bshes) != N or not all(isinstance(b, BSH) for b in bshes):
+        raise ValueError(f"bshes must be a sequence of N = {N} BSH objects, got {len(bshes)}")
+    if not poses.is_floating_point():
+        raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
+    bad = ~torch.isfinite(poses).all(1)
+    if bool(bad.any()):
+        raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
+    _check_params(mu, margin, eps, split)
+    static_t = (
+        torch.zeros(N, dtype=torch.bool) if static is None else torch.as_tensor(static, dtype=torch.bool)
+    )
+    if static_t.shape != (N,):
+        raise ValueError(f"static must have shape ({N},), got {tuple(static_t.shape)}")
+    if grad is None:
+        grad = torch.is_grad_enabled()
+    order = 2 if hessian else (1 if grad else 0)
+
+    unique: dict[int, int] = {}
+    for b in bshes:
+        unique.setdefault(id(b), len(unique))
+    uniq = tuple({id(b): b for b in bshes}.values())
+    q64 = poses.to(torch.float64)
+    dev = poses.device
+    forest = _forest(uniq, torch.float64, dev)
+    which = torch.tensor([unique[id(b)] for b in bshes], device=dev)
+    pairs = body_pairs(N, static_t, exclude).to(dev)
+    pair_root = forest.roots[which[pairs]] if len(pairs) else torch.zeros(0, 2, dtype=torch.long, device=dev)
+    moving = (~static_t).to(dtype=torch.float64, device=dev)[:, None]
+    params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
+    stats: dict = {"body_pairs": int(len(pairs))}
+
+    def evaluate(q: torch.Tensor, order_: int):
+        """q (1, 6N) -> value (1,), grad (1, 6N), hess (1, 6N, 6N)."""
+        if len(pairs) == 0:
+            z = q.new_zeros(1)
+            return (
+                z,
+                (q.new_zeros(1, 6 * N) if order_ >= 1 else None),
+                (q.new_zeros(1, 6 * N, 6 * N) if order_ >= 2 else None),
+            )
+        v, g, h, st = _traverse(forest, pairs, pair_root, q.detach().reshape(N, 6), order=order_, **params)
+        stats.update(st)
+        value = v.sum()[None]
+        G = H = None
+        if g is not None:
+            G = q.new_zeros(N, 6)
+            G.index_add_(0, pairs[:, 0], g[:, :6])
+            G.index_add_(0, pairs[:, 1], g[:, 6:])
+            G = (G * moving).reshape(1, 6 * N)
+        if h is not None:
+            H = q.new_zeros(N, 6, N, 6)
+            i, j = pairs[:, 0], pairs[:, 1]
+            Hf = H.permute(0, 2, 1, 3)  # (N, N, 6, 6) view
+            Hf.index_put_((i, i), h[:, :6, :6], accumulate=True)
+            Hf.index_put_((i, j), h[:, :6, 6:], accumulate=True)
+            Hf.index_put_((j, i), h[:, 6:, :6], accumulate=True)
+            Hf.index_put_((j, j), h[:, 6:, 6:], accumulate=True)
+            mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
+            H = (H * mask).reshape(1, 6 * N, 6 * N)
+        return value, G, H
+
+    with torch.no_grad():
+        value, G, H = evaluate(q64.detach().reshape(1, 6 * N), order)
+    if poses.requires_grad and torch.is_grad_enabled():
+        value = _KnownGradPotential.apply(q64.reshape(1, 6 * N), value, G, evaluate)
+    value = value[0]
+    return ContactPotential(
+        value.to(poses.dtype),
+        G.reshape(N, 6).to(poses.dtype) if G is not None else None,
+        H.reshape(6 * N, 6 * N).to(poses.dtype) if H is not None else None,
+        stats,
+    )
