@@ -156,7 +156,7 @@ def _segment_add(out: torch.Tensor, seg: torch.Tensor, x: torch.Tensor, n: int) 
     product (few segments) or a plain sum (one segment) does the same reduction with BLAS."""
     if n == 1:
         out[0] += x.sum(0)
-    elif n <= 64:
+    elif n <= 64 and x.dim() > 1:  # (values may be +inf: 0 * inf in the one-hot product would be NaN)
         onehot = (seg[None, :] == torch.arange(n, device=seg.device)[:, None]).to(x.dtype)  # (n, E)
         out += (onehot @ x.reshape(x.shape[0], -1)).reshape(out.shape)
     else:
