@@ -23,7 +23,9 @@ test-slow: $(BIN)/.installed
 	$(BIN)/python -m pytest -q -m slow
 
 bench: $(BIN)/.installed
+	$(BIN)/python -m pip install -q -e '.[bench]'
 	$(BIN)/python scripts/bench_pair.py --out results/bench_pair
+	$(BIN)/python scripts/bench_contact.py --out results/bench_contact
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check cfd_torch tests scripts
