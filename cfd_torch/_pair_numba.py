@@ -328,3 +328,9 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                     for i in range(3):
                         for j in range(3):
                             hk[3 * kk + i, 3 * kk + j] += c * (n[i] * n[j])
+
+
+# Numba's worker threads compete with torch's for the cores and cost milliseconds to wake: small batches (leaf
+# pairs of a mesh traversal, a simulator step) run serially, large ones in parallel.
+PARALLEL_MIN_PAIRS = 20_000
+solve_pairs_serial = numba.njit(**_JIT)(solve_pairs.py_func)

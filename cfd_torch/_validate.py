@@ -49,7 +49,8 @@ def check_triangles(tri: object, name: str) -> None:
     if tri.device.type == "cpu":  # one fused pass (the tensor form below makes ~20 passes over the data)
         flat = tri.detach().reshape(-1, 3, 3).contiguous()
         code = torch.empty(flat.shape[0], dtype=torch.uint8)
-        _triangle_codes_nb(flat.numpy(), float(tol), code.numpy())
+        kernel = _triangle_codes_nb if flat.shape[0] >= 100_000 else _triangle_codes_serial
+        kernel(flat.numpy(), float(tol), code.numpy())
         code = code.reshape(tri.shape[:-2])
         nonfinite, degenerate = code == 1, code == 2
     else:
@@ -101,3 +102,6 @@ def _triangle_codes_nb(tri, tol, code):
 def check_positive(value: float, name: str) -> None:
     if not (isinstance(value, (int, float)) and value > 0 and value < float("inf")):
         raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+
+
+_triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)

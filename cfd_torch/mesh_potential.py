@@ -163,6 +163,33 @@ def _segment_add(out: torch.Tensor, seg: torch.Tensor, x: torch.Tensor, n: int) 
         out.index_add_(0, seg, x)
 
 
+def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):
+    """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs."""
+    from ._traverse_numba import traverse_nodes
+
+    Nb = R.shape[0]
+    dt = R.dtype
+    dRn = (dR if dR is not None else torch.zeros(Nb, 3, 3, 3, dtype=dt)).contiguous().numpy()
+    d2Rn = (d2R if d2R is not None else torch.zeros(Nb, 3, 3, 3, 3, dtype=dt)).contiguous().numpy()
+    g = grad if grad is not None else torch.zeros(value.shape[0], 12, dtype=dt)
+    h = hess if hess is not None else torch.zeros(value.shape[0] if order >= 2 else 0, 12, 12, dtype=dt)
+    if h.shape[0] == 0:
+        h = torch.zeros(value.shape[0], 12, 12, dtype=dt)
+    LI, LJ, lp, lw, ldw, ld2w, n_leaf, n_pairs = traverse_nodes(
+        forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pair_body.numpy(),
+        pair_root.contiguous().numpy(), R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu),
+        float(eps), split == "both", int(order), value.numpy(), g.numpy(), h.numpy(),
+    )  # fmt: skip
+    leaves = []
+    if n_leaf:
+        n = n_leaf
+        leaves.append(
+            (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), torch.from_numpy(lp[:n]), torch.from_numpy(lw[:n]),
+             torch.from_numpy(ldw[:n]) if order >= 1 else None, torch.from_numpy(ld2w[:n]) if order >= 2 else None)
+        )  # fmt: skip
+    return leaves, int(n_pairs), -1
+
+
 def _traverse(
     forest: _Forest,
     pair_body: torch.Tensor,
@@ -176,6 +203,7 @@ def _traverse(
     order: int,
     tol: float,
     max_iter: int,
+    backend: str = "auto",
 ):
     """BSH potential of P body pairs at once.
 
@@ -185,6 +213,7 @@ def _traverse(
         pair_root: (P, 2) root node ids of each pair's hierarchies.
         pose: (Nb, 6) body poses (float64).
         order: 0 value, 1 value + gradient, 2 value + gradient + Hessian.
+        backend: "auto" (numba depth-first kernel on CPU, breadth-first tensors elsewhere) or "torch".
 
     Returns:
         value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict.
@@ -202,13 +231,19 @@ def _traverse(
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
     eye = torch.eye(3, dtype=dt, device=dev)
 
+    if dev.type == "cpu" and backend != "torch":
+        leaves, n_pairs, levels = _traverse_cpu(
+            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess
+        )
+        I = pair_root[:0, 0]  # skip the tensor traversal below
+    else:
+        leaves, n_pairs, levels = [], 0, 0
+        I = pair_root[:, 0]
     # frontier
-    I, J, pid = pair_root[:, 0], pair_root[:, 1], torch.arange(P, device=dev)
-    W = torch.ones(P, dtype=dt, device=dev)
-    dW = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
-    d2W = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
-    leaves: list[tuple] = []
-    n_pairs = levels = 0
+    J, pid = pair_root[: len(I), 1], torch.arange(len(I), device=dev)
+    W = torch.ones(len(I), dtype=dt, device=dev)
+    dW = torch.zeros(len(I), 12, dtype=dt, device=dev) if order >= 1 else None
+    d2W = torch.zeros(len(I), 12, 12, dtype=dt, device=dev) if order >= 2 else None
     while I.numel():
         levels += 1
         n_pairs += I.numel()
@@ -294,6 +329,7 @@ def _traverse(
         d2W = d2Wf[parent] if d2Wf is not None else None
 
     n_leaf = 0
+    pv = None
     if leaves:
         LI, LJ, lp, lw, ldw, ld2w = (
             torch.cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True)
@@ -312,6 +348,19 @@ def _traverse(
             with torch.no_grad():
                 pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
             gq = hq = None
+        elif dev.type == "cpu" and backend != "torch":
+            from ._traverse_numba import accumulate_leaves
+
+            z = torch.zeros(0, dtype=dt)
+            accumulate_leaves(
+                lp.numpy(), lw.numpy(), ldw.numpy(), ld2w.numpy() if ld2w is not None else z.reshape(0, 12, 12).numpy(),
+                der.value.numpy(), der.grad.numpy(),
+                der.hessian.numpy() if der.hessian is not None else z.reshape(0, 18, 18).numpy(),
+                Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(), dR.contiguous().numpy(),
+                d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), int(order),
+                value.numpy(), grad.numpy(), hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
+            )  # fmt: skip
+            pv = None
         else:
             pv = der.value
             # J (L, 18, 12): x_k = R X_k + t
@@ -330,6 +379,7 @@ def _traverse(
                 g6 = gx.reshape(L_, 6, 3)
                 hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
                 hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
+    if leaves and pv is not None:
         v, gv, hv = _product(lw, ldw, ld2w, pv, gq, hq)
         _segment_add(value, lp, v, P)
         inf = torch.isinf(pv)

@@ -114,7 +114,10 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend):
     """Solve (K, 6, 3) float64 pairs; returns value (K,), plane (K, 4), grad (K, 18) | None, hess | None."""
     K = X.shape[0]
     if _use_numba(X, backend):
-        from ._pair_numba import solve_pairs
+        from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
+
+        if K < PARALLEL_MIN_PAIRS:
+            solve_pairs = solve_pairs_serial  # noqa: F811
 
         Xc = X.detach().contiguous()
         P = torch.empty(K, 4, dtype=X.dtype)

@@ -574,3 +574,27 @@ def test_argument_validation():
         mesh_potential_reference(None, p0, bsh, p1)
     with pytest.raises(ValueError, match="pose_a"):
         mesh_potential_reference(bsh, p0.float(), bsh, p1)
+
+
+# ------------------------------------------------------------------------------------------------ 11. backends
+@pytest.mark.parametrize("split", SPLITS)
+def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
+    import sys
+
+    mp = sys.modules["cfd_torch.mesh_potential"]
+    bsh_a, bsh_b = _bsh("ico1"), _bsh("box")
+    pa, pb = _random_configs("ico1", "box", 3, seed=5, gap=(2e-3, 0.3))
+    pose = torch.cat([pa, pb])
+    forest = mp._forest((bsh_a, bsh_b), F64, torch.device("cpu"))
+    pair_body = torch.stack([torch.arange(3), torch.arange(3) + 3], 1)
+    pair_root = forest.roots[None].expand(3, 2)
+    kw = {"mu": 1.0, "margin": MARGIN, "eps": 0.01, "split": split, "tol": 1e-12, "max_iter": 100}
+    for order in (0, 1, 2):
+        fast = mp._traverse(forest, pair_body, pair_root, pose, order=order, backend="auto", **kw)
+        ref = mp._traverse(forest, pair_body, pair_root, pose, order=order, backend="torch", **kw)
+        assert fast[3]["node_pairs"] == ref[3]["node_pairs"] and fast[3]["leaf_pairs"] == ref[3]["leaf_pairs"]
+        assert ref[3]["leaf_pairs"] > 0
+        torch.testing.assert_close(fast[0], ref[0], rtol=1e-12, atol=0)
+        for k in (1, 2)[:order]:
+            assert ref[k].abs().amax() > 0
+            torch.testing.assert_close(fast[k], ref[k], rtol=1e-10, atol=1e-12 * float(ref[k].abs().max()))
