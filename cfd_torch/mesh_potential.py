@@ -171,10 +171,9 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
     dt = R.dtype
     dRn = (dR if dR is not None else torch.zeros(Nb, 3, 3, 3, dtype=dt)).contiguous().numpy()
     d2Rn = (d2R if d2R is not None else torch.zeros(Nb, 3, 3, 3, 3, dtype=dt)).contiguous().numpy()
-    g = grad if grad is not None else torch.zeros(value.shape[0], 12, dtype=dt)
-    h = hess if hess is not None else torch.zeros(value.shape[0] if order >= 2 else 0, 12, 12, dtype=dt)
-    if h.shape[0] == 0:
-        h = torch.zeros(value.shape[0], 12, 12, dtype=dt)
+    # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
+    g = grad if grad is not None else torch.zeros(0, 12, dtype=dt)
+    h = hess if hess is not None else torch.zeros(0, 12, 12, dtype=dt)
     LI, LJ, lp, lw, ldw, ld2w, n_leaf, n_pairs = traverse_nodes(
         forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pair_body.numpy(),
         pair_root.contiguous().numpy(), R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu),
