@@ -534,8 +534,8 @@ SECTIONS = ("scaling", "ipctk", "error", "large")
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("results/bench_contact"))
-    ap.add_argument("--quick", action="store_true", help="small sizes, 2 repeats (about a minute)")
-    ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (default 5, quick 2)")
+    ap.add_argument("--quick", action="store_true", help="small sizes, 3 repeats (under a minute)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (default 5, quick 3)")
     ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     ap.add_argument("--mu", type=float, default=1e-8)
     ap.add_argument("--margin", type=float, default=1e-3)
@@ -550,7 +550,7 @@ def main() -> None:
     ap.add_argument("--fit-min-faces", type=int, default=1000)
     ap.add_argument("--edge-factors", type=float, nargs="+", default=[2.0, 1.0])
     args = ap.parse_args()
-    args.repeats = args.repeats or (2 if args.quick else 5)
+    args.repeats = args.repeats or (3 if args.quick else 5)
     args.brute_max_s = args.brute_max_s or (2.0 if args.quick else 20.0)
     args.subdivisions = [1, 2, 3, 4] if args.quick else [1, 2, 3, 4, 5]
     args.ipc_subdivisions = [3, 4] if args.quick else [3, 4, 5]
