@@ -16,6 +16,12 @@ Public API:
     contact_potential(bshes, poses, static=, exclude=)       scene sum over body pairs, grad (N, 6), Hessian
     cfd_torch.baselines: ipc_pair_barrier, sdrs_pair_potential  the peers' local barriers
 
+Simulator (rigid bodies, SPEC section 5):
+    rigid_body(mesh, kind=, density=, max_edge=)             body with exact volumetric mass properties
+    Scene(bodies, dt=, gravity=, mu=, margin=, friction=...) one config object for a simulation
+    step(scene, State(q, q_prev), Action(force, torque, target), params) -> State   differentiable step
+    rollout(scene, state, actions)                           T steps (ordinary autograd through all of them)
+
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
@@ -24,6 +30,9 @@ from .contact import ContactPotential, contact_potential
 from .hierarchy import BSH
 from .mesh_potential import MeshDerivatives, mesh_potential, mesh_potential_derivatives
 from .mesh_reference import mesh_potential_reference
+from .friction import LaggedFriction, friction_terms, lagged_friction
+from .rigid import RigidBody, rigid_body
+from .stepper import Action, Params, Scene, State, StepError, recentre_rotation, rollout, step
 from .pair_potential import (
     LAMBDA,
     PairDerivatives,
@@ -33,6 +42,19 @@ from .pair_potential import (
 )
 
 __all__ = [
+    "Action",
+    "LaggedFriction",
+    "Params",
+    "RigidBody",
+    "Scene",
+    "State",
+    "StepError",
+    "friction_terms",
+    "lagged_friction",
+    "recentre_rotation",
+    "rigid_body",
+    "rollout",
+    "step",
     "BSH",
     "ContactPotential",
     "LAMBDA",

@@ -17,7 +17,7 @@ from .hierarchy import BSH
 from .mesh_potential import _check_params, _ClosedFormGrad, _forest, _traverse
 from .pair_potential import DEFAULT_MAX_ITER, DEFAULT_TOL
 
-__all__ = ["ContactPotential", "contact_potential", "body_pairs"]
+__all__ = ["ContactPotential", "contact_potential", "body_pairs", "scatter_pair_derivatives"]
 
 
 class ContactPotential(NamedTuple):
@@ -55,6 +55,37 @@ class _KnownGradPotential(torch.autograd.Function):
         elif not ctx.has_grad:
             _, g, _ = ctx.evaluate(q, 1)
         return gout[:, None] * g, None, None, None
+
+
+def scatter_pair_derivatives(
+    n: int, pairs: torch.Tensor, g: torch.Tensor | None, h: torch.Tensor | None
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """Sum per-pair derivatives into scene ones.
+
+    Args:
+        n: number of bodies N.
+        pairs: (P, 2) body indices (a, b) of each pair.
+        g: (P, 12) pair gradients over [q_a, q_b], or None.
+        h: (P, 12, 12) pair Hessians, or None.
+
+    Returns:
+        (N, 6) gradient and (6N, 6N) Hessian (None where the input is None).
+    """
+    G = H = None
+    i, j = pairs[:, 0], pairs[:, 1]
+    if g is not None:
+        G = g.new_zeros(n, 6)
+        G.index_add_(0, i, g[:, :6])
+        G.index_add_(0, j, g[:, 6:])
+    if h is not None:
+        H = h.new_zeros(n, 6, n, 6)
+        Hf = H.permute(0, 2, 1, 3)  # (N, N, 6, 6) view
+        Hf.index_put_((i, i), h[:, :6, :6], accumulate=True)
+        Hf.index_put_((i, j), h[:, :6, 6:], accumulate=True)
+        Hf.index_put_((j, i), h[:, 6:, :6], accumulate=True)
+        Hf.index_put_((j, j), h[:, 6:, 6:], accumulate=True)
+        H = H.reshape(6 * n, 6 * n)
+    return G, H
 
 
 def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] = ()) -> torch.Tensor:
@@ -145,22 +176,12 @@ def contact_potential(
         v, g, h, st = _traverse(forest, pairs, pair_root, q.detach().reshape(N, 6), order=order_, **params)
         stats.update(st)
         value = v.sum()[None]
-        G = H = None
-        if g is not None:
-            G = q.new_zeros(N, 6)
-            G.index_add_(0, pairs[:, 0], g[:, :6])
-            G.index_add_(0, pairs[:, 1], g[:, 6:])
+        G, H = scatter_pair_derivatives(N, pairs, g, h)
+        if G is not None:
             G = (G * moving).reshape(1, 6 * N)
-        if h is not None:
-            H = q.new_zeros(N, 6, N, 6)
-            i, j = pairs[:, 0], pairs[:, 1]
-            Hf = H.permute(0, 2, 1, 3)  # (N, N, 6, 6) view
-            Hf.index_put_((i, i), h[:, :6, :6], accumulate=True)
-            Hf.index_put_((i, j), h[:, :6, 6:], accumulate=True)
-            Hf.index_put_((j, i), h[:, 6:, :6], accumulate=True)
-            Hf.index_put_((j, j), h[:, 6:, 6:], accumulate=True)
+        if H is not None:
             mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
-            H = (H * mask).reshape(1, 6 * N, 6 * N)
+            H = (H.reshape(N, 6, N, 6) * mask).reshape(1, 6 * N, 6 * N)
         return value, G, H
 
     with torch.no_grad():

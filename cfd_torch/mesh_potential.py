@@ -203,6 +203,7 @@ def _traverse(
     tol: float,
     max_iter: int,
     backend: str = "auto",
+    leaves_only: bool = False,
 ):
     """BSH potential of P body pairs at once.
 
@@ -213,9 +214,11 @@ def _traverse(
         pose: (Nb, 6) body poses (float64).
         order: 0 value, 1 value + gradient, 2 value + gradient + Hessian.
         backend: "auto" (numba depth-first kernel on CPU, breadth-first tensors elsewhere) or "torch".
+        leaves_only: only traverse the nodes (use order=0) and return the exact leaf pairs instead.
 
     Returns:
-        value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict.
+        value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict; with ``leaves_only`` the leaf
+        pairs (LI (L,), LJ (L,) node ids, lp (L,) body-pair index, lw (L,) inherited blend weight).
     """
     dt, dev = pose.dtype, pose.device
     P = pair_body.shape[0]
@@ -327,6 +330,11 @@ def _traverse(
         dW = dWf[parent] if dWf is not None else None
         d2W = d2Wf[parent] if d2Wf is not None else None
 
+    if leaves_only:
+        if not leaves:
+            e = pair_root.new_zeros(0)
+            return e, e, e, value.new_zeros(0)
+        return tuple(torch.cat(x) for x in list(zip(*leaves, strict=True))[:4])
     n_leaf = 0
     pv = None
     if leaves:

@@ -1,0 +1,540 @@
+"""Differentiable rigid-body stepper: one step minimises the incremental potential (SPEC section 5).
+
+For the dynamic bodies' generalised coordinates q (translation of the centre of mass, rotation vector), with all
+other bodies at their end-of-step poses (static: fixed; kinematic: the action's target)::
+
+    L(q) = sum_bodies [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . axial(R R_t^T) ]
+           + P_contact(q) + D_friction(q; lagged at q_t)
+
+with b = t - 2 t_t + t_{t-1}, A = R - 2 R_t + R_{t-1}, S the body's second moment of mass (:mod:`rigid`), f and
+tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does
+the work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia.
+
+Solver: Newton with Levenberg-Marquardt damping on the full Hessian (contact Hessians include the second-order
+rotation terms). Trial steps where L is +inf (penetration within the margin) are rejected, so a step never ends in
+penetration. Warm start: constant-velocity extrapolation (q_t if that is infeasible). Converged when the undamped
+Newton step is at most ``newton_tol`` in every coordinate [m, rad]; a step that does not converge within
+``max_newton_iter`` iterations raises :class:`StepError`.
+
+Gradients: q* solves g(q*, theta) = dL/dq = 0, so dq*/dtheta = -H^-1 d2L/(dq dtheta) (implicit function theorem).
+The backward of a step does one linear solve H lam = grad_out with the Hessian of the converged iterate and one
+vector-Jacobian product -lam^T d2L/(dq dtheta) for theta = previous states, actions (forces, torques, kinematic
+targets), masses, second moments and the friction coefficient.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import NamedTuple
+
+import torch
+
+from .contact import body_pairs, scatter_pair_derivatives
+from .friction import LaggedFriction, friction_terms, lagged_friction
+from .mesh_potential import _check_params, _forest, _traverse
+from .rigid import RigidBody
+from .rotation import rotation_derivatives, rotation_matrix
+
+__all__ = ["Scene", "State", "Action", "Params", "StepError", "step", "rollout", "recentre_rotation"]
+
+
+class StepError(RuntimeError):
+    """A step's Newton solve did not converge, or its start was infeasible."""
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Bodies and every physical and numerical parameter of a simulation (one config object).
+
+    Attributes:
+        bodies: the N bodies (:func:`cfd_torch.rigid_body`), in state order.
+        dt: time step [s].
+        gravity: (3,) gravitational acceleration [m/s^2].
+        mu: contact coefficient (stiffness scale of the potential) [J].
+        margin: delta, the minimum distance the barrier keeps between bodies [m].
+        eps: relative width of the hierarchy's blend band.
+        split: BSH split rule, "both" or "larger".
+        friction: Coulomb coefficient mu_f; 0 turns friction off (no lagged data, no cost).
+        friction_eps_v: slip velocity below which friction is in its smoothed static regime [m/s].
+        exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
+        newton_tol: convergence: the undamped Newton step is at most this in every coordinate [m, rad].
+        max_newton_iter: Newton iterations before :class:`StepError`.
+        pair_tol, pair_max_iter: inner plane-solve settings of the exact leaf pairs.
+    """
+
+    bodies: tuple[RigidBody, ...]
+    dt: float = 0.01
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    mu: float = 1e-8
+    margin: float = 1e-3
+    eps: float = 0.01
+    split: str = "both"
+    friction: float = 0.0
+    friction_eps_v: float = 1e-4
+    exclude: tuple[tuple[int, int], ...] = field(default=())
+    newton_tol: float = 1e-9
+    max_newton_iter: int = 100
+    pair_tol: float = 1e-12
+    pair_max_iter: int = 100
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "bodies", tuple(self.bodies))
+        object.__setattr__(self, "exclude", tuple(tuple(p) for p in self.exclude))
+        if not self.bodies or not all(isinstance(b, RigidBody) for b in self.bodies):
+            raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
+        _check_params(self.mu, self.margin, self.eps, self.split)
+        for name in ("dt", "newton_tol", "friction_eps_v", "pair_tol"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < v < math.inf):
+                raise ValueError(f"{name} must be a finite positive number, got {v!r}")
+        if not (isinstance(self.friction, (int, float)) and 0 <= self.friction < math.inf):
+            raise ValueError(f"friction must be a finite number >= 0, got {self.friction!r}")
+        if len(self.gravity) != 3 or not all(math.isfinite(float(x)) for x in self.gravity):
+            raise ValueError(f"gravity must be 3 finite numbers, got {self.gravity!r}")
+        if not any(b.kind == "dynamic" for b in self.bodies):
+            raise ValueError("a scene needs at least one dynamic body")
+
+    # ------------------------------------------------------------------ layout (computed once per scene)
+    @property
+    def num_bodies(self) -> int:
+        return len(self.bodies)
+
+    @cached_property
+    def dynamic(self) -> torch.Tensor:
+        """(Nd,) indices of the dynamic bodies."""
+        return torch.tensor([i for i, b in enumerate(self.bodies) if b.kind == "dynamic"], dtype=torch.long)
+
+    @cached_property
+    def kinematic(self) -> torch.Tensor:
+        """(K,) indices of the kinematic bodies (the order of ``Action.target``)."""
+        return torch.tensor([i for i, b in enumerate(self.bodies) if b.kind == "kinematic"], dtype=torch.long)
+
+    @cached_property
+    def pairs(self) -> torch.Tensor:
+        """(P, 2) body pairs with contact: at least one dynamic body, not excluded."""
+        N = self.num_bodies
+        fixed = torch.tensor([b.kind != "dynamic" for b in self.bodies])
+        return body_pairs(N, fixed, self.exclude)
+
+    @cached_property
+    def _tables(self):
+        uniq: dict[int, int] = {}
+        for b in self.bodies:
+            uniq.setdefault(id(b.bsh), len(uniq))
+        bshes = tuple({id(b.bsh): b.bsh for b in self.bodies}.values())
+        which = torch.tensor([uniq[id(b.bsh)] for b in self.bodies], dtype=torch.long)
+        return bshes, which
+
+    def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
+        """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients)."""
+        d = self.dynamic.tolist()
+        return Params(
+            torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
+            torch.stack([self.bodies[i].second_moment for i in d]).to(dtype=dtype, device=device),
+            torch.tensor(float(self.friction), dtype=dtype, device=device),
+        )
+
+    def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:
+        """State at rest (or moving with constant generalised ``velocities`` (N, 6)) at ``poses`` (N, 6)."""
+        _check_state_tensor(poses, "poses", self.num_bodies)
+        if velocities is None:
+            return State(poses, poses.clone())
+        _check_state_tensor(velocities, "velocities", self.num_bodies)
+        v = velocities.clone()
+        v[[i for i, b in enumerate(self.bodies) if b.kind != "dynamic"]] = 0.0
+        return State(poses, poses - self.dt * v)
+
+
+class State(NamedTuple):
+    """Simulator state: poses (N, 6) [translation m, rotation vector rad] now and one step earlier."""
+
+    q: torch.Tensor
+    q_prev: torch.Tensor
+
+    def velocity(self, dt: float) -> torch.Tensor:
+        """(N, 6) backward-difference generalised velocity (q - q_prev) / dt."""
+        return (self.q - self.q_prev) / dt
+
+
+class Action(NamedTuple):
+    """What acts on a step.
+
+    Attributes:
+        force: (N, 3) world-frame forces on the bodies' centres of mass [N] (rows of non-dynamic bodies ignored).
+        torque: (N, 3) world-frame torques [N m] (rows of non-dynamic bodies ignored).
+        target: (K, 6) end-of-step poses of the K kinematic bodies (``Scene.kinematic`` order); None keeps
+            them where they are.
+    """
+
+    force: torch.Tensor | None = None
+    torque: torch.Tensor | None = None
+    target: torch.Tensor | None = None
+
+
+class Params(NamedTuple):
+    """Differentiable physical parameters (Nd dynamic bodies): mass (Nd,), second_moment (Nd, 3, 3), friction ()."""
+
+    mass: torch.Tensor
+    second_moment: torch.Tensor
+    friction: torch.Tensor
+
+
+def _check_state_tensor(x: object, name: str, n: int, cols: int = 6) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.shape != (n, cols):
+        raise ValueError(f"{name} must have shape ({n}, {cols}), got {tuple(x.shape)}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
+    bad = ~torch.isfinite(x).all(1)
+    if bool(bad.any()):
+        raise ValueError(f"{name} contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
+
+
+def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
+    """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi / |omega|) (same rotation, norm
+    below pi), differentiably; translations and small rotation vectors pass through unchanged."""
+    w = q[..., 3:]
+    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
+    big = n > math.pi
+    ns = torch.where(big, n, torch.ones_like(n))
+    w = torch.where(big, w * (1.0 - 2.0 * math.pi / ns), w)
+    return torch.cat([q[..., :3], w], -1)
+
+
+def _axial(M: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axial vector of the skew part of (..., 3, 3) M (last two dims)."""
+    return 0.5 * torch.stack(
+        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1
+    )
+
+
+def _body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
+    """Inertia, gravity and actuation of the dynamic bodies: value (), grad (Nd, 6), per-body Hessian (Nd, 6, 6).
+
+    Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
+    """
+    R, dR, d2R = rotation_derivatives(q[:, 3:])
+    Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
+    b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
+    A = R - 2.0 * Rt + Rp
+    AS = A @ S  # (Nd, 3, 3)
+    pull = mass[:, None] * gravity + force  # (Nd, 3)
+    inv = 1.0 / (dt * dt)
+    value = (0.5 * inv * (mass * (b * b).sum(1) + (AS * A).sum((1, 2)))).sum()
+    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum() - (torque * _axial(R @ Rt.transpose(1, 2))).sum()
+    if order == 0:
+        return value, None, None
+    dRRt = torch.einsum("nijk,nlj->nkil", dR, Rt)  # (Nd, k, 3, 3): dR_k R_t^T
+    g_t = inv * mass[:, None] * b - pull
+    g_w = inv * torch.einsum("nijk,nij->nk", dR, AS) - (torque[:, None, :] * _axial(dRRt)).sum(-1)
+    grad = torch.cat([g_t, g_w], 1)
+    if order == 1:
+        return value, grad, None
+    Nd = q.shape[0]
+    H = q.new_zeros(Nd, 6, 6)
+    H[:, :3, :3] = inv * mass[:, None, None] * torch.eye(3, dtype=q.dtype, device=q.device)
+    d2RRt = torch.einsum("nijkl,nmj->nklim", d2R, Rt)  # (Nd, k, l, 3, 3)
+    H[:, 3:, 3:] = inv * (
+        torch.einsum("nijkl,nij->nkl", d2R, AS) + torch.einsum("nijk,njm,niml->nkl", dR, S, dR)
+    ) - (torque[:, None, None, :] * _axial(d2RRt)).sum(-1)
+    return value, grad, H
+
+
+class _Problem:
+    """One step's incremental potential over the dynamic coordinates (float64, detached)."""
+
+    def __init__(self, scene: Scene, poses_next: torch.Tensor, q_t, q_p, force, torque, mass, S, mu_f, lagged):
+        self.scene = scene
+        self.dyn = scene.dynamic.to(q_t.device)
+        self.poses_next = poses_next  # (N, 6) with dynamic rows to be filled
+        self.args = (q_t[self.dyn], q_p[self.dyn], force[self.dyn], torque[self.dyn], mass, S)
+        self.gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
+        self.mu_f = mu_f
+        self.lagged = lagged
+        bshes, which = scene._tables
+        self.forest = _forest(bshes, torch.float64, q_t.device)
+        self.pairs = scene.pairs.to(q_t.device)
+        self.pair_root = self.forest.roots[which.to(q_t.device)[self.pairs]]
+        self.N, self.Nd = scene.num_bodies, len(self.dyn)
+        self.d6 = (self.dyn[:, None] * 6 + torch.arange(6, device=q_t.device)).reshape(-1)
+        self.stats = {"contact_evals": 0, "leaf_pairs": 0, "node_pairs": 0}
+
+    def full(self, q: torch.Tensor) -> torch.Tensor:
+        poses = self.poses_next.clone()
+        poses[self.dyn] = q
+        return poses
+
+    def contact(self, poses: torch.Tensor, order: int):
+        s = self.scene
+        if len(self.pairs) == 0:
+            z = poses.new_zeros(())
+            n6 = 6 * self.N
+            return z, (poses.new_zeros(self.N, 6) if order else None), (poses.new_zeros(n6, n6) if order > 1 else None)
+        v, g, h, st = _traverse(
+            self.forest, self.pairs, self.pair_root, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split,
+            order=order, tol=s.pair_tol, max_iter=s.pair_max_iter,
+        )  # fmt: skip
+        self.stats["contact_evals"] += 1
+        self.stats["leaf_pairs"] += st["leaf_pairs"]
+        self.stats["node_pairs"] += st["node_pairs"]
+        G, H = scatter_pair_derivatives(self.N, self.pairs, g, h)
+        return v.sum(), G, H
+
+    def __call__(self, q: torch.Tensor, order: int):
+        """L, grad (6 Nd,), Hessian (6 Nd, 6 Nd), full contact+friction Hessian over all bodies (6N, 6N)."""
+        poses = self.full(q)
+        val, g_b, h_b = _body_terms(q, *self.args, self.gravity, self.scene.dt, order)
+        vc, Gc, Hc = self.contact(poses, order)
+        value = val + vc
+        if not torch.isfinite(value):
+            return value, None, None, None
+        if self.lagged is not None:
+            e = self.scene.friction_eps_v * self.scene.dt
+            vf, gf, hf = friction_terms(self.lagged, poses, self.mu_f, e, order)
+            value = value + vf
+            if order >= 1:
+                Gf, Hf = scatter_pair_derivatives(self.N, self.lagged.body, gf, hf)
+                Gc = Gc + Gf
+                if order >= 2:
+                    Hc = Hc + Hf
+        if order == 0:
+            return value, None, None, None
+        grad = g_b.reshape(-1) + Gc.reshape(-1)[self.d6]
+        if order == 1:
+            return value, grad, None, None
+        H = Hc[self.d6][:, self.d6] + torch.block_diag(*h_b)
+        return value, grad, H, Hc
+
+
+def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
+    """Levenberg-Marquardt Newton on the step's incremental potential; returns q*, H(q*), full Hc, iterations."""
+    scene = prob.scene
+    v = q_t_dyn - q_p_dyn
+    extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
+    q = None
+    for cand in (extrap, q_t_dyn):
+        L, g, H, Hc = prob(cand, 2)
+        if torch.isfinite(L):
+            q = cand
+            break
+    if q is None:
+        raise StepError(
+            "infeasible step start: bodies penetrate (within the margin) at the start-of-step poses; check the "
+            "initial state and that kinematic targets do not move into dynamic bodies within one step"
+        )
+    D = torch.diagonal(torch.block_diag(*_body_terms(q, *prob.args, prob.gravity, scene.dt, 2)[2])).clamp_min(
+        1e-300
+    )  # LM scaling: the mass matrix / dt^2
+    lam = 0.0
+    trials = 0
+    for it in range(1, scene.max_newton_iter + 1):
+        chol, info = torch.linalg.cholesky_ex(H)
+        if int(info) == 0:
+            p0 = torch.cholesky_solve(-g[:, None], chol)[:, 0]
+            if float(p0.abs().max()) <= scene.newton_tol:
+                return q, H, Hc, it
+        while True:
+            trials += 1
+            if trials > 50 * scene.max_newton_iter:
+                break
+            if lam == 0.0 and int(info) == 0:
+                p = p0
+            else:
+                c2, info2 = torch.linalg.cholesky_ex(H + lam * torch.diag(D))
+                if int(info2) != 0:
+                    lam = max(lam * 10.0, 1e-8)
+                    continue
+                p = torch.cholesky_solve(-g[:, None], c2)[:, 0]
+            q_try = q + p.reshape(-1, 6)
+            L_try, g_try, H_try, Hc_try = prob(q_try, 2)
+            if bool(torch.isfinite(L_try)) and float(L_try) <= float(L) + 1e-13 * max(1.0, abs(float(L))):
+                q, L, g, H, Hc = q_try, L_try, g_try, H_try, Hc_try
+                lam = lam * 0.1 if lam > 1e-9 else 0.0
+                break
+            lam = max(lam * 10.0, 1e-8)
+            if lam > 1e20:
+                break
+        if lam > 1e20 or trials > 50 * scene.max_newton_iter:
+            break
+    gn = float(g.abs().max())
+    raise StepError(
+        f"step did not converge in {scene.max_newton_iter} Newton iterations (newton_tol={scene.newton_tol}): "
+        f"max |dL/dq| = {gn:.3e}, LM damping {lam:.1e}; try a smaller dt or a larger max_newton_iter"
+    )
+
+
+class _StepFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, scene, info, q_t, q_p, force, torque, target, mass, S, mu_f):
+        dyn = scene.dynamic.to(q_t.device)
+        poses_next = q_t.clone()
+        if len(scene.kinematic):
+            poses_next[scene.kinematic.to(q_t.device)] = target
+        lagged, leaves = None, None
+        if float(mu_f) > 0.0:
+            prob0 = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, None)
+            lagged, leaves = lagged_friction(
+                prob0.forest, prob0.pairs, prob0.pair_root, q_t, mu=scene.mu, margin=scene.margin, eps=scene.eps,
+                split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
+            )  # fmt: skip
+        prob = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, lagged)
+        q, H, Hc, iters = _solve_step(prob, q_t[dyn], q_p[dyn])
+        info.update(prob.stats)
+        info["newton_iters"] = iters
+        info["friction_contacts"] = 0 if lagged is None else int(lagged.normal_force.numel())
+        ctx.scene, ctx.leaves = scene, leaves
+        ctx.save_for_backward(q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f)
+        return q
+
+    @staticmethod
+    def backward(ctx, gout):
+        # q* solves g(q*, theta) = 0  =>  dq*/dtheta = -H^-1 dg/dtheta; for an upstream gradient v:
+        #   lam = H^-1 v (H symmetric),   dtheta = -lam^T dg/dtheta   (one solve, one vector-Jacobian product).
+        # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
+        # and, for the contact term, the cross blocks of the contact Hessian with the non-dynamic end-of-step poses.
+        scene = ctx.scene
+        q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f = ctx.saved_tensors
+        dyn = scene.dynamic.to(q.device)
+        chol, info = torch.linalg.cholesky_ex(H)
+        v = gout.reshape(-1, 1).to(H.dtype)
+        lam = torch.cholesky_solve(v, chol) if int(info) == 0 else torch.linalg.solve(H, v)
+        lam = lam.reshape(-1, 6)
+        N = scene.num_bodies
+        with torch.enable_grad():
+            th = [x.detach().requires_grad_(True) for x in (q_t, q_p, force, torque, target, mass, S, mu_f)]
+            tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu = th
+            poses_next = tq_t.clone()
+            if len(scene.kinematic):
+                poses_next[scene.kinematic.to(q.device)] = ttarget
+            poses_next[dyn] = q
+            gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
+            _, g_b, _ = _body_terms(
+                q, tq_t[dyn], tq_p[dyn], tf[dyn], ttau[dyn], tmass, tS, gravity, scene.dt, 1
+            )
+            s = (g_b * lam).sum()
+            if ctx.leaves is not None:
+                prob = _Problem(scene, poses_next.detach(), q_t, q_p, force, torque, mass, S, mu_f, None)
+                lagged, _ = lagged_friction(
+                    prob.forest, prob.pairs, prob.pair_root, tq_t, mu=scene.mu, margin=scene.margin,
+                    eps=scene.eps, split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
+                    create_graph=True, leaves=ctx.leaves,
+                )  # fmt: skip
+                _, gf, _ = friction_terms(lagged, poses_next, tmu, scene.friction_eps_v * scene.dt, 1)
+                Gf, _ = scatter_pair_derivatives(N, lagged.body, gf, None)
+                s = s + (Gf[dyn] * lam).sum()
+            # contact: d(g_dyn)/d(pose_j) for non-dynamic j is the cross block of the contact Hessian
+            lam_full = q.new_zeros(N, 6)
+            lam_full[dyn] = lam
+            cross = (Hc @ lam_full.reshape(-1)).reshape(N, 6)
+            s = s + (cross.detach() * poses_next).sum()
+            grads = torch.autograd.grad(-s, th, allow_unused=True)
+        out = []
+        for gth, x in zip(grads, (q_t, q_p, force, torque, target, mass, S, mu_f), strict=True):
+            out.append(None if gth is None else _RefuseDoubleBackward.apply(gth.to(x.dtype)))
+        # the dynamic rows of poses_next are q* itself (not theta): the cross term above only reaches non-dynamic
+        # poses through poses_next; dynamic rows of q_t/q_p enter through the body and friction terms.
+        return (None, None, *out)
+
+
+class _RefuseDoubleBackward(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        raise RuntimeError(
+            "cfd_torch.step: second derivatives through a simulation step are not implemented (the step's "
+            "backward is a first-order adjoint); do not use create_graph=True through step()"
+        )
+
+
+def step(
+    scene: Scene,
+    state: State,
+    action: Action | None = None,
+    params: Params | None = None,
+    *,
+    info: dict | None = None,
+) -> State:
+    """Advance the scene by one time step (differentiable by autograd).
+
+    Args:
+        scene: bodies and parameters.
+        state: State(q (N, 6), q_prev (N, 6)), float32 or float64 (solved in float64, returned in its dtype).
+        action: forces, torques and kinematic targets (defaults: none, kinematic bodies stay put).
+        params: differentiable mass / second moment / friction coefficient (default: ``scene.params()``).
+        info: if a dict, receives solver statistics ("newton_iters", "contact_evals", "leaf_pairs", ...).
+
+    Returns:
+        The next State(q_next, q): dynamic rows solved, kinematic rows at their targets, static rows unchanged,
+        rotation vectors re-centred when |omega| > pi.
+
+    Raises:
+        ValueError: bad shapes, dtypes or NaN/inf inputs (naming the argument), or a start state that penetrates.
+        StepError: the Newton solve did not converge.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
+    if not isinstance(state, State):
+        raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
+    N = scene.num_bodies
+    _check_state_tensor(state.q, "state.q", N)
+    _check_state_tensor(state.q_prev, "state.q_prev", N)
+    dtype, dev = state.q.dtype, state.q.device
+    action = Action() if action is None else action
+    f64 = torch.float64
+    force = action.force if action.force is not None else torch.zeros(N, 3, dtype=f64, device=dev)
+    torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=f64, device=dev)
+    _check_state_tensor(force, "action.force", N, 3)
+    _check_state_tensor(torque, "action.torque", N, 3)
+    K = len(scene.kinematic)
+    kin = scene.kinematic.to(dev)
+    target = action.target if action.target is not None else state.q[kin].detach()
+    _check_state_tensor(target, "action.target", K)
+    params = scene.params(f64, dev) if params is None else params
+    Nd = len(scene.dynamic)
+    if params.mass.shape != (Nd,) or params.second_moment.shape != (Nd, 3, 3) or params.friction.shape != ():
+        raise ValueError(
+            f"params must hold mass ({Nd},), second_moment ({Nd}, 3, 3) and friction (), got "
+            f"{tuple(params.mass.shape)}, {tuple(params.second_moment.shape)}, {tuple(params.friction.shape)}"
+        )
+    if not bool((params.mass > 0).all()) or float(params.friction) < 0:
+        raise ValueError("params.mass must be positive and params.friction >= 0")
+    info = {} if info is None else info
+    q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
+    q_dyn = _StepFn.apply(
+        scene, info, q_t, q_p, force.to(f64), torque.to(f64), target.to(f64), params.mass.to(f64),
+        params.second_moment.to(f64), params.friction.to(f64),
+    )  # fmt: skip
+    dyn = scene.dynamic.to(dev)
+    q_next = q_t.clone()
+    if K:
+        q_next = q_next.index_put((kin,), target.to(f64))
+    q_next = q_next.index_put((dyn,), recentre_rotation(q_dyn))
+    return State(q_next.to(dtype), state.q)
+
+
+def rollout(
+    scene: Scene,
+    state: State,
+    actions: Sequence[Action | None] | int,
+    params: Params | None = None,
+    *,
+    progress: bool = False,
+) -> list[State]:
+    """Step ``len(actions)`` times (or ``actions`` times with no action); returns the T + 1 states, first included."""
+    seq = [None] * actions if isinstance(actions, int) else list(actions)
+    states = [state]
+    it = seq
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(seq, desc="rollout")
+    for a in it:
+        states.append(step(scene, states[-1], a, params))
+    return states
