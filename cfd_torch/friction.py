@@ -21,8 +21,8 @@ stiff smooth (C1) static regime below. f0(|u|) is convex in u, its u-Hessian
     H_u = mu_f lambda [ (f1 / y) T + (f1' - f1 / y) u u^T / y^2 ]
 
 is positive semi-definite. The lagged data are differentiable functions of q_t (through the pair potential's
-second-order autograd), so the step's adjoint sees how friction depends on the previous state; the leaf set and
-the blend weights w_c are kept fixed (discrete decisions of the forward pass).
+second-order autograd, the blend weights through their closed-form gradient), so the step's adjoint sees how
+friction depends on the previous state; only the discrete leaf set is fixed.
 """
 
 from __future__ import annotations
@@ -69,26 +69,23 @@ def lagged_friction(
     tol: float,
     max_iter: int,
     create_graph: bool = False,
-    leaves: tuple | None = None,
-) -> tuple[LaggedFriction, tuple]:
+) -> LaggedFriction:
     """Lagged friction data at the poses ``q_t`` (N, 6) float64.
 
     Args:
         forest, pairs, pair_root: the scene's concatenated hierarchies and interacting body pairs.
-        create_graph: keep the data differentiable with respect to ``q_t`` (for the step's adjoint).
-        leaves: the leaf pairs (LI, LJ, lp, lw) of an earlier call at the same q_t (reused, not re-traversed).
-
-    Returns:
-        (LaggedFriction, leaves).
+        create_graph: keep the data differentiable with respect to ``q_t`` (for the step's adjoint): the plane
+            solves by their implicit second-order autograd, the blend weights to first order.
     """
-    if leaves is None:
-        with torch.no_grad():
-            leaves = _traverse(
-                forest, pairs, pair_root, q_t.detach(), mu=mu, margin=margin, eps=eps, split=split, order=0,
-                tol=tol, max_iter=max_iter, leaves_only=True,
-            )  # fmt: skip
-    LI, LJ, lp, lw = leaves
+    with torch.no_grad():
+        LI, LJ, lp, lw, dlw = _traverse(
+            forest, pairs, pair_root, q_t.detach(), mu=mu, margin=margin, eps=eps, split=split,
+            order=1 if create_graph else 0, tol=tol, max_iter=max_iter, leaves_only=True,
+        )  # fmt: skip
     ba, bb = pairs[lp, 0], pairs[lp, 1]
+    if create_graph:  # first-order dependence of the blend weights on q_t (exact gradient, as the adjoint needs)
+        dq = torch.cat([q_t[ba], q_t[bb]], 1)
+        lw = lw + ((dq - dq.detach()) * dlw).sum(1)
     Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
     R = rotation_matrix(q_t[:, 3:])
     t = q_t[:, :3]
@@ -115,7 +112,7 @@ def lagged_friction(
     data = LaggedFriction(
         torch.stack([ba, bb], 1), torch.stack([pa, pb], 1), torch.stack([xa, xb], 1), T, lam
     )
-    return data, leaves
+    return data
 
 
 def friction_terms(

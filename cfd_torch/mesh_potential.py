@@ -214,11 +214,13 @@ def _traverse(
         pose: (Nb, 6) body poses (float64).
         order: 0 value, 1 value + gradient, 2 value + gradient + Hessian.
         backend: "auto" (numba depth-first kernel on CPU, breadth-first tensors elsewhere) or "torch".
-        leaves_only: only traverse the nodes (use order=0) and return the exact leaf pairs instead.
+        leaves_only: only traverse the nodes and return the exact leaf pairs instead (with the gradient of their
+            inherited weight when order >= 1).
 
     Returns:
         value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict; with ``leaves_only`` the leaf
-        pairs (LI (L,), LJ (L,) node ids, lp (L,) body-pair index, lw (L,) inherited blend weight).
+        pairs (LI (L,), LJ (L,) node ids, lp (L,) body-pair index, lw (L,) inherited blend weight, dlw (L, 12) | None
+        its gradient over the pair's [q_a, q_b]).
     """
     dt, dev = pose.dtype, pose.device
     P = pair_body.shape[0]
@@ -333,8 +335,9 @@ def _traverse(
     if leaves_only:
         if not leaves:
             e = pair_root.new_zeros(0)
-            return e, e, e, value.new_zeros(0)
-        return tuple(torch.cat(x) for x in list(zip(*leaves, strict=True))[:4])
+            return e, e, e, value.new_zeros(0), (value.new_zeros(0, 12) if order >= 1 else None)
+        cols = list(zip(*leaves, strict=True))
+        return (*(torch.cat(x) for x in cols[:4]), torch.cat(cols[4]) if order >= 1 else None)
     n_leaf = 0
     pv = None
     if leaves:

@@ -285,7 +285,8 @@ class _Problem:
         return v.sum(), G, H
 
     def __call__(self, q: torch.Tensor, order: int):
-        """L, grad (6 Nd,), Hessian (6 Nd, 6 Nd), full contact+friction Hessian over all bodies (6N, 6N)."""
+        """L, grad (6 Nd,), Hessian (6 Nd, 6 Nd), and the contact Hessian over all bodies (6N, 6N) (its cross
+        blocks with non-dynamic bodies feed the adjoint; friction's enter there by autograd)."""
         poses = self.full(q)
         val, g_b, h_b = _body_terms(q, *self.args, self.gravity, self.scene.dt, order)
         vc, Gc, Hc = self.contact(poses, order)
@@ -296,17 +297,19 @@ class _Problem:
             e = self.scene.friction_eps_v * self.scene.dt
             vf, gf, hf = friction_terms(self.lagged, poses, self.mu_f, e, order)
             value = value + vf
-            if order >= 1:
-                Gf, Hf = scatter_pair_derivatives(self.N, self.lagged.body, gf, hf)
-                Gc = Gc + Gf
-                if order >= 2:
-                    Hc = Hc + Hf
         if order == 0:
             return value, None, None, None
-        grad = g_b.reshape(-1) + Gc.reshape(-1)[self.d6]
+        G = Gc
+        H = Hc
+        if self.lagged is not None:
+            Gf, Hf = scatter_pair_derivatives(self.N, self.lagged.body, gf, hf)
+            G = G + Gf
+            if order >= 2:
+                H = H + Hf
+        grad = g_b.reshape(-1) + G.reshape(-1)[self.d6]
         if order == 1:
             return value, grad, None, None
-        H = Hc[self.d6][:, self.d6] + torch.block_diag(*h_b)
+        H = H[self.d6][:, self.d6] + torch.block_diag(*h_b)
         return value, grad, H, Hc
 
 
@@ -374,10 +377,10 @@ class _StepFn(torch.autograd.Function):
         poses_next = q_t.clone()
         if len(scene.kinematic):
             poses_next[scene.kinematic.to(q_t.device)] = target
-        lagged, leaves = None, None
+        lagged = None
         if float(mu_f) > 0.0:
             prob0 = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, None)
-            lagged, leaves = lagged_friction(
+            lagged = lagged_friction(
                 prob0.forest, prob0.pairs, prob0.pair_root, q_t, mu=scene.mu, margin=scene.margin, eps=scene.eps,
                 split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
             )  # fmt: skip
@@ -386,7 +389,7 @@ class _StepFn(torch.autograd.Function):
         info.update(prob.stats)
         info["newton_iters"] = iters
         info["friction_contacts"] = 0 if lagged is None else int(lagged.normal_force.numel())
-        ctx.scene, ctx.leaves = scene, leaves
+        ctx.scene, ctx.friction = scene, lagged is not None
         ctx.save_for_backward(q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f)
         return q
 
@@ -416,12 +419,12 @@ class _StepFn(torch.autograd.Function):
                 q, tq_t[dyn], tq_p[dyn], tf[dyn], ttau[dyn], tmass, tS, gravity, scene.dt, 1
             )
             s = (g_b * lam).sum()
-            if ctx.leaves is not None:
+            if ctx.friction:
                 prob = _Problem(scene, poses_next.detach(), q_t, q_p, force, torque, mass, S, mu_f, None)
-                lagged, _ = lagged_friction(
+                lagged = lagged_friction(
                     prob.forest, prob.pairs, prob.pair_root, tq_t, mu=scene.mu, margin=scene.margin,
                     eps=scene.eps, split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
-                    create_graph=True, leaves=ctx.leaves,
+                    create_graph=True,
                 )  # fmt: skip
                 _, gf, _ = friction_terms(lagged, poses_next, tmu, scene.friction_eps_v * scene.dt, 1)
                 Gf, _ = scatter_pair_derivatives(N, lagged.body, gf, None)
@@ -503,7 +506,7 @@ def step(
             f"params must hold mass ({Nd},), second_moment ({Nd}, 3, 3) and friction (), got "
             f"{tuple(params.mass.shape)}, {tuple(params.second_moment.shape)}, {tuple(params.friction.shape)}"
         )
-    if not bool((params.mass > 0).all()) or float(params.friction) < 0:
+    if not bool((params.mass > 0).all()) or float(params.friction.detach()) < 0:
         raise ValueError("params.mass must be positive and params.friction >= 0")
     info = {} if info is None else info
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
