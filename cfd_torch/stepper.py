@@ -10,8 +10,10 @@ with b = t - 2 t_t + t_{t-1}, A = R - 2 R_t + R_{t-1}, S the body's second momen
 tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does
 the work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia.
 
-Solver: Newton with Levenberg-Marquardt damping on the full Hessian (contact Hessians include the second-order
-rotation terms). Trial steps where L is +inf (penetration within the margin) are rejected, so a step never ends in
+Solver: Newton on the full Hessian (contact Hessians include the second-order rotation terms); where the Hessian is
+not positive definite (second-order rotation terms of large contact forces: a rocking polyhedron, a tipping
+stack) the saddle-free Newton direction (the Hessian's eigenvalues replaced by their magnitudes); then a
+backtracking (Armijo) line search. Trial points where L is +inf (penetration within the margin) are rejected, so a step never ends in
 penetration. Warm start: constant-velocity extrapolation (q_t if that is infeasible). Converged when the undamped
 Newton step is at most ``newton_tol`` in every coordinate [m, rad]; a step that does not converge within
 ``max_newton_iter`` iterations raises :class:`StepError`.
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import NamedTuple
@@ -39,6 +42,25 @@ from .rigid import RigidBody
 from .rotation import rotation_derivatives, rotation_matrix
 
 __all__ = ["Scene", "State", "Action", "Params", "StepError", "step", "rollout", "recentre_rotation"]
+
+
+_DEBUG = False
+
+
+@contextmanager
+def _serial_torch():
+    """Run torch's CPU ops of a step on one thread: its tensors are small (bodies, leaf pairs), and idle OpenMP
+    workers spin-waiting between them cost 3-4x the step time on a loaded 2-core machine (measured); the contact
+    kernels keep numba's own parallelism."""
+    n = torch.get_num_threads()
+    if n == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 class StepError(RuntimeError):
@@ -251,6 +273,7 @@ class _Problem:
         self.scene = scene
         self.dyn = scene.dynamic.to(q_t.device)
         self.poses_next = poses_next  # (N, 6) with dynamic rows to be filled
+        self.q_t_full = q_t
         self.args = (q_t[self.dyn], q_p[self.dyn], force[self.dyn], torque[self.dyn], mass, S)
         self.gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
         self.mu_f = mu_f
@@ -262,6 +285,15 @@ class _Problem:
         self.N, self.Nd = scene.num_bodies, len(self.dyn)
         self.d6 = (self.dyn[:, None] * 6 + torch.arange(6, device=q_t.device)).reshape(-1)
         self.stats = {"contact_evals": 0, "leaf_pairs": 0, "node_pairs": 0}
+
+    def penetrating(self, poses: torch.Tensor) -> list[tuple[int, int]]:
+        """Body pairs whose potential is +inf at ``poses`` (within the margin or intersecting)."""
+        s = self.scene
+        v, _, _, _ = _traverse(
+            self.forest, self.pairs, self.pair_root, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split,
+            order=0, tol=s.pair_tol, max_iter=s.pair_max_iter,
+        )  # fmt: skip
+        return [tuple(int(x) for x in self.pairs[k]) for k in torch.nonzero(torch.isinf(v))[:, 0]]
 
     def full(self, q: torch.Tensor) -> torch.Tensor:
         poses = self.poses_next.clone()
@@ -314,7 +346,8 @@ class _Problem:
 
 
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
-    """Levenberg-Marquardt Newton on the step's incremental potential; returns q*, H(q*), full Hc, iterations."""
+    """Newton (saddle-free where the Hessian is indefinite) with a backtracking line search on the step's
+    incremental potential; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
     scene = prob.scene
     v = q_t_dyn - q_p_dyn
     extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
@@ -325,54 +358,62 @@ def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
             q = cand
             break
     if q is None:
-        raise StepError(
-            "infeasible step start: bodies penetrate (within the margin) at the start-of-step poses; check the "
-            "initial state and that kinematic targets do not move into dynamic bodies within one step"
-        )
-    D = torch.diagonal(torch.block_diag(*_body_terms(q, *prob.args, prob.gravity, scene.dt, 2)[2])).clamp_min(
-        1e-300
-    )  # LM scaling: the mass matrix / dt^2
-    lam = 0.0
-    trials = 0
+        for poses, what in ((prob.q_t_full, "state.q"), (prob.full(q_t_dyn), "the kinematic targets")):
+            bad = prob.penetrating(poses)
+            if bad:
+                msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
+                err = ValueError if what == "state.q" else StepError
+                raise err(
+                    f"{what}: bodies penetrate (are within the margin {scene.margin} of each other): pairs {msg}"
+                    + ("" if what == "state.q" else "; move kinematic bodies by less than the gap per step")
+                )
+        raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
     for it in range(1, scene.max_newton_iter + 1):
+        # direction: Newton where H is positive definite; else saddle-free Newton (eigenvalues by magnitude), which
+        # moves along negative curvature (a rocking polyhedron, a tipping stack) at its natural scale
         chol, info = torch.linalg.cholesky_ex(H)
         if int(info) == 0:
-            p0 = torch.cholesky_solve(-g[:, None], chol)[:, 0]
-            if float(p0.abs().max()) <= scene.newton_tol:
-                return q, H, Hc, it
-        while True:
-            trials += 1
-            if trials > 50 * scene.max_newton_iter:
+            p = torch.cholesky_solve(-g[:, None], chol)[:, 0]
+            indefinite = False
+        else:
+            ev, V = torch.linalg.eigh(H)
+            mag = ev.abs().clamp_min(1e-12 * float(ev.abs().max()))
+            p = -(V @ ((V.T @ g) / mag))
+            indefinite = True
+        if not indefinite and float(p.abs().max()) <= scene.newton_tol:
+            return q, H, Hc, it
+        # backtracking (Armijo) line search; +inf trial energies (penetration) are rejected
+        slope = float(g @ p)
+        L0 = float(L)
+        alpha, accepted = 1.0, False
+        for _ in range(60):
+            q_try = q + alpha * p.reshape(-1, 6)
+            L_try = float(prob(q_try, 0)[0])
+            if math.isfinite(L_try) and L_try <= L0 + 1e-4 * alpha * slope + 1e-14 * abs(L0):
+                accepted = True
                 break
-            if lam == 0.0 and int(info) == 0:
-                p = p0
-            else:
-                c2, info2 = torch.linalg.cholesky_ex(H + lam * torch.diag(D))
-                if int(info2) != 0:
-                    lam = max(lam * 10.0, 1e-8)
-                    continue
-                p = torch.cholesky_solve(-g[:, None], c2)[:, 0]
-            q_try = q + p.reshape(-1, 6)
-            L_try, g_try, H_try, Hc_try = prob(q_try, 2)
-            if bool(torch.isfinite(L_try)) and float(L_try) <= float(L) + 1e-13 * max(1.0, abs(float(L))):
-                q, L, g, H, Hc = q_try, L_try, g_try, H_try, Hc_try
-                lam = lam * 0.1 if lam > 1e-9 else 0.0
-                break
-            lam = max(lam * 10.0, 1e-8)
-            if lam > 1e20:
-                break
-        if lam > 1e20 or trials > 50 * scene.max_newton_iter:
+            alpha *= 0.5
+        if not accepted:
             break
+        if _DEBUG:
+            print(f"it {it} L {L0:.15e} |p| {float(p.abs().max()):.3e} indef {indefinite} alpha {alpha:.1e} |g| {float(g.abs().max()):.3e}")
+        q = q_try
+        L, g, H, Hc = prob(q, 2)
     gn = float(g.abs().max())
     raise StepError(
         f"step did not converge in {scene.max_newton_iter} Newton iterations (newton_tol={scene.newton_tol}): "
-        f"max |dL/dq| = {gn:.3e}, LM damping {lam:.1e}; try a smaller dt or a larger max_newton_iter"
+        f"max |dL/dq| = {gn:.3e}, last line search step {alpha:.1e}; try a smaller dt or a larger max_newton_iter"
     )
 
 
 class _StepFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scene, info, q_t, q_p, force, torque, target, mass, S, mu_f):
+        with _serial_torch():
+            return _StepFn._forward(ctx, scene, info, q_t, q_p, force, torque, target, mass, S, mu_f)
+
+    @staticmethod
+    def _forward(ctx, scene, info, q_t, q_p, force, torque, target, mass, S, mu_f):
         dyn = scene.dynamic.to(q_t.device)
         poses_next = q_t.clone()
         if len(scene.kinematic):
@@ -395,6 +436,11 @@ class _StepFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout):
+        with _serial_torch():
+            return _StepFn._backward(ctx, gout)
+
+    @staticmethod
+    def _backward(ctx, gout):
         # q* solves g(q*, theta) = 0  =>  dq*/dtheta = -H^-1 dg/dtheta; for an upstream gradient v:
         #   lam = H^-1 v (H symmetric),   dtheta = -lam^T dg/dtheta   (one solve, one vector-Jacobian product).
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
