@@ -27,12 +27,10 @@ Poses are (..., 6): translation then rotation vector; a body-frame point X is at
 
 from .central import blend_weight, central_potential, smoothstep
 from .contact import ContactPotential, contact_potential
+from .friction import LaggedFriction, friction_terms, lagged_friction
 from .hierarchy import BSH
 from .mesh_potential import MeshDerivatives, mesh_potential, mesh_potential_derivatives
 from .mesh_reference import mesh_potential_reference
-from .friction import LaggedFriction, friction_terms, lagged_friction
-from .rigid import RigidBody, rigid_body
-from .stepper import Action, Params, Scene, State, StepError, recentre_rotation, rollout, step
 from .pair_potential import (
     LAMBDA,
     PairDerivatives,
@@ -40,6 +38,8 @@ from .pair_potential import (
     pair_potential,
     pair_potential_derivatives,
 )
+from .rigid import RigidBody, rigid_body
+from .stepper import Action, Params, Scene, State, StepError, recentre_rotation, rollout, step
 
 __all__ = [
     "Action",

@@ -83,7 +83,9 @@ def lagged_friction(
             order=1 if create_graph else 0, tol=tol, max_iter=max_iter, leaves_only=True,
         )  # fmt: skip
     ba, bb = pairs[lp, 0], pairs[lp, 1]
-    if create_graph:  # first-order dependence of the blend weights on q_t (exact gradient, as the adjoint needs)
+    if (
+        create_graph
+    ):  # first-order dependence of the blend weights on q_t (exact gradient, as the adjoint needs)
         dq = torch.cat([q_t[ba], q_t[bb]], 1)
         lw = lw + ((dq - dq.detach()) * dlw).sum(1)
     Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame

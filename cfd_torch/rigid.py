@@ -79,10 +79,14 @@ def rigid_body(
     if not (isinstance(density, (int, float)) and 0 < density < float("inf")):
         raise ValueError(f"density must be a finite positive number, got {density!r}")
     if not mesh.is_watertight or not mesh.is_winding_consistent:
-        raise ValueError("mesh of a dynamic body must be watertight with consistent winding (a closed volume)")
+        raise ValueError(
+            "mesh of a dynamic body must be watertight with consistent winding (a closed volume)"
+        )
     volume = float(mesh.volume)
     if not volume > 0:
-        raise ValueError(f"mesh of a dynamic body must enclose a positive volume (outward normals), got {volume}")
+        raise ValueError(
+            f"mesh of a dynamic body must enclose a positive volume (outward normals), got {volume}"
+        )
     m = mesh.copy()
     m.density = float(density)
     com = np.asarray(m.center_mass, dtype=np.float64)

@@ -13,10 +13,10 @@ the work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with
 Solver: Newton on the full Hessian (contact Hessians include the second-order rotation terms); where the Hessian is
 not positive definite (second-order rotation terms of large contact forces: a rocking polyhedron, a tipping
 stack) the saddle-free Newton direction (the Hessian's eigenvalues replaced by their magnitudes); then a
-backtracking (Armijo) line search. Trial points where L is +inf (penetration within the margin) are rejected, so a step never ends in
-penetration. Warm start: constant-velocity extrapolation (q_t if that is infeasible). Converged when the undamped
-Newton step is at most ``newton_tol`` in every coordinate [m, rad]; a step that does not converge within
-``max_newton_iter`` iterations raises :class:`StepError`.
+backtracking (Armijo) line search. Trial points where L is +inf (penetration within the margin) are rejected, so a
+step never ends in penetration. Warm start: constant-velocity extrapolation (q_t if that is infeasible).
+Converged when the undamped Newton step is at most ``newton_tol`` in every coordinate [m, rad] (at a positive
+definite Hessian); a step that does not converge within ``max_newton_iter`` iterations raises :class:`StepError`.
 
 Gradients: q* solves g(q*, theta) = dL/dq = 0, so dq*/dtheta = -H^-1 d2L/(dq dtheta) (implicit function theorem).
 The backward of a step does one linear solve H lam = grad_out with the Hessian of the converged iterate and one
@@ -36,15 +36,12 @@ from typing import NamedTuple
 import torch
 
 from .contact import body_pairs, scatter_pair_derivatives
-from .friction import LaggedFriction, friction_terms, lagged_friction
+from .friction import friction_terms, lagged_friction
 from .mesh_potential import _check_params, _forest, _traverse
 from .rigid import RigidBody
 from .rotation import rotation_derivatives, rotation_matrix
 
 __all__ = ["Scene", "State", "Action", "Params", "StepError", "step", "rollout", "recentre_rotation"]
-
-
-_DEBUG = False
 
 
 @contextmanager
@@ -269,7 +266,9 @@ def _body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
 class _Problem:
     """One step's incremental potential over the dynamic coordinates (float64, detached)."""
 
-    def __init__(self, scene: Scene, poses_next: torch.Tensor, q_t, q_p, force, torque, mass, S, mu_f, lagged):
+    def __init__(
+        self, scene: Scene, poses_next: torch.Tensor, q_t, q_p, force, torque, mass, S, mu_f, lagged
+    ):
         self.scene = scene
         self.dyn = scene.dynamic.to(q_t.device)
         self.poses_next = poses_next  # (N, 6) with dynamic rows to be filled
@@ -305,7 +304,11 @@ class _Problem:
         if len(self.pairs) == 0:
             z = poses.new_zeros(())
             n6 = 6 * self.N
-            return z, (poses.new_zeros(self.N, 6) if order else None), (poses.new_zeros(n6, n6) if order > 1 else None)
+            return (
+                z,
+                (poses.new_zeros(self.N, 6) if order else None),
+                (poses.new_zeros(n6, n6) if order > 1 else None),
+            )
         v, g, h, st = _traverse(
             self.forest, self.pairs, self.pair_root, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split,
             order=order, tol=s.pair_tol, max_iter=s.pair_max_iter,
@@ -395,8 +398,6 @@ def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
             alpha *= 0.5
         if not accepted:
             break
-        if _DEBUG:
-            print(f"it {it} L {L0:.15e} |p| {float(p.abs().max()):.3e} indef {indefinite} alpha {alpha:.1e} |g| {float(g.abs().max()):.3e}")
         q = q_try
         L, g, H, Hc = prob(q, 2)
     gn = float(g.abs().max())
