@@ -14,6 +14,7 @@ $(BIN)/.installed: pyproject.toml
 	touch $@
 
 demo: $(BIN)/.installed
+	$(BIN)/python scripts/demo_billiards.py --out results/demo
 	$(BIN)/python scripts/demo_pair.py --out results/demo
 
 test: $(BIN)/.installed
