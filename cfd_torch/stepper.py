@@ -348,30 +348,12 @@ class _Problem:
         return value, grad, H, Hc
 
 
-def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
-    """Newton (saddle-free where the Hessian is indefinite) with a backtracking line search on the step's
-    incremental potential; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
-    scene = prob.scene
-    v = q_t_dyn - q_p_dyn
-    extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
-    q = None
-    for cand in (extrap, q_t_dyn):
-        L, g, H, Hc = prob(cand, 2)
-        if torch.isfinite(L):
-            q = cand
-            break
-    if q is None:
-        for poses, what in ((prob.q_t_full, "state.q"), (prob.full(q_t_dyn), "the kinematic targets")):
-            bad = prob.penetrating(poses)
-            if bad:
-                msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
-                err = ValueError if what == "state.q" else StepError
-                raise err(
-                    f"{what}: bodies penetrate (are within the margin {scene.margin} of each other): pairs {msg}"
-                    + ("" if what == "state.q" else "; move kinematic bodies by less than the gap per step")
-                )
-        raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
-    for it in range(1, scene.max_newton_iter + 1):
+def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
+    """Newton (saddle-free where the Hessian is indefinite) with a backtracking line search from a feasible q.
+
+    Returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations; raises StepError."""
+    L, g, H, Hc = prob(q, 2)
+    for it in range(1, max_iter + 1):
         # direction: Newton where H is positive definite; else saddle-free Newton (eigenvalues by magnitude), which
         # moves along negative curvature (a rocking polyhedron, a tipping stack) at its natural scale
         chol, info = torch.linalg.cholesky_ex(H)
@@ -383,7 +365,7 @@ def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
             mag = ev.abs().clamp_min(1e-12 * float(ev.abs().max()))
             p = -(V @ ((V.T @ g) / mag))
             indefinite = True
-        if not indefinite and float(p.abs().max()) <= scene.newton_tol:
+        if not indefinite and float(p.abs().max()) <= tol:
             return q, H, Hc, it
         # backtracking (Armijo) line search; +inf trial energies (penetration) are rejected
         slope = float(g @ p)
@@ -402,9 +384,78 @@ def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
         L, g, H, Hc = prob(q, 2)
     gn = float(g.abs().max())
     raise StepError(
-        f"step did not converge in {scene.max_newton_iter} Newton iterations (newton_tol={scene.newton_tol}): "
-        f"max |dL/dq| = {gn:.3e}, last line search step {alpha:.1e}; try a smaller dt or a larger max_newton_iter"
+        f"step did not converge in {max_iter} Newton iterations (newton_tol={tol}): max |dL/dq| = {gn:.3e}, "
+        f"last line search step {alpha:.1e}; try a smaller dt or a larger max_newton_iter"
     )
+
+
+def _feasible(prob: _Problem, q: torch.Tensor) -> bool:
+    return bool(torch.isfinite(prob(q, 0)[0]))
+
+
+def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torch.Tensor:
+    """A feasible start for the step's Newton solve.
+
+    Tried in order: constant-velocity extrapolation; q_t; the dynamic bodies translated with each kinematic body's
+    displacement (a pusher carrying what it touches); and, when a kinematic body moves into a dynamic one within
+    the step, a continuation: the kinematic motion is split into fractions (adaptively halved), and the step's
+    problem is solved (loosely) at each fraction from the previous solution, so the pushed bodies make room. Only
+    the final solve, at the real targets, is the step; the continuation just finds where it may start.
+    """
+    v = q_t_dyn - q_p_dyn
+    extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
+    for cand in (extrap, q_t_dyn):
+        if _feasible(prob, cand):
+            return cand
+    scene = prob.scene
+    if not _feasible_poses(prob, prob.q_t_full):
+        bad = prob.penetrating(prob.q_t_full)
+        msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
+        raise ValueError(
+            f"state.q: bodies penetrate (are within the margin {scene.margin} of each other): pairs {msg}"
+        )
+    kin = scene.kinematic.to(q_t_dyn.device)
+    if len(kin) == 0:
+        raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
+    shift = prob.poses_next[kin, :3] - prob.q_t_full[kin, :3]  # (K, 3)
+    for k in range(len(kin)):
+        cand = q_t_dyn.clone()
+        cand[:, :3] += shift[k]
+        if _feasible(prob, cand):
+            return cand
+    target = prob.poses_next.clone()
+    origin = prob.q_t_full[kin]
+    q, done, inc = q_t_dyn, 0.0, 0.5
+    try:
+        while done < 1.0:
+            frac = min(1.0, done + inc)
+            prob.poses_next = target.clone()
+            prob.poses_next[kin] = origin + frac * (target[kin] - origin)
+            if _feasible(prob, q):
+                q = _newton(prob, q, max(scene.newton_tol, 1e-7), scene.max_newton_iter)[0]
+                done, inc = frac, inc * 2.0
+            else:
+                inc *= 0.5
+                if inc < 1e-4:
+                    bad = prob.penetrating(prob.full(q))
+                    msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
+                    raise StepError(
+                        f"the kinematic targets: bodies penetrate (within the margin {scene.margin}): pairs {msg}, "
+                        "and pushing them out of the way failed; move kinematic bodies less per step"
+                    )
+    finally:
+        prob.poses_next = target
+    return q
+
+
+def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
+    return not prob.penetrating(poses)
+
+
+def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
+    """Feasible start, then Newton; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
+    q = _start(prob, q_t_dyn, q_p_dyn)
+    return _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter)
 
 
 class _StepFn(torch.autograd.Function):
