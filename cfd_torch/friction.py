@@ -133,10 +133,7 @@ def friction_terms(
         value (), per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order).
     """
     ba, bb = data.body[:, 0], data.body[:, 1]
-    if order >= 1:
-        R, dR, d2R = rotation_derivatives(poses[:, 3:])
-    else:
-        R, dR, d2R = rotation_matrix(poses[:, 3:]), None, None
+    R, dR, d2R = rotation_derivatives(poses[:, 3:], order)
     t = poses[:, :3]
     Xa, Xb = data.X[:, 0], data.X[:, 1]
     xa = torch.einsum("cij,cj->ci", R[ba], Xa) + t[ba]

@@ -224,11 +224,7 @@ def _traverse(
     """
     dt, dev = pose.dtype, pose.device
     P = pair_body.shape[0]
-    R, dR, d2R = rotation_derivatives(pose[:, 3:])
-    if order == 0:
-        dR = d2R = None
-    elif order == 1:
-        d2R = None
+    R, dR, d2R = rotation_derivatives(pose[:, 3:], order)
     t = pose[:, :3]
     value = torch.zeros(P, dtype=dt, device=dev)
     grad = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None

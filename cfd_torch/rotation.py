@@ -40,6 +40,13 @@ def _hat(w: torch.Tensor) -> torch.Tensor:
 
 def rotation_matrix(omega: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) rotation matrices of rotation vectors ``omega`` (..., 3); differentiable to any order."""
+    if (
+        omega.dim() == 2
+        and omega.device.type == "cpu"
+        and omega.dtype == torch.float64
+        and not omega.requires_grad
+    ):
+        return rotation_derivatives(omega, 0)[0]  # numba kernel (no autograd needed)
     K = _hat(omega)
     a, b = _coefficients((omega * omega).sum(-1))
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
@@ -87,7 +94,9 @@ def _coefficient_derivatives(t: torch.Tensor):
     return pick(sa, a), pick(sa1, a1), pick(sa2, a2), pick(sb, b), pick(sb1, b1), pick(sb2, b2)
 
 
-def rotation_derivatives(omega: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def rotation_derivatives(
+    omega: torch.Tensor, order: int = 2
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """R (N, 3, 3), dR (N, 3, 3, 3) with dR[..., i] = dR/d omega_i, d2R (N, 3, 3, 3, 3) = d2R/d omega_i d omega_j.
 
     Closed form from R = I + A(t) K + B(t) K^2, t = |omega|^2, K = [omega]_x, dK/d omega_i = E_i = [e_i]_x::
@@ -99,7 +108,26 @@ def rotation_derivatives(omega: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
     Args:
         omega: (N, 3) rotation vectors.
+        order: 0 (R only), 1 (R, dR) or 2; derivatives above the order are None.
+
+    On the CPU, for float64 inputs that do not require grad, a numba kernel computes the same formulas (a step
+    calls this several times per Newton iteration for a handful of bodies: microseconds instead of a millisecond
+    of small tensor ops); otherwise the tensor code below (any device, differentiable by autograd).
     """
+    if omega.device.type == "cpu" and omega.dtype == torch.float64 and not omega.requires_grad:
+        from ._rotation_numba import rotation_derivatives_cpu
+
+        R, dR, d2R = rotation_derivatives_cpu(omega.detach().numpy(), order)
+        return (
+            torch.from_numpy(R),
+            torch.from_numpy(dR) if dR is not None else None,
+            torch.from_numpy(d2R) if d2R is not None else None,
+        )
+    return _rotation_derivatives_torch(omega, order)
+
+
+def _rotation_derivatives_torch(omega: torch.Tensor, order: int = 2):
+    """Tensor form of :func:`rotation_derivatives` (any device; differentiable)."""
     dt, dev = omega.dtype, omega.device
     K = _hat(omega)  # (N, 3, 3)
     K2 = K @ K
@@ -124,7 +152,11 @@ def rotation_derivatives(omega: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
         + 2.0 * w[:, None, :, None, None] * cross[:, :, None]
         + b[:, None, None] * (EE + EE.transpose(0, 1))[None]
     )  # (N, i, j, 3, 3)
-    return R, dR.permute(0, 2, 3, 1), d2R.permute(0, 3, 4, 1, 2)
+    return (
+        R,
+        dR.permute(0, 2, 3, 1) if order >= 1 else None,
+        d2R.permute(0, 3, 4, 1, 2) if order >= 2 else None,
+    )
 
 
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -236,7 +236,7 @@ def _body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
 
     Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
     """
-    R, dR, d2R = rotation_derivatives(q[:, 3:])
+    R, dR, d2R = rotation_derivatives(q[:, 3:], order)
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
     b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
     A = R - 2.0 * Rt + Rp
@@ -370,10 +370,12 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
         # backtracking (Armijo) line search; +inf trial energies (penetration) are rejected
         slope = float(g @ p)
         L0 = float(L)
-        alpha, accepted = 1.0, False
-        for _ in range(60):
+        alpha, accepted, full = 1.0, False, None
+        for k in range(60):
             q_try = q + alpha * p.reshape(-1, 6)
-            L_try = float(prob(q_try, 0)[0])
+            # the full step is usually accepted: evaluate it with derivatives at once, backtrack value-only
+            full = prob(q_try, 2) if k == 0 else None
+            L_try = float(full[0] if full is not None else prob(q_try, 0)[0])
             if math.isfinite(L_try) and L_try <= L0 + 1e-4 * alpha * slope + 1e-14 * abs(L0):
                 accepted = True
                 break
@@ -381,7 +383,7 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
         if not accepted:
             break
         q = q_try
-        L, g, H, Hc = prob(q, 2)
+        L, g, H, Hc = full if full is not None else prob(q, 2)
     gn = float(g.abs().max())
     raise StepError(
         f"step did not converge in {max_iter} Newton iterations (newton_tol={tol}): max |dL/dq| = {gn:.3e}, "
