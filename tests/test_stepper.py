@@ -1,0 +1,659 @@
+"""Physical-oracle tests of the rigid-body stepper (cfd_torch.stepper, cfd_torch.friction, cfd_torch.rigid).
+
+Oracles: closed forms (free fall and projectiles, mass properties of a box, the integrator's own recursion for a
+torque-free spin), conservation of linear momentum in a collision, Coulomb's stick / slide threshold on a slope, the
+barrier's no-penetration guarantee, and, for gradients, central finite differences of whole rollouts and gradcheck
+of one step.
+
+Conventions: SI units; poses (N, 6) are translation then rotation vector. A "ground" is a static slab whose top face
+is the plane z = 0, so the gap of a body above it is the lowest world z of the body's vertices (exact for the vertex
+/ face contacts of a box, and a lower bound of the distance otherwise). Tolerances are stated next to each assert
+together with the value observed when the test was written.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from cfd_torch import Action, Params, Scene, State, StepError, rigid_body, rollout, step
+from cfd_torch._geometry import triangle_closest_points
+from cfd_torch.rotation import rotation_matrix
+
+F64 = torch.float64
+DT = 0.01
+G = 9.81
+MARGIN = 1e-3  # Scene's default margin
+EPS_V = 1e-4  # Scene's default friction_eps_v [m/s]
+HALF = 0.1  # half edge of the 0.2 m cube
+
+
+# ------------------------------------------------------------------------------------------------ bodies
+def _box(extents, *, kind="dynamic", max_edge=None, density=1000.0, transform=None):
+    mesh = trimesh.creation.box(extents=extents)
+    if transform is not None:
+        mesh.apply_transform(transform)
+    return rigid_body(mesh, kind=kind, density=density, max_edge=max_edge)
+
+
+@pytest.fixture(scope="module")
+def cube():
+    """0.2 m cube, 8 kg, triangles refined to edges <= 0.1 m (96 faces)."""
+    return _box((0.2, 0.2, 0.2), max_edge=0.1)
+
+
+@pytest.fixture(scope="module")
+def ground():
+    """Static 1.4 x 0.6 x 0.05 slab with its top face at z = 0, refined to max_edge 0.2 (2 x the cube's edges)."""
+    mesh = trimesh.creation.box(extents=(1.4, 0.6, 0.05))
+    mesh.apply_translation([0.0, 0.0, -0.025])
+    return rigid_body(mesh, kind="static", max_edge=0.2)
+
+
+@pytest.fixture(scope="module")
+def pusher():
+    """Kinematic 0.05 x 0.2 x 0.1 paddle."""
+    return _box((0.05, 0.2, 0.1), kind="kinematic", max_edge=0.1)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    """Icosphere (subdivisions 2, radius 0.1) rotated so that one face faces +x (and, by central symmetry, one
+    faces -x): two copies side by side along x meet face to face, with no torque from the contact."""
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    mesh.apply_transform(trimesh.geometry.align_vectors(mesh.face_normals[0], [1.0, 0.0, 0.0]))
+    return rigid_body(mesh)
+
+
+@pytest.fixture(scope="module")
+def small_sphere():
+    """Icosphere (subdivisions 1, radius 0.1)."""
+    return rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _poses(*rows) -> torch.Tensor:
+    return torch.tensor([list(r) + [0.0] * (6 - len(r)) for r in rows], dtype=F64)
+
+
+def _qs(states) -> torch.Tensor:
+    """(T + 1, N, 6) poses of a rollout."""
+    return torch.stack([s.q.detach() for s in states])
+
+
+def _world_vertices(body, pose: torch.Tensor) -> torch.Tensor:
+    R = rotation_matrix(pose[None, 3:].detach().to(F64))[0]
+    return body.bsh.vertices @ R.T + pose[:3].detach().to(F64)
+
+
+def _height(body, pose: torch.Tensor) -> float:
+    """Gap of a body above the ground plane z = 0: its lowest vertex."""
+    return float(_world_vertices(body, pose)[:, 2].min())
+
+
+def _distance(body_a, pose_a, body_b, pose_b, keep: int = 48) -> float:
+    """Exact distance between two convex bodies' surfaces: the closest triangle pair among the ``keep`` triangles
+    of each body nearest to the other body's origin (the triangles facing each other)."""
+
+    def tris(body, pose, other):
+        R = rotation_matrix(pose[None, 3:].detach().to(F64))[0]
+        T = body.bsh.triangles @ R.T + pose[:3].detach().to(F64)
+        d = (T.mean(1) - other[:3].detach().to(F64)).norm(dim=1)
+        return T[torch.argsort(d)[:keep]]
+
+    ta, tb = tris(body_a, pose_a, pose_b), tris(body_b, pose_b, pose_a)
+    A = ta[:, None].expand(-1, len(tb), 3, 3).reshape(-1, 3, 3)
+    B = tb[None].expand(len(ta), -1, 3, 3).reshape(-1, 3, 3)
+    return float(triangle_closest_points(A, B).dist.min())
+
+
+def _angle_about(R: torch.Tensor, axis: int) -> float:
+    """Rotation angle of R about coordinate axis ``axis`` (R is assumed to be such a rotation)."""
+    i, j = (axis + 1) % 3, (axis + 2) % 3
+    return math.atan2(float(R[j, i]), float(R[i, i]))
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# ================================================================================================ 1. free flight
+@pytest.mark.parametrize(
+    "v0, force",
+    [
+        ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),  # free fall from rest
+        ((1.5, -0.5, 3.0), (0.0, 0.0, 0.0)),  # projectile
+        ((0.3, 0.0, 0.0), (2.0, -1.0, 40.0)),  # constant applied force (partly cancelling gravity)
+    ],
+    ids=["drop", "projectile", "pushed"],
+)
+def test_free_flight_matches_closed_form(v0, force):
+    body = _box((0.3, 0.2, 0.1), density=500.0)  # 3 kg
+    scene = Scene((body,))
+    T = 60
+    q0 = _poses((0.1, -0.2, 1.0))
+    state = scene.initial_state(q0, _poses(v0))
+    qs = _qs(rollout(scene, state, [Action(force=_poses(force)[:, :3])] * T))
+    # implicit Euler on positions: x_{n+1} = 2 x_n - x_{n-1} + a dt^2 exactly, so with x_{-1} = x_0 - v0 dt:
+    # x_n = x_0 + v0 n dt + a dt^2 n (n + 1) / 2, a = g + f / m
+    n = torch.arange(T + 1, dtype=F64)[:, None]
+    a = torch.tensor([0.0, 0.0, -G], dtype=F64) + torch.tensor(force, dtype=F64) / body.mass
+    exact = q0[0, :3] + torch.tensor(v0, dtype=F64) * n * DT + a * DT**2 * n * (n + 1) / 2
+    assert float((qs[:, 0, :3] - exact).abs().max()) <= 1e-9  # observed ~1e-15
+    assert float(qs[:, 0, 3:].abs().max()) <= 1e-12  # no spurious rotation
+
+
+def _spin(axis: int, omega: float, T: int):
+    """A 0.3 x 0.2 x 0.1 box (principal axes = coordinate axes) spinning about ``axis`` while falling."""
+    body = _box((0.3, 0.2, 0.1), density=500.0)
+    scene = Scene((body,))
+    v = torch.zeros(1, 6, dtype=F64)
+    v[0, 0] = 0.5
+    v[0, 3 + axis] = omega
+    states = rollout(scene, scene.initial_state(_poses((0.0, 0.0, 1.0)), v), T)
+    return scene, _qs(states)[:, 0]
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_torque_free_spin_about_principal_axis_follows_the_scheme(axis):
+    omega, T = 10.0, 100  # 10 rad in 1 s: the rotation vector is re-centred (|omega| > pi) several times
+    _, q = _spin(axis, omega, T)
+    n = torch.arange(T + 1, dtype=F64)[:, None]
+    exact = torch.tensor([0.0, 0.0, 1.0], dtype=F64) + torch.tensor([0.5, 0.0, 0.0], dtype=F64) * n * DT
+    exact[:, 2] -= G * DT**2 * (n * (n + 1) / 2)[:, 0]
+    assert float((q[:, :3] - exact).abs().max()) <= 1e-9  # translation decoupled from the spin
+    R = rotation_matrix(q[:, 3:])
+    e = torch.zeros(3, dtype=F64)
+    e[axis] = 1.0
+    assert float((R @ e - e).abs().max()) <= 1e-9  # the axis stays fixed: no wobble about a principal axis
+    assert float(q[:, 3:].norm(dim=1).max()) <= math.pi + 1e-12  # re-centred rotation vectors
+    # The step minimises tr(A S A^T) with A = R_{n+1} - 2 R_n + R_{n-1}; for rotations about a principal axis the
+    # minimiser advances the angle by delta_{n+1} = arg(2 - exp(-i delta_n)) = delta_n - delta_n^3 + O(delta^5):
+    # the x-space inertia damps the spin (see test_torque_free_spin_rate_is_constant).
+    theta, delta = 0.0, omega * DT
+    err = 0.0
+    for k in range(T + 1):
+        err = max(err, abs(_wrap(_angle_about(R[k], axis) - theta)))
+        delta = math.atan2(math.sin(delta), 2.0 - math.cos(delta))
+        theta += delta
+    assert err <= 1e-6  # observed 2e-7 rad after 100 steps (newton_tol 1e-9 per step, accumulated)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="library physics: the x-space inertia 1/2 int rho |x - 2 x_t + x_{t-1}|^2 damps a torque-free spin: "
+    "per step omega loses omega^3 dt^2 (10 rad/s at dt = 0.01 falls to 5.8 rad/s in 1 s); torque-free rotation "
+    "about a principal axis should keep a constant rate",
+)
+def test_torque_free_spin_rate_is_constant():
+    omega, T = 10.0, 100
+    _, q = _spin(2, omega, T)
+    R = rotation_matrix(q[:, 3:])
+    err = max(abs(_wrap(_angle_about(R[k], 2) - omega * k * DT)) for k in range(T + 1))
+    assert err <= 1e-2  # physics: theta_n = omega n dt (observed 2.4 rad behind after 1 s)
+
+
+# ================================================================================================ 2. resting box
+def test_box_rests_on_ground_without_penetration_or_drift(cube, ground):
+    """500 steps (5 s) of a box dropped from 1.5 mm onto the ground, friction on (about 15 s)."""
+    scene = Scene((cube, ground), friction=0.5)
+    state = scene.initial_state(_poses((0.0, 0.0, HALF + 0.0015), ()))
+    qs = _qs(rollout(scene, state, 500))
+    gaps = np.array([_height(cube, q[0]) for q in qs])
+    assert gaps.min() > MARGIN  # the barrier: never within the margin (observed min 1.336 mm, while landing)
+    settle = 30  # the box lands and settles within ~20 steps
+    assert 1.2e-3 < gaps[settle:].min() and gaps[settle:].max() < 2e-3  # resting gap (observed 1.348 mm)
+    drift = (qs[settle:, 0] - qs[settle, 0]).abs().max(0).values  # over the 470 steps after settling
+    assert float(drift[2]) <= 1e-7  # height (observed 2.3e-9 m)
+    assert float(drift[:2].max()) <= 1e-6  # sideways: friction creep (observed 2.0e-8 m)
+    assert float(drift[3:].max()) <= 2e-6  # rotation: yaw creep (observed 2.8e-7 rad)
+
+
+# ================================================================================================ 3. collision
+def test_head_on_collision_conserves_momentum_and_exchanges_velocities(sphere):
+    scene = Scene((sphere, sphere), gravity=(0.0, 0.0, 0.0))
+    v0, T = 0.1, 40
+    reach = float(sphere.bsh.vertices[:, 0].max())
+    gap0 = 0.015  # 15 steps apart at 1 mm per step
+    q0 = _poses((-(2 * reach + gap0), 0.0, 0.0), ())
+    v = _poses((v0,), ())
+    qs = _qs(rollout(scene, scene.initial_state(q0, v), T))
+    vel = (qs[1:] - qs[:-1]) / DT  # (T, 2, 6) backward-difference velocities after each step
+    m = sphere.mass
+    P = m * vel[:, :, :3].sum(1)  # total linear momentum after each step
+    P0 = torch.tensor([m * v0, 0.0, 0.0], dtype=F64)
+    assert float((P - P0).abs().max()) <= 1e-9 * m * v0  # conserved (observed 4e-14 relative)
+    gaps = np.array([_distance(sphere, q[0], sphere, q[1]) for q in qs])
+    assert gaps.min() > MARGIN  # no penetration at any step (observed min 1.66 mm)
+    i_min = int(gaps.argmin())
+    assert 10 < i_min < T - 10  # the collision happened inside the window
+    assert np.all(np.diff(gaps[-6:]) > 0) and gaps[-1] > gaps[i_min] + 5e-3  # separating at the end
+    vA, vB = float(vel[-1, 0, 0]), float(vel[-1, 1, 0])
+    # implicit Euler dissipates: restitution e = (vB - vA) / v0 is below 1 (observed 0.73 for these meshes at
+    # 0.1 m/s; it falls as the impact speed grows). Equal masses: vA = v0 (1 - e) / 2, vB = v0 (1 + e) / 2.
+    e = (vB - vA) / v0
+    assert 0.5 <= e <= 1.0
+    assert vB >= 0.75 * v0 and vA <= 0.25 * v0  # velocities roughly exchanged (observed 0.86 v0, 0.14 v0)
+    I = sphere.inertia
+    w = vel[-1, :, 3:]
+    ke = 0.5 * m * float((vel[-1, :, :3] ** 2).sum()) + 0.5 * float(((w @ I) * w).sum())
+    assert ke <= 0.5 * m * v0**2 * (1 + 1e-9)  # no energy created
+    assert float(w.abs().max()) <= 0.1  # face-to-face impact: hardly any spin (observed 0.04 rad/s)
+
+
+# ================================================================================================ 4. slope
+def _slope_rollout(cube, ground, tan_theta: float, mu_f: float, T: int):
+    th = math.atan(tan_theta)  # a slope of angle theta: the ground stays level, gravity is tilted by theta
+    scene = Scene((cube, ground), friction=mu_f, gravity=(G * math.sin(th), 0.0, -G * math.cos(th)))
+    state = scene.initial_state(_poses((-0.5, 0.0, HALF + 1.4e-3), ()))  # at rest, about at the resting gap
+    qs = _qs(rollout(scene, state, T))
+    assert min(_height(cube, q[0]) for q in qs) > MARGIN
+    return th, qs
+
+
+def test_box_sticks_on_slope_below_friction_angle(cube, ground):
+    settle, T = 10, 60
+    tan_theta, mu_f = 0.3, 0.5
+    _, qs = _slope_rollout(cube, ground, tan_theta, mu_f, T)
+    x = qs[:, 0, 0].numpy()
+    # landing: the barrier's compliance lets the box tilt and shift by ~1e-4 m (observed 1.4e-4 m)
+    assert abs(x[settle] - x[0]) <= 5e-4
+    # sticking: smoothed Coulomb friction creeps at most eps_v in its static regime, so over 0.5 s the box moves
+    # less than eps_v * 0.5 s = 5e-5 m (observed 1.9e-5 m); without friction it would slide 0.5 g sin(theta) t^2
+    # = 0.35 m
+    assert abs(x[T] - x[settle]) <= EPS_V * (T - settle) * DT
+
+
+def test_box_slides_on_slope_with_coulomb_acceleration(cube, ground):
+    settle, T = 10, 40
+    tan_theta, mu_f = 0.5, 0.3
+    th, qs = _slope_rollout(cube, ground, tan_theta, mu_f, T)
+    t = np.arange(T + 1) * DT
+    x = qs[:, 0, 0].numpy()
+    a = 2.0 * np.polyfit(t[settle:], x[settle:], 2)[0]  # quadratic fit after the landing
+    a_coulomb = G * (math.sin(th) - mu_f * math.cos(th))  # 1.75 m/s^2
+    assert abs(a / a_coulomb - 1.0) <= 0.05  # observed -1.9 %
+    assert float(qs[:, 0, 1].abs().max()) <= 1e-3  # it slides straight down the slope
+
+
+# ================================================================================================ 5. gradients
+def test_rollout_gradient_matches_finite_differences_with_friction(cube, ground):
+    """d(final pose of a box sliding on the ground)/d(initial velocity, force, mass, friction coefficient) through
+    20 steps with production settings (default newton_tol 1e-9, friction on, contact throughout)."""
+    T = 20
+    scene = Scene((cube, ground), friction=0.3)
+    w = torch.tensor([1.0, 0.5, 2.0, 0.0, 0.0, 0.0], dtype=F64)  # loss weights on the final pose
+
+    def loss(v0, f, mass, mu):
+        q0 = _poses((-0.4, 0.0, HALF + 1.4e-3), ())
+        v = torch.cat([torch.cat([v0, v0.new_zeros(3)])[None], v0.new_zeros(1, 6)])
+        params = scene.params()._replace(mass=mass.reshape(1), friction=mu)
+        force = torch.cat([f[None], f.new_zeros(1, 3)])
+        states = rollout(scene, scene.initial_state(q0, v), [Action(force=force)] * T, params)
+        return (states[-1].q[0] * w).sum()
+
+    x = (
+        torch.tensor([0.8, 0.05, 0.0], dtype=F64),  # initial velocity: slides for all 20 steps
+        torch.tensor([10.0, 1.0, -5.0], dtype=F64),  # applied force
+        torch.tensor(cube.mass, dtype=F64),
+        torch.tensor(0.3, dtype=F64),
+    )
+    xg = [t.clone().requires_grad_(True) for t in x]
+    grads = torch.autograd.grad(loss(*xg), xg)
+    dirs = (
+        torch.tensor([1.0, 0.5, -0.3], dtype=F64),
+        torch.tensor([2.0, 10.0, 5.0], dtype=F64),
+        torch.tensor(8.0, dtype=F64),
+        torch.tensor(1.0, dtype=F64),
+    )
+    h = 1e-5  # the solver resolves 1e-9 in coordinates: FD noise ~1e-9 / h = 1e-4 of an O(1) derivative at worst
+    for k, (g, d) in enumerate(zip(grads, dirs, strict=True)):
+        analytic = float((g * d).sum())
+        assert abs(analytic) > 1e-3, k  # non-zero (observed 0.19, 0.018, -0.018, -0.21)
+        with torch.no_grad():
+            xp = [t + h * d if i == k else t for i, t in enumerate(x)]
+            xm = [t - h * d if i == k else t for i, t in enumerate(x)]
+            fd = float(loss(*xp) - loss(*xm)) / (2 * h)
+        assert abs(analytic - fd) <= 1e-4 * abs(analytic), (k, analytic, fd)  # observed <= 3e-6 relative
+
+
+# ================================================================================================ 6. long range
+def test_long_range_gradient_two_metres_apart(small_sphere):
+    """B, 2 m from A with nothing in between and no gravity, feels A's approach: d x_B(T) / d v_A > 0."""
+    T = 25
+
+    def final_xB(vA, newton_tol):
+        scene = Scene((small_sphere, small_sphere), gravity=(0.0, 0.0, 0.0), newton_tol=newton_tol)
+        q0 = _poses((-2.0, 0.0, 0.0), ())
+        v = torch.cat([torch.cat([vA, vA.new_zeros(3)])[None], vA.new_zeros(1, 6)])
+        states = rollout(scene, scene.initial_state(q0, v), T)
+        assert float((states[-1].q[1, 0] - states[-1].q[0, 0]).detach()) > 1.5  # still far apart
+        return states[-1].q[1, 0]
+
+    vA = torch.tensor([0.5, 0.0, 0.0], dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(final_xB(vA, 1e-9), vA)  # production settings
+    assert float(grad[0]) > 0.0  # non-zero, and moving A toward B pushes B away (observed 5.4e-11 s)
+    assert float(grad[1:].abs().max()) <= 1e-6 * float(grad[0])  # no sideways push on the line of centres
+    # FD reference with newton_tol = 1e-13: the push moves B by ~1e-12 m per step, below the production tolerance
+    # (1e-9 m), so a production forward pass stops at the extrapolated (unpushed) pose and its finite difference is
+    # exactly 0; the adjoint uses the Hessian at the solution, which couples A and B regardless.
+    h = 1e-3
+    e = torch.tensor([h, 0.0, 0.0], dtype=F64)
+    with torch.no_grad():
+        assert float(final_xB(vA, 1e-13)) > 0.0  # B was pushed away (observed 6.7e-10 m)
+        fd = float(final_xB(vA + e, 1e-13) - final_xB(vA - e, 1e-13)) / (2 * h)
+    assert abs(float(grad[0]) - fd) <= 1e-4 * abs(fd)  # observed 1e-7 relative
+
+
+# ================================================================================================ 7. gradcheck
+def _gradcheck_scene(ground, pusher):
+    """Dynamic box 3 mm from a kinematic pusher, at about its resting gap above a refined ground; friction on."""
+    box = _box((0.2, 0.2, 0.2), max_edge=0.2)
+    scene = Scene((box, ground, pusher), friction=0.5, newton_tol=1e-13)
+    q = _poses((0.01, 0.002, HALF + 1.4e-3, 2e-4, -1e-4, 0.003), (), (-0.118, 0.0, 0.06))
+    v = _poses((0.1, 0.02, 0.0, 0.0, 0.0, 0.2), (), ())  # sliding and turning: friction in its sliding regime
+    target = q[2:3].clone()
+    target[0, 0] += 5e-4  # the pusher advances 0.5 mm
+    force = torch.tensor([[1.0, 2.0, -3.0], [0.0] * 3, [0.0] * 3], dtype=F64)
+    torque = torch.tensor([[0.1, -0.2, 0.3], [0.0] * 3, [0.0] * 3], dtype=F64)
+    return scene, (q, q - DT * v, force, torque, target)
+
+
+def test_step_gradcheck_with_contact_friction_and_pusher(ground, pusher):
+    scene, (q, q_prev, force, torque, target) = _gradcheck_scene(ground, pusher)
+    p = scene.params()
+    info = {}
+    step(scene, State(q, q_prev), Action(force, torque, target), info=info)
+    assert info["friction_contacts"] > 0 and info["leaf_pairs"] > 0  # contact and friction are active
+
+    def f(q, q_prev, force, torque, target, mass, S, mu):
+        return step(scene, State(q, q_prev), Action(force, torque, target), Params(mass, S, mu)).q
+
+    inputs = [x.clone().requires_grad_(True) for x in (q, q_prev, force, torque, target, *p)]
+    grads = torch.autograd.grad(f(*inputs)[0].sum(), inputs)
+    for name, g in zip(
+        ("q", "q_prev", "force", "torque", "target", "mass", "S", "friction"), grads, strict=True
+    ):
+        assert float(g.abs().max()) > 0.0, name  # every input reaches the box's next pose
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=StepError,
+    reason="library bug: with newton_tol=1e-13 the Armijo line search stalls once the predicted decrease g.p "
+    "(~1e-16) is below the rounding noise of L (~3e-16): the full Newton step (|p| = 9e-11) is rejected on every "
+    "iteration and the step raises StepError; taking the full step converges in 8 iterations",
+)
+def test_tight_newton_tol_converges_near_contact(pusher):
+    box = _box((0.2, 0.2, 0.2))  # 12 faces
+    slab = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
+    slab.apply_translation([0.0, 0.0, -0.025])
+    scene = Scene(
+        (box, rigid_body(slab, kind="static", max_edge=0.3), pusher), friction=0.5, newton_tol=1e-13
+    )
+    q = _poses((0.01, 0.002, HALF + 1.4e-3, 2e-4, -1e-4, 0.003), (), (-0.118, 0.0, 0.06))
+    q_prev = q - DT * _poses((0.1, 0.02, 0.0, 0.0, 0.0, 0.2), (), ())
+    q_prev[0, 1] += 1e-6  # without this nudge the step converges
+    force = torch.tensor([[1.0, 2.0, -3.0], [0.0] * 3, [0.0] * 3], dtype=F64)
+    torque = torch.tensor([[0.1, -0.2, 0.3], [0.0] * 3, [0.0] * 3], dtype=F64)
+    target = q[2:3].clone()
+    target[0, 0] += 5e-4
+    info = {}
+    step(scene, State(q, q_prev), Action(force, torque, target), info=info)  # raises StepError today
+    assert info["newton_iters"] <= 20
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=pytest.fail.Exception,  # pytest.raises: DID NOT RAISE
+    reason="library bug: step's backward returns detached gradients, so with create_graph=True the step's second "
+    "derivatives are silently dropped (_RefuseDoubleBackward never runs: its input does not require grad); "
+    "torch.autograd.function.once_differentiable on _StepFn.backward would refuse loudly",
+)
+def test_step_refuses_double_backward(ground, pusher):
+    scene, (q, q_prev, force, torque, target) = _gradcheck_scene(ground, pusher)
+    force = force.clone().requires_grad_(True)
+    out = step(scene, State(q, q_prev), Action(force, torque, target)).q
+    # the loss's own cubic term keeps the first gradient differentiable, so a RuntimeError can only be the step's
+    # refusal (not "element 0 of tensors does not require grad")
+    loss = (out[0, :3] ** 2).sum() + (force**3).sum()
+    with pytest.raises(RuntimeError):
+        (g,) = torch.autograd.grad(loss, force, create_graph=True)
+        assert float(g.detach()[0].abs().max()) > 0.0
+        torch.autograd.grad(g[0].sum(), force)  # today: succeeds, without the step's second-order term
+
+
+# ================================================================================================ 8. validation
+@pytest.fixture(scope="module")
+def rest_scene(cube, ground):
+    scene = Scene((cube, ground))
+    return scene, scene.initial_state(_poses((0.0, 0.0, HALF + 2e-3), ()))
+
+
+@pytest.mark.parametrize(
+    "field, bad, name",
+    [
+        ("q", torch.zeros(2, 5, dtype=F64), "state.q"),
+        ("q", torch.zeros(3, 6, dtype=F64), "state.q"),
+        ("q_prev", torch.zeros(2, 6, dtype=torch.int64), "state.q_prev"),
+        ("q_prev", torch.zeros(2, 6, dtype=torch.float16), "state.q_prev"),
+        ("q", "nan", "state.q"),
+        ("q_prev", "inf", "state.q_prev"),
+    ],
+)
+def test_bad_state_raises_value_error_naming_it(rest_scene, field, bad, name):
+    scene, state = rest_scene
+    if isinstance(bad, str):
+        x = getattr(state, field).clone()
+        x[0, 2] = float(bad)
+        bad = x
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        step(scene, state._replace(**{field: bad}))
+
+
+@pytest.mark.parametrize(
+    "kw, name",
+    [
+        ({"force": torch.zeros(2, 6, dtype=F64)}, "action.force"),
+        ({"force": torch.full((2, 3), float("nan"), dtype=F64)}, "action.force"),
+        ({"torque": torch.zeros(1, 3, dtype=F64)}, "action.torque"),
+        ({"torque": torch.tensor([[0.0, float("inf"), 0.0], [0.0] * 3], dtype=F64)}, "action.torque"),
+        ({"target": torch.zeros(1, 6, dtype=F64)}, "action.target"),  # the scene has no kinematic body
+    ],
+)
+def test_bad_action_raises_value_error_naming_it(rest_scene, kw, name):
+    scene, state = rest_scene
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        step(scene, state, Action(**kw))
+
+
+def test_bad_params_raise_value_error(rest_scene):
+    scene, state = rest_scene
+    p = scene.params()
+    for bad in (
+        p._replace(mass=p.mass[:0]),
+        p._replace(mass=-p.mass),
+        p._replace(friction=torch.tensor(-0.1)),
+    ):
+        with pytest.raises(ValueError, match="params"):
+            step(scene, state, params=bad)
+
+
+@pytest.mark.parametrize("gap", [-0.01, 0.0, 0.5 * MARGIN])
+def test_penetrating_start_raises(cube, ground, gap):
+    scene = Scene((cube, ground))
+    state = scene.initial_state(_poses((0.0, 0.0, HALF + gap), ()))
+    with pytest.raises((StepError, ValueError), match="penetrat"):
+        step(scene, state)
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"dt": 0.0},
+        {"dt": -0.01},
+        {"dt": float("inf")},
+        {"mu": -1e-8},
+        {"margin": 0.0},
+        {"eps": -0.1},
+        {"split": "middle"},
+        {"friction": -0.1},
+        {"friction": float("nan")},
+        {"gravity": (0.0, -9.81)},
+        {"gravity": (0.0, 0.0, float("nan"))},
+        {"newton_tol": 0.0},
+        {"friction_eps_v": -1e-4},
+    ],
+    ids=lambda kw: next(iter(kw)),
+)
+def test_scene_rejects_bad_parameters(cube, ground, kw):
+    with pytest.raises(ValueError):
+        Scene((cube, ground), **kw)
+
+
+def test_scene_rejects_bad_bodies(cube, ground):
+    with pytest.raises(ValueError):
+        Scene(())
+    with pytest.raises(ValueError):
+        Scene((ground,))  # no dynamic body
+    with pytest.raises(ValueError):
+        Scene((cube, "ground"))
+
+
+def test_rigid_body_rejects_bad_meshes():
+    open_box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    open_box.update_faces(np.arange(len(open_box.faces)) != 0)  # one triangle missing: not watertight
+    assert not open_box.is_watertight
+    with pytest.raises(ValueError, match="watertight"):
+        rigid_body(open_box)
+    rigid_body(open_box, kind="static")  # fine for a fixed obstacle
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    with pytest.raises(ValueError):
+        rigid_body(box, density=0.0)
+    with pytest.raises(ValueError):
+        rigid_body(box, kind="floating")
+    inverted = box.copy()
+    inverted.invert()  # inward normals: negative volume
+    with pytest.raises(ValueError):
+        rigid_body(inverted)
+
+
+# ================================================================================================ 9. mass properties
+def test_box_mass_properties_match_closed_form():
+    a, b, c, rho = 0.3, 0.2, 0.1, 700.0
+    body = _box((a, b, c), density=rho)
+    m = rho * a * b * c
+    assert body.mass == pytest.approx(m, rel=1e-12)
+    # second moment S = int rho X X^T dV = m / 12 diag(a^2, b^2, c^2); inertia = tr(S) I - S
+    S = torch.diag(torch.tensor([a * a, b * b, c * c], dtype=F64)) * m / 12
+    torch.testing.assert_close(body.second_moment, S, rtol=1e-12, atol=1e-15)
+    inertia = torch.diag(torch.tensor([b * b + c * c, a * a + c * c, a * a + b * b], dtype=F64)) * m / 12
+    torch.testing.assert_close(body.inertia, inertia, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(body.com, torch.zeros(3, dtype=F64), rtol=0, atol=1e-15)
+
+
+def test_off_centre_mesh_is_recentred():
+    a, b, c, rho = 0.3, 0.2, 0.1, 700.0
+    Rm = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, -0.5])
+    Rm[:3, 3] = [1.0, -2.0, 0.5]  # rotate, then put the centre at (1, -2, 0.5)
+    body = _box((a, b, c), density=rho, transform=Rm)
+    torch.testing.assert_close(body.com, torch.tensor([1.0, -2.0, 0.5], dtype=F64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(body.bsh.vertices.mean(0), torch.zeros(3, dtype=F64), rtol=0, atol=1e-12)
+    R = torch.tensor(Rm[:3, :3], dtype=F64)
+    m = rho * a * b * c
+    S = R @ (torch.diag(torch.tensor([a * a, b * b, c * c], dtype=F64)) * m / 12) @ R.T  # mesh axes
+    assert body.mass == pytest.approx(m, rel=1e-12)
+    torch.testing.assert_close(body.second_moment, S, rtol=1e-10, atol=1e-14)
+    # static bodies keep the mesh frame
+    fixed = _box((a, b, c), kind="static", transform=Rm)
+    torch.testing.assert_close(fixed.bsh.vertices.mean(0), torch.tensor([1.0, -2.0, 0.5], dtype=F64))
+    assert fixed.mass == 0.0
+
+
+# ================================================================================================ 10. pusher
+def test_kinematic_pusher_pushes_box_along_ground(cube, ground, pusher):
+    scene = Scene((cube, ground, pusher), friction=0.3)
+    T, speed = 40, 0.05  # 0.5 mm per step, 2 cm in all
+    x_box = -0.3
+    x_push = x_box - HALF - 0.025 - 3e-3  # 3 mm behind the box
+    q0 = _poses((x_box, 0.0, HALF + 1.4e-3), (), (x_push, 0.0, 0.06))
+    actions = []
+    for k in range(1, T + 1):
+        target = q0[2:3].clone()
+        target[0, 0] += speed * k * DT
+        actions.append(Action(target=target))
+    qs = _qs(rollout(scene, scene.initial_state(q0), actions))
+    torch.testing.assert_close(qs[-1, 2], actions[-1].target[0])  # the pusher went where it was told
+    for q in qs:
+        assert _height(cube, q[0]) > MARGIN
+        assert _distance(cube, q[0], pusher, q[2]) > MARGIN
+    push = speed * T * DT
+    moved = float(qs[-1, 0, 0] - qs[0, 0, 0])
+    # the box moves with the pusher once the 3 mm gap has closed to the contact gap (observed: 1.9 of 2 cm)
+    assert push - 3e-3 <= moved <= push
+    assert float(qs[:, 0, 1].abs().max()) <= 2e-3  # pushed straight (observed 1e-5 m)
+    assert _height(cube, qs[-1, 0]) < 3e-3  # still on the ground
+
+
+@pytest.mark.slow
+def test_pusher_rollout_gradient_matches_finite_differences(cube, ground, pusher):
+    """d(final box pose)/d(pusher speed, friction coefficient) through 30 pushing steps (about 40 s)."""
+    T = 30
+    q0 = _poses((-0.3, 0.0, HALF + 1.4e-3), (), (-0.3 - HALF - 0.025 - 2e-3, 0.0, 0.06))
+    w = torch.tensor([1.0, 0.0, 2.0, 0.0, 1.0, 0.0], dtype=F64)  # x, z and pitch of the pushed box
+
+    def loss(speed, mu, newton_tol=1e-9):
+        scene = Scene((cube, ground, pusher), friction=0.3, newton_tol=newton_tol)
+        actions = []
+        for k in range(1, T + 1):
+            target = q0[2:3] + torch.cat([speed[None] * k * DT, speed.new_zeros(5)])[None]
+            actions.append(Action(target=target))
+        params = scene.params()._replace(friction=mu)
+        return (rollout(scene, scene.initial_state(q0), actions, params)[-1].q[0] * w).sum()
+
+    x = (torch.tensor(0.05, dtype=F64), torch.tensor(0.3, dtype=F64))
+    xg = [t.clone().requires_grad_(True) for t in x]
+    grads = torch.autograd.grad(loss(*xg), xg)  # production settings
+    # FD reference with newton_tol = 1e-12: the friction coefficient barely moves the pushed box (d loss / d mu_f
+    # ~ -3e-4), so +-h changes the loss by ~3e-9, the size of the production tolerance's stopping error (1e-9 per
+    # step); production-tolerance differences carry a 0.2 % bias from where the solves stop (observed), tight ones
+    # do not. The analytic gradient is the same at either tolerance (to 2e-5).
+    h = 1e-5
+    for k, g in enumerate(grads):
+        assert abs(float(g)) > 1e-4, k  # non-zero (observed 0.30 and -2.8e-4)
+        with torch.no_grad():
+            xp = [t + h if i == k else t for i, t in enumerate(x)]
+            xm = [t - h if i == k else t for i, t in enumerate(x)]
+            fd = float(loss(*xp, newton_tol=1e-12) - loss(*xm, newton_tol=1e-12)) / (2 * h)
+        assert abs(float(g) - fd) <= 1e-3 * abs(float(g)), (
+            k,
+            float(g),
+            fd,
+        )  # observed 1e-7 and 2e-5 relative
+
+
+# ================================================================================================ 11. dtype, cost
+def test_float32_state_returns_float32(rest_scene):
+    scene, state = rest_scene
+    out64 = step(scene, state)
+    out32 = step(scene, State(state.q.float(), state.q_prev.float()))
+    assert out32.q.dtype == torch.float32 and out32.q_prev.dtype == torch.float32
+    torch.testing.assert_close(out32.q, out64.q.float(), rtol=0, atol=1e-6)
+
+
+def test_friction_off_costs_nothing(cube, ground):
+    counts = {}
+    for mu_f in (0.0, 0.5):
+        scene = Scene((cube, ground), friction=mu_f)
+        state = scene.initial_state(_poses((0.0, 0.0, HALF + 1.5e-3), ()))
+        info = {}
+        step(scene, state, info=info)
+        assert info["leaf_pairs"] > 0  # the box is in contact
+        counts[mu_f] = info["friction_contacts"]
+    assert counts[0.0] == 0 and counts[0.5] > 0
