@@ -30,10 +30,10 @@ The machine may be shared: the load average is recorded at the start and end of 
 torch's intra-op threads (default: torch's own default); the numba kernels use ``--numba-threads``.
 
 Writes ``<out>/bench_step.json`` (every per-step figure), ``<out>/table.md`` (printed too) and
-``<out>/bench_step_breakdown.png``; ``--profile`` adds cProfile and torch.profiler tables per scene
-(``<out>/profile_<case>.txt``).
+``<out>/bench_step_breakdown.png`` (``--replot`` rewrites the last two from the JSON); ``--profile`` adds cProfile
+and torch.profiler tables per scene (``<out>/profile_<case>.txt``).
 
-    python scripts/bench_step.py --out results/bench_step                 # ~15-30 min on 2 shared cores
+    python scripts/bench_step.py --out results/bench_step --profile       # ~10 min on 2 shared cores
     python scripts/bench_step.py --out results/bench_step_quick --quick   # a few minutes
 """
 
@@ -431,7 +431,8 @@ def _n(x) -> str:
 
 def tables(out: dict) -> str:
     lines = [
-        f"Step time [ms per step], medians over the timed steps; torch threads {out['meta']['torch_threads']}, "
+        f"Step time [ms per step], medians over the timed steps (cfd_torch at {out['meta']['git']}); torch "
+        f"threads {out['meta']['torch_threads']}, "
         f"numba threads {out['meta']['numba_threads']}, load average at start {_load(out['meta']['loadavg_start'])}"
         f", at end {_load(out['meta']['loadavg_end'])} (2 cores). Target: < {_ms(TARGET_S)} ms per step (20x the "
         f"authors' C++ double precision, {_ms(CPP_DOUBLE_S, 0)} ms / step, {_ms(CPP_DOUBLE_BACKWARD_S, 0)} ms / "
@@ -439,19 +440,20 @@ def tables(out: dict) -> str:
         "",
         "Forward (no grad): total and breakdown",
         "",
-        "| case | faces | fwd | contact | (o2 / o0 calls) | friction | solves | other | Newton it | evals/step "
-        "| leaf pairs/eval | node pairs/eval | < 28.5 ms | vs C++ 570 ms | load |",
-        "|" + "---|" * 15,
+        "| case | faces | fwd | (min) | contact | (o2 / o0 calls) | friction | solves | other | Newton it "
+        "| evals/step | leaf pairs/eval | node pairs/eval | < 28.5 ms | vs C++ 570 ms | load |",
+        "|" + "---|" * 16,
     ]
     for name, r in out["cases"].items():
         faces = _faces(r)
         if "error" in r:
-            lines.append(f"| {name} | {faces} | failed: {r['error'][:120]} |" + " |" * 12)
+            lines.append(f"| {name} | {faces} | failed: {r['error'][:120]} |" + " |" * 13)
             continue
         f = r["forward"]
         calls = f"{_n(f.get('contact_o2_calls'))} / {_n(f.get('contact_o0_calls'))}"
         lines.append(
-            f"| {name} | {faces} | {_ms(f['total_s'])} | {_ms(f['contact_s'])} | {calls} | {_ms(f['friction_s'])} "
+            f"| {name} | {faces} | {_ms(f['total_s'])} | {_ms(f['min_s'])} | {_ms(f['contact_s'])} | {calls} "
+            f"| {_ms(f['friction_s'])} "
             f"| {_ms(f['solve_s'], 2)} | {_ms(f['other_s'])} | {_n(f.get('newton_iters_median'))} "
             f"| {_n(f.get('contact_evals_median'))} | {_n(f.get('leaf_pairs_per_eval'))} "
             f"| {_n(f.get('node_pairs_per_eval'))} | {'yes' if f['total_s'] < TARGET_S else 'no'} "
@@ -590,7 +592,17 @@ def main() -> None:
     ap.add_argument("--friction", type=float, default=0.5, help="friction coefficient of the 'on' ball case")
     ap.add_argument("--profile", action="store_true", help="cProfile + torch.profiler tables per case")
     ap.add_argument("--profile-steps", type=int, default=5)
+    ap.add_argument(
+        "--replot", action="store_true", help="rewrite table.md and the plot from <out>/bench_step.json"
+    )
     args = ap.parse_args()
+    if args.replot:
+        out = json.loads((args.out / "bench_step.json").read_text())
+        text = tables(out)
+        (args.out / "table.md").write_text(text + "\n")
+        plot(out, args.out / "bench_step_breakdown.png")
+        print(text)
+        return
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.numba_threads:
