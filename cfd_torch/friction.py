@@ -118,7 +118,7 @@ def lagged_friction(
 
 
 def friction_terms(
-    data: LaggedFriction, poses: torch.Tensor, mu_f: torch.Tensor, e: float, order: int
+    data: LaggedFriction, poses: torch.Tensor, mu_f: torch.Tensor, e: float, order: int, reduce: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """Value, gradient and Hessian of the lagged friction potential D at ``poses``.
 
@@ -128,9 +128,10 @@ def friction_terms(
         mu_f: () friction coefficient.
         e: slip threshold eps_v dt [m].
         order: 0, 1 or 2.
+        reduce: return the total value (); else the per-contact values (C,).
 
     Returns:
-        value (), per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order).
+        value, per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order).
     """
     ba, bb = data.body[:, 0], data.body[:, 1]
     R, dR, d2R = rotation_derivatives(poses[:, 3:], order)
@@ -144,7 +145,7 @@ def friction_terms(
     ys = torch.where(slip, y, torch.full_like(y, e))  # safe in the unused branch
     f0 = torch.where(slip, y, -(y**3) / (3 * e * e) + y * y / e + e / 3)
     w = mu_f * data.normal_force
-    value = (w * f0).sum()
+    value = (w * f0).sum() if reduce else w * f0
     if order == 0:
         return value, None, None
     f1_y = torch.where(slip, 1.0 / ys, -y / (e * e) + 2.0 / e)  # f1(y) / y, finite at y = 0

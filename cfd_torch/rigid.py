@@ -6,8 +6,8 @@ moment. Static and kinematic bodies keep the mesh's own frame (their poses are g
 
 Inertia of the incremental potential, exact for the body's volume (not lumped at vertices)::
 
-    1/2 int rho |x(q) - 2 x(q_t) + x(q_{t-1})|^2 dV = 1/2 (m |b|^2 + tr(A S A^T)),
-    b = t - 2 t_t + t_{t-1},  A = R - 2 R_t + R_{t-1},  S = int rho X X^T dV (body frame, about the COM),
+    1/2 int rho |x(q) - x_pred|^2 dV = 1/2 (m |b|^2 + tr(A S A^T)),   x_pred = R_t R_{t-1}^T R_t X + 2 t_t - t_{t-1}
+    b = t - 2 t_t + t_{t-1},  A = R - R_t R_{t-1}^T R_t,  S = int rho X X^T dV (body frame, about the COM),
 
 the first moment vanishing because the frame is centred at the COM.
 """
