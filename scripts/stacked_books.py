@@ -1,0 +1,506 @@
+"""Stacked books (paper, section "experiments"; SPEC section 6): a harmonic overhang at the stability limit.
+
+Scene. ``--boards`` (20) identical boards (boxes ``--length`` x ``--width`` x ``--thickness``, density
+``--density``, 12-triangle boxes unless ``--max-edge``) on a static table (a box of the boards' length and width,
+top face z = 0, right edge x = 0). Board k from the top overhangs the body below it (board k + 1, or the table for
+the bottom board) by (1 - ``--retract``) L / (2k): the harmonic stack at its theoretical limit, every overhang
+retracted by 0.1 %. In rigid-body statics the centre of mass of the top k boards then lies ``retract`` L / 2 inside
+the edge of the body below them, for every k: 0.5 mm for L = 1 m.
+
+Initial gaps. Each board starts level, the gap under it set to where the two-body potential of that interface alone
+(``mesh_potential_derivatives`` of the board and the body below, nothing else) carries the weight of the boards on
+it (bisection on the gap). This only shortens the settling; the rest state is the simulator's.
+
+Simulation. ``cfd_torch.step``, gravity -9.81 z, Coulomb friction ``--friction`` = 0.5 (eps_v = 1e-4 m/s),
+eps = 0.01, newton_tol = 1e-8 m (0.1 % of the smallest gap measured; at 1e-9 the solve stalls on rounding in some
+steps), and a quasi-static step ``--dt`` = 0.1 s: implicit Euler at that step damps the fast contact modes, so the
+kinetic energy of the initial settling does not throw a board past its equilibrium tilt (a single board on the table
+edge at mu = 1e-9 overshoots and topples at dt = 0.01 s but settles at dt = 0.1 s). The question asked is whether
+the stack has a static equilibrium that the model reaches from the placement, not how a dropped stack bounces.
+A step whose Newton solve fails is retried as ``--substeps`` = 10 steps of dt / 10 (same model, shorter step).
+
+Definitions (every figure in the outputs is one of these):
+
+- **stable**: the run reaches rest before ``--t-max`` = 20 s: every board's largest vertex speed
+  (|v| + |omega| R, R the board's half-diagonal) below ``--rest-speed`` = 1e-5 m/s for ``--rest-time`` = 1 s, at
+  t >= ``--t-min`` = 2 s. The run fails (unstable) as soon as a board is tilted by more than ``--tilt-fail`` =
+  0.1 rad relative to the body below it, or the centre of mass of the boards above some interface lies more than
+  ``--topple-fail`` = 1 cm beyond the supporting edge, measured in the frame of the body below (no support force
+  inside the contact can hold that: it is toppling), or a step fails even when sub-stepped (StepError). A run that
+  neither rests nor fails by t_max is unstable ("not at rest"). The rest speed sits above the creep that the lagged
+  IPC-style friction allows (below eps_v its force is a stiff viscous law, so a board held by friction creeps at
+  ~1e-6 m/s).
+- **margin** [m]: the rest gap between touching bodies. For each of the ``--boards`` interfaces (board on board,
+  bottom board on table), the minimum distance between the two surfaces over every vertex of one body against every
+  triangle of the other and vice versa (exact vertex-face distances, ``trimesh.triangles.closest_point``; for two
+  nearly aligned boxes this is their surface distance). Headline: the mean over the interfaces (min, max and each
+  interface are in the JSON). The full gap, delta included; delta = ``--margin`` = 1e-5 m is below every gap.
+- **contact-force error** [N]: rigid-body statics says interface c carries the weight of the boards above it and
+  that bodies which do not touch exert no force on each other. The model's potential acts between every pair of
+  bodies, so the force through interface c deviates from statics by the resultant of the forces that the bodies
+  below the interface exert on the bodies above it, except the touching pair:
+  ``e_c = | sum_{i below c, j above c, (i, j) != (c - 1, c)} F_ij |``, F_ij the force of body i on body j from
+  their two-body potential (``-grad`` of ``mesh_potential_derivatives``). At rest this is
+  |F_contact,c - F_statics,c| up to friction and inertia, which vanish at rest. The contact force itself is not
+  differenced against the weight because at rest the tilted contact planes give it a horizontal part that friction
+  carries: that is not a long-range effect. Headline: the largest e_c over the interfaces (each e_c, the top board's
+  value, which is the long-range force on the top board, and the long-range resultant on every board, from every
+  body but its two neighbours, are in the JSON). Linear in mu (every term of the potential carries mu) up to how
+  the rest geometry moves with mu.
+
+Unstable runs have no rest state: their margin and force error are taken at the quietest state seen (smallest
+largest-vertex-speed) before the run failed, and flagged (``measured_at_rest`` false, * in the table).
+
+Settings chosen (the paper gives none of them). Boards 1 m x 0.2 m x 0.03 m of pine (600 kg/m^3, 3.6 kg) as
+12-triangle boxes: refined boards (``--max-edge``) spread the support over more, smaller triangle pairs, which in
+this model needs a larger tilt to bring the centre of pressure to the supporting edge (a refined single board on a
+table edge topples where the 12-triangle one rests), and cost far more (2,800 triangles per board: over 10 min for
+one step). delta = 1e-5 m: the paper's margin at mu = 1e-10, 3.13e-5 m, is below the library default delta = 1e-3 m,
+so their delta must be smaller; the gap beyond delta hardly depends on delta (the barrier terms are functions of the
+gap minus delta), so the measured margin minus delta is what delta = 1e-3 would add to 1e-3. Friction 0.5 (wood on
+wood). mu in {1e-5, 1e-6, 1e-7, 1e-8, 1e-10} as in the paper.
+
+Outputs under ``--out`` (default results/stacked_books): ``stacked_books.json`` (settings, definitions, and per mu:
+stable and why, margin, force error, steps, wall time, solver statistics, per-interface data, the speed / tilt /
+support-margin history), ``stacked_books.md`` (our figures beside the paper's) and ``stacked_books.png`` (margin and
+force error vs mu, log-log, ours and the paper's).
+
+    python scripts/stacked_books.py                                             # full run
+    python scripts/stacked_books.py --quick --out results/stacked_books_quick   # 5 boards (~30 s)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import trimesh  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+import cfd_torch  # noqa: E402
+from cfd_torch import Scene, State, StepError, mesh_potential_derivatives, rigid_body, step  # noqa: E402
+from cfd_torch.rotation import rotation_matrix, transform_points  # noqa: E402
+
+# mu: (margin [m], contact-force error [N], stable) from the paper's table
+PAPER = {
+    1e-5: (1.82e-2, 6.38e-3, False),
+    1e-6: (5.67e-3, 6.40e-4, True),
+    1e-7: (1.47e-3, 6.42e-5, True),
+    1e-8: (4.12e-4, 6.42e-6, True),
+    1e-10: (3.13e-5, 6.42e-8, True),
+}
+GRAVITY = (0.0, 0.0, -9.81)
+
+
+def parse_args() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", type=Path, default=Path("results/stacked_books"))
+    p.add_argument("--quick", action="store_true", help="5 boards instead of 20: a smoke run")
+    p.add_argument("--mu", type=float, nargs="+", default=sorted(PAPER, reverse=True))
+    p.add_argument("--boards", type=int, default=20)
+    p.add_argument("--length", type=float, default=1.0, help="board length L [m] (along the overhang)")
+    p.add_argument("--width", type=float, default=0.2, help="board width [m]")
+    p.add_argument("--thickness", type=float, default=0.03, help="board thickness [m]")
+    p.add_argument("--density", type=float, default=600.0, help="[kg/m^3]")
+    p.add_argument("--table-thickness", type=float, default=0.1)
+    p.add_argument(
+        "--max-edge", type=float, default=None, help="refine the boxes' triangles to this edge [m]"
+    )
+    p.add_argument("--retract", type=float, default=1e-3, help="relative retraction of every overhang")
+    p.add_argument("--margin", type=float, default=1e-5, help="delta, the barrier's margin [m]")
+    p.add_argument("--eps", type=float, default=0.01, help="relative blend width of the hierarchy")
+    p.add_argument("--friction", type=float, default=0.5)
+    p.add_argument("--friction-eps-v", type=float, default=1e-4)
+    p.add_argument("--dt", type=float, default=0.1)
+    p.add_argument("--newton-tol", type=float, default=1e-8, help="[m, rad]")
+    p.add_argument("--t-min", type=float, default=2.0, help="no rest verdict before this time [s]")
+    p.add_argument("--t-max", type=float, default=20.0, help="end of a run that neither rests nor fails [s]")
+    p.add_argument("--rest-speed", type=float, default=1e-5, help="largest vertex speed at rest [m/s]")
+    p.add_argument("--rest-time", type=float, default=1.0, help="how long the speed must stay below it [s]")
+    p.add_argument("--tilt-fail", type=float, default=0.1, help="a board tilted more than this fails [rad]")
+    p.add_argument(
+        "--topple-fail", type=float, default=0.01,
+        help="fails when a sub-stack's centre of mass is this far beyond its supporting edge [m]",
+    )  # fmt: skip
+    p.add_argument("--max-newton-iter", type=int, default=50)
+    p.add_argument(
+        "--substeps", type=int, default=10,
+        help="a step whose Newton solve fails is retried as this many steps of dt / substeps (0: no retry)",
+    )  # fmt: skip
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    a = p.parse_args()
+    if a.quick:
+        a.boards = 5
+    return a
+
+
+# ------------------------------------------------------------------------------------------------ scene set-up
+def overhang_edges(n: int, length: float, retract: float) -> list[float]:
+    """x of the right edge of board k = 1..n from the top (index k - 1); the table's edge is x = 0."""
+    edges = [0.0] * (n + 2)
+    for k in range(n, 0, -1):
+        edges[k] = edges[k + 1] + (1.0 - retract) * length / (2 * k)
+    return edges[1 : n + 1]
+
+
+def settled_gap(
+    lower, pose_lower: torch.Tensor, upper, pose_upper: torch.Tensor, load: float, *, mu: float, margin: float,
+    eps: float,
+) -> float:  # fmt: skip
+    """Gap under ``upper`` (translated vertically) at which the two-body potential's vertical force on it equals
+    ``load`` [N]; bisection in log(gap - delta). ``pose_upper`` is given at gap 0 (faces touching)."""
+
+    def lift(gap: float) -> float:
+        q = pose_upper.clone()
+        q[2] += gap
+        d = mesh_potential_derivatives(
+            lower.bsh, pose_lower, upper.bsh, q, mu=mu, margin=margin, eps=eps, hessian=False
+        )
+        f = float(-d.grad[8])
+        return f if math.isfinite(f) else math.inf
+
+    lo, hi = math.log(1e-12), math.log(1.0)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if lift(margin + math.exp(mid)) > load:
+            lo = mid
+        else:
+            hi = mid
+    return margin + math.exp(hi)
+
+
+def build(args, mu: float):
+    """Scene, initial poses (N, 6) (body 0 the table, 1..n boards bottom to top), board and weight."""
+    n, L, W, h = args.boards, args.length, args.width, args.thickness
+    board = rigid_body(
+        trimesh.creation.box((L, W, h)), kind="dynamic", density=args.density, max_edge=args.max_edge
+    )
+    table = rigid_body(
+        trimesh.creation.box((L, W, args.table_thickness)), kind="static", max_edge=args.max_edge
+    )
+    weight = board.mass * abs(GRAVITY[2])
+    edges = overhang_edges(n, L, args.retract)  # edges[k - 1]: board k from the top
+    poses = torch.zeros(n + 1, 6, dtype=torch.float64)
+    poses[0, 0], poses[0, 2] = -L / 2, -args.table_thickness / 2
+    top_of_below = 0.0
+    for i in range(1, n + 1):  # body i is board k = n + 1 - i from the top
+        k = n + 1 - i
+        poses[i, 0] = edges[k - 1] - L / 2
+        poses[i, 2] = top_of_below + h / 2
+        lower = table if i == 1 else board
+        gap = settled_gap(
+            lower, poses[i - 1], board, poses[i], k * weight, mu=mu, margin=args.margin, eps=args.eps
+        )
+        poses[i, 2] += gap
+        top_of_below = float(poses[i, 2]) + h / 2
+    scene = Scene(
+        [table] + [board] * n, dt=args.dt, gravity=GRAVITY, mu=mu, margin=args.margin, eps=args.eps,
+        friction=args.friction, friction_eps_v=args.friction_eps_v, newton_tol=args.newton_tol,
+        max_newton_iter=args.max_newton_iter,
+    )  # fmt: skip
+    return scene, poses, board, weight
+
+
+# ------------------------------------------------------------------------------------------------ measurements
+def world_mesh(body, pose: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) world vertices and (F, 3, 3) world triangles of a body at ``pose``."""
+    v = transform_points(pose, body.bsh.vertices).numpy()
+    return v, v[body.bsh.faces.numpy()]
+
+
+def surface_gap(body_a, pose_a, body_b, pose_b) -> float:
+    """Minimum vertex-face distance between two bodies, both ways [m]."""
+    best = math.inf
+    for (va, _), (_, tb) in (
+        (world_mesh(body_a, pose_a), world_mesh(body_b, pose_b)),
+        (world_mesh(body_b, pose_b), world_mesh(body_a, pose_a)),
+    ):
+        pts = np.repeat(va, len(tb), axis=0)
+        tris = np.tile(tb, (len(va), 1, 1))
+        d = np.linalg.norm(trimesh.triangles.closest_point(tris, pts) - pts, axis=1)
+        best = min(best, float(d.min()))
+    return best
+
+
+def measure(scene: Scene, poses: torch.Tensor, weight: float, args) -> dict:
+    """Margins, pair forces and contact-force errors at ``poses`` (see the module docstring)."""
+    bodies, n = scene.bodies, args.boards
+    N = n + 1
+    F = torch.zeros(N, N, 3, dtype=torch.float64)  # F[i, j]: force of body i on body j [N]
+    for i, j in scene.pairs.tolist():
+        d = mesh_potential_derivatives(
+            bodies[i].bsh, poses[i], bodies[j].bsh, poses[j], mu=scene.mu, margin=scene.margin, eps=scene.eps,
+            hessian=False,
+        )  # fmt: skip
+        F[i, j] = -d.grad[6:9]
+        F[j, i] = -d.grad[:3]
+    gaps, cut, pair, statics = [], [], [], []
+    for c in range(1, N):  # interface c: body c - 1 below, body c above
+        gaps.append(surface_gap(bodies[c - 1], poses[c - 1], bodies[c], poses[c]))
+        s = F[:c, c:].sum((0, 1)) - F[c - 1, c]
+        cut.append(s)
+        pair.append(F[c - 1, c])
+        statics.append((n - c + 1) * weight)
+    longrange = []
+    for b in range(1, N):
+        others = [j for j in range(N) if abs(j - b) > 1]
+        longrange.append(F[others, b].sum(0))
+    err = [float(torch.linalg.vector_norm(s)) for s in cut]
+    grav = torch.tensor([0.0, 0.0, -weight], dtype=torch.float64)
+    resid = [float(torch.linalg.vector_norm(F[:, b].sum(0) + grav)) / weight for b in range(1, N)]
+    return {
+        "margin": float(np.mean(gaps)),
+        "margin_min": float(np.min(gaps)),
+        "margin_max": float(np.max(gaps)),
+        "force_error": max(err),
+        "force_error_mean": float(np.mean(err)),
+        "force_error_top": err[-1],
+        "interfaces_bottom_to_top": {
+            "gap": gaps,
+            "force_error": err,
+            "longrange_across": [s.tolist() for s in cut],
+            "pair_force": [p.tolist() for p in pair],
+            "statics_load": statics,
+        },
+        "board_longrange_force_bottom_to_top": [f.tolist() for f in longrange],
+        "potential_force_residual_over_weight": resid,
+    }
+
+
+def support(q: torch.Tensor, masses: torch.Tensor, length: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per interface c (body c - 1 below, c..N-1 above): the support margin [m], i.e. how far inside the supporting
+    edge (x = +L/2 in the frame of the body below) the centre of mass of everything above lies, and the tilt of
+    body c relative to body c - 1 [rad]. q: (N, 6) poses, masses: (N,) (the table's unused)."""
+    R = rotation_matrix(q[:, 3:])  # (N, 3, 3)
+    m = masses[1:]
+    above = (
+        torch.flip(torch.cumsum(torch.flip(m[:, None] * q[1:, :3], [0]), 0), [0])
+        / torch.flip(torch.cumsum(torch.flip(m, [0]), 0), [0])[:, None]
+    )  # (N-1, 3): centre of mass of bodies c..N-1
+    local = torch.einsum("cji,cj->ci", R[:-1], above - q[:-1, :3])  # in the frame of body c - 1
+    rel = R[:-1].transpose(1, 2) @ R[1:]
+    cos = ((rel.diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return length / 2 - local[:, 0], torch.arccos(cos)
+
+
+# ------------------------------------------------------------------------------------------------ one run
+def advance(scene: Scene, fine: Scene | None, state: State, info: dict) -> State:
+    """One step of ``scene.dt``; if its Newton solve fails, the same interval as steps of ``fine.dt`` (the same
+    model with a shorter step), the velocity carried over. Raises StepError if that fails too."""
+    try:
+        return step(scene, state, None, info=info)
+    except StepError:
+        if fine is None:
+            raise
+    r = fine.dt / scene.dt
+    st = State(state.q, state.q - r * (state.q - state.q_prev))
+    for _ in range(round(1 / r)):
+        sub: dict = {}
+        st = step(fine, st, None, info=sub)
+        for key, v in sub.items():
+            if isinstance(v, int):
+                info[key] = info.get(key, 0) + v
+    info["substepped"] = 1
+    return State(st.q, st.q - (st.q - st.q_prev) / r)
+
+
+def board_radius(args) -> float:
+    return 0.5 * math.sqrt(args.length**2 + args.width**2 + args.thickness**2)
+
+
+def run(args, mu: float) -> dict:
+    t0 = time.perf_counter()
+    scene, poses0, board, weight = build(args, mu)
+    setup_s = time.perf_counter() - t0
+    n, dt, R = args.boards, args.dt, board_radius(args)
+    state = scene.initial_state(poses0)
+    masses = torch.tensor([b.mass for b in scene.bodies], dtype=torch.float64)
+    max_steps = int(round(args.t_max / dt))
+    rest_needed = max(1, int(round(args.rest_time / dt)))
+    quiet, stable, reason = 0, None, f"not at rest by t_max = {args.t_max} s"
+    best = (math.inf, poses0.clone(), 0)  # quietest state: (largest vertex speed, poses, step)
+    stats = {"newton_iters": 0, "contact_evals": 0, "leaf_pairs": 0, "substepped": 0}
+    fine = dataclasses.replace(scene, dt=dt / args.substeps) if args.substeps > 1 else None
+    hist = []
+    steps = 0
+    bar = tqdm(range(max_steps), desc=f"mu={mu:.0e}", leave=False)
+    t1 = time.perf_counter()
+    for s in bar:
+        info: dict = {}
+        try:
+            state = advance(scene, fine, state, info)
+        except StepError as e:
+            stable, reason = False, f"StepError at t = {(s + 1) * dt:.2f} s: {e}"
+            break
+        steps = s + 1
+        for key in stats:
+            stats[key] += int(info.get(key, 0))
+        v = (state.q - state.q_prev)[1:] / dt
+        speed = float((v[:, :3].norm(dim=1) + v[:, 3:].norm(dim=1) * R).max())
+        sup, rel = support(state.q, masses, args.length)
+        tilt, sup_min = float(rel.max()), float(sup.min())
+        hist.append((steps * dt, speed, tilt, sup_min))
+        bar.set_postfix(v=f"{speed:.1e}", tilt=f"{tilt:.1e}", it=info.get("newton_iters"))
+        if tilt > args.tilt_fail or sup_min < -args.topple_fail:
+            stable = False
+            reason = (
+                f"t = {steps * dt:.2f} s: largest tilt of a board on the body below {tilt:.3f} rad, smallest "
+                f"support margin {sup_min:.4f} m"
+            )
+            break
+        if speed < best[0]:
+            best = (speed, state.q.detach().clone(), steps)
+        quiet = quiet + 1 if speed < args.rest_speed else 0
+        if quiet >= rest_needed and steps * dt >= args.t_min:
+            stable, reason = True, f"at rest at t = {steps * dt:.2f} s"
+            break
+    if stable is None:
+        stable = False
+    sim_s = time.perf_counter() - t1
+    at = state.q.detach() if stable else best[1]
+    m = measure(scene, at, weight, args)
+    return {
+        "mu": mu,
+        "stable": bool(stable),
+        "reason": reason,
+        "measured_at_rest": bool(stable),
+        "measured_at_t": (steps if stable else best[2]) * dt,
+        "measured_state_largest_speed": hist[-1][1] if stable and hist else best[0],
+        **m,
+        "steps": steps,
+        "sim_time_s": steps * dt,
+        "wall_s": time.perf_counter() - t0,
+        "setup_wall_s": setup_s,
+        "sim_wall_s": sim_s,
+        "solver": stats,
+        "largest_tilt_rad": max((h[2] for h in hist), default=0.0),
+        "smallest_support_margin_m": min((h[3] for h in hist), default=math.inf),
+        "history_t_speed_reltilt_supportmargin": hist,
+        "initial_gaps_bottom_to_top": [
+            float(poses0[i, 2] - poses0[i - 1, 2])
+            - (args.thickness if i > 1 else (args.thickness + args.table_thickness) / 2)
+            for i in range(1, n + 1)
+        ],
+        "board_mass_kg": board.mass,
+    }
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+def fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2e}"
+
+
+def table_md(results: list[dict], args) -> str:
+    lines = [
+        f"Stacked books: {args.boards} boards {args.length} x {args.width} x {args.thickness} m, "
+        f"{args.density} kg/m^3, delta {args.margin}, friction {args.friction}, dt {args.dt} s. "
+        "margin = mean over interfaces of the rest surface gap; force error = largest |long-range force across "
+        "an interface| (see scripts/stacked_books.py). Values of unstable runs (*) are at their quietest state.",
+        "",
+        "| mu | margin (m) ours | paper | force error (N) ours | paper | stable ours | paper | steps | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        pm, pf, ps = PAPER.get(r["mu"], (None, None, None))
+        star = "" if r["measured_at_rest"] else "*"
+        lines.append(
+            f"| {r['mu']:.0e} | {fmt(r['margin'])}{star} | {fmt(pm)} | {fmt(r['force_error'])}{star} | {fmt(pf)} "
+            f"| {'yes' if r['stable'] else 'no'} | {'-' if ps is None else ('yes' if ps else 'no')} "
+            f"| {r['steps']} | {r['wall_s']:.0f} |"
+        )
+    lines += ["", "Reasons: " + "; ".join(f"mu={r['mu']:.0e}: {r['reason']}" for r in results), ""]
+    return "\n".join(lines)
+
+
+def plot(results: list[dict], path: Path) -> None:
+    mus = [r["mu"] for r in results]
+    pm = sorted(PAPER)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, idx, label in (
+        (axes[0], "margin", 0, "margin [m]"),
+        (axes[1], "force_error", 1, "force error [N]"),
+    ):
+        ax.loglog(pm, [PAPER[m][idx] for m in pm], "s--", color="gray", label="paper")
+        ax.loglog(mus, [r[key] for r in results], "o-", color="C0", label="ours")
+        bad = [r for r in results if not r["stable"]]
+        if bad:
+            ax.loglog(
+                [r["mu"] for r in bad], [r[key] for r in bad], "x", color="C3", ms=10, label="ours, unstable"
+            )
+        ax.set_xlabel("mu")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle("Stacked books: rest gap and contact-force error vs mu")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    args = parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    results = []
+    for mu in tqdm(args.mu, desc="mu"):
+        r = run(args, mu)
+        results.append(r)
+        tqdm.write(
+            f"mu={mu:.0e}: stable={r['stable']} ({r['reason']}), margin {r['margin']:.3e} m, force error "
+            f"{r['force_error']:.3e} N, {r['steps']} steps, {r['wall_s']:.0f} s"
+        )
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "cfd_torch"], capture_output=True, text=True
+        ).stdout.strip()
+    except OSError:
+        commit, dirty = "", ""
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    out = {
+        "settings": settings,
+        "definitions": {
+            "stable": "rest (largest vertex speed < rest_speed for rest_time, t >= t_min) before t_max; fails on a "
+            "board tilted > tilt_fail on the body below, a sub-stack's centre of mass > topple_fail beyond its "
+            "supporting edge, or a StepError (after sub-stepping)",
+            "margin": "mean over interfaces of the minimum vertex-face distance between the touching bodies",
+            "force_error": "max over interfaces of |sum of forces of bodies below on bodies above, except the "
+            "touching pair| (deviation of the interface force from rigid statics)",
+        },
+        "paper": {
+            f"{m:.0e}": {"margin": v[0], "force_error": v[1], "stable": v[2]} for m, v in PAPER.items()
+        },
+        "results": results,
+        "total_wall_s": time.perf_counter() - t0,
+        "machine": {
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+        },
+        "cfd_torch_commit": commit,
+        "cfd_torch_uncommitted_changes": dirty,
+        "cfd_torch_file": cfd_torch.__file__,
+    }
+    (args.out / "stacked_books.json").write_text(json.dumps(out, indent=1))
+    md = table_md(results, args) + f"\nTotal wall time {out['total_wall_s']:.0f} s.\n"
+    (args.out / "stacked_books.md").write_text(md)
+    plot(results, args.out / "stacked_books.png")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
