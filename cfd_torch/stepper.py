@@ -359,6 +359,9 @@ class _Problem:
         if order == 1:
             return value, grad, None, None
         H = H[self.d6][:, self.d6] + torch.block_diag(*h_b)
+        # floor of the saddle-free direction's eigenvalue magnitudes: a tenth of the smallest inertia eigenvalue,
+        # so a direction whose curvature crosses zero is not taken as an arbitrarily long step
+        self.h_floor = 0.1 * float(torch.linalg.eigvalsh(h_b).min())
         return value, grad, H, Hc
 
 
@@ -376,7 +379,7 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
             indefinite = False
         else:
             ev, V = torch.linalg.eigh(H)
-            mag = ev.abs().clamp_min(1e-12 * float(ev.abs().max()))
+            mag = ev.abs().clamp_min(max(prob.h_floor, 1e-12 * float(ev.abs().max())))
             p = -(V @ ((V.T @ g) / mag))
             indefinite = True
         if not indefinite and float(p.abs().max()) <= tol:
