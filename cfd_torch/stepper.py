@@ -87,6 +87,10 @@ class Scene:
         newton_tol: convergence: the undamped Newton step is at most this in every coordinate [m, rad].
         max_newton_iter: Newton iterations before :class:`StepError`.
         pair_tol, pair_max_iter: inner plane-solve settings of the exact leaf pairs.
+        ccd_spacing: [m] no tunnelling: a move of the iterate (warm start, Newton trial) is accepted only if the
+            straight path to it stays feasible at points at most this far apart (largest vertex displacement),
+            and one Newton iteration moves no vertex more than 20 times this. Features thinner than about this
+            (plus the margin) can still be jumped over in one move.
     """
 
     bodies: tuple[RigidBody, ...]
@@ -103,6 +107,7 @@ class Scene:
     max_newton_iter: int = 100
     pair_tol: float = 1e-12
     pair_max_iter: int = 100
+    ccd_spacing: float = 0.01
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "bodies", tuple(self.bodies))
@@ -110,7 +115,7 @@ class Scene:
         if not self.bodies or not all(isinstance(b, RigidBody) for b in self.bodies):
             raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
         _check_params(self.mu, self.margin, self.eps, self.split)
-        for name in ("dt", "newton_tol", "friction_eps_v", "pair_tol"):
+        for name in ("dt", "newton_tol", "friction_eps_v", "pair_tol", "ccd_spacing"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < math.inf):
                 raise ValueError(f"{name} must be a finite positive number, got {v!r}")
@@ -289,6 +294,11 @@ class _Problem:
         self.pair_root = self.forest.roots[which.to(q_t.device)[self.pairs]]
         self.N, self.Nd = scene.num_bodies, len(self.dyn)
         self.d6 = (self.dyn[:, None] * 6 + torch.arange(6, device=q_t.device)).reshape(-1)
+        # (Nd,) farthest vertex of each dynamic body from its origin: bounds vertex displacements
+        self.extent = torch.tensor(
+            [float(scene.bodies[i].bsh.vertices.norm(dim=1).max()) for i in scene.dynamic.tolist()],
+            dtype=q_t.dtype, device=q_t.device,
+        )  # fmt: skip
         self.stats = {"contact_evals": 0, "leaf_pairs": 0, "node_pairs": 0}
 
     def penetrating(self, poses: torch.Tensor) -> list[tuple[int, int]]:
@@ -384,6 +394,11 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
             indefinite = True
         if not indefinite and float(p.abs().max()) <= tol:
             return q, H, Hc, it
+        # no tunnelling: one iteration moves no vertex more than 20 ccd_spacing (the path is checked below)
+        reach = _displacement(prob, p.reshape(-1, 6))
+        if reach > 20.0 * prob.scene.ccd_spacing:
+            p = p * (20.0 * prob.scene.ccd_spacing / reach)
+            reach = 20.0 * prob.scene.ccd_spacing
         # backtracking (Armijo) line search; +inf trial energies (penetration) are rejected
         slope = float(g @ p)
         L0 = float(L)
@@ -397,8 +412,9 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
             full = prob(q_try, 2) if k == 0 else None
             L_try = float(full[0] if full is not None else prob(q_try, 0)[0])
             if math.isfinite(L_try) and L_try <= L0 + 1e-4 * alpha * slope + noise:
-                accepted = True
-                break
+                if alpha * reach <= prob.scene.ccd_spacing or _path_feasible(prob, q, q_try):
+                    accepted = True
+                    break
             alpha *= 0.5
         if not accepted:
             break
@@ -426,9 +442,10 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torc
     """
     v = q_t_dyn - q_p_dyn
     extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
-    for cand in (extrap, q_t_dyn):
-        if _feasible(prob, cand):
-            return cand
+    if _feasible(prob, q_t_dyn) and _feasible(prob, extrap) and _path_feasible(prob, q_t_dyn, extrap):
+        return extrap
+    if _feasible(prob, q_t_dyn):
+        return q_t_dyn
     scene = prob.scene
     if not _feasible_poses(prob, prob.q_t_full):
         bad = prob.penetrating(prob.q_t_full)
@@ -470,6 +487,18 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torc
     return q
 
 
+def _displacement(prob: _Problem, dq: torch.Tensor) -> float:
+    """Largest vertex displacement [m] of a change dq (Nd, 6) of the dynamic poses (bound: |dt| + |dw| r_max)."""
+    return float((dq[:, :3].norm(dim=1) + dq[:, 3:].norm(dim=1) * prob.extent).max())
+
+
+def _path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
+    """Whether the straight path q0 -> q1 (q0 feasible) is feasible at points at most ccd_spacing apart; the end
+    point itself is checked by the caller."""
+    n = math.ceil(_displacement(prob, q1 - q0) / prob.scene.ccd_spacing)
+    return all(_feasible(prob, q0 + (k / n) * (q1 - q0)) for k in range(1, n))
+
+
 def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
     return not prob.penetrating(poses)
 
@@ -477,7 +506,16 @@ def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
     """Feasible start, then Newton; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
     q = _start(prob, q_t_dyn, q_p_dyn)
-    return _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter)
+    q, H, Hc, it = _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter)
+    # the Newton path is feasible; the step's own motion (straight from q_t) must be too: with a huge dt the
+    # minimiser can lie beyond an obstacle, reached by iterates that went around it
+    # (scenes with kinematic bodies skip this: their bodies' own motion within the step is not a straight line)
+    if len(prob.scene.kinematic) == 0 and not _path_feasible(prob, q_t_dyn, q):
+        raise StepError(
+            f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
+            f"{_displacement(prob, q - q_t_dyn):.3g} m, through another body): reduce dt"
+        )
+    return q, H, Hc, it
 
 
 class _StepFn(torch.autograd.Function):

@@ -633,3 +633,14 @@ def test_friction_off_costs_nothing(cube, ground):
         assert info["leaf_pairs"] > 0  # the box is in contact
         counts[mu_f] = info["friction_contacts"]
     assert counts[0.0] == 0 and counts[0.5] > 0
+
+
+def test_huge_step_does_not_tunnel_through_the_table():
+    # dt = 1 s: the free-fall minimiser lies 9.8 m below a board resting on a table; Newton iterates can reach it
+    # by sliding off the table edge and back, but the step's straight motion would pass through the table
+    board = rigid_body(trimesh.creation.box(extents=(1.0, 0.2, 0.03)), density=600.0)
+    table = rigid_body(trimesh.creation.box(extents=(1.0, 0.2, 0.1)), kind="static")
+    scene = Scene([table, board], dt=1.0, mu=1e-9)
+    state = scene.initial_state(_poses((-0.5, 0.0, -0.05), (-5e-4, 0.0, 0.0161)))
+    with pytest.raises(StepError, match="reduce dt"):
+        step(scene, state)
