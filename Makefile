@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test test-slow bench lint clean
+.PHONY: demo test test-slow bench stacked-books lint clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -27,6 +27,10 @@ bench: $(BIN)/.installed
 	$(BIN)/python -m pip install -q -e '.[bench]'
 	$(BIN)/python scripts/bench_pair.py --out results/bench_pair
 	$(BIN)/python scripts/bench_contact.py --out results/bench_contact
+	$(BIN)/python scripts/bench_step.py --out results/bench_step
+
+stacked-books: $(BIN)/.installed
+	$(BIN)/python scripts/stacked_books.py --out results/stacked_books
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check cfd_torch tests scripts
