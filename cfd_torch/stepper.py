@@ -375,11 +375,12 @@ class _Problem:
         return value, grad, H, Hc
 
 
-def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int):
+def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: tuple | None = None):
     """Newton (saddle-free where the Hessian is indefinite) with a backtracking line search from a feasible q.
 
-    Returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations; raises StepError."""
-    L, g, H, Hc = prob(q, 2)
+    Returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations; raises StepError. ``first``: the
+    order-2 evaluation at q, if already done."""
+    L, g, H, Hc = prob(q, 2) if first is None else first
     for it in range(1, max_iter + 1):
         # direction: Newton where H is positive definite; else saddle-free Newton (eigenvalues by magnitude), which
         # moves along negative curvature (a rocking polyhedron, a tipping stack) at its natural scale
@@ -431,8 +432,8 @@ def _feasible(prob: _Problem, q: torch.Tensor) -> bool:
     return bool(torch.isfinite(prob(q, 0)[0]))
 
 
-def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torch.Tensor:
-    """A feasible start for the step's Newton solve.
+def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> tuple[torch.Tensor, tuple | None]:
+    """A feasible start for the step's Newton solve (and its order-2 evaluation when already done).
 
     Tried in order: constant-velocity extrapolation; q_t; the dynamic bodies translated with each kinematic body's
     displacement (a pusher carrying what it touches); and, when a kinematic body moves into a dynamic one within
@@ -442,10 +443,11 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torc
     """
     v = q_t_dyn - q_p_dyn
     extrap = q_t_dyn + torch.where((v[:, 3:].abs() < 1.0).all(1, keepdim=True), v, v * 0.0)
-    if _feasible(prob, q_t_dyn) and _feasible(prob, extrap) and _path_feasible(prob, q_t_dyn, extrap):
-        return extrap
     if _feasible(prob, q_t_dyn):
-        return q_t_dyn
+        first = prob(extrap, 2)  # the usual start: evaluated with derivatives at once, for the Newton solve
+        if bool(torch.isfinite(first[0])) and _path_feasible(prob, q_t_dyn, extrap):
+            return extrap, first
+        return q_t_dyn, None
     scene = prob.scene
     if not _feasible_poses(prob, prob.q_t_full):
         bad = prob.penetrating(prob.q_t_full)
@@ -461,7 +463,7 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torc
         cand = q_t_dyn.clone()
         cand[:, :3] += shift[k]
         if _feasible(prob, cand):
-            return cand
+            return cand, None
     target = prob.poses_next.clone()
     origin = prob.q_t_full[kin]
     q, done, inc = q_t_dyn, 0.0, 0.5
@@ -484,7 +486,7 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> torc
                     )
     finally:
         prob.poses_next = target
-    return q
+    return q, None
 
 
 def _displacement(prob: _Problem, dq: torch.Tensor) -> float:
@@ -505,8 +507,8 @@ def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
 
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
     """Feasible start, then Newton; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
-    q = _start(prob, q_t_dyn, q_p_dyn)
-    q, H, Hc, it = _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter)
+    q, first = _start(prob, q_t_dyn, q_p_dyn)
+    q, H, Hc, it = _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter, first)
     # the Newton path is feasible; the step's own motion (straight from q_t) must be too: with a huge dt the
     # minimiser can lie beyond an obstacle, reached by iterates that went around it
     # (scenes with kinematic bodies skip this: their bodies' own motion within the step is not a straight line)
