@@ -294,6 +294,8 @@ class _Problem:
         self.pair_root = self.forest.roots[which.to(q_t.device)[self.pairs]]
         self.N, self.Nd = scene.num_bodies, len(self.dyn)
         self.d6 = (self.dyn[:, None] * 6 + torch.arange(6, device=q_t.device)).reshape(-1)
+        self.dynamic_mask = torch.zeros(self.N, dtype=torch.bool, device=q_t.device)
+        self.dynamic_mask[self.dyn] = True
         # (Nd,) farthest vertex of each dynamic body from its origin: bounds vertex displacements
         self.extent = torch.tensor(
             [float(scene.bodies[i].bsh.vertices.norm(dim=1).max()) for i in scene.dynamic.tolist()],
@@ -501,6 +503,26 @@ def _path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
     return all(_feasible(prob, q0 + (k / n) * (q1 - q0)) for k in range(1, n))
 
 
+def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
+    """Whether no dynamic body's straight path q0 -> q1 crosses a static body (checked every ccd_spacing)."""
+    scene = prob.scene
+    static = torch.tensor([b.kind == "static" for b in scene.bodies], device=q0.device)
+    sel = static[prob.pairs[:, 0]] ^ static[prob.pairs[:, 1]]
+    sel &= prob.dynamic_mask[prob.pairs[:, 0]] | prob.dynamic_mask[prob.pairs[:, 1]]
+    if not bool(sel.any()):
+        return True
+    pairs, roots = prob.pairs[sel], prob.pair_root[sel]
+    n = math.ceil(_displacement(prob, q1 - q0) / scene.ccd_spacing)
+    for k in range(1, n):
+        v, _, _, _ = _traverse(
+            prob.forest, pairs, roots, prob.full(q0 + (k / n) * (q1 - q0)), mu=scene.mu, margin=scene.margin,
+            eps=scene.eps, split=scene.split, order=0, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
+        )  # fmt: skip
+        if bool(torch.isinf(v).any()):
+            return False
+    return True
+
+
 def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
     return not prob.penetrating(poses)
 
@@ -509,13 +531,13 @@ def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
     """Feasible start, then Newton; returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations."""
     q, first = _start(prob, q_t_dyn, q_p_dyn)
     q, H, Hc, it = _newton(prob, q, prob.scene.newton_tol, prob.scene.max_newton_iter, first)
-    # the Newton path is feasible; the step's own motion (straight from q_t) must be too: with a huge dt the
-    # minimiser can lie beyond an obstacle, reached by iterates that went around it
-    # (scenes with kinematic bodies skip this: their bodies' own motion within the step is not a straight line)
-    if len(prob.scene.kinematic) == 0 and not _path_feasible(prob, q_t_dyn, q):
+    # the Newton path is feasible; each body's own motion (straight from q_t) must not cross a static body either:
+    # with a huge dt the minimiser can lie beyond an obstacle, reached by iterates that went around it. (Pairs of
+    # moving bodies are not checked: their straight interpolation may overlap after a legitimate collision.)
+    if not _static_path_feasible(prob, q_t_dyn, q):
         raise StepError(
             f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
-            f"{_displacement(prob, q - q_t_dyn):.3g} m, through another body): reduce dt"
+            f"{_displacement(prob, q - q_t_dyn):.3g} m, through a static body): reduce dt"
         )
     return q, H, Hc, it
 
