@@ -37,7 +37,6 @@ import math
 import os
 import platform
 import statistics
-import subprocess
 import time
 from pathlib import Path
 
@@ -49,6 +48,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -438,19 +438,6 @@ def plot_error(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _git() -> str | None:
-    try:
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "cfd_torch"], capture_output=True, text=True
-        ).stdout
-        return rev.stdout.strip() + ("+dirty" if dirty.strip() else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def _ms(x: float | None) -> str:
     return "skipped" if x is None else f"{1e3 * x:.2f}"
 
@@ -569,7 +556,7 @@ def main() -> None:
         "meta": {
             "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "ipctk": ipctk.__version__,
             "ipctk_threads": ipctk.get_num_threads(), "numpy": np.__version__, "trimesh": trimesh.__version__,
-            "machine": platform.processor() or platform.machine(), "git": _git(), "repeats": args.repeats,
+            "machine": platform.processor() or platform.machine(), "git": git_revision(), "repeats": args.repeats,
             "quick": args.quick, "mu": args.mu, "margin": args.margin, "eps": args.eps, "split": "both",
             "loadavg_start": os.getloadavg(),
         },

@@ -49,7 +49,6 @@ import os
 import platform
 import pstats
 import statistics
-import subprocess
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -64,6 +63,7 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch.stepper as stepper  # noqa: E402
@@ -536,19 +536,6 @@ def plot(out: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _git() -> str | None:
-    try:
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "cfd_torch"], capture_output=True, text=True
-        ).stdout
-        return rev.stdout.strip() + ("+dirty" if dirty.strip() else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def _source_hash() -> str:
     """sha256 of the library's sources (the working tree may be dirty while the benchmark runs)."""
     h = hashlib.sha256()
@@ -621,7 +608,7 @@ def main() -> None:
             "trimesh": trimesh.__version__, "python": platform.python_version(),
             "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
-            "git": _git(), "cfd_torch_sources_sha256": _source_hash(), "quick": args.quick,
+            "git": git_revision(), "cfd_torch_sources_sha256": _source_hash(), "quick": args.quick,
             "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
             "loadavg_start": os.getloadavg(),
             "target_s": TARGET_S, "cpp_double_step_s": CPP_DOUBLE_S, "cpp_double_backward_s": CPP_DOUBLE_BACKWARD_S,
