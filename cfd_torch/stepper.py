@@ -337,6 +337,8 @@ class _Problem:
         self.local.index_add_(0, self.pairs[:, 0], v)
         self.local.index_add_(0, self.pairs[:, 1], v)
         G, H = scatter_pair_derivatives(self.N, self.pairs, g, h)
+        if G is not None:
+            self.contact_grad = G
         return v.sum(), G, H
 
     def __call__(self, q: torch.Tensor, order: int):
@@ -364,6 +366,7 @@ class _Problem:
         H = Hc
         if self.lagged is not None:
             Gf, Hf = scatter_pair_derivatives(self.N, self.lagged.body, gf, hf)
+            self.friction_grad = Gf
             G = G + Gf
             if order >= 2:
                 H = H + Hf
@@ -565,6 +568,10 @@ class _StepFn(torch.autograd.Function):
         q, H, Hc, iters = _solve_step(prob, q_t[dyn], q_p[dyn])
         info.update(prob.stats)
         info["newton_iters"] = iters
+        # generalised forces at the end-of-step poses (the last full evaluation was at q*)
+        n6 = (scene.num_bodies, 6)
+        info["contact_force"] = -getattr(prob, "contact_grad", q_t.new_zeros(n6)).detach().clone()
+        info["friction_force"] = -getattr(prob, "friction_grad", q_t.new_zeros(n6)).detach().clone()
         info["friction_contacts"] = 0 if lagged is None else int(lagged.normal_force.numel())
         ctx.scene, ctx.friction = scene, lagged is not None
         ctx.save_for_backward(q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f)
@@ -647,7 +654,10 @@ def step(
         state: State(q (N, 6), q_prev (N, 6)), float32 or float64 (solved in float64, returned in its dtype).
         action: forces, torques and kinematic targets (defaults: none, kinematic bodies stay put).
         params: differentiable mass / second moment / friction coefficient (default: ``scene.params()``).
-        info: if a dict, receives solver statistics ("newton_iters", "contact_evals", "leaf_pairs", ...).
+        info: if a dict, receives solver statistics ("newton_iters", "contact_evals", "leaf_pairs", ...) and the
+            end-of-step generalised forces on every body, "contact_force" and "friction_force" (N, 6): -dP/dq and
+            -dD/dq; columns 0-2 are world-frame forces [N], columns 3-5 are conjugate to the rotation vector (the
+            world torque when the rotation vector is zero).
 
     Returns:
         The next State(q_next, q): dynamic rows solved, kinematic rows at their targets, static rows unchanged,

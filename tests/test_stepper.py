@@ -657,3 +657,19 @@ def test_fast_oblique_collision_between_moving_bodies():
     p1 = (states[-1].velocity(scene.dt)[:, :3] * ball.mass).sum(0)
     assert float(states[-1].velocity(scene.dt)[1, :3].norm()) > 1.0  # the object ball was hit
     assert float((p1 - p0).abs().max()) <= 1e-8 * float(p0.norm())  # momentum conserved
+
+
+def test_contact_force_read_out_balances_weight_at_rest(cube, ground):
+    scene = Scene((cube, ground), friction=0.5)
+    state = scene.initial_state(_poses((0.0, 0.0, HALF + 2e-3), ()))
+    for _ in range(60):
+        info = {}
+        state = step(scene, state, info=info)
+    f = info["contact_force"]
+    assert f.shape == (2, 6)
+    assert (
+        abs(float(f[0, 2]) - cube.mass * G) <= 1e-3 * cube.mass * G
+    )  # the ground carries the weight at rest
+    assert float(f[0, :2].abs().max()) <= 1e-3 * cube.mass * G
+    assert abs(float(f[1, 2]) + float(f[0, 2])) <= 1e-9 * cube.mass * G  # action = reaction
+    assert float(info["friction_force"][0].abs().max()) <= 1e-3 * cube.mass * G  # nothing to resist at rest
