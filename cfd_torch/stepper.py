@@ -234,6 +234,52 @@ def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
     return torch.cat([q[..., :3], w], -1)
 
 
+def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """q_prev with each rotation vector replaced by the equivalent omega + 2 pi k omega/|omega| (k in -1, 0, 1;
+    the same rotation) closest to q's, so that (q - q_prev) / dt stays the velocity after q was re-centred."""
+    w = q_prev[..., 3:]
+    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
+    u = w / torch.where(n > 0, n, torch.ones_like(n))
+    cands = torch.stack([w - 2.0 * math.pi * u, w, w + 2.0 * math.pi * u])  # (3, N, 3)
+    k = torch.linalg.vector_norm(cands - q[..., 3:].detach(), dim=-1).argmin(0)  # (N,)
+    w = torch.where((n > 0) & (k[:, None] != 1), cands[k, torch.arange(len(k))], w)
+    return torch.cat([q_prev[..., :3], w], -1)
+
+
+def _check_params_tensors(params: Params, device: torch.device) -> None:
+    """Finite, physical, on the state's device: mass > 0, friction >= 0, the symmetric part of S positive
+    semi-definite with a positive definite inertia tr(S) I - S."""
+    for name, x in (
+        ("mass", params.mass),
+        ("second_moment", params.second_moment),
+        ("friction", params.friction),
+    ):
+        if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+            raise ValueError(f"params.{name} must be a floating-point tensor")
+        if x.device != device:
+            raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"params.{name} contains NaN or inf")
+    if not bool((params.mass > 0).all()):
+        raise ValueError("params.mass must be positive")
+    if float(params.friction.detach()) < 0:
+        raise ValueError("params.friction must be >= 0")
+    S = params.second_moment.detach().to(torch.float64)
+    S = 0.5 * (S + S.transpose(1, 2))  # the step uses the symmetric part
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
+    if bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) or not bool(
+        (torch.linalg.eigvalsh(inertia) > 0).all()
+    ):
+        raise ValueError(
+            "params.second_moment must be positive semi-definite with a positive definite inertia"
+        )
+
+
+def _symmetric(S: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (S + S.transpose(-1, -2))
+
+
 def _axial(M: torch.Tensor) -> torch.Tensor:
     """(..., 3) axial vector of the skew part of (..., 3, 3) M (last two dims)."""
     return 0.5 * torch.stack(
@@ -558,7 +604,9 @@ class _StepFn(torch.autograd.Function):
         if len(scene.kinematic):
             poses_next[scene.kinematic.to(q_t.device)] = target
         lagged = None
-        if float(mu_f) > 0.0:
+        # friction off costs nothing, unless its coefficient needs a gradient (at mu_f = 0 the term is zero but its
+        # derivative is not)
+        if float(mu_f) > 0.0 or ctx.needs_input_grad[9]:
             prob0 = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, None)
             lagged = lagged_friction(
                 prob0.forest, prob0.pairs, prob0.pair_root, q_t, mu=scene.mu, margin=scene.margin, eps=scene.eps,
@@ -683,7 +731,7 @@ def step(
     _check_state_tensor(torque, "action.torque", N, 3)
     K = len(scene.kinematic)
     kin = scene.kinematic.to(dev)
-    target = action.target if action.target is not None else state.q[kin].detach()
+    target = action.target if action.target is not None else state.q[kin]
     _check_state_tensor(target, "action.target", K)
     params = scene.params(f64, dev) if params is None else params
     Nd = len(scene.dynamic)
@@ -692,20 +740,19 @@ def step(
             f"params must hold mass ({Nd},), second_moment ({Nd}, 3, 3) and friction (), got "
             f"{tuple(params.mass.shape)}, {tuple(params.second_moment.shape)}, {tuple(params.friction.shape)}"
         )
-    if not bool((params.mass > 0).all()) or float(params.friction.detach()) < 0:
-        raise ValueError("params.mass must be positive and params.friction >= 0")
+    _check_params_tensors(params, dev)
     info = {} if info is None else info
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
     q_dyn = _StepFn.apply(
         scene, info, q_t, q_p, force.to(f64), torque.to(f64), target.to(f64), params.mass.to(f64),
-        params.second_moment.to(f64), params.friction.to(f64),
+        _symmetric(params.second_moment.to(f64)), params.friction.to(f64),
     )  # fmt: skip
     dyn = scene.dynamic.to(dev)
     q_next = q_t.clone()
     if K:
         q_next = q_next.index_put((kin,), target.to(f64))
     q_next = q_next.index_put((dyn,), recentre_rotation(q_dyn))
-    return State(q_next.to(dtype), state.q)
+    return State(q_next.to(dtype), _unwrap_previous(state.q, q_next.to(dtype)))
 
 
 def rollout(

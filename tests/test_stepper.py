@@ -673,3 +673,58 @@ def test_contact_force_read_out_balances_weight_at_rest(cube, ground):
     assert float(f[0, :2].abs().max()) <= 1e-3 * cube.mass * G
     assert abs(float(f[1, 2]) + float(f[0, 2])) <= 1e-9 * cube.mass * G  # action = reaction
     assert float(info["friction_force"][0].abs().max()) <= 1e-3 * cube.mass * G  # nothing to resist at rest
+
+
+def test_held_kinematic_body_keeps_its_gradient(ground, pusher):
+    # a kinematic body with no target stays at state.q: the box's response to where it is must reach state.q
+    scene, (q, q_prev, force, _, _) = _gradcheck_scene(ground, pusher)
+    grads = []
+    for explicit in (False, True):
+        qq = q.clone().requires_grad_(True)
+        action = Action(force, None, qq[2:3]) if explicit else Action(force)
+        out = step(scene, State(qq, q_prev), action).q
+        grads.append(torch.autograd.grad(out[0, 0], qq)[0][2])
+    assert float(grads[1].abs().max()) > 0.0
+    assert torch.allclose(grads[0], grads[1], rtol=1e-10, atol=0.0)
+
+
+def test_friction_gradient_at_zero_coefficient(ground, pusher):
+    # friction off skips the term, but d/dmu_f at mu_f = 0 is not zero: fitting friction from 0 must move
+    scene, (q, q_prev, force, torque, target) = _gradcheck_scene(ground, pusher)
+    scene = Scene(scene.bodies, friction=0.0, newton_tol=1e-13)
+    p = scene.params()
+
+    def x(mu):
+        return step(
+            scene, State(q, q_prev), Action(force, torque, target), Params(p.mass, p.second_moment, mu)
+        ).q[0, 0]
+
+    mu = torch.tensor(0.0, dtype=F64, requires_grad=True)
+    (g,) = torch.autograd.grad(x(mu), mu)
+    assert abs(float(g)) > 0.0
+    h = 1e-6
+    fd = (float(x(torch.tensor(h, dtype=F64))) - float(x(torch.tensor(0.0, dtype=F64)))) / h
+    assert abs(float(g) - fd) <= 1e-3 * abs(fd)
+
+
+def test_velocity_survives_rotation_recentring():
+    scene = Scene((_box((0.2, 0.2, 0.2)),), gravity=(0.0, 0.0, 0.0))
+    state = scene.initial_state(_poses((0, 0, 0, 0, 0, math.pi - 0.05)), _poses((0, 0, 0, 0, 0, 10.0)))
+    for _ in range(3):
+        state = step(scene, state)
+        assert float(state.q[0, 3:].norm()) <= math.pi  # re-centred
+        assert abs(float(state.velocity(scene.dt)[0, 5]) - 10.0) <= 1e-6  # and the velocity is still 10 rad/s
+
+
+@pytest.mark.parametrize("which", ["friction_nan", "mass_inf", "second_moment_nan", "second_moment_negative"])
+def test_bad_params_raise(rest_scene, which):
+    scene, state = rest_scene
+    p = scene.params()
+    bad = {
+        "friction_nan": p._replace(friction=torch.tensor(float("nan"), dtype=F64)),
+        "mass_inf": p._replace(mass=p.mass * float("inf")),
+        "second_moment_nan": p._replace(second_moment=p.second_moment * float("nan")),
+        "second_moment_negative": p._replace(second_moment=-p.second_moment),
+    }[which]
+    with pytest.raises(ValueError, match="params"):
+        step(scene, state, None, bad)
