@@ -41,7 +41,7 @@ from typing import NamedTuple
 import torch
 
 from .contact import body_pairs, scatter_pair_derivatives
-from .friction import friction_terms, lagged_friction
+from .friction import LaggedFriction, friction_terms, lagged_friction
 from .mesh_potential import _check_params, _forest, _traverse
 from .rigid import RigidBody
 from .rotation import rotation_derivatives, rotation_matrix
@@ -156,6 +156,21 @@ class Scene:
         bshes = tuple({id(b.bsh): b.bsh for b in self.bodies}.values())
         which = torch.tensor([uniq[id(b.bsh)] for b in self.bodies], dtype=torch.long)
         return bshes, which
+
+    def _layout(self, device: torch.device):
+        """Concatenated hierarchies (float64 forest), interacting body pairs (P, 2) and their root nodes (P, 2)."""
+        bshes, which = self._tables
+        forest = _forest(bshes, torch.float64, device)
+        pairs = self.pairs.to(device)
+        return forest, pairs, forest.roots[which.to(device)[pairs]]
+
+    def _lagged_friction(self, q_t: torch.Tensor, create_graph: bool = False) -> LaggedFriction:
+        """Lagged friction data at the start-of-step poses ``q_t`` (N, 6), with this scene's contact settings."""
+        forest, pairs, roots = self._layout(q_t.device)
+        return lagged_friction(
+            forest, pairs, roots, q_t, mu=self.mu, margin=self.margin, eps=self.eps, split=self.split,
+            tol=self.pair_tol, max_iter=self.pair_max_iter, create_graph=create_graph,
+        )  # fmt: skip
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
         """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients)."""
@@ -334,14 +349,12 @@ class _Problem:
         self.gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
         self.mu_f = mu_f
         self.lagged = lagged
-        bshes, which = scene._tables
-        self.forest = _forest(bshes, torch.float64, q_t.device)
-        self.pairs = scene.pairs.to(q_t.device)
-        self.pair_root = self.forest.roots[which.to(q_t.device)[self.pairs]]
+        self.forest, self.pairs, self.pair_root = scene._layout(q_t.device)
         self.N, self.Nd = scene.num_bodies, len(self.dyn)
         self.d6 = (self.dyn[:, None] * 6 + torch.arange(6, device=q_t.device)).reshape(-1)
         self.dynamic_mask = torch.zeros(self.N, dtype=torch.bool, device=q_t.device)
         self.dynamic_mask[self.dyn] = True
+        self.static_mask = torch.tensor([b.kind == "static" for b in scene.bodies], device=q_t.device)
         # (Nd,) farthest vertex of each dynamic body from its origin: bounds vertex displacements
         self.extent = torch.tensor(
             [float(scene.bodies[i].bsh.vertices.norm(dim=1).max()) for i in scene.dynamic.tolist()],
@@ -349,14 +362,21 @@ class _Problem:
         )  # fmt: skip
         self.stats = {"contact_evals": 0, "leaf_pairs": 0, "node_pairs": 0}
 
-    def penetrating(self, poses: torch.Tensor) -> list[tuple[int, int]]:
-        """Body pairs whose potential is +inf at ``poses`` (within the margin or intersecting)."""
+    def traverse(self, poses: torch.Tensor, order: int, sel: torch.Tensor | None = None):
+        """The scene's BSH potential of the body pairs (all, or those selected by the (P,) mask ``sel``)."""
         s = self.scene
-        v, _, _, _ = _traverse(
-            self.forest, self.pairs, self.pair_root, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split,
-            order=0, tol=s.pair_tol, max_iter=s.pair_max_iter,
+        pairs, roots = (self.pairs, self.pair_root) if sel is None else (self.pairs[sel], self.pair_root[sel])
+        return _traverse(
+            self.forest, pairs, roots, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split, order=order,
+            tol=s.pair_tol, max_iter=s.pair_max_iter,
         )  # fmt: skip
-        return [tuple(int(x) for x in self.pairs[k]) for k in torch.nonzero(torch.isinf(v))[:, 0]]
+
+    def penetrating(self, poses: torch.Tensor) -> str:
+        """The body pairs (formatted) whose potential is +inf at ``poses`` (within the margin or intersecting);
+        empty when there are none."""
+        v = self.traverse(poses, 0)[0]
+        bad = [tuple(int(x) for x in self.pairs[k]) for k in torch.nonzero(torch.isinf(v))[:5, 0]]
+        return ", ".join(f"({i}, {j})" for i, j in bad)
 
     def full(self, q: torch.Tensor) -> torch.Tensor:
         poses = self.poses_next.clone()
@@ -364,7 +384,6 @@ class _Problem:
         return poses
 
     def contact(self, poses: torch.Tensor, order: int):
-        s = self.scene
         if len(self.pairs) == 0:
             z = poses.new_zeros(())
             n6 = 6 * self.N
@@ -373,10 +392,7 @@ class _Problem:
                 (poses.new_zeros(self.N, 6) if order else None),
                 (poses.new_zeros(n6, n6) if order > 1 else None),
             )
-        v, g, h, st = _traverse(
-            self.forest, self.pairs, self.pair_root, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split,
-            order=order, tol=s.pair_tol, max_iter=s.pair_max_iter,
-        )  # fmt: skip
+        v, g, h, st = self.traverse(poses, order)
         self.stats["contact_evals"] += 1
         self.stats["leaf_pairs"] += st["leaf_pairs"]
         self.stats["node_pairs"] += st["node_pairs"]
@@ -500,11 +516,10 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> tupl
             return extrap, first
         return q_t_dyn, None
     scene = prob.scene
-    if not _feasible_poses(prob, prob.q_t_full):
-        bad = prob.penetrating(prob.q_t_full)
-        msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
+    bad = prob.penetrating(prob.q_t_full)
+    if bad:
         raise ValueError(
-            f"state.q: bodies penetrate (are within the margin {scene.margin} of each other): pairs {msg}"
+            f"state.q: bodies penetrate (are within the margin {scene.margin} of each other): pairs {bad}"
         )
     kin = scene.kinematic.to(q_t_dyn.device)
     if len(kin) == 0:
@@ -529,10 +544,9 @@ def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> tupl
             else:
                 inc *= 0.5
                 if inc < 1e-4:
-                    bad = prob.penetrating(prob.full(q))
-                    msg = ", ".join(f"({i}, {j})" for i, j in bad[:5])
                     raise StepError(
-                        f"the kinematic targets: bodies penetrate (within the margin {scene.margin}): pairs {msg}, "
+                        f"the kinematic targets: bodies penetrate (within the margin {scene.margin}): pairs "
+                        f"{prob.penetrating(prob.full(q))}, "
                         "and pushing them out of the way failed; move kinematic bodies less per step"
                     )
     finally:
@@ -554,26 +568,15 @@ def _path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
 
 def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
     """Whether no dynamic body's straight path q0 -> q1 crosses a static body (checked every ccd_spacing)."""
-    scene = prob.scene
-    static = torch.tensor([b.kind == "static" for b in scene.bodies], device=q0.device)
-    sel = static[prob.pairs[:, 0]] ^ static[prob.pairs[:, 1]]
-    sel &= prob.dynamic_mask[prob.pairs[:, 0]] | prob.dynamic_mask[prob.pairs[:, 1]]
+    a, b = prob.pairs[:, 0], prob.pairs[:, 1]
+    sel = (prob.static_mask[a] ^ prob.static_mask[b]) & (prob.dynamic_mask[a] | prob.dynamic_mask[b])
     if not bool(sel.any()):
         return True
-    pairs, roots = prob.pairs[sel], prob.pair_root[sel]
-    n = math.ceil(_displacement(prob, q1 - q0) / scene.ccd_spacing)
-    for k in range(1, n):
-        v, _, _, _ = _traverse(
-            prob.forest, pairs, roots, prob.full(q0 + (k / n) * (q1 - q0)), mu=scene.mu, margin=scene.margin,
-            eps=scene.eps, split=scene.split, order=0, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
-        )  # fmt: skip
-        if bool(torch.isinf(v).any()):
-            return False
-    return True
-
-
-def _feasible_poses(prob: _Problem, poses: torch.Tensor) -> bool:
-    return not prob.penetrating(poses)
+    n = math.ceil(_displacement(prob, q1 - q0) / prob.scene.ccd_spacing)
+    return not any(
+        bool(torch.isinf(prob.traverse(prob.full(q0 + (k / n) * (q1 - q0)), 0, sel)[0]).any())
+        for k in range(1, n)
+    )
 
 
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):
@@ -607,11 +610,7 @@ class _StepFn(torch.autograd.Function):
         # friction off costs nothing, unless its coefficient needs a gradient (at mu_f = 0 the term is zero but its
         # derivative is not)
         if float(mu_f) > 0.0 or ctx.needs_input_grad[9]:
-            prob0 = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, None)
-            lagged = lagged_friction(
-                prob0.forest, prob0.pairs, prob0.pair_root, q_t, mu=scene.mu, margin=scene.margin, eps=scene.eps,
-                split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
-            )  # fmt: skip
+            lagged = scene._lagged_friction(q_t)
         prob = _Problem(scene, poses_next, q_t, q_p, force, torque, mass, S, mu_f, lagged)
         q, H, Hc, iters = _solve_step(prob, q_t[dyn], q_p[dyn])
         info.update(prob.stats)
@@ -627,17 +626,16 @@ class _StepFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout):
-        grad_mode = torch.is_grad_enabled()
-        with _serial_torch(), torch.set_grad_enabled(grad_mode):
-            return _StepFn._backward(ctx, gout)
-
-    @staticmethod
-    def _backward(ctx, gout):
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled():  # create_graph=True
             raise RuntimeError(
                 "cfd_torch.step: second derivatives through a simulation step are not implemented (the step's "
                 "backward is a first-order adjoint); do not use create_graph=True through step()"
             )
+        with _serial_torch():
+            return _StepFn._backward(ctx, gout)
+
+    @staticmethod
+    def _backward(ctx, gout):
         # q* solves g(q*, theta) = 0  =>  dq*/dtheta = -H^-1 dg/dtheta; for an upstream gradient v:
         #   lam = H^-1 v (H symmetric),   dtheta = -lam^T dg/dtheta   (one solve, one vector-Jacobian product).
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
@@ -663,12 +661,7 @@ class _StepFn(torch.autograd.Function):
             )
             s = (g_b * lam).sum()
             if ctx.friction:
-                prob = _Problem(scene, poses_next.detach(), q_t, q_p, force, torque, mass, S, mu_f, None)
-                lagged = lagged_friction(
-                    prob.forest, prob.pairs, prob.pair_root, tq_t, mu=scene.mu, margin=scene.margin,
-                    eps=scene.eps, split=scene.split, tol=scene.pair_tol, max_iter=scene.pair_max_iter,
-                    create_graph=True,
-                )  # fmt: skip
+                lagged = scene._lagged_friction(tq_t, create_graph=True)
                 _, gf, _ = friction_terms(lagged, poses_next, tmu, scene.friction_eps_v * scene.dt, 1)
                 Gf, _ = scatter_pair_derivatives(N, lagged.body, gf, None)
                 s = s + (Gf[dyn] * lam).sum()
