@@ -155,7 +155,8 @@ def _chol_solve4(L, Li, b, x):
 
 
 @numba.njit(parallel=True, **_JIT)
-def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid):
+def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
+                lowrank, WTo, So):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
     Args:
@@ -166,6 +167,9 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
         want_grad, want_hess: whether to fill ``grad`` (K, 18) and ``hess`` (K, 18, 18).
         P: (K, 4) out: optimal plane (n, d); val: (K,) out: mu E(p*) or +inf;
         status: (K,) int8 out; resid: (K,) out: final relative gradient.
+        lowrank: with ``want_hess``, write the Hessian's factors instead of ``hess``: hess = mu (D - W W^T) with
+            W^T = L^-1 E_px into ``WTo`` (K, 4, 18) (E_pp = L L^T) and the vertex gaps s_k into ``So`` (K, 6)
+            (D is block diagonal, 2 n n^T / s_k^3, n = P[:, :3]); zeros where infeasible.
     """
     K = X.shape[0]
     half_delta = 0.5 * delta
@@ -210,7 +214,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                 if want_grad:
                     for i in range(18):
                         grad[k, i] = 0.0
-                if want_hess:
+                if want_hess and lowrank:
+                    for i in range(4):
+                        for j in range(18):
+                            WTo[k, i, j] = 0.0
+                    for i in range(6):
+                        So[k, i] = math.inf
+                elif want_hess:
                     for i in range(18):
                         for j in range(18):
                             hess[k, i, j] = 0.0
@@ -314,6 +324,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                         t2 = (m2 - L[2, 0] * t0 - L[2, 1] * t1) * il2
                         t3 = (m3 - L[3, 0] * t0 - L[3, 1] * t1 - L[3, 2] * t2) * il3
                         WT[0, row], WT[1, row], WT[2, row], WT[3, row] = t0, t1, t2, t3
+                if lowrank:
+                    for i in range(4):
+                        for j in range(18):
+                            WTo[k, i, j] = WT[i, j]
+                    for i in range(6):
+                        So[k, i] = s[i]
+                    continue
                 # rows written in order (contiguous, vectorisable): hess = mu (E_xx - W W^T)
                 hk = hess[k]
                 # (products before scaling by -mu keep the result exactly symmetric)

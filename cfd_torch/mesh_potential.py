@@ -163,6 +163,11 @@ def _segment_add(out: torch.Tensor, seg: torch.Tensor, x: torch.Tensor, n: int) 
         out.index_add_(0, seg, x)
 
 
+def _cat(xs) -> torch.Tensor:
+    """torch.cat without the copy of a single tensor (the CPU traversal returns its leaves in one piece)."""
+    return xs[0] if len(xs) == 1 else torch.cat(xs)
+
+
 def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs."""
     from ._traverse_numba import traverse_nodes
@@ -333,41 +338,49 @@ def _traverse(
             e = pair_root.new_zeros(0)
             return e, e, e, value.new_zeros(0), (value.new_zeros(0, 12) if order >= 1 else None)
         cols = list(zip(*leaves, strict=True))
-        return (*(torch.cat(x) for x in cols[:4]), torch.cat(cols[4]) if order >= 1 else None)
+        return (*(_cat(x) for x in cols[:4]), _cat(cols[4]) if order >= 1 else None)
     n_leaf = 0
     pv = None
     if leaves:
-        LI, LJ, lp, lw, ldw, ld2w = (
-            torch.cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True)
-        )
+        LI, LJ, lp, lw, ldw, ld2w = (_cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True))
         n_leaf = LI.numel()
         ba, bb = pair_body[lp, 0], pair_body[lp, 1]
         Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
         wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
         wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
-        der = pair_potential_derivatives(
-            wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter
-        ) if order >= 1 else None  # fmt: skip
-        if der is None:
+        fused = dev.type == "cpu" and backend != "torch" and order >= 1
+        if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
+            from ._traverse_numba import accumulate_leaves_lowrank
+            from .pair_potential import _prepare, _solve
+
+            X, _ = _prepare(wa, wb, mu, margin, tol, max_iter)
+            pv, Pl, gx, fac = _solve(
+                X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,
+                want_hess=order >= 2, backend="numba", lowrank=True,
+            )  # fmt: skip
+            z = torch.zeros(0, dtype=dt)
+            WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
+            accumulate_leaves_lowrank(
+                lp.numpy(), lw.numpy(), ldw.numpy(), ld2w.numpy() if ld2w is not None else z.reshape(0, 12, 12).numpy(),
+                pv.numpy(), gx.numpy(), WT.numpy(), gaps.numpy(), Pl.numpy(), Xa.numpy(), Xb.numpy(), ba.numpy(),
+                bb.numpy(), dR.contiguous().numpy(),
+                d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
+                int(order), value.numpy(), grad.numpy(),
+                hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
+            )  # fmt: skip
+            pv = None
+        if fused:
+            pass
+        elif order == 0:
             from .pair_potential import pair_potential
 
             with torch.no_grad():
                 pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
             gq = hq = None
-        elif dev.type == "cpu" and backend != "torch":
-            from ._traverse_numba import accumulate_leaves
-
-            z = torch.zeros(0, dtype=dt)
-            accumulate_leaves(
-                lp.numpy(), lw.numpy(), ldw.numpy(), ld2w.numpy() if ld2w is not None else z.reshape(0, 12, 12).numpy(),
-                der.value.numpy(), der.grad.numpy(),
-                der.hessian.numpy() if der.hessian is not None else z.reshape(0, 18, 18).numpy(),
-                Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(), dR.contiguous().numpy(),
-                d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), int(order),
-                value.numpy(), grad.numpy(), hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
-            )  # fmt: skip
-            pv = None
         else:
+            der = pair_potential_derivatives(
+                wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter
+            )
             pv = der.value
             # J (L, 18, 12): x_k = R X_k + t
             L_ = n_leaf
@@ -402,6 +415,43 @@ def _traverse(
             hess = torch.where(infp[:, None, None], torch.zeros((), dtype=dt, device=dev), hess)
     stats = {"node_pairs": int(n_pairs), "leaf_pairs": int(n_leaf), "levels": int(levels)}
     return value, grad, hess, stats
+
+
+def _penetrating(
+    forest: _Forest,
+    pair_body: torch.Tensor,
+    pair_root: torch.Tensor,
+    pose: torch.Tensor,
+    *,
+    margin: float,
+    eps: float,
+    split: str,
+    tol: float,
+    max_iter: int,
+) -> torch.Tensor:
+    """(P,) bool: the body pairs whose BSH potential is +inf at ``pose`` (some triangle pair within the margin).
+
+    On CPU a collision query (``_traverse_numba.penetrating_pairs``: spheres within the margin are descended, no
+    weights or plane solves); elsewhere the potential itself at order 0 (``eps``, ``split``, ``tol`` and
+    ``max_iter`` are only used there).
+    """
+    if pose.device.type == "cpu":
+        from ._traverse_numba import penetrating_pairs
+
+        R = rotation_derivatives(pose[:, 3:].to(torch.float64), 0)[0]
+        out = torch.empty(pair_body.shape[0], dtype=torch.int8)
+        penetrating_pairs(
+            forest.centre.to(torch.float64).numpy(), forest.radius.to(torch.float64).numpy(),
+            forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
+            pair_root.contiguous().numpy(), R.contiguous().numpy(),
+            pose[:, :3].to(torch.float64).contiguous().numpy(), float(margin), out.numpy(),
+        )  # fmt: skip
+        return out.bool()
+    value = _traverse(
+        forest, pair_body, pair_root, pose, mu=1.0, margin=margin, eps=eps, split=split, order=0, tol=tol,
+        max_iter=max_iter,
+    )[0]  # fmt: skip
+    return torch.isinf(value)
 
 
 # ---------------------------------------------------------------------------------------------- public API

@@ -110,9 +110,14 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         )
 
 
-def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend):
-    """Solve (K, 6, 3) float64 pairs; returns value (K,), plane (K, 4), grad (K, 18) | None, hess | None."""
+def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False):
+    """Solve (K, 6, 3) float64 pairs; returns value (K,), plane (K, 4), grad (K, 18) | None, hess | None.
+
+    ``lowrank`` (numba backend only): hess is returned as its factors (W^T (K, 4, 18), gaps (K, 6)), see
+    ``_pair_numba.solve_pairs``."""
     K = X.shape[0]
+    if lowrank and not _use_numba(X, backend):
+        raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
     if _use_numba(X, backend):
         from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
 
@@ -125,13 +130,19 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend):
         status = torch.empty(K, dtype=torch.int8)
         resid = torch.empty(K, dtype=X.dtype)
         grad = torch.empty(K if want_grad else 0, 18, dtype=X.dtype)
-        hess = _empty_cpu((K, 18, 18) if want_hess else (0, 18, 18), X.dtype)
+        lowrank = bool(lowrank and want_hess)
+        hess = _empty_cpu((K, 18, 18) if want_hess and not lowrank else (0, 18, 18), X.dtype)
+        WT = torch.empty((K, 4, 18) if lowrank else (0, 4, 18), dtype=X.dtype)
+        gaps = torch.empty((K, 6) if lowrank else (0, 6), dtype=X.dtype)
         if K:
             solve_pairs(
                 Xc.numpy(), float(mu), float(margin), LAMBDA, float(tol), int(max_iter), bool(want_grad),
                 bool(want_hess), P.numpy(), val.numpy(), grad.numpy(), hess.numpy(), status.numpy(), resid.numpy(),
+                lowrank, WT.numpy(), gaps.numpy(),
             )  # fmt: skip
         _raise_unconverged(status, resid, max_iter, tol)
+        if lowrank:
+            hess = (WT, gaps)
         return val, P, (grad if want_grad else None), (hess if want_hess else None)
     X = X.detach()
     P, E, status, resid = _pair_torch.solve_pairs_torch(X, margin, LAMBDA, tol, max_iter)

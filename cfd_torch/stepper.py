@@ -42,7 +42,7 @@ import torch
 
 from .contact import body_pairs, scatter_pair_derivatives
 from .friction import LaggedFriction, friction_terms, lagged_friction
-from .mesh_potential import _check_params, _forest, _traverse
+from .mesh_potential import _check_params, _forest, _penetrating, _traverse
 from .rigid import RigidBody
 from .rotation import rotation_derivatives, rotation_matrix
 
@@ -371,11 +371,24 @@ class _Problem:
             tol=s.pair_tol, max_iter=s.pair_max_iter,
         )  # fmt: skip
 
+    def infeasible(self, poses: torch.Tensor, sel: torch.Tensor | None = None) -> torch.Tensor:
+        """(P,) bool (or (sel.sum(),)): the body pairs whose potential is +inf at ``poses`` (within the margin or
+        intersecting), by a collision query: no weights or plane solves."""
+        s = self.scene
+        pairs, roots = (self.pairs, self.pair_root) if sel is None else (self.pairs[sel], self.pair_root[sel])
+        return _penetrating(
+            self.forest, pairs, roots, poses, margin=s.margin, eps=s.eps, split=s.split, tol=s.pair_tol,
+            max_iter=s.pair_max_iter,
+        )  # fmt: skip
+
+    def feasible(self, q: torch.Tensor) -> bool:
+        """Whether the dynamic coordinates q give a finite energy (no pair within the margin)."""
+        return len(self.pairs) == 0 or not bool(self.infeasible(self.full(q)).any())
+
     def penetrating(self, poses: torch.Tensor) -> str:
         """The body pairs (formatted) whose potential is +inf at ``poses`` (within the margin or intersecting);
         empty when there are none."""
-        v = self.traverse(poses, 0)[0]
-        bad = [tuple(int(x) for x in self.pairs[k]) for k in torch.nonzero(torch.isinf(v))[:5, 0]]
+        bad = [tuple(int(x) for x in self.pairs[k]) for k in torch.nonzero(self.infeasible(poses))[:5, 0]]
         return ", ".join(f"({i}, {j})" for i, j in bad)
 
     def full(self, q: torch.Tensor) -> torch.Tensor:
@@ -496,7 +509,7 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: t
 
 
 def _feasible(prob: _Problem, q: torch.Tensor) -> bool:
-    return bool(torch.isfinite(prob(q, 0)[0]))
+    return prob.feasible(q)
 
 
 def _start(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor) -> tuple[torch.Tensor, tuple | None]:
@@ -573,10 +586,7 @@ def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) ->
     if not bool(sel.any()):
         return True
     n = math.ceil(_displacement(prob, q1 - q0) / prob.scene.ccd_spacing)
-    return not any(
-        bool(torch.isinf(prob.traverse(prob.full(q0 + (k / n) * (q1 - q0)), 0, sel)[0]).any())
-        for k in range(1, n)
-    )
+    return not any(bool(prob.infeasible(prob.full(q0 + (k / n) * (q1 - q0)), sel).any()) for k in range(1, n))
 
 
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):

@@ -599,3 +599,32 @@ def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
         for k in (1, 2)[:order]:
             assert ref[k].abs().amax() > 0
             torch.testing.assert_close(fast[k], ref[k], rtol=1e-10, atol=1e-12 * float(ref[k].abs().max()))
+
+
+@pytest.mark.parametrize("names", [("ico1", "box"), ("box", "box")])
+def test_collision_query_marks_exactly_the_infinite_pairs(names):
+    """The simulator's feasibility check (``_penetrating``: a sphere-pruned collision query) flags exactly the body
+    pairs whose potential is +inf, for gaps on both sides of the margin."""
+    import sys
+
+    mp = sys.modules["cfd_torch.mesh_potential"]
+    bsh_a, bsh_b = _bsh(names[0]), _bsh(names[1])
+    n = 24
+    pa, pb = _random_configs(*names, n, seed=11, gap=(1.01 * MARGIN, 3 * MARGIN))
+    u = pb[:, :3] - pa[:, :3]
+    pb = pb.clone()
+    pb[:, :3] -= (
+        2
+        * MARGIN
+        * torch.rand(n, 1, generator=torch.Generator().manual_seed(0), dtype=F64)
+        * (u / u.norm(dim=1, keepdim=True))
+    )  # some now within the margin, some not
+    pose = torch.cat([pa, pb])
+    forest = mp._forest((bsh_a, bsh_b), F64, torch.device("cpu"))
+    pair_body = torch.stack([torch.arange(n), torch.arange(n) + n], 1)
+    pair_root = forest.roots[None].expand(n, 2)
+    kw = {"margin": MARGIN, "eps": 0.01, "split": "both", "tol": 1e-12, "max_iter": 100}
+    flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
+    value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
+    assert 0 < int(flags.sum()) < n  # both kinds present
+    assert torch.equal(flags, torch.isinf(value))
