@@ -32,7 +32,7 @@ from typing import NamedTuple
 import torch
 
 from .mesh_potential import _point_jacobian, _rot_second, _traverse
-from .pair_potential import pair_potential
+from .pair_potential import pair_potential, pair_potential_derivatives
 from .rotation import rotation_derivatives, rotation_matrix
 
 __all__ = ["LaggedFriction", "lagged_friction", "friction_terms"]
@@ -68,12 +68,16 @@ def lagged_friction(
     split: str,
     tol: float,
     max_iter: int,
+    active: float = 0.0,
     create_graph: bool = False,
 ) -> LaggedFriction:
     """Lagged friction data at the poses ``q_t`` (N, 6) float64.
 
     Args:
         forest, pairs, pair_root: the scene's concatenated hierarchies and interacting body pairs.
+        active: keep the leaf pairs whose normal force is at least this fraction of the largest in their body pair
+            (0 keeps all). The selection is made on the closed-form forces, so the forward pass and the adjoint's
+            differentiable re-computation select the same contacts.
         create_graph: keep the data differentiable with respect to ``q_t`` (for the step's adjoint): the plane
             solves by their implicit second-order autograd, the blend weights to first order.
     """
@@ -82,24 +86,38 @@ def lagged_friction(
             forest, pairs, pair_root, q_t.detach(), mu=mu, margin=margin, eps=eps, split=split,
             order=1 if create_graph else 0, tol=tol, max_iter=max_iter, leaves_only=True,
         )  # fmt: skip
-    ba, bb = pairs[lp, 0], pairs[lp, 1]
-    if (
-        create_graph
-    ):  # first-order dependence of the blend weights on q_t (exact gradient, as the adjoint needs)
-        dq = torch.cat([q_t[ba], q_t[bb]], 1)
-        lw = lw + ((dq - dq.detach()) * dlw).sum(1)
-    Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
-    R = rotation_matrix(q_t[:, 3:])
-    t = q_t[:, :3]
-    with torch.enable_grad():
+        ba, bb = pairs[lp, 0], pairs[lp, 1]
+        Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
+        R = rotation_matrix(q_t[:, 3:].detach())
+        t = q_t[:, :3].detach()
         wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
         wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
-        if not create_graph:
-            wa, wb = wa.detach().requires_grad_(True), wb.detach().requires_grad_(True)
-        P = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
-        ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=create_graph)
-    if not create_graph:
-        ga, gb = ga.detach(), gb.detach()
+        # vertex forces in closed form (envelope theorem; no autograd)
+        g = pair_potential_derivatives(
+            wa, wb, mu=mu, margin=margin, hessian=False, tol=tol, max_iter=max_iter
+        ).grad.reshape(-1, 2, 3, 3)  # fmt: skip
+        ga, gb = g[:, 0], g[:, 1]
+        if active > 0 and lp.numel():
+            lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)
+            top = torch.zeros(pairs.shape[0], dtype=lam.dtype, device=lam.device)
+            top = top.scatter_reduce(0, lp, lam, "amax")
+            keep = lam >= active * top[lp]
+            LI, LJ, lp, lw, ba, bb, Xa, Xb, ga, gb = (
+                x[keep] for x in (LI, LJ, lp, lw, ba, bb, Xa, Xb, ga, gb)
+            )
+            dlw = dlw[keep] if dlw is not None else None
+    if create_graph:
+        # the same data as differentiable functions of q_t: blend weights to first order (exact gradient, as the
+        # adjoint needs), vertex forces by the pair potential's implicit second-order autograd
+        dq = torch.cat([q_t[ba], q_t[bb]], 1)
+        lw = lw + ((dq - dq.detach()) * dlw).sum(1)
+        R = rotation_matrix(q_t[:, 3:])
+        t = q_t[:, :3]
+        with torch.enable_grad():
+            wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
+            wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+            P = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
+            ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=True)
     fa = torch.linalg.vector_norm(ga, dim=-1)  # (C, 3)
     fb = torch.linalg.vector_norm(gb, dim=-1)
     sa, sb = fa.sum(1), fb.sum(1)

@@ -83,6 +83,10 @@ class Scene:
         split: BSH split rule, "both" or "larger".
         friction: Coulomb coefficient mu_f; 0 turns friction off (no lagged data, no cost).
         friction_eps_v: slip velocity below which friction is in its smoothed static regime [m/s].
+        friction_active: friction acts on the leaf pairs whose lagged normal force is at least this fraction of the
+            largest in their body pair (0: on all of them). The others carry almost none of the load (a ball
+            resting on a 12-triangle box: 6 of 3,583 leaf pairs carry all but 1.2e-6 of the normal force) and only
+            cost time.
         exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
         newton_tol: convergence: the undamped Newton step is at most this in every coordinate [m, rad].
         max_newton_iter: Newton iterations before :class:`StepError`.
@@ -102,6 +106,7 @@ class Scene:
     split: str = "both"
     friction: float = 0.0
     friction_eps_v: float = 1e-4
+    friction_active: float = 1e-6
     exclude: tuple[tuple[int, int], ...] = field(default=())
     newton_tol: float = 1e-9
     max_newton_iter: int = 100
@@ -121,6 +126,8 @@ class Scene:
                 raise ValueError(f"{name} must be a finite positive number, got {v!r}")
         if not (isinstance(self.friction, (int, float)) and 0 <= self.friction < math.inf):
             raise ValueError(f"friction must be a finite number >= 0, got {self.friction!r}")
+        if not (isinstance(self.friction_active, (int, float)) and 0 <= self.friction_active < 1):
+            raise ValueError(f"friction_active must be a number in [0, 1), got {self.friction_active!r}")
         if len(self.gravity) != 3 or not all(math.isfinite(float(x)) for x in self.gravity):
             raise ValueError(f"gravity must be 3 finite numbers, got {self.gravity!r}")
         if not any(b.kind == "dynamic" for b in self.bodies):
@@ -169,7 +176,7 @@ class Scene:
         forest, pairs, roots = self._layout(q_t.device)
         return lagged_friction(
             forest, pairs, roots, q_t, mu=self.mu, margin=self.margin, eps=self.eps, split=self.split,
-            tol=self.pair_tol, max_iter=self.pair_max_iter, create_graph=create_graph,
+            tol=self.pair_tol, max_iter=self.pair_max_iter, active=self.friction_active, create_graph=create_graph,
         )  # fmt: skip
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:

@@ -485,6 +485,8 @@ def test_penetrating_start_raises(cube, ground, gap):
         {"gravity": (0.0, 0.0, float("nan"))},
         {"newton_tol": 0.0},
         {"friction_eps_v": -1e-4},
+        {"friction_active": -0.1},
+        {"friction_active": 1.0},
     ],
     ids=lambda kw: next(iter(kw)),
 )
@@ -633,6 +635,26 @@ def test_friction_off_costs_nothing(cube, ground):
         assert info["leaf_pairs"] > 0  # the box is in contact
         counts[mu_f] = info["friction_contacts"]
     assert counts[0.0] == 0 and counts[0.5] > 0
+
+
+def test_friction_on_the_loaded_leaf_pairs_only(small_sphere, ground):
+    """friction_active drops the leaf pairs that carry (almost) none of the normal force: fewer contacts, the
+    same motion (a ball sliding and spinning up on the ground, to 1e-6 of its displacement)."""
+    finals, counts = {}, {}
+    for active in (0.0, 1e-6):
+        scene = Scene((small_sphere, ground), friction=0.5, friction_active=active)
+        z = 1.5e-3 - float(small_sphere.bsh.vertices[:, 2].min())
+        state = scene.initial_state(
+            _poses((0.0, 0.0, z), ()), torch.tensor([[1.0, 0, 0, 0, 0, 0], [0.0] * 6], dtype=F64)
+        )
+        info = {}
+        for _ in range(10):
+            state = step(scene, state, info=info)
+        finals[active], counts[active] = state.q[0], info["friction_contacts"]
+    assert 0 < counts[1e-6] < counts[0.0]
+    moved = float((finals[0.0][:3] - torch.tensor([0.0, 0.0, z], dtype=F64)).norm())
+    assert moved > 0.05
+    assert float((finals[1e-6] - finals[0.0]).abs().max()) <= 1e-6 * moved
 
 
 def test_huge_step_does_not_tunnel_through_the_table():
