@@ -168,3 +168,41 @@ def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """
     R = rotation_matrix(pose[..., 3:])
     return points @ R.transpose(-1, -2) + pose[..., None, :3]
+
+
+# ---------------------------------------------------------------------------------------------- quaternions
+# (interpolating rotations in the simulator's path checks; not differentiated)
+def quaternion(omega: torch.Tensor) -> torch.Tensor:
+    """(..., 4) unit quaternions [w, x, y, z] of rotation vectors (..., 3)."""
+    t = torch.linalg.vector_norm(omega, dim=-1, keepdim=True)
+    half = 0.5 * t
+    # sin(t/2)/t, with its series near 0
+    k = torch.where(
+        t > 1e-8, torch.sin(half) / torch.where(t > 1e-8, t, torch.ones_like(t)), 0.5 - t * t / 48.0
+    )
+    return torch.cat([torch.cos(half), k * omega], -1)
+
+
+def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a b of (..., 4) quaternions (the rotation b, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def rotation_vector(quat: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors (norm <= pi) of (..., 4) unit quaternions."""
+    q = torch.where(quat[..., :1] < 0, -quat, quat)  # the shorter of the two equal rotations
+    v = q[..., 1:]
+    s = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(s, q[..., :1])
+    k = torch.where(s > 1e-12, angle / torch.where(s > 1e-12, s, torch.ones_like(s)), 2.0 / q[..., :1])
+    return k * v

@@ -44,7 +44,7 @@ from .contact import body_pairs, scatter_pair_derivatives
 from .friction import LaggedFriction, friction_terms, lagged_friction
 from .mesh_potential import _check_params, _forest, _penetrating, _traverse
 from .rigid import RigidBody
-from .rotation import rotation_derivatives, rotation_matrix
+from .rotation import quaternion, quaternion_multiply, rotation_derivatives, rotation_matrix, rotation_vector
 
 __all__ = ["Scene", "State", "Action", "Params", "StepError", "step", "rollout", "recentre_rotation"]
 
@@ -586,14 +586,47 @@ def _path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
     return all(_feasible(prob, q0 + (k / n) * (q1 - q0)) for k in range(1, n))
 
 
+def _pivot_path(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor):
+    """Each dynamic body's motion q0 -> q1 as a rotation about, and a straight motion of, its vertex that moves
+    least (a body tipping over an edge turns about that edge); returns s -> (Nd, 6) poses."""
+    R0, R1 = rotation_matrix(q0[:, 3:]), rotation_matrix(q1[:, 3:])
+    pivots = []
+    for i, k in enumerate(prob.scene.dynamic.tolist()):
+        X = prob.scene.bodies[k].bsh.vertices.to(q0)
+        d = (X @ (R1[i] - R0[i]).T + (q1[i, :3] - q0[i, :3])).norm(dim=1)
+        pivots.append(X[int(d.argmin())])
+    P = torch.stack(pivots)  # (Nd, 3) body frame
+    x0 = torch.einsum("nij,nj->ni", R0, P) + q0[:, :3]
+    x1 = torch.einsum("nij,nj->ni", R1, P) + q1[:, :3]
+    Q0 = quaternion(q0[:, 3:])
+    dQ = quaternion_multiply(
+        quaternion(q1[:, 3:]), Q0 * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q0.dtype)
+    )
+    w = rotation_vector(dQ)  # the relative rotation, |w| <= pi
+
+    def at(s: float) -> torch.Tensor:
+        rv = rotation_vector(quaternion_multiply(quaternion(s * w), Q0))
+        t = x0 + s * (x1 - x0) - torch.einsum("nij,nj->ni", rotation_matrix(rv), P)
+        return torch.cat([t, rv], 1)
+
+    return at
+
+
 def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
-    """Whether no dynamic body's straight path q0 -> q1 crosses a static body (checked every ccd_spacing)."""
+    """Whether the dynamic bodies can move q0 -> q1 without crossing a static body (checked every ccd_spacing):
+    along the straight path in q, or else each body turning about its least-moving vertex (the straight path of a
+    body tipping over an edge dips the edge into the support by about r dtheta^2 / 8)."""
     a, b = prob.pairs[:, 0], prob.pairs[:, 1]
     sel = (prob.static_mask[a] ^ prob.static_mask[b]) & (prob.dynamic_mask[a] | prob.dynamic_mask[b])
     if not bool(sel.any()):
         return True
     n = math.ceil(_displacement(prob, q1 - q0) / prob.scene.ccd_spacing)
-    return not any(bool(prob.infeasible(prob.full(q0 + (k / n) * (q1 - q0)), sel).any()) for k in range(1, n))
+    if n <= 1:
+        return True
+    for path in (lambda s: q0 + s * (q1 - q0), _pivot_path(prob, q0, q1)):
+        if not any(bool(prob.infeasible(prob.full(path(k / n)), sel).any()) for k in range(1, n)):
+            return True
+    return False
 
 
 def _solve_step(prob: _Problem, q_t_dyn: torch.Tensor, q_p_dyn: torch.Tensor):

@@ -22,7 +22,7 @@ import trimesh
 
 from cfd_torch import Action, Params, Scene, State, StepError, rigid_body, rollout, step
 from cfd_torch._geometry import triangle_closest_points
-from cfd_torch.rotation import rotation_matrix
+from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 
 F64 = torch.float64
 DT = 0.01
@@ -666,6 +666,40 @@ def test_huge_step_does_not_tunnel_through_the_table():
     state = scene.initial_state(_poses((-0.5, 0.0, -0.05), (-5e-4, 0.0, 0.0161)))
     with pytest.raises(StepError, match="reduce dt"):
         step(scene, state)
+
+
+def test_pole_tipping_over_its_edge_at_a_large_step_is_not_refused(ground):
+    """A 0.8 m pole falling over turns about its bottom edge by up to 0.2 rad per step at dt = 0.033 s: the straight
+    path in q between two poses would dip that edge into the ground (by r dtheta^2 / 8), which once raised a false
+    "reduce dt"; the step's motion is also checked as a turn about the least-moving vertex."""
+    pole = rigid_body(trimesh.creation.box(extents=(0.1, 0.1, 0.8)))
+    scene = Scene((pole, ground), dt=0.033, friction=0.5)
+    z = 0.4 + 2.5e-3  # tilted by 0.02 rad: its lowest corner 1.5 mm above the ground
+    state = scene.initial_state(
+        _poses((0.0, 0.0, z, 0.0, 0.02, 0.0), ()), _poses((0.0, 0.0, 0.0, 0.0, 2.0, 0.0), ())
+    )
+    lowest = []
+    for _ in range(60):  # 2 s: it falls and comes to lie on the ground
+        state = step(scene, state)
+        v = pole.bsh.vertices.to(F64) @ rotation_matrix(state.q[0, 3:]).T + state.q[0, :3]
+        lowest.append(float(v[:, 2].min()))
+    assert min(lowest) > MARGIN
+    assert abs(abs(float(state.q[0, 4])) - math.pi / 2) < 0.01  # lying on its side
+    assert abs(float(state.q[0, 2]) - 0.05) < 0.01
+
+
+def test_rotation_quaternion_helpers():
+    g = torch.Generator().manual_seed(3)
+    w = torch.randn(50, 3, generator=g, dtype=F64)
+    w = w / w.norm(dim=1, keepdim=True) * torch.rand(50, 1, generator=g, dtype=F64) * (math.pi - 1e-6)
+    w[0] = 0.0
+    w[1] = 1e-10
+    torch.testing.assert_close(rotation_vector(quaternion(w)), w, rtol=1e-12, atol=1e-14)
+    a, b = w[:25], w[25:]
+    ab = rotation_vector(quaternion_multiply(quaternion(a), quaternion(b)))
+    torch.testing.assert_close(
+        rotation_matrix(ab), rotation_matrix(a) @ rotation_matrix(b), rtol=0, atol=1e-12
+    )
 
 
 def test_fast_oblique_collision_between_moving_bodies():
