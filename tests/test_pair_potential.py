@@ -391,3 +391,26 @@ def test_central_potential_and_its_derivatives():
         central_potential(torch.tensor([1.0, -1.0]))
     with pytest.raises(ValueError, match="r contains NaN"):
         central_potential(torch.tensor([float("nan")]))
+
+
+def test_badly_conditioned_pair_from_a_toppling_stack_converges():
+    """A board's top triangle against a neighbour's tilted side triangle (from a 20-board stack at mu = 1e-10,
+    margin 1e-5): Newton's endgame kept accepting steps that changed E by less than its rounding while the relative
+    gradient stayed at 1.2e-10 > tol 1e-12, and 100 iterations raised PairSolveError. Below the stall tolerance
+    (1e-8) that is converged, in both backends, and they agree."""
+    a = [
+        [0.19000720401659071, -0.09891460625193393, 0.20219767346037437],
+        [0.19005035745478910, 0.10108538476787449, 0.20215608190682413],
+        [-0.80752719316456290, -0.09868477680592863, 0.27237654220915364],
+    ]
+    b = [
+        [0.22833757378500186, -0.09892582053297974, 0.19951623315134301],
+        [-0.76709116053010595, -0.09867819348027260, 0.29962404293991679],
+        [-0.76919661529536432, -0.09868323818123015, 0.26969801689597900],
+    ]
+    ta, tb = torch.tensor(a, dtype=F64), torch.tensor(b, dtype=F64)
+    kw = {"mu": 1e-10, "margin": 1e-5, "tol": 1e-12, "max_iter": 100}
+    v = {be: pair_potential_derivatives(ta, tb, backend=be, **kw) for be in ("numba", "torch")}
+    assert math.isfinite(float(v["numba"].value)) and float(v["numba"].grad.abs().max()) > 0
+    torch.testing.assert_close(v["numba"].value, v["torch"].value, rtol=1e-9, atol=0)
+    torch.testing.assert_close(v["numba"].grad, v["torch"].grad, rtol=1e-6, atol=0)
