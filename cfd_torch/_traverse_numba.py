@@ -216,7 +216,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
 
 
 @numba.njit(**_JIT)
-def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, margin, out):
+def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, out):
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
@@ -224,6 +224,8 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     Here only node pairs whose spheres are within ``margin`` of each other are descended (every triangle pair
     below two spheres farther apart than that is farther apart too), and a body pair stops at its first hit. No
     weights, no plane solves: a collision query, for the feasibility checks of the simulator's start and paths.
+    ``scale`` (Nb,) scales each body about its origin (1: as it is; the simulator's reachability check shrinks the
+    moving bodies).
     """
     P = pair_body.shape[0]
     cap = 256
@@ -235,6 +237,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     for p in range(P):
         out[p] = 0
         ba, bb = pair_body[p, 0], pair_body[p, 1]
+        sa, sb = scale[ba], scale[bb]
         sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
         top = 1
         while top > 0:
@@ -244,11 +247,11 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
             CJ = centre[J]
             r2 = 0.0
             for i in range(3):
-                dx = (R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2] + t[ba, i]) - (
-                    R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2] + t[bb, i]
+                dx = (sa * (R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2]) + t[ba, i]) - (
+                    sb * (R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2]) + t[bb, i]
                 )
                 r2 += dx * dx
-            d1 = radius[I] + radius[J]
+            d1 = sa * radius[I] + sb * radius[J]
             r = math.sqrt(r2)
             # (a relative slack of 1e-9 covers the rounding of the world centres)
             if r - d1 > margin + 1e-9 * (r + d1):
@@ -261,15 +264,11 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                 for v in range(3):
                     for i in range(3):
                         A[v, i] = (
-                            R[ba, i, 0] * TA[v, 0]
-                            + R[ba, i, 1] * TA[v, 1]
-                            + R[ba, i, 2] * TA[v, 2]
+                            sa * (R[ba, i, 0] * TA[v, 0] + R[ba, i, 1] * TA[v, 1] + R[ba, i, 2] * TA[v, 2])
                             + t[ba, i]
                         )
                         B[v, i] = (
-                            R[bb, i, 0] * TB[v, 0]
-                            + R[bb, i, 1] * TB[v, 1]
-                            + R[bb, i, 2] * TB[v, 2]
+                            sb * (R[bb, i, 0] * TB[v, 0] + R[bb, i, 1] * TB[v, 1] + R[bb, i, 2] * TB[v, 2])
                             + t[bb, i]
                         )
                 if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin:

@@ -428,14 +428,18 @@ def _penetrating(
     split: str,
     tol: float,
     max_iter: int,
+    scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(P,) bool: the body pairs whose BSH potential is +inf at ``pose`` (some triangle pair within the margin).
 
     On CPU a collision query (``_traverse_numba.penetrating_pairs``: spheres within the margin are descended, no
     weights or plane solves); elsewhere the potential itself at order 0 (``eps``, ``split``, ``tol`` and
-    ``max_iter`` are only used there).
+    ``max_iter`` are only used there). ``scale`` (Nb,): each body scaled about its origin first (CPU only).
     """
+    if scale is not None and pose.device.type != "cpu":
+        raise NotImplementedError("scaled collision queries run on CPU only")
     if pose.device.type == "cpu":
+        sc = torch.ones(pose.shape[0], dtype=torch.float64) if scale is None else scale.to(torch.float64)
         from ._traverse_numba import penetrating_pairs
 
         R = rotation_derivatives(pose[:, 3:].to(torch.float64), 0)[0]
@@ -444,7 +448,7 @@ def _penetrating(
             forest.centre.to(torch.float64).numpy(), forest.radius.to(torch.float64).numpy(),
             forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
-            pose[:, :3].to(torch.float64).contiguous().numpy(), float(margin), out.numpy(),
+            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin), out.numpy(),
         )  # fmt: skip
         return out.bool()
     value = _traverse(

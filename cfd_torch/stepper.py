@@ -378,15 +378,26 @@ class _Problem:
             tol=s.pair_tol, max_iter=s.pair_max_iter,
         )  # fmt: skip
 
-    def infeasible(self, poses: torch.Tensor, sel: torch.Tensor | None = None) -> torch.Tensor:
+    def infeasible(
+        self, poses: torch.Tensor, sel: torch.Tensor | None = None, shrink: float = 0.0
+    ) -> torch.Tensor:
         """(P,) bool (or (sel.sum(),)): the body pairs whose potential is +inf at ``poses`` (within the margin or
-        intersecting), by a collision query: no weights or plane solves."""
-        s = self.scene
-        pairs, roots = (self.pairs, self.pair_root) if sel is None else (self.pairs[sel], self.pair_root[sel])
-        return _penetrating(
-            self.forest, pairs, roots, poses, margin=s.margin, eps=s.eps, split=s.split, tol=s.pair_tol,
-            max_iter=s.pair_max_iter,
+        intersecting), by a collision query on the CPU (no weights or plane solves; (N, 6) poses travel), with the
+        dynamic bodies scaled by 1 - ``shrink`` about their centres of mass."""
+        s, cpu = self.scene, torch.device("cpu")
+        forest, pairs, roots = s._layout(cpu)
+        if sel is not None:
+            sel = sel.to(cpu)
+            pairs, roots = pairs[sel], roots[sel]
+        scale = None
+        if shrink:
+            scale = torch.ones(self.N, dtype=torch.float64)
+            scale[self.dyn.to(cpu)] = 1.0 - shrink
+        out = _penetrating(
+            forest, pairs, roots, poses.detach().to(cpu, torch.float64), margin=s.margin, eps=s.eps, split=s.split,
+            tol=s.pair_tol, max_iter=s.pair_max_iter, scale=scale,
         )  # fmt: skip
+        return out.to(poses.device)
 
     def feasible(self, q: torch.Tensor) -> bool:
         """Whether the dynamic coordinates q give a finite energy (no pair within the margin)."""
@@ -612,10 +623,18 @@ def _pivot_path(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor):
     return at
 
 
+# the reachability check shrinks the moving bodies by this fraction about their centres of mass: an interpolated
+# path is not the body's actual motion, and the few millimetres by which it may dip into a support it is resting
+# on or landing on (a box landing on an edge, a pole tipping over) are not tunnelling; passing through a static
+# body still is, for the shrunken body as for the real one
+_REACH_SHRINK = 0.1
+
+
 def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
-    """Whether the dynamic bodies can move q0 -> q1 without crossing a static body (checked every ccd_spacing):
-    along the straight path in q, or else each body turning about its least-moving vertex (the straight path of a
-    body tipping over an edge dips the edge into the support by about r dtheta^2 / 8)."""
+    """Whether the dynamic bodies, shrunk by _REACH_SHRINK, can move q0 -> q1 without crossing a static body
+    (checked every ccd_spacing): along the straight path in q, or else each body turning about its least-moving
+    vertex (the straight path of a body tipping over an edge dips the edge into the support by about
+    r dtheta^2 / 8)."""
     a, b = prob.pairs[:, 0], prob.pairs[:, 1]
     sel = (prob.static_mask[a] ^ prob.static_mask[b]) & (prob.dynamic_mask[a] | prob.dynamic_mask[b])
     if not bool(sel.any()):
@@ -624,7 +643,9 @@ def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) ->
     if n <= 1:
         return True
     for path in (lambda s: q0 + s * (q1 - q0), _pivot_path(prob, q0, q1)):
-        if not any(bool(prob.infeasible(prob.full(path(k / n)), sel).any()) for k in range(1, n)):
+        if not any(
+            bool(prob.infeasible(prob.full(path(k / n)), sel, _REACH_SHRINK).any()) for k in range(1, n)
+        ):
             return True
     return False
 

@@ -709,6 +709,27 @@ def test_pole_tipping_over_its_edge_at_a_large_step_is_not_refused(ground):
     assert abs(float(state.q[0, 2]) - 0.05) < 0.01
 
 
+def test_box_landing_on_an_edge_is_not_refused():
+    """A tumbling box (from a pile dropped on the ground) lands on an edge, turning and moving 1.8 cm in the step:
+    no interpolation of its motion keeps that edge out of the ground's margin, which once raised a false "reduce
+    dt"; the reachability check shrinks the moving bodies by 10 % about their centres of mass."""
+    box = rigid_body(trimesh.creation.box(extents=(0.2, 0.15, 0.1)))
+    mesh = trimesh.creation.box(extents=(2.0, 2.0, 0.1))
+    mesh.apply_translation([0.0, 0.0, -0.05])
+    floor = rigid_body(mesh, kind="static", max_edge=0.1)
+    q = _poses((), (-0.033495503879056, 0.028485507234588, 0.120107714668450, 0.943171866979978, 0.377644206977733,
+                    -0.065729555708140))  # fmt: skip
+    q_prev = _poses((), (-0.035146733558594, 0.025638061179043, 0.129802366104192, 0.940085269526705,
+                         0.415568400388626, -0.081236211718814))  # fmt: skip
+    scene = Scene((floor, box), friction=0.5)
+    state = State(q, q_prev)
+    for _ in range(3):
+        state = step(scene, state)
+        v = box.bsh.vertices.to(F64) @ rotation_matrix(state.q[1, 3:]).T + state.q[1, :3]
+        assert float(v[:, 2].min()) > MARGIN
+    assert float(state.q[1, 2]) < 0.11  # it came down
+
+
 def test_rotation_quaternion_helpers():
     g = torch.Generator().manual_seed(3)
     w = torch.randn(50, 3, generator=g, dtype=F64)
