@@ -136,8 +136,14 @@ def lagged_friction(
 
 
 def friction_terms(
-    data: LaggedFriction, poses: torch.Tensor, mu_f: torch.Tensor, e: float, order: int, reduce: bool = True
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    data: LaggedFriction,
+    poses: torch.Tensor,
+    mu_f: torch.Tensor,
+    e: float,
+    order: int,
+    reduce: bool = True,
+    majorizer_gap: bool = False,
+):
     """Value, gradient and Hessian of the lagged friction potential D at ``poses``.
 
     Args:
@@ -148,8 +154,14 @@ def friction_terms(
         order: 0, 1 or 2.
         reduce: return the total value (); else the per-contact values (C,).
 
+        majorizer_gap: at order 2, also return the positive semi-definite (C, 12, 12) difference between the Hessian
+            of the quadratic majorizer of f0 at |u| (curvature f1 / y in every direction of the plane) and the exact
+            one (which has curvature f1' <= f1 / y along u: none at all when slipping). Newton directions from the
+            majorizer do not step across the tip of the friction cone u = 0 (iteratively reweighted least squares).
+
     Returns:
-        value, per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order).
+        value, per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order), and
+        with ``majorizer_gap`` the gap (C, 12, 12).
     """
     ba, bb = data.body[:, 0], data.body[:, 1]
     R, dR, d2R = rotation_derivatives(poses[:, 3:], order)
@@ -183,4 +195,7 @@ def friction_terms(
     hess = torch.einsum("cik,cij,cjl->ckl", Jc, Hu, Jc)
     hess[:, 3:6, 3:6] += _rot_second(d2R[ba], Xa, gu)
     hess[:, 9:12, 9:12] -= _rot_second(d2R[bb], Xb, gu)
+    if majorizer_gap:
+        v = torch.einsum("ci,cik->ck", u, Jc)  # (C, 12) J^T u
+        return value, grad, hess, (-w * c2)[:, None, None] * v[:, :, None] * v[:, None, :]
     return value, grad, hess

@@ -449,7 +449,9 @@ class _Problem:
             return value, None, None, None
         if self.lagged is not None:
             e = self.scene.friction_eps_v * self.scene.dt
-            vf, gf, hf = friction_terms(self.lagged, poses, self.mu_f, e, order, reduce=False)
+            vf, gf, hf, *gap = friction_terms(
+                self.lagged, poses, self.mu_f, e, order, reduce=False, majorizer_gap=order >= 2
+            )
             self.local.index_add_(0, self.lagged.body[:, 0], vf)
             self.local.index_add_(0, self.lagged.body[:, 1], vf)
             value = value + vf.sum()
@@ -467,6 +469,9 @@ class _Problem:
         if order == 1:
             return value, grad, None, None
         H = H[self.d6][:, self.d6] + torch.block_diag(*h_b)
+        if self.lagged is not None:  # the friction majorizer's Hessian: H + gap (see _newton)
+            gap = scatter_pair_derivatives(self.N, self.lagged.body, gf, gap[0])[1]
+            self.majorizer_gap = (H, gap[self.d6][:, self.d6])
         # floor of the saddle-free direction's eigenvalue magnitudes: a tenth of the smallest inertia eigenvalue,
         # so a direction whose curvature crosses zero is not taken as an arbitrarily long step
         self.h_floor = 0.1 * float(torch.linalg.eigvalsh(h_b).min())
@@ -479,15 +484,25 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: t
     Returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations; raises StepError. ``first``: the
     order-2 evaluation at q, if already done."""
     L, g, H, Hc = prob(q, 2) if first is None else first
+    majorize = False
     for it in range(1, max_iter + 1):
         # direction: Newton where H is positive definite; else saddle-free Newton (eigenvalues by magnitude), which
-        # moves along negative curvature (a rocking polyhedron, a tipping stack) at its natural scale
-        chol, info = torch.linalg.cholesky_ex(H)
+        # moves along negative curvature (a rocking polyhedron, a tipping stack) at its natural scale. In the
+        # iteration after a rejected full step, friction enters by its quadratic majorizer (an iteratively
+        # reweighted least-squares step): the exact Hessian has no curvature along a slipping contact's slip, so
+        # its steps cross the tip of the friction cone and get cut back iteration after iteration (a tumbling pile
+        # of boxes: 117 iterations, 22 with the majorizer after rejections, 14 without friction; the majorizer in
+        # every iteration converges only linearly at the end). H itself stays exact: the adjoint uses it
+        Hd = H
+        gap = getattr(prob, "majorizer_gap", None)
+        if majorize and gap is not None and gap[0] is H:
+            Hd = H + gap[1]
+        chol, info = torch.linalg.cholesky_ex(Hd)
         if int(info) == 0:
             p = torch.cholesky_solve(-g[:, None], chol)[:, 0]
             indefinite = False
         else:
-            ev, V = torch.linalg.eigh(H)
+            ev, V = torch.linalg.eigh(Hd)
             mag = ev.abs().clamp_min(max(prob.h_floor, 1e-12 * float(ev.abs().max())))
             p = -(V @ ((V.T @ g) / mag))
             indefinite = True
@@ -517,6 +532,7 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: t
             alpha *= 0.5
         if not accepted:
             break
+        majorize = k > 0
         q = q_try
         L, g, H, Hc = full if full is not None else prob(q, 2)
     gn = float(g.abs().max())
