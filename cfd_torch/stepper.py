@@ -663,6 +663,33 @@ def _static_path_feasible(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) ->
             bool(prob.infeasible(prob.full(path(k / n)), sel, _REACH_SHRINK).any()) for k in range(1, n)
         ):
             return True
+    # neither interpolation is clear (a body tumbling onto a support with a large rotation in the step dips deep
+    # into it along both): tunnelling only if some body's centre of mass crosses a static surface on its way
+    return not _centre_crosses_static(prob, q0, q1)
+
+
+def _centre_crosses_static(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor) -> bool:
+    """Whether the segment from some dynamic body's centre of mass at q0 to that at q1 crosses a triangle of a
+    static body (Moller-Trumbore, exact; both ends are outside every body)."""
+    a, b = q0[:, :3], q1[:, :3]  # (Nd, 3): dynamic frames sit at the centres of mass
+    d = b - a
+    for j in torch.nonzero(prob.static_mask).flatten().tolist():
+        pose = prob.poses_next[j]
+        tri = prob.scene.bodies[j].bsh.triangles.to(q0) @ rotation_matrix(pose[3:]).T + pose[:3]  # (T, 3, 3)
+        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        pvec = torch.linalg.cross(
+            d[:, None, :].expand(-1, len(tri), -1), e2[None].expand(len(d), -1, -1), dim=-1
+        )
+        det = (e1[None] * pvec).sum(-1)  # (Nd, T)
+        ok = det.abs() > 1e-300
+        inv = 1.0 / torch.where(ok, det, torch.ones_like(det))
+        tvec = a[:, None, :] - v0[None]
+        u = (tvec * pvec).sum(-1) * inv
+        qvec = torch.linalg.cross(tvec, e1[None].expand_as(tvec), dim=-1)
+        v = (d[:, None, :] * qvec).sum(-1) * inv
+        t = (e2[None] * qvec).sum(-1) * inv
+        if bool((ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)).any()):
+            return True
     return False
 
 

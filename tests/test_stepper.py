@@ -730,6 +730,41 @@ def test_box_landing_on_an_edge_is_not_refused():
     assert float(state.q[1, 2]) < 0.11  # it came down
 
 
+def test_plate_tumbling_onto_the_ground_at_a_large_step_is_not_refused():
+    """A plate falling at 3.4 m/s and turning 0.3 rad per step (dt = 0.033) lands beside a resting capsule: both
+    interpolations of its motion dip deep into the ground, which raised a false "reduce dt" (found by a random
+    scene sweep); its centre of mass does not cross the ground, so the step is reachable."""
+    plate = rigid_body(trimesh.creation.box(extents=(0.3, 0.3, 0.02)))
+    box = rigid_body(trimesh.creation.box(extents=(0.2, 0.15, 0.1)))
+    capsule = rigid_body(trimesh.creation.capsule(height=0.2, radius=0.05, count=[12, 12]))
+    mesh = trimesh.creation.box(extents=(3.0, 3.0, 0.1))
+    mesh.apply_translation([0.0, 0.0, -0.05])
+    floor = rigid_body(mesh, kind="static", max_edge=0.15)
+    q = [[0.36749184277888103, 0.04825882515992644, 0.011663010060913552, -1.2505493052176406, 2.8818899030088376,
+          -0.0002532080035380764],
+         [-0.08757568869778445, 0.21268363398404108, 0.051405089050044935, -0.0002698133391687028,
+          0.00015678351253655746, 2.1345701607217094],
+         [0.5968439393829129, 0.90574975266098, 0.14894084638715335, 1.345158792422006, -0.7732138316511651,
+          1.7403455330415225],
+         [0.586192817320889, 0.5885323436570578, 0.049439636628595726, 1.202806189855825, 1.114755116501452,
+          -0.8728492898777047]]  # fmt: skip
+    q_prev = [[0.3674918464056293, 0.04825882512258649, 0.011663014677216192, -1.2505493677561625,
+               2.881889875804158, -0.0002530999382892101],
+              [-0.08757569006634554, 0.21268363844123028, 0.05140509168753844, -0.00026983117296704753,
+               0.00015683965472869477, 2.134570126142868],
+              [0.5512791048019132, 0.8451872805637682, 0.26143935183780104, 1.4639351152833744,
+               -1.1457880223127226, 1.9018828244794825],
+              [0.5631043838625631, 0.5833056808532703, 0.04950634206438576, 1.4102925981258863,
+               0.7364822329796404, -0.4728913303028581]]  # fmt: skip
+    scene = Scene((floor, plate, box, plate, capsule), dt=0.033, friction=1.0)
+    zero = [[0.0] * 6]
+    state = State(torch.tensor(zero + q, dtype=F64), torch.tensor(zero + q_prev, dtype=F64))
+    for _ in range(3):
+        state = step(scene, state)
+        assert not scene_penetrates(scene, state.q)
+    assert float(state.q[3, 2]) < 0.05  # the plate is down
+
+
 def test_tumbling_pile_with_friction_converges():
     """Three boxes and three balls dropped with random spins onto the ground, friction 0.5: at t = 0.35 s a box
     spinning at 20 rad/s hits a ball, and Newton with the exact friction Hessian needed 117 iterations (its steps
