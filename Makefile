@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test test-slow bench stacked-books lint clean
+.PHONY: demo test test-slow bench stacked-books stress lint clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -31,6 +31,9 @@ bench: $(BIN)/.installed
 
 stacked-books: $(BIN)/.installed
 	$(BIN)/python scripts/stacked_books.py --out results/stacked_books
+
+stress: $(BIN)/.installed
+	$(BIN)/python scripts/stress_step.py --out results/stress_step
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check cfd_torch tests scripts
