@@ -216,11 +216,47 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
 
 
 @numba.njit(**_JIT)
+def _segment_hits_triangle(P, Q, T) -> bool:
+    """Whether the segment PQ meets the triangle T (3, 3) (Moller-Trumbore; parallel segments never count: a
+    segment lying in the triangle's plane and touching it is at distance 0, which the distance test catches)."""
+    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
+    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
+    dx, dy, dz = Q[0] - P[0], Q[1] - P[1], Q[2] - P[2]
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return False
+    inv = 1.0 / det
+    tx, ty, tz = P[0] - T[0, 0], P[1] - T[0, 1], P[2] - T[0, 2]
+    u = (tx * px + ty * py + tz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return False
+    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return False
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    return 0.0 <= t <= 1.0
+
+
+@numba.njit(**_JIT)
+def _triangles_intersect(A, B) -> bool:
+    """Whether an edge of one triangle pierces the other (two intersecting triangles always have one that does,
+    unless they are coplanar, when their distance is 0)."""
+    for i in range(3):
+        j = i + 1 if i < 2 else 0
+        if _segment_hits_triangle(A[i], A[j], B) or _segment_hits_triangle(B[i], B[j], A):
+            return True
+    return False
+
+
+@numba.njit(**_JIT)
 def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, out):
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
-    and a pair of leaves is infeasible when the triangles' distance is <= margin (the plane solve's own test).
+    and a pair of leaves is infeasible when the triangles' distance is <= margin or they intersect (the plane
+    solve's own tests: its start needs the distance, and no plane separates intersecting triangles).
     Here only node pairs whose spheres are within ``margin`` of each other are descended (every triangle pair
     below two spheres farther apart than that is farther apart too), and a body pair stops at its first hit. No
     weights, no plane solves: a collision query, for the feasibility checks of the simulator's start and paths.
@@ -271,7 +307,8 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                             sb * (R[bb, i, 0] * TB[v, 0] + R[bb, i, 1] * TB[v, 1] + R[bb, i, 2] * TB[v, 2])
                             + t[bb, i]
                         )
-                if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin:
+                # (the closest-feature distance is positive when an edge pierces the other triangle's interior)
+                if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin or _triangles_intersect(A, B):
                     out[p] = 1
                     break
                 continue

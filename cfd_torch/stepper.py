@@ -484,6 +484,8 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: t
     Returns q*, H(q*), the contact Hessian Hc(q*) and the number of iterations; raises StepError. ``first``: the
     order-2 evaluation at q, if already done."""
     L, g, H, Hc = prob(q, 2) if first is None else first
+    if H is None:  # (the feasibility checks passed q; they and the potential agree up to rounding)
+        raise StepError("infeasible Newton start (non-finite energy)")
     majorize = False
     for it in range(1, max_iter + 1):
         # direction: Newton where H is positive definite; else saddle-free Newton (eigenvalues by magnitude), which

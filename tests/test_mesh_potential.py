@@ -628,3 +628,32 @@ def test_collision_query_marks_exactly_the_infinite_pairs(names):
     value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
     assert 0 < int(flags.sum()) < n  # both kinds present
     assert torch.equal(flags, torch.isinf(value))
+
+
+def test_collision_query_finds_an_edge_piercing_a_face():
+    """A pusher's face triangle and a box's triangle whose edge pierces it (from a step that crashed): their
+    closest-feature distance is positive (over 3 mm; the 15 features miss a piercing), but they intersect. The potential
+    is +inf (no plane separates them) and the collision query must say so too."""
+    import sys
+
+    mp = sys.modules["cfd_torch.mesh_potential"]
+    a = [[-0.115, 0.3, 0.31], [-0.115, -0.3, 0.31], [-0.115, 0.3, 0.01]]
+    b = [[-0.12380294813784068, 0.017885539273256187, 0.20250005412528382],
+         [0.051747612373261594, 0.11370825282880186, 0.2025909996566044],
+         [-0.12373169786979982, 0.017849916464029274, 0.10250008585321502]]  # fmt: skip
+    ta, tb = torch.tensor(a, dtype=F64), torch.tensor(b, dtype=F64)
+    qa, qb = triangle_closest_points(ta[None], tb[None])[:2]
+    assert float((qa - qb).norm()) > 3 * MARGIN
+
+    def one(tri):
+        return BSH.from_trimesh(trimesh.Trimesh(vertices=tri, faces=[[0, 1, 2]], process=False))
+
+    forest = mp._forest((one(a), one(b)), F64, torch.device("cpu"))
+    pose = torch.stack([_pose(), _pose(), _pose((0.0, 0.0, 1.0))])
+    pair_body = torch.tensor([[0, 1], [0, 2]])  # piercing; the same triangle 1 m higher
+    pair_root = forest.roots[None].expand(2, 2)
+    kw = {"margin": MARGIN, "eps": 0.01, "split": "both", "tol": 1e-12, "max_iter": 100}
+    flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
+    value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
+    assert torch.isinf(value[0]) and torch.isfinite(value[1])
+    assert flags.tolist() == [True, False]
