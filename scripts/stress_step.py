@@ -3,7 +3,9 @@
 Each scene (seeded, reproducible) has 1-4 bodies drawn from a box 0.2 x 0.15 x 0.1, a 320-face ball of radius 0.08,
 a capsule (radius 0.05, length 0.2) and a plate 0.3 x 0.3 x 0.02, stacked 0.3 m apart above a static 3 x 3 m floor
 (refined to 0.15 m triangles), with random rotations (up to 3 rad about each axis), velocities up to 2 m/s and
-spins up to 10 rad/s per axis; dt from {0.005, 0.01, 0.02, 0.033} s and friction from {0, 0.3, 1.0}. Every step
+spins up to 10 rad/s per axis; dt from {0.005, 0.01, 0.02, 0.033} s and friction from {0, 0.3, 1.0}; in half of
+the scenes a kinematic paddle (0.05 x 0.8 x 0.2 m, 5 mm above the floor) sweeps along x through them at
+0.3-2 m/s. Every step
 must converge (no StepError), give finite poses, and leave every body in a feasible pose (the stepper guarantees
 it; checked here independently: no centre of mass below the floor's top while over the floor, and no penetrating
 body pair by the mesh potential).
@@ -29,7 +31,7 @@ import trimesh
 from _provenance import git_revision
 from tqdm import tqdm
 
-from cfd_torch import Scene, mesh_potential, rigid_body, step
+from cfd_torch import Action, Scene, mesh_potential, rigid_body, step
 
 F64 = torch.float64
 
@@ -47,6 +49,9 @@ def floor():
     mesh = trimesh.creation.box((3.0, 3.0, 0.1))
     mesh.apply_translation([0.0, 0.0, -0.05])
     return rigid_body(mesh, kind="static", max_edge=0.15)
+
+
+PADDLE = rigid_body(trimesh.creation.box((0.05, 0.8, 0.2)), kind="kinematic")
 
 
 def scene_for(seed: int, kinds: dict, ground) -> tuple[Scene, torch.Tensor, torch.Tensor, dict]:
@@ -67,15 +72,22 @@ def scene_for(seed: int, kinds: dict, ground) -> tuple[Scene, torch.Tensor, torc
     for i in range(1, nb + 1):
         v[i, :3] = torch.tensor([(r() - 0.5) * 4 for _ in range(3)], dtype=F64)
         v[i, 3:] = torch.tensor([(r() - 0.5) * 20 for _ in range(3)], dtype=F64)
-    scene = Scene([ground] + [kinds[k] for k in names], dt=dt, friction=friction)
-    return scene, torch.tensor(poses, dtype=F64), v, {"bodies": names, "dt": dt, "friction": friction}
+    paddle_speed = 0.3 + 1.7 * r() if r() < 0.5 else 0.0
+    bodies = [ground] + [kinds[k] for k in names]
+    if paddle_speed:
+        bodies.append(PADDLE)
+        poses.append([-0.8, 0.0, 0.105, 0.0, 0.0, 0.0])
+        v = torch.cat([v, torch.zeros(1, 6, dtype=F64)])
+    scene = Scene(bodies, dt=dt, friction=friction)
+    desc = {"bodies": names, "dt": dt, "friction": friction, "paddle_speed": paddle_speed}
+    return scene, torch.tensor(poses, dtype=F64), v, desc
 
 
 def violation(scene: Scene, q: torch.Tensor) -> str | None:
     """An independent check of the end-of-step poses (None when fine)."""
     if not bool(torch.isfinite(q).all()):
         return "non-finite poses"
-    c = q[1:]
+    c = q[[i for i, b in enumerate(scene.bodies) if b.kind == "dynamic"]]
     under = (c[:, 2] < 0) & (c[:, 0].abs() < 1.45) & (c[:, 1].abs() < 1.45)
     if bool(under.any()):
         return f"a centre of mass below the floor: {c[under].tolist()}"
@@ -94,9 +106,13 @@ def run(seed: int, kinds: dict, ground) -> dict:
     t0 = time.perf_counter()
     outcome, error = "ok", None
     try:
-        for _ in range(steps):
+        for k in range(steps):
             info: dict = {}
-            state = step(scene, state, info=info)
+            action = None
+            if desc["paddle_speed"]:
+                x = -0.8 + desc["paddle_speed"] * scene.dt * (k + 1)
+                action = Action(target=torch.tensor([[x, 0.0, 0.105, 0.0, 0.0, 0.0]], dtype=F64))
+            state = step(scene, state, action, info=info)
             iters.append(int(info["newton_iters"]))
             bad = violation(scene, state.q)
             if bad:
@@ -129,7 +145,8 @@ def main() -> None:
         row = run(seed, kinds, ground)
         rows.append(row)
         tqdm.write(
-            f"seed {seed}: {row['bodies']} dt={row['dt']} friction={row['friction']}: {row['outcome']} "
+            f"seed {seed}: {row['bodies']} dt={row['dt']} friction={row['friction']} paddle={row['paddle_speed']:.2f}: "
+            f"{row['outcome']} "
             f"({row['steps_done']}/{row['steps']} steps, Newton max {row['newton_iters_max']}, {row['wall_s']:.0f} s)"
         )
     ok = sum(r["outcome"] == "ok" for r in rows)
@@ -139,12 +156,13 @@ def main() -> None:
         f"Stress test (cfd_torch {out['cfd_torch_commit']}): {ok} of {len(rows)} random scenes ran 1 s without a "
         "failure.",
         "",
-        "| seed | bodies | dt | friction | outcome | steps | Newton max / median | wall (s) |",
-        "|---:|---|---:|---:|---|---:|---:|---:|",
+        "| seed | bodies | dt | friction | paddle (m/s) | outcome | steps | Newton max / median | wall (s) |",
+        "|---:|---|---:|---:|---:|---|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['seed']} | {', '.join(r['bodies'])} | {r['dt']} | {r['friction']} | {r['outcome']} | "
+            f"| {r['seed']} | {', '.join(r['bodies'])} | {r['dt']} | {r['friction']} | {r['paddle_speed']:.2f} | "
+            f"{r['outcome']} | "
             f"{r['steps_done']}/{r['steps']} | {r['newton_iters_max']} / {r['newton_iters_median']:g} | "
             f"{r['wall_s']:.0f} |"
         )
