@@ -2,13 +2,12 @@
 
 Each scene (seeded, reproducible) has 1-4 bodies drawn from a box 0.2 x 0.15 x 0.1, a 320-face ball of radius 0.08,
 a capsule (radius 0.05, length 0.2) and a plate 0.3 x 0.3 x 0.02, stacked 0.3 m apart above a static 3 x 3 m floor
-(refined to 0.15 m triangles), with random rotations (up to 3 rad about each axis), velocities up to 2 m/s and
-spins up to 10 rad/s per axis; dt from {0.005, 0.01, 0.02, 0.033} s and friction from {0, 0.3, 1.0}; in half of
-the scenes a kinematic paddle (0.05 x 0.8 x 0.2 m, 5 mm above the floor) sweeps along x through them at
-0.3-2 m/s. Every step
-must converge (no StepError), give finite poses, and leave every body in a feasible pose (the stepper guarantees
-it; checked here independently: no centre of mass below the floor's top while over the floor, and no penetrating
-body pair by the mesh potential).
+(refined to 0.15 m triangles), with random rotations (up to 3 rad about each axis), velocities up to 2 m/s and spins
+up to 10 rad/s per axis; dt from {0.005, 0.01, 0.02, 0.033} s and friction from {0, 0.3, 1.0}; in half of the scenes
+a kinematic paddle (0.05 x 0.8 x 0.2 m, 5 mm above the floor) sweeps along x through them at 0.3-2 m/s. Every step
+must converge (no StepError), give finite poses, and leave every body in a feasible pose (the stepper guarantees it;
+checked here independently: no centre of mass below the floor's top while over the floor, and no penetrating body
+pair by the mesh potential).
 
 Writes ``<out>/stress_step.json`` (per scene: bodies, dt, friction, outcome, steps, Newton iterations, wall time)
 and ``<out>/stress_step.md`` (a table and the failures).
