@@ -89,7 +89,8 @@ class Scene:
             cost time.
         exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
         newton_tol: convergence: the undamped Newton step is at most this in every coordinate [m, rad].
-        max_newton_iter: Newton iterations before :class:`StepError`.
+        max_newton_iter: Newton iterations before :class:`StepError` (the hardest steps of the stress sweep,
+            scripts/stress_step.py, took 72).
         pair_tol, pair_max_iter: inner plane-solve settings of the exact leaf pairs.
         ccd_spacing: [m] no tunnelling: a move of the iterate (warm start, Newton trial) is accepted only if the
             straight path to it stays feasible at points at most this far apart (largest vertex displacement),
@@ -109,7 +110,7 @@ class Scene:
     friction_active: float = 1e-6
     exclude: tuple[tuple[int, int], ...] = field(default=())
     newton_tol: float = 1e-9
-    max_newton_iter: int = 100
+    max_newton_iter: int = 200
     pair_tol: float = 1e-12
     pair_max_iter: int = 100
     ccd_spacing: float = 0.01
