@@ -251,15 +251,18 @@ def _triangles_intersect(A, B) -> bool:
 
 
 @numba.njit(**_JIT)
-def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, out):
+def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, eps, split_both,
+                      out):  # fmt: skip
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
     and a pair of leaves is infeasible when the triangles' distance is <= margin or they intersect (the plane
     solve's own tests: its start needs the distance, and no plane separates intersecting triangles).
-    Here only node pairs whose spheres are within ``margin`` of each other are descended (every triangle pair
-    below two spheres farther apart than that is farther apart too), and a body pair stops at its first hit. No
-    weights, no plane solves: a collision query, for the feasibility checks of the simulator's start and paths.
+    Here a node pair is descended only where the potential descends it too (s < 1: sphere gap below eps d1,
+    with the same split rule, so both reach a leaf pair through the same ancestors) and its spheres are within
+    ``margin`` of each other (every triangle pair below two spheres farther apart than that is farther apart
+    too); a body pair stops at its first hit. No weights, no plane solves: a collision query, for the
+    feasibility checks of the simulator's start and paths.
     ``scale`` (Nb,) scales each body about its origin (1: as it is; the simulator's reachability check shrinks the
     moving bodies).
     """
@@ -289,6 +292,8 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                 r2 += dx * dx
             d1 = sa * radius[I] + sb * radius[J]
             r = math.sqrt(r2)
+            if r - d1 >= eps * d1:  # the potential's far field: central term only, finite
+                continue
             # (a relative slack of 1e-9 covers the rounding of the world centres)
             if r - d1 > margin + 1e-9 * (r + d1):
                 continue
@@ -312,17 +317,19 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                     out[p] = 1
                     break
                 continue
-            # split the larger node (the order of descent does not change which pairs are hit)
-            si = (not leaf_i) and (leaf_j or radius[I] >= radius[J])
-            if top + 2 > sI.shape[0]:
-                sI, sJ = _grow(sI, top + 2), _grow(sJ, top + 2)
-            if si:
-                sI[top], sJ[top] = child[I, 0], J
-                sI[top + 1], sJ[top + 1] = child[I, 1], J
+            # the potential's split rule (traverse_nodes)
+            if split_both:
+                si, sj = not leaf_i, not leaf_j
             else:
-                sI[top], sJ[top] = I, child[J, 0]
-                sI[top + 1], sJ[top + 1] = I, child[J, 1]
-            top += 2
+                si = (not leaf_i) and (leaf_j or radius[I] >= radius[J])
+                sj = not si
+            if top + 4 > sI.shape[0]:
+                sI, sJ = _grow(sI, top + 4), _grow(sJ, top + 4)
+            for a in range(2 if si else 1):
+                ci = child[I, a] if si else I
+                for b in range(2 if sj else 1):
+                    sI[top], sJ[top] = ci, child[J, b] if sj else J
+                    top += 1
 
 
 @numba.njit(**_JIT)

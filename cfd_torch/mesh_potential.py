@@ -432,9 +432,9 @@ def _penetrating(
 ) -> torch.Tensor:
     """(P,) bool: the body pairs whose BSH potential is +inf at ``pose`` (some triangle pair within the margin).
 
-    On CPU a collision query (``_traverse_numba.penetrating_pairs``: spheres within the margin are descended, no
-    weights or plane solves); elsewhere the potential itself at order 0 (``eps``, ``split``, ``tol`` and
-    ``max_iter`` are only used there). ``scale`` (Nb,): each body scaled about its origin first (CPU only).
+    On CPU a collision query (``_traverse_numba.penetrating_pairs``: the node pairs the potential descends whose
+    spheres are within the margin, no weights or plane solves); elsewhere the potential itself at order 0
+    (``tol`` and ``max_iter`` are only used there). ``scale`` (Nb,): each body scaled about its origin first (CPU only).
     """
     if scale is not None and pose.device.type != "cpu":
         raise NotImplementedError("scaled collision queries run on CPU only")
@@ -448,7 +448,8 @@ def _penetrating(
             forest.centre.to(torch.float64).numpy(), forest.radius.to(torch.float64).numpy(),
             forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
-            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin), out.numpy(),
+            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin), float(eps),
+            split == "both", out.numpy(),
         )  # fmt: skip
         return out.bool()
     value = _traverse(

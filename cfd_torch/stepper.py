@@ -509,7 +509,8 @@ def _newton(prob: _Problem, q: torch.Tensor, tol: float, max_iter: int, first: t
             mag = ev.abs().clamp_min(max(prob.h_floor, 1e-12 * float(ev.abs().max())))
             p = -(V @ ((V.T @ g) / mag))
             indefinite = True
-        if not indefinite and float(p.abs().max()) <= tol:
+        # (never in a majorized iteration: its step is shorter than Newton's; the next one checks the exact step)
+        if not indefinite and Hd is H and float(p.abs().max()) <= tol:
             return q, H, Hc, it
         # no tunnelling: one iteration moves no vertex more than 20 ccd_spacing (the path is checked below)
         reach = _displacement(prob, p.reshape(-1, 6))
@@ -629,9 +630,7 @@ def _pivot_path(prob: _Problem, q0: torch.Tensor, q1: torch.Tensor):
     x0 = torch.einsum("nij,nj->ni", R0, P) + q0[:, :3]
     x1 = torch.einsum("nij,nj->ni", R1, P) + q1[:, :3]
     Q0 = quaternion(q0[:, 3:])
-    dQ = quaternion_multiply(
-        quaternion(q1[:, 3:]), Q0 * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q0.dtype)
-    )
+    dQ = quaternion_multiply(quaternion(q1[:, 3:]), torch.cat([Q0[:, :1], -Q0[:, 1:]], 1))  # q1 q0^-1
     w = rotation_vector(dQ)  # the relative rotation, |w| <= pi
 
     def at(s: float) -> torch.Tensor:

@@ -657,3 +657,29 @@ def test_collision_query_finds_an_edge_piercing_a_face():
     value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
     assert torch.isinf(value[0]) and torch.isfinite(value[1])
     assert flags.tolist() == [True, False]
+
+
+def test_collision_query_follows_the_potentials_blend_band():
+    """Two thin cones tip to tip (found by review): with eps d1 below the margin, the potential stops at the
+    roots' far field (finite) although the tips are within the margin; the query must not descend there either
+    (it descends only where the potential does, with the same split rule), and agree at every gap."""
+    import sys
+
+    mp = sys.modules["cfd_torch.mesh_potential"]
+    m = trimesh.creation.cone(radius=0.002, height=0.02, sections=6)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    tip = v[v[:, 2].argmax()]
+    a, b = BSH.build(v - tip, f), BSH.build(tip - v, f[:, ::-1])
+    forest = mp._forest((a, b), F64, torch.device("cpu"))
+    gaps = [2e-4, 5e-4, 9e-4, 1.2e-3]
+    pose = torch.zeros(1 + len(gaps), 6, dtype=F64)
+    pose[1:, 2] = torch.tensor(gaps, dtype=F64)
+    n = len(gaps)
+    pair_body = torch.stack([torch.zeros(n, dtype=torch.int64), torch.arange(1, n + 1)], 1)
+    pair_root = forest.roots[None].expand(n, 2)
+    for split in SPLITS:
+        kw = {"margin": MARGIN, "eps": 0.01, "split": split, "tol": 1e-12, "max_iter": 100}
+        flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
+        value = mp._traverse(forest, pair_body, pair_root, pose, mu=1e-8, order=0, **kw)[0]
+        assert torch.isinf(value[0]) and bool(torch.isfinite(value[1:]).all())  # both regimes present
+        assert torch.equal(flags, torch.isinf(value))
