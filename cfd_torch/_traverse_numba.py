@@ -27,6 +27,15 @@ def _grow(a, n):
 
 
 @numba.njit(**_JIT)
+def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
+    """Which sides of a node pair to split: both non-leaves, or (``larger``) the larger non-leaf side."""
+    if split_both:
+        return not leaf_i, not leaf_j
+    si = (not leaf_i) and (leaf_j or radius_i >= radius_j)
+    return si, not si
+
+
+@numba.njit(**_JIT)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, split_both, order,
                    value, grad, hess):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
@@ -187,11 +196,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     ld2w[n_leaf] = W2
                 n_leaf += 1
                 continue
-            if split_both:
-                si, sj = not leaf_i, not leaf_j
-            else:
-                si = (not leaf_i) and (leaf_j or radius[I] >= radius[J])
-                sj = not si
+            si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)
             ni = 2 if si else 1
             nj = 2 if sj else 1
             if top + 4 > sI.shape[0]:
@@ -317,12 +322,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                     out[p] = 1
                     break
                 continue
-            # the potential's split rule (traverse_nodes)
-            if split_both:
-                si, sj = not leaf_i, not leaf_j
-            else:
-                si = (not leaf_i) and (leaf_j or radius[I] >= radius[J])
-                sj = not si
+            si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)  # as the potential's
             if top + 4 > sI.shape[0]:
                 sI, sJ = _grow(sI, top + 4), _grow(sJ, top + 4)
             for a in range(2 if si else 1):

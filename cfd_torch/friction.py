@@ -88,10 +88,16 @@ def lagged_friction(
         )  # fmt: skip
         ba, bb = pairs[lp, 0], pairs[lp, 1]
         Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
-        R = rotation_matrix(q_t[:, 3:].detach())
-        t = q_t[:, :3].detach()
-        wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
-        wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+
+        def world(q):  # the contacts' triangles at poses q, and the rotations
+            R = rotation_matrix(q[:, 3:])
+            return (
+                Xa @ R[ba].transpose(1, 2) + q[ba, None, :3],
+                Xb @ R[bb].transpose(1, 2) + q[bb, None, :3],
+                R,
+            )
+
+        wa, wb, R = world(q_t.detach())
         # vertex forces in closed form (envelope theorem; no autograd)
         g = pair_potential_derivatives(
             wa, wb, mu=mu, margin=margin, hessian=False, tol=tol, max_iter=max_iter
@@ -111,11 +117,8 @@ def lagged_friction(
         # adjoint needs), vertex forces by the pair potential's implicit second-order autograd
         dq = torch.cat([q_t[ba], q_t[bb]], 1)
         lw = lw + ((dq - dq.detach()) * dlw).sum(1)
-        R = rotation_matrix(q_t[:, 3:])
-        t = q_t[:, :3]
         with torch.enable_grad():
-            wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
-            wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+            wa, wb, R = world(q_t)
             P = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
             ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=True)
     fa = torch.linalg.vector_norm(ga, dim=-1)  # (C, 3)
@@ -127,6 +130,7 @@ def lagged_friction(
     n = -ga.sum(1)
     n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
     T = torch.eye(3, dtype=n.dtype, device=n.device) - n[:, :, None] * n[:, None, :]
+    t = q_t[:, :3] if create_graph else q_t[:, :3].detach()
     xa = torch.einsum("cij,cj->ci", R[ba], pa) + t[ba]
     xb = torch.einsum("cij,cj->ci", R[bb], pb) + t[bb]
     data = LaggedFriction(
@@ -153,7 +157,6 @@ def friction_terms(
         e: slip threshold eps_v dt [m].
         order: 0, 1 or 2.
         reduce: return the total value (); else the per-contact values (C,).
-
         majorizer_gap: at order 2, also return the positive semi-definite (C, 12, 12) difference between the Hessian
             of the quadratic majorizer of f0 at |u| (curvature f1 / y in every direction of the plane) and the exact
             one (which has curvature f1' <= f1 / y along u: none at all when slipping). Newton directions from the

@@ -369,8 +369,6 @@ def _traverse(
                 hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
             )  # fmt: skip
             pv = None
-        if fused:
-            pass
         elif order == 0:
             from .pair_potential import pair_potential
 
