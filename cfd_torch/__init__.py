@@ -25,20 +25,20 @@ Simulator (rigid bodies, SPEC section 5):
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
-from .central import blend_weight, central_potential, smoothstep
-from .contact import ContactPotential, contact_potential
-from .friction import LaggedFriction, friction_terms, lagged_friction
-from .hierarchy import BSH
-from .mesh_potential import MeshDerivatives, mesh_potential, mesh_potential_derivatives
-from .mesh_reference import mesh_potential_reference
-from .pair_potential import (
+from .contact.bsh import BSH
+from .contact.central import blend_weight, central_potential, smoothstep
+from .contact.mesh import MeshDerivatives, mesh_potential, mesh_potential_derivatives
+from .contact.pair import (
     LAMBDA,
     PairDerivatives,
     PairSolveError,
     pair_potential,
     pair_potential_derivatives,
 )
-from .rigid import RigidBody, rigid_body
+from .contact.reference import mesh_potential_reference
+from .contact.scene import ContactPotential, contact_potential
+from .friction import LaggedFriction, friction_terms, lagged_friction
+from .sim.bodies import RigidBody, rigid_body
 from .stepper import Action, Params, Scene, State, StepError, recentre_rotation, rollout, step
 
 __all__ = [

@@ -113,7 +113,7 @@ def sdrs_pair_potential(
     check_triangles(tri_b, "tri_b")
     X = torch.cat([tri_a, tri_b], 1).to(torch.float64)
     Xd = X.detach()
-    from ._pair_torch import start_planes
+    from .contact._pair_torch import start_planes
 
     p, dist = start_planes(Xd, margin)
     if bool((dist <= margin).any()):

@@ -31,8 +31,8 @@ from typing import NamedTuple
 
 import torch
 
-from .mesh_potential import _point_jacobian, _rot_second, _traverse
-from .pair_potential import pair_potential, pair_potential_derivatives
+from .contact._traverse import point_jacobian, rot_second, traverse
+from .contact.pair import pair_potential, pair_potential_derivatives
 from .rotation import rotation_derivatives, rotation_matrix
 
 __all__ = ["LaggedFriction", "lagged_friction", "friction_terms"]
@@ -82,7 +82,7 @@ def lagged_friction(
             solves by their implicit second-order autograd, the blend weights to first order.
     """
     with torch.no_grad():
-        LI, LJ, lp, lw, dlw = _traverse(
+        LI, LJ, lp, lw, dlw = traverse(
             forest, pairs, pair_root, q_t.detach(), mu=mu, margin=margin, eps=eps, split=split,
             order=1 if create_graph else 0, tol=tol, max_iter=max_iter, leaves_only=True,
         )  # fmt: skip
@@ -185,8 +185,8 @@ def friction_terms(
     gu = (w * f1_y)[:, None] * u  # (C, 3) dD/du = dD/d(relative displacement) (u lies in the plane)
     C = u.shape[0]
     eye = torch.eye(3, dtype=u.dtype, device=u.device).expand(C, 3, 3)
-    Ja = torch.cat([eye, _point_jacobian(dR[ba], Xa)], -1)  # (C, 3, 6)
-    Jb = torch.cat([eye, _point_jacobian(dR[bb], Xb)], -1)
+    Ja = torch.cat([eye, point_jacobian(dR[ba], Xa)], -1)  # (C, 3, 6)
+    Jb = torch.cat([eye, point_jacobian(dR[bb], Xb)], -1)
     Jc = torch.cat([Ja, -Jb], -1)  # (C, 3, 12)
     grad = torch.einsum("ci,cik->ck", gu, Jc)
     if order == 1:
@@ -196,8 +196,8 @@ def friction_terms(
     c2 = torch.where(slip, -1.0 / ys**3, -1.0 / (e * e * yq))
     Hu = (w * f1_y)[:, None, None] * data.tangent + (w * c2)[:, None, None] * u[:, :, None] * u[:, None, :]
     hess = torch.einsum("cik,cij,cjl->ckl", Jc, Hu, Jc)
-    hess[:, 3:6, 3:6] += _rot_second(d2R[ba], Xa, gu)
-    hess[:, 9:12, 9:12] -= _rot_second(d2R[bb], Xb, gu)
+    hess[:, 3:6, 3:6] += rot_second(d2R[ba], Xa, gu)
+    hess[:, 9:12, 9:12] -= rot_second(d2R[bb], Xb, gu)
     if majorizer_gap:
         v = torch.einsum("ci,cik->ck", u, Jc)  # (C, 12) J^T u
         return value, grad, hess, (-w * c2)[:, None, None] * v[:, :, None] * v[:, None, :]

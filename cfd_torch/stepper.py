@@ -40,11 +40,12 @@ from typing import NamedTuple
 
 import torch
 
-from .contact import body_pairs, scatter_pair_derivatives
+from .contact._traverse import forest_of, penetrating, traverse
+from .contact.mesh import _check_params
+from .contact.scene import body_pairs, scatter_pair_derivatives
 from .friction import LaggedFriction, friction_terms, lagged_friction
-from .mesh_potential import _check_params, _forest, _penetrating, _traverse
-from .rigid import RigidBody
 from .rotation import quaternion, quaternion_multiply, rotation_derivatives, rotation_matrix, rotation_vector
+from .sim.bodies import RigidBody
 
 __all__ = ["Scene", "State", "Action", "Params", "StepError", "step", "rollout", "recentre_rotation"]
 
@@ -168,7 +169,7 @@ class Scene:
     def _layout(self, device: torch.device):
         """Concatenated hierarchies (float64 forest), interacting body pairs (P, 2) and their root nodes (P, 2)."""
         bshes, which = self._tables
-        forest = _forest(bshes, torch.float64, device)
+        forest = forest_of(bshes, torch.float64, device)
         pairs = self.pairs.to(device)
         return forest, pairs, forest.roots[which.to(device)[pairs]]
 
@@ -374,7 +375,7 @@ class _Problem:
         """The scene's BSH potential of the body pairs (all, or those selected by the (P,) mask ``sel``)."""
         s = self.scene
         pairs, roots = (self.pairs, self.pair_root) if sel is None else (self.pairs[sel], self.pair_root[sel])
-        return _traverse(
+        return traverse(
             self.forest, pairs, roots, poses, mu=s.mu, margin=s.margin, eps=s.eps, split=s.split, order=order,
             tol=s.pair_tol, max_iter=s.pair_max_iter,
         )  # fmt: skip
@@ -394,7 +395,7 @@ class _Problem:
         if shrink:
             scale = torch.ones(self.N, dtype=torch.float64)
             scale[self.dyn.to(cpu)] = 1.0 - shrink
-        out = _penetrating(
+        out = penetrating(
             forest, pairs, roots, poses.detach().to(cpu, torch.float64), margin=s.margin, eps=s.eps, split=s.split,
             tol=s.pair_tol, max_iter=s.pair_max_iter, scale=scale,
         )  # fmt: skip

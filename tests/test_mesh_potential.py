@@ -18,8 +18,9 @@ import trimesh
 
 from cfd_torch import central_potential, contact_potential, mesh_potential, mesh_potential_derivatives
 from cfd_torch._geometry import triangle_closest_points
-from cfd_torch.hierarchy import BSH
-from cfd_torch.mesh_reference import mesh_potential_reference, mesh_traversal_counts_reference
+from cfd_torch.contact import _traverse
+from cfd_torch.contact.bsh import BSH
+from cfd_torch.contact.reference import mesh_potential_reference, mesh_traversal_counts_reference
 from cfd_torch.rotation import rotation_derivatives, rotation_matrix, transform_points
 
 F64 = torch.float64
@@ -580,19 +581,16 @@ def test_argument_validation():
 # ------------------------------------------------------------------------------------------------ 11. backends
 @pytest.mark.parametrize("split", SPLITS)
 def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
-    import sys
-
-    mp = sys.modules["cfd_torch.mesh_potential"]
     bsh_a, bsh_b = _bsh("ico1"), _bsh("box")
     pa, pb = _random_configs("ico1", "box", 3, seed=5, gap=(2e-3, 0.3))
     pose = torch.cat([pa, pb])
-    forest = mp._forest((bsh_a, bsh_b), F64, torch.device("cpu"))
+    forest = _traverse.forest_of((bsh_a, bsh_b), F64, torch.device("cpu"))
     pair_body = torch.stack([torch.arange(3), torch.arange(3) + 3], 1)
     pair_root = forest.roots[None].expand(3, 2)
     kw = {"mu": 1.0, "margin": MARGIN, "eps": 0.01, "split": split, "tol": 1e-12, "max_iter": 100}
     for order in (0, 1, 2):
-        fast = mp._traverse(forest, pair_body, pair_root, pose, order=order, backend="auto", **kw)
-        ref = mp._traverse(forest, pair_body, pair_root, pose, order=order, backend="torch", **kw)
+        fast = _traverse.traverse(forest, pair_body, pair_root, pose, order=order, backend="auto", **kw)
+        ref = _traverse.traverse(forest, pair_body, pair_root, pose, order=order, backend="torch", **kw)
         assert fast[3]["node_pairs"] == ref[3]["node_pairs"] and fast[3]["leaf_pairs"] == ref[3]["leaf_pairs"]
         assert ref[3]["leaf_pairs"] > 0
         torch.testing.assert_close(fast[0], ref[0], rtol=1e-12, atol=0)
@@ -605,9 +603,6 @@ def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
 def test_collision_query_marks_exactly_the_infinite_pairs(names):
     """The simulator's feasibility check (``_penetrating``: a sphere-pruned collision query) flags exactly the body
     pairs whose potential is +inf, for gaps on both sides of the margin."""
-    import sys
-
-    mp = sys.modules["cfd_torch.mesh_potential"]
     bsh_a, bsh_b = _bsh(names[0]), _bsh(names[1])
     n = 24
     pa, pb = _random_configs(*names, n, seed=11, gap=(1.01 * MARGIN, 3 * MARGIN))
@@ -620,12 +615,12 @@ def test_collision_query_marks_exactly_the_infinite_pairs(names):
         * (u / u.norm(dim=1, keepdim=True))
     )  # some now within the margin, some not
     pose = torch.cat([pa, pb])
-    forest = mp._forest((bsh_a, bsh_b), F64, torch.device("cpu"))
+    forest = _traverse.forest_of((bsh_a, bsh_b), F64, torch.device("cpu"))
     pair_body = torch.stack([torch.arange(n), torch.arange(n) + n], 1)
     pair_root = forest.roots[None].expand(n, 2)
     kw = {"margin": MARGIN, "eps": 0.01, "split": "both", "tol": 1e-12, "max_iter": 100}
-    flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
-    value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
+    flags = _traverse.penetrating(forest, pair_body, pair_root, pose, **kw)
+    value = _traverse.traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
     assert 0 < int(flags.sum()) < n  # both kinds present
     assert torch.equal(flags, torch.isinf(value))
 
@@ -634,9 +629,6 @@ def test_collision_query_finds_an_edge_piercing_a_face():
     """A pusher's face triangle and a box's triangle whose edge pierces it (from a step that crashed): their
     closest-feature distance is positive (over 3 mm; the 15 features miss a piercing), but they intersect. The potential
     is +inf (no plane separates them) and the collision query must say so too."""
-    import sys
-
-    mp = sys.modules["cfd_torch.mesh_potential"]
     a = [[-0.115, 0.3, 0.31], [-0.115, -0.3, 0.31], [-0.115, 0.3, 0.01]]
     b = [[-0.12380294813784068, 0.017885539273256187, 0.20250005412528382],
          [0.051747612373261594, 0.11370825282880186, 0.2025909996566044],
@@ -648,13 +640,13 @@ def test_collision_query_finds_an_edge_piercing_a_face():
     def one(tri):
         return BSH.from_trimesh(trimesh.Trimesh(vertices=tri, faces=[[0, 1, 2]], process=False))
 
-    forest = mp._forest((one(a), one(b)), F64, torch.device("cpu"))
+    forest = _traverse.forest_of((one(a), one(b)), F64, torch.device("cpu"))
     pose = torch.stack([_pose(), _pose(), _pose((0.0, 0.0, 1.0))])
     pair_body = torch.tensor([[0, 1], [0, 2]])  # piercing; the same triangle 1 m higher
     pair_root = forest.roots[None].expand(2, 2)
     kw = {"margin": MARGIN, "eps": 0.01, "split": "both", "tol": 1e-12, "max_iter": 100}
-    flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
-    value = mp._traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
+    flags = _traverse.penetrating(forest, pair_body, pair_root, pose, **kw)
+    value = _traverse.traverse(forest, pair_body, pair_root, pose, mu=1.0, order=0, **kw)[0]
     assert torch.isinf(value[0]) and torch.isfinite(value[1])
     assert flags.tolist() == [True, False]
 
@@ -663,14 +655,11 @@ def test_collision_query_follows_the_potentials_blend_band():
     """Two thin cones tip to tip (found by review): with eps d1 below the margin, the potential stops at the
     roots' far field (finite) although the tips are within the margin; the query must not descend there either
     (it descends only where the potential does, with the same split rule), and agree at every gap."""
-    import sys
-
-    mp = sys.modules["cfd_torch.mesh_potential"]
     m = trimesh.creation.cone(radius=0.002, height=0.02, sections=6)
     v, f = np.asarray(m.vertices), np.asarray(m.faces)
     tip = v[v[:, 2].argmax()]
     a, b = BSH.build(v - tip, f), BSH.build(tip - v, f[:, ::-1])
-    forest = mp._forest((a, b), F64, torch.device("cpu"))
+    forest = _traverse.forest_of((a, b), F64, torch.device("cpu"))
     gaps = [2e-4, 5e-4, 9e-4, 1.2e-3]
     pose = torch.zeros(1 + len(gaps), 6, dtype=F64)
     pose[1:, 2] = torch.tensor(gaps, dtype=F64)
@@ -679,7 +668,7 @@ def test_collision_query_follows_the_potentials_blend_band():
     pair_root = forest.roots[None].expand(n, 2)
     for split in SPLITS:
         kw = {"margin": MARGIN, "eps": 0.01, "split": split, "tol": 1e-12, "max_iter": 100}
-        flags = mp._penetrating(forest, pair_body, pair_root, pose, **kw)
-        value = mp._traverse(forest, pair_body, pair_root, pose, mu=1e-8, order=0, **kw)[0]
+        flags = _traverse.penetrating(forest, pair_body, pair_root, pose, **kw)
+        value = _traverse.traverse(forest, pair_body, pair_root, pose, mu=1e-8, order=0, **kw)[0]
         assert torch.isinf(value[0]) and bool(torch.isfinite(value[1:]).all())  # both regimes present
         assert torch.equal(flags, torch.isinf(value))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ._validate import check_triangles
+from .._validate import check_triangles
 
 __all__ = ["BSH"]
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .hierarchy import BSH
+from ..contact.bsh import BSH
 
 __all__ = ["RigidBody", "rigid_body", "KINDS"]
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ._geometry import triangle_closest_points
+from .._geometry import triangle_closest_points
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 _STALL_TOL = 1e-8  # see _pair_numba

@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import torch
 
+from .._validate import check_positive, check_triangles
 from . import _pair_torch
-from ._validate import check_positive, check_triangles
 
 __all__ = ["pair_potential", "pair_potential_derivatives", "PairDerivatives", "PairSolveError", "LAMBDA"]
 

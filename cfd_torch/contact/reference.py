@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import torch
 
-from ._validate import check_positive
+from .._validate import check_positive
+from ..rotation import rotation_matrix
+from .bsh import BSH
 from .central import central_potential, smoothstep
-from .hierarchy import BSH
-from .pair_potential import pair_potential
-from .rotation import rotation_matrix
+from .pair import pair_potential
 
 __all__ = ["mesh_potential_reference", "mesh_traversal_counts_reference"]
 
@@ -39,7 +39,7 @@ _SPLITS = ("both", "larger")
 def _check_args(bsh_a, pose_a, bsh_b, pose_b, mu, margin, eps, split) -> None:
     for name, bsh in (("bsh_a", bsh_a), ("bsh_b", bsh_b)):
         if not isinstance(bsh, BSH):
-            raise ValueError(f"{name} must be a cfd_torch.hierarchy.BSH, got {type(bsh).__name__}")
+            raise ValueError(f"{name} must be a cfd_torch.BSH, got {type(bsh).__name__}")
     for name, pose in (("pose_a", pose_a), ("pose_b", pose_b)):
         if not isinstance(pose, torch.Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")

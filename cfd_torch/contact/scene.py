@@ -13,9 +13,11 @@ from typing import NamedTuple
 
 import torch
 
-from .hierarchy import BSH
-from .mesh_potential import _check_params, _ClosedFormGrad, _forest, _traverse
-from .pair_potential import DEFAULT_MAX_ITER, DEFAULT_TOL
+from .._autograd import ClosedFormGrad
+from ._traverse import forest_of, traverse
+from .bsh import BSH
+from .mesh import _check_params
+from .pair import DEFAULT_MAX_ITER, DEFAULT_TOL
 
 __all__ = ["ContactPotential", "contact_potential", "body_pairs", "scatter_pair_derivatives"]
 
@@ -38,7 +40,7 @@ class ContactPotential(NamedTuple):
 
 class _KnownGradPotential(torch.autograd.Function):
     """Attach an already evaluated value (and gradient, if computed) to autograd: backward reuses the gradient;
-    under create_graph the Hessian comes from _ClosedFormGrad."""
+    under create_graph the Hessian comes from ClosedFormGrad."""
 
     @staticmethod
     def forward(ctx, q, value, grad, evaluate):
@@ -51,7 +53,7 @@ class _KnownGradPotential(torch.autograd.Function):
     def backward(ctx, gout):
         q, g = ctx.saved_tensors
         if torch.is_grad_enabled():
-            g = _ClosedFormGrad.apply(q, ctx.evaluate)
+            g = ClosedFormGrad.apply(q, ctx.evaluate)
         elif not ctx.has_grad:
             _, g, _ = ctx.evaluate(q, 1)
         return gout[:, None] * g, None, None, None
@@ -156,7 +158,7 @@ def contact_potential(
     uniq = tuple({id(b): b for b in bshes}.values())
     q64 = poses.to(torch.float64)
     dev = poses.device
-    forest = _forest(uniq, torch.float64, dev)
+    forest = forest_of(uniq, torch.float64, dev)
     which = torch.tensor([unique[id(b)] for b in bshes], device=dev)
     pairs = body_pairs(N, static_t, exclude).to(dev)
     pair_root = forest.roots[which[pairs]] if len(pairs) else torch.zeros(0, 2, dtype=torch.long, device=dev)
@@ -173,7 +175,7 @@ def contact_potential(
                 (q.new_zeros(1, 6 * N) if order_ >= 1 else None),
                 (q.new_zeros(1, 6 * N, 6 * N) if order_ >= 2 else None),
             )
-        v, g, h, st = _traverse(forest, pairs, pair_root, q.detach().reshape(N, 6), order=order_, **params)
+        v, g, h, st = traverse(forest, pairs, pair_root, q.detach().reshape(N, 6), order=order_, **params)
         stats.update(st)
         value = v.sum()[None]
         G, H = scatter_pair_derivatives(N, pairs, g, h)

@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from ._geometry import tri_tri_closest_nb
+from .._geometry import tri_tri_closest_nb
 
 _JIT = {"cache": True, "error_model": "numpy"}
 

@@ -16,7 +16,7 @@ import math
 import numba
 import numpy as np
 
-from ._geometry import tri_tri_closest_nb
+from .._geometry import tri_tri_closest_nb
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 

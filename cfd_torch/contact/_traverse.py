@@ -1,4 +1,7 @@
-"""BSH contact potential between rigid meshes, with closed-form pose-space gradients and Hessians.
+"""The BSH traversal engine: the potential of many body pairs at once, and the collision query.
+
+Private to :mod:`cfd_torch.contact`; the public faces are :func:`cfd_torch.mesh_potential`,
+:func:`cfd_torch.contact_potential` and :class:`cfd_torch.contact.CfdContact`.
 
 For two bodies with hierarchies a and b at poses q_a, q_b (translation, rotation vector), the potential is the
 recursion of SPEC section 4, started at the two roots::
@@ -19,8 +22,7 @@ enter the result exactly (product rule). Leaf pairs of all levels are solved in 
 
     grad_q = J^T grad_x,   hess_q = J^T hess_x J + sum_k grad_x_k . d2x_k/dq2,   x_k = R(omega) X_k + t.
 
-Coordinates of a body pair's derivatives: [t_a, omega_a, t_b, omega_b].
-"""
+Coordinates of a body pair's derivatives: [t_a, omega_a, t_b, omega_b]."""
 
 from __future__ import annotations
 
@@ -29,34 +31,15 @@ from typing import NamedTuple
 
 import torch
 
-from .hierarchy import BSH
-from .pair_potential import DEFAULT_MAX_ITER, DEFAULT_TOL, pair_potential_derivatives
-from .rotation import rotation_derivatives
-
-__all__ = ["MeshDerivatives", "mesh_potential", "mesh_potential_derivatives"]
+from ..rotation import rotation_derivatives
+from .bsh import BSH
+from .pair import pair_potential_derivatives
 
 SPLIT_RULES = ("both", "larger")
 
 
-class MeshDerivatives(NamedTuple):
-    """Value and pose-space derivatives of the BSH potential of a body pair.
-
-    Attributes:
-        value: (...) potential, +inf when some leaf pair is within the margin.
-        grad: (..., 12) d value / d [t_a, omega_a, t_b, omega_b], or None (zero where value is +inf).
-        hessian: (..., 12, 12), or None.
-        stats: counts of the traversal: "node_pairs" (all node pairs visited), "leaf_pairs" (exact solves),
-            "levels".
-    """
-
-    value: torch.Tensor
-    grad: torch.Tensor | None
-    hessian: torch.Tensor | None
-    stats: dict
-
-
 # ---------------------------------------------------------------------------------------------- the forest
-class _Forest(NamedTuple):
+class Forest(NamedTuple):
     centre: torch.Tensor  # (M, 3) body-frame node centres of all hierarchies
     radius: torch.Tensor  # (M,)
     child: torch.Tensor  # (M, 2) global ids, -1 for leaves
@@ -69,7 +52,7 @@ _FOREST_CACHE: OrderedDict = OrderedDict()
 _FOREST_CACHE_SIZE = 8
 
 
-def _forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> _Forest:
+def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
     """Concatenate hierarchies into one node table (cached for the last few hierarchy tuples)."""
     key = (tuple(id(b) for b in bshes), dtype, device)
     hit = _FOREST_CACHE.get(key)
@@ -87,7 +70,7 @@ def _forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) ->
         roots.append(node_off)
         node_off += b.num_nodes
         tri_off += b.num_faces
-    f = _Forest(
+    f = Forest(
         torch.cat(centre).to(dtype=dtype, device=device),
         torch.cat(radius).to(dtype=dtype, device=device),
         torch.cat(child).to(device),
@@ -102,12 +85,12 @@ def _forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) ->
 
 
 # ---------------------------------------------------------------------------------------------- kinematics
-def _point_jacobian(dR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+def point_jacobian(dR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
     """(E, 3, 3) d(R X)/d omega for per-element dR (E, 3, 3, 3) and body-frame points X (E, 3)."""
     return torch.einsum("eimk,em->eik", dR, X)
 
 
-def _rot_second(d2R: torch.Tensor, X: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def rot_second(d2R: torch.Tensor, X: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """(E, 3, 3) sum_i w_i d2(R X)_i / d omega d omega."""
     return torch.einsum("ei,eimkl,em->ekl", w, d2R, X)
 
@@ -194,8 +177,8 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
     return leaves, int(n_pairs), -1
 
 
-def _traverse(
-    forest: _Forest,
+def traverse(
+    forest: Forest,
     pair_body: torch.Tensor,
     pair_root: torch.Tensor,
     pose: torch.Tensor,
@@ -265,9 +248,9 @@ def _traverse(
             dd = torch.cat(
                 [
                     eye.expand(len(I), 3, 3),
-                    _point_jacobian(dR[ba], CI),
+                    point_jacobian(dR[ba], CI),
                     -eye.expand(len(I), 3, 3),
-                    -_point_jacobian(dR[bb], CJ),
+                    -point_jacobian(dR[bb], CJ),
                 ],
                 -1,
             )  # (E, 3, 12)  fmt: skip
@@ -276,8 +259,8 @@ def _traverse(
                 d2r = (torch.einsum("eik,eil->ekl", dd, dd) - dr[:, :, None] * dr[:, None, :]) / r[
                     :, None, None
                 ]
-                d2r[:, 3:6, 3:6] += _rot_second(d2R[ba], CI, u)
-                d2r[:, 9:12, 9:12] -= _rot_second(d2R[bb], CJ, u)
+                d2r[:, 3:6, 3:6] += rot_second(d2R[ba], CI, u)
+                d2r[:, 9:12, 9:12] -= rot_second(d2R[bb], CJ, u)
         phi, phi1, phi2 = _smoothstep_derivs(s)
         phi1, phi2 = phi1 / width, phi2 / (width * width)
         # Every element is evaluated unmasked (cheaper than gathering subsets): the central term W phi P_c(r)
@@ -351,7 +334,7 @@ def _traverse(
         fused = dev.type == "cpu" and backend != "torch" and order >= 1
         if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
             from ._traverse_numba import accumulate_leaves_lowrank
-            from .pair_potential import _prepare, _solve
+            from .pair import _prepare, _solve
 
             X, _ = _prepare(wa, wb, mu, margin, tol, max_iter)
             pv, Pl, gx, fac = _solve(
@@ -370,7 +353,7 @@ def _traverse(
             )  # fmt: skip
             pv = None
         elif order == 0:
-            from .pair_potential import pair_potential
+            from .pair import pair_potential
 
             with torch.no_grad():
                 pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
@@ -415,8 +398,8 @@ def _traverse(
     return value, grad, hess, stats
 
 
-def _penetrating(
-    forest: _Forest,
+def penetrating(
+    forest: Forest,
     pair_body: torch.Tensor,
     pair_root: torch.Tensor,
     pose: torch.Tensor,
@@ -450,193 +433,8 @@ def _penetrating(
             split == "both", out.numpy(),
         )  # fmt: skip
         return out.bool()
-    value = _traverse(
+    value = traverse(
         forest, pair_body, pair_root, pose, mu=1.0, margin=margin, eps=eps, split=split, order=0, tol=tol,
         max_iter=max_iter,
     )[0]  # fmt: skip
     return torch.isinf(value)
-
-
-# ---------------------------------------------------------------------------------------------- public API
-def _check_pose(pose: object, name: str) -> None:
-    if not isinstance(pose, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
-    if pose.dim() < 1 or pose.shape[-1] != 6:
-        raise ValueError(
-            f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
-        )
-    if not pose.is_floating_point():
-        raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
-    bad = ~torch.isfinite(pose).all(-1)
-    if bool(bad.any()):
-        idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
-        raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
-
-
-def _check_params(mu, margin, eps, split):
-    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
-        if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
-            raise ValueError(f"{n} must be a finite positive number, got {v!r}")
-    if split not in SPLIT_RULES:
-        raise ValueError(f"split must be one of {SPLIT_RULES}, got {split!r}")
-
-
-def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
-    if not isinstance(bsh_a, BSH) or not isinstance(bsh_b, BSH):
-        raise TypeError("bsh_a and bsh_b must be cfd_torch.BSH")
-    _check_pose(pose_a, "pose_a")
-    _check_pose(pose_b, "pose_b")
-    try:
-        batch = torch.broadcast_shapes(pose_a.shape[:-1], pose_b.shape[:-1])
-    except RuntimeError as err:
-        raise ValueError(
-            f"pose_a {tuple(pose_a.shape)} and pose_b {tuple(pose_b.shape)} do not broadcast"
-        ) from err
-    return batch
-
-
-def _derivs(bsh_a, bsh_b, qa, qb, *, order, mu, margin, eps, split, tol, max_iter):
-    """Closed-form value/grad/Hessian for (B, 6) float64 pose batches."""
-    B = qa.shape[0]
-    forest = _forest((bsh_a, bsh_b), qa.dtype, qa.device)
-    pose = torch.cat([qa, qb])  # bodies: a copies then b copies
-    ar = torch.arange(B, device=qa.device)
-    pair_body = torch.stack([ar, ar + B], 1)
-    pair_root = forest.roots[None, :].expand(B, 2)
-    return _traverse(
-        forest, pair_body, pair_root, pose.detach(), mu=mu, margin=margin, eps=eps, split=split, order=order,
-        tol=tol, max_iter=max_iter,
-    )  # fmt: skip
-
-
-def mesh_potential_derivatives(
-    bsh_a: BSH,
-    pose_a: torch.Tensor,
-    bsh_b: BSH,
-    pose_b: torch.Tensor,
-    *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
-    hessian: bool = True,
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
-) -> MeshDerivatives:
-    """Value, pose gradient and pose Hessian of the BSH potential of two bodies, in closed form.
-
-    Args:
-        bsh_a, bsh_b: the bodies' hierarchies.
-        pose_a, pose_b: (..., 6) poses (translation [m], rotation vector [rad]); leading dims broadcast.
-        mu: contact coefficient. margin: delta [m]. eps: relative width of the blend band.
-        split: "both" (descend both nodes of a pair) or "larger" (only the larger sphere).
-        hessian: form the (..., 12, 12) Hessian.
-        tol, max_iter: inner plane-solve settings of the leaf pairs (see ``pair_potential``).
-
-    Returns:
-        MeshDerivatives(value (...), grad (..., 12), hessian (..., 12, 12) | None, stats), float64 inside, in
-        the poses' dtype. Not connected to autograd (use :func:`mesh_potential` for that).
-    """
-    batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
-    _check_params(mu, margin, eps, split)
-    dt = pose_a.dtype
-    qa = pose_a.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    qb = pose_b.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    with torch.no_grad():
-        v, g, h, stats = _derivs(
-            bsh_a, bsh_b, qa, qb, order=2 if hessian else 1, mu=mu, margin=margin, eps=eps, split=split, tol=tol,
-            max_iter=max_iter,
-        )  # fmt: skip
-    return MeshDerivatives(
-        v.reshape(batch).to(dt),
-        g.reshape(*batch, 12).to(dt),
-        h.reshape(*batch, 12, 12).to(dt) if h is not None else None,
-        stats,
-    )
-
-
-class _ClosedFormPotential(torch.autograd.Function):
-    """value(q) for q (B, n) whose derivatives come from ``evaluate(q, order) -> (value (B,), grad (B, n),
-    hess (B, n, n))`` in closed form. Backward: the closed-form gradient; under create_graph it comes from
-    _ClosedFormGrad, whose backward is the closed-form Hessian-vector product; a third derivative raises."""
-
-    @staticmethod
-    def forward(ctx, q, evaluate):
-        v, _, _ = evaluate(q, 0)
-        ctx.save_for_backward(q)
-        ctx.evaluate = evaluate
-        return v
-
-    @staticmethod
-    def backward(ctx, gout):
-        (q,) = ctx.saved_tensors
-        if torch.is_grad_enabled():
-            g = _ClosedFormGrad.apply(q, ctx.evaluate)
-        else:
-            _, g, _ = ctx.evaluate(q, 1)
-        return gout[:, None] * g, None
-
-
-class _ClosedFormGrad(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, q, evaluate):
-        _, g, h = evaluate(q, 2)
-        ctx.save_for_backward(h)
-        return g
-
-    @staticmethod
-    def backward(ctx, v):
-        (h,) = ctx.saved_tensors
-        hv = torch.einsum("bi,bij->bj", v, h)  # symmetric Hessian: v^T H
-        if torch.is_grad_enabled():
-            hv = _RefuseThirdOrder.apply(hv, v)
-        return hv, None
-
-
-class _RefuseThirdOrder(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, hv, v):
-        return hv.clone()
-
-    @staticmethod
-    def backward(ctx, grad):
-        raise RuntimeError(
-            "contact potential: third derivatives are not implemented; the Hessian is exact but cannot be "
-            "differentiated again"
-        )
-
-
-def mesh_potential(
-    bsh_a: BSH,
-    pose_a: torch.Tensor,
-    bsh_b: BSH,
-    pose_b: torch.Tensor,
-    *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
-) -> torch.Tensor:
-    """BSH contact potential of two rigid bodies, differentiable in both poses to first and second order.
-
-    Args: as :func:`mesh_potential_derivatives`.
-
-    Returns:
-        (...) potential in the poses' dtype; +inf when the bodies are within the margin. The backward pass uses
-        the closed-form pose gradient; ``create_graph=True`` then gives the closed-form Hessian; a third
-        derivative raises.
-    """
-    batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
-    _check_params(mu, margin, eps, split)
-    qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    qb = pose_b.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
-
-    def evaluate(q: torch.Tensor, order: int):
-        v, g, h, _ = _derivs(bsh_a, bsh_b, q[:, :6], q[:, 6:], order=order, **params)
-        return v, g, h
-
-    v = _ClosedFormPotential.apply(torch.cat([qa, qb], -1), evaluate)
-    return v.reshape(batch).to(pose_a.dtype)

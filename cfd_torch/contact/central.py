@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from ._validate import check_finite_tensor
+from .._validate import check_finite_tensor
 
 __all__ = ["central_potential", "smoothstep", "blend_weight"]
 

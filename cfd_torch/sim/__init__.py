@@ -1,0 +1,1 @@
+"""The differentiable simulator: bodies, kinematics, the incremental potential, Newton, feasibility, the step."""
