@@ -525,7 +525,7 @@ def test_contact_potential_sums_included_pairs():
     total = total.detach()
     g_ref[torch.tensor(static)] = 0.0
 
-    res = contact_potential(bshes, poses, static=static, exclude=exclude, **kw)
+    res = contact_potential(bshes, poses, static=static, exclude=exclude, grad=True, **kw)
     assert res.hessian is None
     assert res.value.shape == () and res.grad.shape == (5, 6)
     assert abs(float(res.value) - float(total)) <= 1e-10 * float(total)
@@ -553,10 +553,62 @@ def test_contact_potential_hessian_matches_finite_differences():
     for row, k in enumerate(idx):
         e = torch.zeros(6 * n, dtype=F64)
         e[k] = h
-        gp = contact_potential(bshes, poses + e.reshape(n, 6), static=static, exclude=exclude, **kw).grad
-        gm = contact_potential(bshes, poses - e.reshape(n, 6), static=static, exclude=exclude, **kw).grad
+        gp = contact_potential(
+            bshes, poses + e.reshape(n, 6), static=static, exclude=exclude, grad=True, **kw
+        ).grad
+        gm = contact_potential(
+            bshes, poses - e.reshape(n, 6), static=static, exclude=exclude, grad=True, **kw
+        ).grad
         fd[row] = ((gp - gm) / (2 * h)).reshape(-1)
     _assert_close(H[idx][:, idx], fd[:, idx], 1e-5, "Hessian vs finite differences of grad")
+
+
+def test_contact_potential_autograd_differentiates_static_poses_too():
+    # the returned grad/hessian fields zero the static rows, but the autograd path is the true derivative of the
+    # value: a static body's pose enters the value through its pairs with moving bodies
+    bshes, poses, static, exclude = _scene()
+    kw = {"mu": 1.0, "margin": MARGIN, "eps": 0.01, "split": "both"}
+    pairs = _included_pairs(len(bshes), static, exclude)
+    x = poses.clone().requires_grad_(True)
+    total = sum(mesh_potential(bshes[i], x[i], bshes[j], x[j], **kw) for i, j in pairs)
+    (g_ref,) = torch.autograd.grad(total, x)
+    assert g_ref[3].abs().max() > 0  # the static cube feels the moving bodies
+
+    def f(p):
+        return contact_potential(bshes, p, static=static, exclude=exclude, **kw).value
+
+    (g,) = torch.autograd.grad(f(x), x)
+    _assert_close(g, g_ref, 1e-8, "autograd grad (static rows included) vs sum of mesh potentials")
+    # the fields keep their documented meaning
+    res = contact_potential(bshes, x, static=static, exclude=exclude, **kw)
+    assert bool((res.grad[3:] == 0).all())
+    _assert_close(res.grad[:3], g_ref[:3], 1e-8, "grad field")
+    # first and second order, with the static cube and a static sphere that interacts with no moving body
+    two = [bshes[2], bshes[3]]
+    y = torch.stack([poses[2], poses[3].new_tensor([0.2, 0.3, 0.1, 0.1, 0.0, 0.2])]).requires_grad_(True)
+
+    def f2(p):
+        return contact_potential(two, p, static=[False, True], **kw).value
+
+    (g2,) = torch.autograd.grad(f2(y), y)
+    assert g2[1].abs().max() > 0
+    assert torch.autograd.gradcheck(f2, (y,), eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradgradcheck(f2, (y,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_contact_potential_computes_the_gradient_only_when_it_is_needed():
+    bshes, poses, static, exclude = _scene()
+    kw = {"static": static, "exclude": exclude, "mu": 1.0, "margin": MARGIN}
+    assert contact_potential(bshes, poses, **kw).grad is None  # poses do not require grad
+    x = poses.clone().requires_grad_(True)
+    assert contact_potential(bshes, x, **kw).grad is not None
+    with torch.no_grad():
+        assert contact_potential(bshes, x, **kw).grad is None  # the value is not attached to autograd
+    assert contact_potential(bshes, poses, grad=True, **kw).grad is not None
+    assert contact_potential(bshes, x, grad=False, **kw).grad is None
+    res = contact_potential(bshes, x, grad=False, **kw)  # the backward computes it then
+    (g,) = torch.autograd.grad(res.value, x)
+    _assert_close(g[:3], contact_potential(bshes, poses, grad=True, **kw).grad[:3], 1e-12, "lazy backward")
 
 
 # ------------------------------------------------------------------------------------------------ validation

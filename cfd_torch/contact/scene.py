@@ -27,8 +27,11 @@ class ContactPotential(NamedTuple):
 
     Attributes:
         value: () total potential (connected to autograd when ``poses`` requires grad), +inf on penetration.
-        grad: (N, 6) d value / d poses (rows of static bodies are zero), or None when not computed.
-        hessian: (N * 6, N * 6) second derivative over the flattened poses, or None unless asked for.
+        grad: (N, 6) d value / d poses with the rows of static bodies set to zero (the forces that move bodies),
+            or None when not computed. Autograd through ``value`` gives the full derivative instead, static
+            poses included.
+        hessian: (N * 6, N * 6) second derivative over the flattened poses, rows and columns of static bodies set
+            to zero, or None unless asked for.
         stats: traversal counts ("body_pairs", "node_pairs", "leaf_pairs", "levels").
     """
 
@@ -39,8 +42,8 @@ class ContactPotential(NamedTuple):
 
 
 class _KnownGradPotential(torch.autograd.Function):
-    """Attach an already evaluated value (and gradient, if computed) to autograd: backward reuses the gradient;
-    under create_graph the Hessian comes from ClosedFormGrad."""
+    """Attach an already evaluated value (and its gradient over all poses, static ones included, if computed) to
+    autograd: backward reuses the gradient; under create_graph the Hessian comes from ClosedFormGrad."""
 
     @staticmethod
     def forward(ctx, q, value, grad, evaluate):
@@ -126,7 +129,8 @@ def contact_potential(
         static: (N,) which bodies are static (default: none). Static-static pairs are skipped.
         exclude: body pairs (i, j) to skip.
         mu, margin, eps, split, tol, max_iter: as in :func:`cfd_torch.mesh_potential`.
-        grad: compute the (N, 6) gradient; default: only when autograd is enabled (not under ``no_grad``).
+        grad: compute the (N, 6) gradient field; default: only when ``poses.requires_grad`` and autograd is
+            enabled, i.e. when the value is attached to autograd (its backward then reuses this gradient).
         hessian: compute the (6N, 6N) Hessian (implies the gradient).
 
     Returns:
@@ -148,8 +152,9 @@ def contact_potential(
     )
     if static_t.shape != (N,):
         raise ValueError(f"static must have shape ({N},), got {tuple(static_t.shape)}")
+    attach = poses.requires_grad and torch.is_grad_enabled()
     if grad is None:
-        grad = torch.is_grad_enabled()
+        grad = attach
     order = 2 if hessian else (1 if grad else 0)
 
     unique: dict[int, int] = {}
@@ -167,7 +172,8 @@ def contact_potential(
     stats: dict = {"body_pairs": int(len(pairs))}
 
     def evaluate(q: torch.Tensor, order_: int):
-        """q (1, 6N) -> value (1,), grad (1, 6N), hess (1, 6N, 6N)."""
+        """q (1, 6N) -> value (1,), grad (1, 6N), hess (1, 6N, 6N): the derivatives over all poses, static ones
+        included (the value depends on a static pose through the pairs it forms with moving bodies)."""
         if len(pairs) == 0:
             z = q.new_zeros(1)
             return (
@@ -179,21 +185,22 @@ def contact_potential(
         stats.update(st)
         value = v.sum()[None]
         G, H = scatter_pair_derivatives(N, pairs, g, h)
-        if G is not None:
-            G = (G * moving).reshape(1, 6 * N)
-        if H is not None:
-            mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
-            H = (H.reshape(N, 6, N, 6) * mask).reshape(1, 6 * N, 6 * N)
-        return value, G, H
+        return value, (G.reshape(1, 6 * N) if G is not None else None), (H[None] if H is not None else None)
 
     with torch.no_grad():
         value, G, H = evaluate(q64.detach().reshape(1, 6 * N), order)
-    if poses.requires_grad and torch.is_grad_enabled():
+    if attach:
         value = _KnownGradPotential.apply(q64.reshape(1, 6 * N), value, G, evaluate)
     value = value[0]
+    # the fields hold the derivatives over the moving bodies' poses: static rows (and columns) are zero
+    if G is not None:
+        G = G.reshape(N, 6) * moving
+    if H is not None:
+        mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
+        H = (H.reshape(N, 6, N, 6) * mask).reshape(6 * N, 6 * N)
     return ContactPotential(
         value.to(poses.dtype),
-        G.reshape(N, 6).to(poses.dtype) if G is not None else None,
-        H.reshape(6 * N, 6 * N).to(poses.dtype) if H is not None else None,
+        G.to(poses.dtype) if G is not None else None,
+        H.to(poses.dtype) if H is not None else None,
         stats,
     )
