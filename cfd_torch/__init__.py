@@ -1,10 +1,11 @@
 """cfd_torch: differentiable contact with long-range influence (Ye et al., ICLR 2026) in PyTorch.
 
-Shape letters used throughout: B batch, T time, N bodies, V vertices, F faces, K pairs, Q generalised coordinates.
-Triangles are ``(..., 3, 3)`` tensors: vertex index, then xyz. float64 is the reference path; float32 inputs are
-solved in float64 and returned in float32.
+Shape letters used throughout: B batch (of scenes or pairs), T time, N bodies, Nd dynamic bodies, K kinematic
+bodies, V vertices, F faces, P body pairs, C friction contacts, Q generalised coordinates. Triangles are
+``(..., 3, 3)`` tensors: vertex index, then xyz. float64 is the reference path; float32 inputs are solved in float64
+and returned in float32.
 
-Public API:
+Contact (``cfd_torch.contact``):
     pair_potential(tri_a, tri_b, *, mu, margin)              exact separating-plane potential, 2nd-order autograd
     pair_potential_derivatives(tri_a, tri_b, *, mu, margin)  value, grad (..., 18), Hessian (..., 18, 18), plane
     central_potential(r, *, mu)                              closed form 12 mu (1 + r^-1/2)^2
@@ -14,60 +15,73 @@ Public API:
     mesh_potential_derivatives(...)                          value, grad (..., 12), Hessian (..., 12, 12)
     mesh_potential_reference(...)                            naive recursive oracle of the same potential
     contact_potential(bshes, poses, static=, exclude=)       scene sum over body pairs, grad (N, 6), Hessian
+    ContactModel, CfdContact                                 what the stepper needs of a contact model; the paper's
+    ContactConfig                                            the potential's settings (stiffness mu, margin, eps)
     cfd_torch.baselines: ipc_pair_barrier, sdrs_pair_potential  the peers' local barriers
 
-Simulator (rigid bodies, SPEC section 5):
+Simulator (``cfd_torch.sim``, SPEC section 5):
     rigid_body(mesh, kind=, density=, max_edge=)             body with exact volumetric mass properties
-    Scene(bodies, dt=, gravity=, mu=, margin=, friction=...) one config object for a simulation
-    step(scene, State(q, q_prev), Action(force, torque, target), params) -> State   differentiable step
-    rollout(scene, state, actions)                           T steps (ordinary autograd through all of them)
+    Scene(bodies, dt=, gravity=, contact=, friction=, solver=)  bodies and settings of a simulation
+    FrictionConfig, SolverConfig                             Coulomb friction; the Newton solve
+    step(scene, State(q, q_prev), Action(force, torque, target), params) -> State   differentiable step,
+                                                             batched over a leading dimension of scenes
+    rollout(scene, state, actions) -> Trajectory            T steps (ordinary autograd through all of them)
+    pair_forces(scene, q)                                    contact force of every body on every other
 
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
+from .config import ContactConfig, FrictionConfig, SolverConfig
 from .contact.bsh import BSH
 from .contact.central import blend_weight, central_potential, smoothstep
+from .contact.cfd import CfdContact
 from .contact.mesh import MeshDerivatives, mesh_potential, mesh_potential_derivatives
-from .contact.pair import (
-    LAMBDA,
-    PairDerivatives,
-    PairSolveError,
-    pair_potential,
-    pair_potential_derivatives,
-)
+from .contact.model import ContactEval, ContactModel, LaggedContacts
+from .contact.pair import LAMBDA, PairDerivatives, PairSolveError, pair_potential, pair_potential_derivatives
 from .contact.reference import mesh_potential_reference
 from .contact.scene import ContactPotential, contact_potential
-from .friction import LaggedFriction, friction_terms, lagged_friction
 from .sim.bodies import RigidBody, rigid_body
-from .stepper import Action, Params, Scene, State, StepError, recentre_rotation, rollout, step
+from .sim.kinematics import FreeBodies, Kinematics
+from .sim.scene import Scene
+from .sim.step import pair_forces, recentre_rotation, rollout, step
+from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory
 
 __all__ = [
+    "BSH",
+    "LAMBDA",
     "Action",
-    "LaggedFriction",
+    "CfdContact",
+    "ContactConfig",
+    "ContactEval",
+    "ContactModel",
+    "ContactPotential",
+    "FreeBodies",
+    "FrictionConfig",
+    "Kinematics",
+    "LaggedContacts",
+    "MeshDerivatives",
+    "PairDerivatives",
+    "PairSolveError",
     "Params",
     "RigidBody",
     "Scene",
+    "SolverConfig",
     "State",
     "StepError",
-    "friction_terms",
-    "lagged_friction",
-    "recentre_rotation",
-    "rigid_body",
-    "rollout",
-    "step",
-    "BSH",
-    "ContactPotential",
-    "LAMBDA",
-    "MeshDerivatives",
+    "StepInfo",
+    "Trajectory",
+    "blend_weight",
+    "central_potential",
     "contact_potential",
     "mesh_potential",
     "mesh_potential_derivatives",
     "mesh_potential_reference",
-    "PairDerivatives",
-    "PairSolveError",
-    "blend_weight",
-    "central_potential",
+    "pair_forces",
     "pair_potential",
     "pair_potential_derivatives",
+    "recentre_rotation",
+    "rigid_body",
+    "rollout",
     "smoothstep",
+    "step",
 ]

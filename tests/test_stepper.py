@@ -799,7 +799,11 @@ def scene_penetrates(scene, q) -> bool:
 
     return any(
         math.isinf(
-            float(mesh_potential(scene.bodies[i].bsh, q[i], scene.bodies[j].bsh, q[j], margin=scene.margin))
+            float(
+                mesh_potential(
+                    scene.bodies[i].bsh, q[i], scene.bodies[j].bsh, q[j], margin=scene.contact.margin
+                )
+            )
         )
         for i, j in scene.pairs.tolist()
     )

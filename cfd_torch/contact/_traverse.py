@@ -356,11 +356,11 @@ def traverse(
             from .pair import pair_potential
 
             with torch.no_grad():
-                pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter)
+                pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter, backend=backend)
             gq = hq = None
         else:
             der = pair_potential_derivatives(
-                wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter
+                wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter, backend=backend
             )
             pv = der.value
             # J (L, 18, 12): x_k = R X_k + t

@@ -1,0 +1,119 @@
+"""The only defaults of the library's numerical and physical settings, in three frozen config objects.
+
+Names are unambiguous: ``stiffness`` is the contact coefficient mu of the potential P = mu E (SPEC section 2), and
+``coefficient`` is Coulomb's friction coefficient; they are never both called "mu" or "friction".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES"]
+
+SPLIT_RULES = ("both", "larger")
+
+
+def _positive(owner: str, name: str, value: object) -> None:
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf):
+        raise ValueError(f"{owner}.{name} must be a finite positive number, got {value!r}")
+
+
+def _count(owner: str, name: str, value: object) -> None:
+    if not (isinstance(value, int) and not isinstance(value, bool) and value > 0):
+        raise ValueError(f"{owner}.{name} must be a positive int, got {value!r}")
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """Settings of the contact potential (SPEC sections 2-4).
+
+    Attributes:
+        stiffness: mu, the scale of the potential P = mu E (E mixes dimensionless and 1/m terms).
+        margin: delta, the distance below which the potential is +inf [m].
+        eps: relative width of the hierarchy's blend band, d2 = (1 + eps) d1.
+        split: which node of a node pair the traversal descends: "both", or the "larger" sphere.
+        pair_tol: relative gradient tolerance of each leaf pair's plane solve.
+        pair_max_iter: Newton iteration cap of the plane solve (a pair that does not converge raises).
+        backend: "auto" (numba kernels on the CPU, batched tensors elsewhere) or "torch" (batched tensors
+            everywhere: the GPU route, which this exercises on the CPU). The collision query of the simulator's
+            feasibility checks runs on the CPU either way.
+    """
+
+    stiffness: float = 1e-8
+    margin: float = 1e-3
+    eps: float = 0.01
+    split: Literal["both", "larger"] = "both"
+    pair_tol: float = 1e-12
+    pair_max_iter: int = 100
+    backend: Literal["auto", "torch"] = "auto"
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", "torch"):
+            raise ValueError(f"ContactConfig.backend must be 'auto' or 'torch', got {self.backend!r}")
+        for name in ("stiffness", "margin", "eps", "pair_tol"):
+            _positive("ContactConfig", name, getattr(self, name))
+        _count("ContactConfig", "pair_max_iter", self.pair_max_iter)
+        if self.split not in SPLIT_RULES:
+            raise ValueError(f"ContactConfig.split must be one of {SPLIT_RULES}, got {self.split!r}")
+
+
+@dataclass(frozen=True)
+class FrictionConfig:
+    """Lagged, smoothed Coulomb friction (SPEC section 5).
+
+    Attributes:
+        coefficient: Coulomb's coefficient mu_f; 0 turns friction off (no lagged data, no cost).
+        eps_v: slip velocity below which friction is in its smoothed static regime [m/s].
+        active: friction acts on the leaf pairs whose lagged normal force is at least this fraction of the largest
+            in their body pair (0: on all of them); the others carry almost none of the load and only cost time.
+    """
+
+    coefficient: float = 0.0
+    eps_v: float = 1e-4
+    active: float = 1e-6
+
+    def __post_init__(self) -> None:
+        c = self.coefficient
+        if not (isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c < math.inf):
+            raise ValueError(f"FrictionConfig.coefficient must be a finite number >= 0, got {c!r}")
+        _positive("FrictionConfig", "eps_v", self.eps_v)
+        a = self.active
+        if not (isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a < 1):
+            raise ValueError(f"FrictionConfig.active must be a number in [0, 1), got {a!r}")
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """The step's Newton solve and its feasibility checks (SPEC section 5).
+
+    Attributes:
+        newton_tol: converged when the undamped Newton step is at most this in every coordinate [m, rad] at a
+            positive definite Hessian.
+        max_newton_iter: Newton iterations before the step raises :class:`cfd_torch.StepError`.
+        ccd_spacing: [m] no tunnelling: a move of the iterate is accepted only if its straight path stays feasible
+            at points at most this far apart (largest vertex displacement), and one Newton iteration moves no
+            vertex more than 20 times this.
+        reach_shrink: the end-of-step reachability check shrinks the moving bodies by this fraction about their
+            centres of mass (an interpolated path is not the body's motion; dipping a few millimetres into a
+            support it rests or lands on is not tunnelling).
+        substeps: on a :class:`cfd_torch.StepError`, retry the step as 2, 4, ... up to this many equal sub-steps
+            (kinematic targets interpolated); 1 raises at once.
+    """
+
+    newton_tol: float = 1e-9
+    max_newton_iter: int = 200
+    ccd_spacing: float = 0.01
+    reach_shrink: float = 0.1
+    substeps: int = 1
+
+    def __post_init__(self) -> None:
+        _positive("SolverConfig", "newton_tol", self.newton_tol)
+        _positive("SolverConfig", "ccd_spacing", self.ccd_spacing)
+        _count("SolverConfig", "max_newton_iter", self.max_newton_iter)
+        _count("SolverConfig", "substeps", self.substeps)
+        if not (isinstance(self.reach_shrink, (int, float)) and 0 <= self.reach_shrink < 1):
+            raise ValueError(
+                f"SolverConfig.reach_shrink must be a number in [0, 1), got {self.reach_shrink!r}"
+            )

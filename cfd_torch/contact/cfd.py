@@ -1,0 +1,156 @@
+"""The paper's contact model for the simulator: the BSH potential of every interacting body pair (SPEC sections 2-4),
+its collision query, and lagged friction contacts on its exact leaf pairs.
+
+Lagged friction data, from the start-of-step configuration q_t, for every exact leaf pair c (triangles ta of body a
+and tb of body b, inherited blend weight w_c = product of the ancestors' (1 - phi))::
+
+    f_k      = |dP/dx_k|  for the six vertices (the pair potential's vertex forces, all along the plane normal)
+    lambda_c = w_c sum_{k in ta} f_k            normal force magnitude [N] (equal on both sides at the optimum)
+    n_c      = unit normal of the force on ta;  T_c = I - n_c n_c^T  (projector onto the contact plane)
+    X_a      = sum_{k in ta} (f_k / sum f) X_k  body-frame force centre on ta (same on tb): one material point per
+                                                side, so the contact point moves rigidly with its body.
+
+The lagged data are differentiable functions of q_t on request (the pair potential's second-order autograd for the
+vertex forces, the blend weights' closed-form gradient), so the step's adjoint sees how friction depends on the
+previous state; only the discrete leaf set is fixed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from ..config import ContactConfig
+from ..rotation import rotation_matrix
+from ._traverse import Forest, forest_of, penetrating, traverse
+from .bsh import BSH
+from .model import ContactEval, LaggedContacts
+from .pair import pair_potential, pair_potential_derivatives
+
+__all__ = ["CfdContact"]
+
+
+class CfdContact:
+    """The long-range contact potential of N bodies (a :class:`cfd_torch.contact.ContactModel`).
+
+    Args:
+        bshes: the N bodies' hierarchies, in body order (one BSH may serve several bodies).
+        config: the potential's settings (default ``ContactConfig()``).
+    """
+
+    def __init__(self, bshes: Sequence[BSH], config: ContactConfig | None = None) -> None:
+        if not all(isinstance(b, BSH) for b in bshes):
+            raise ValueError("bshes must be a sequence of cfd_torch.BSH")
+        self.config = ContactConfig() if config is None else config
+        uniq: dict[int, int] = {}
+        for b in bshes:
+            uniq.setdefault(id(b), len(uniq))
+        self._bshes = tuple({id(b): b for b in bshes}.values())
+        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self.num_bodies = len(bshes)
+
+    def _forest(self, device: torch.device) -> tuple[Forest, torch.Tensor]:
+        """The concatenated float64 hierarchies on ``device`` and each body's root node (N,)."""
+        forest = forest_of(self._bshes, torch.float64, device)
+        return forest, forest.roots[self._which.to(device)]
+
+    def _rows(self, poses: torch.Tensor, pairs: torch.Tensor):
+        """Pose table (S N, 6), pair rows (P, 2) into it, root nodes (P, 2)."""
+        S, N = poses.shape[:2]
+        forest, roots = self._forest(poses.device)
+        rows = pairs[:, :1] * N + pairs[:, 1:]
+        return forest, poses.reshape(S * N, 6), rows, roots[pairs[:, 1:]]
+
+    def evaluate(self, poses: torch.Tensor, pairs: torch.Tensor, order: int) -> ContactEval:
+        c = self.config
+        if pairs.shape[0] == 0:
+            z = poses.new_zeros(0)
+            return ContactEval(
+                z,
+                poses.new_zeros(0, 12) if order else None,
+                poses.new_zeros(0, 12, 12) if order > 1 else None,
+                0,
+                0,
+            )
+        forest, table, rows, roots = self._rows(poses, pairs)
+        v, g, h, st = traverse(
+            forest, rows, roots, table.detach(), mu=c.stiffness, margin=c.margin, eps=c.eps, split=c.split,
+            order=order, tol=c.pair_tol, max_iter=c.pair_max_iter, backend=c.backend,
+        )  # fmt: skip
+        return ContactEval(v, g, h, st["node_pairs"], st["leaf_pairs"])
+
+    def infeasible(
+        self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        c, cpu = self.config, torch.device("cpu")
+        if pairs.shape[0] == 0:
+            return torch.zeros(0, dtype=torch.bool, device=poses.device)
+        # the collision query runs on the CPU (numba; (S N, 6) poses travel)
+        forest, table, rows, roots = self._rows(poses.detach().to(cpu, torch.float64), pairs.to(cpu))
+        sc = None if scale is None else scale.to(cpu, torch.float64).repeat(poses.shape[0])
+        out = penetrating(
+            forest, rows, roots, table, margin=c.margin, eps=c.eps, split=c.split, tol=c.pair_tol,
+            max_iter=c.pair_max_iter, scale=sc,
+        )  # fmt: skip
+        return out.to(poses.device)
+
+    def lagged(
+        self, poses: torch.Tensor, pairs: torch.Tensor, active: float, create_graph: bool = False
+    ) -> LaggedContacts:
+        c = self.config
+        kw = {"mu": c.stiffness, "margin": c.margin, "tol": c.pair_tol, "max_iter": c.pair_max_iter}
+        forest, table, rows, roots = self._rows(poses, pairs)
+        with torch.no_grad():
+            LI, LJ, lp, lw, dlw = traverse(
+                forest, rows, roots, table.detach(), eps=c.eps, split=c.split, order=1 if create_graph else 0,
+                leaves_only=True, backend=c.backend, **kw,
+            )  # fmt: skip
+            ba, bb = rows[lp, 0], rows[lp, 1]
+            Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
+
+            def world(q):  # the contacts' triangles at poses q (S N, 6), and the rotations
+                R = rotation_matrix(q[:, 3:])
+                return (
+                    Xa @ R[ba].transpose(1, 2) + q[ba, None, :3],
+                    Xb @ R[bb].transpose(1, 2) + q[bb, None, :3],
+                    R,
+                )
+
+            wa, wb, R = world(table.detach())
+            # vertex forces in closed form (envelope theorem; no autograd)
+            g = pair_potential_derivatives(wa, wb, hessian=False, backend=c.backend, **kw).grad.reshape(
+                -1, 2, 3, 3
+            )
+            ga, gb = g[:, 0], g[:, 1]
+            if active > 0 and lp.numel():
+                lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)
+                top = torch.zeros(pairs.shape[0], dtype=lam.dtype, device=lam.device)
+                top = top.scatter_reduce(0, lp, lam, "amax")
+                keep = lam >= active * top[lp]
+                LI, LJ, lp, lw, ba, bb, Xa, Xb, ga, gb = (
+                    x[keep] for x in (LI, LJ, lp, lw, ba, bb, Xa, Xb, ga, gb)
+                )
+                dlw = dlw[keep] if dlw is not None else None
+        if create_graph:
+            # the same data as differentiable functions of the poses: blend weights to first order (exact gradient,
+            # as the adjoint needs), vertex forces by the pair potential's implicit second-order autograd
+            dq = torch.cat([table[ba], table[bb]], 1)
+            lw = lw + ((dq - dq.detach()) * dlw).sum(1)
+            with torch.enable_grad():
+                wa, wb, R = world(table)
+                P = pair_potential(wa, wb, backend=c.backend, **kw)
+                ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=True)
+        fa = torch.linalg.vector_norm(ga, dim=-1)  # (C, 3)
+        fb = torch.linalg.vector_norm(gb, dim=-1)
+        sa, sb = fa.sum(1), fb.sum(1)
+        lam = lw * sa
+        pa = ((fa / sa[:, None])[:, :, None] * Xa).sum(1)
+        pb = ((fb / sb[:, None])[:, :, None] * Xb).sum(1)
+        n = -ga.sum(1)
+        n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+        T = torch.eye(3, dtype=n.dtype, device=n.device) - n[:, :, None] * n[:, None, :]
+        t = table[:, :3] if create_graph else table[:, :3].detach()
+        xa = torch.einsum("cij,cj->ci", R[ba], pa) + t[ba]
+        xb = torch.einsum("cij,cj->ci", R[bb], pb) + t[bb]
+        return LaggedContacts(lp, torch.stack([pa, pb], 1), torch.stack([xa, xb], 1), T, lam)

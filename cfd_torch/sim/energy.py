@@ -1,0 +1,258 @@
+"""The incremental potential of one step, evaluated purely: everything the Newton solve needs, returned.
+
+For the step's unknowns q (the kinematics map's coordinates; for free bodies the dynamic bodies' poses), with all
+other bodies at their end-of-step poses (static: fixed; kinematic: the action's target)::
+
+    L(q) = sum_dynamic [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . axial(R R_t^T) ]
+           + P_contact(poses(q)) + D_friction(poses(q); lagged at q_t)
+
+with b = t - 2 t_t + t_{t-1}, A = R - R_t R_{t-1}^T R_t, S the body's second moment of mass (:mod:`.bodies`), f and
+tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does
+the work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the
+inertia term is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions under constant
+linear and angular velocity (x_pred = R_t R_{t-1}^T R_t X + 2 t_t - t_{t-1}). SPEC's x-space form,
+x_pred = 2 x_t - x_{t-1} (A = R - 2 R_t + R_{t-1}), predicts a point off the rotation group and damps spin by
+about omega^3 dt^2 per step; the rotation-group prediction keeps a spin about a principal axis exact and conserves
+the energy of torque-free tumbling.
+
+A batch of B independent scenes is one evaluation: their body pairs go to the contact model together (no pair
+between two scenes exists, not even in the far field), and every output has a leading scene dimension.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from ..contact.model import LaggedContacts
+from ..rotation import rotation_derivatives, rotation_matrix
+from .friction import friction_terms
+
+__all__ = ["StepProblem", "EnergyEval", "incremental_potential", "select_scenes", "body_terms", "scene_pairs"]
+
+
+class StepProblem(NamedTuple):
+    """The fixed data of one step of B scenes (float64, detached).
+
+    Attributes:
+        scene: the :class:`cfd_torch.Scene` (shared by the batch).
+        fixed: (B, N, 6) end-of-step poses of the bodies the kinematics map does not move (its rows are ignored).
+        q_t, q_p: (B, N, 6) poses at the start of the step and one step earlier.
+        force, torque: (B, N, 3) the action's world-frame forces and torques.
+        mass: (B, Nd); second_moment: (B, Nd, 3, 3) symmetric; friction: (B,) Coulomb's coefficient.
+        lagged: the lagged friction contacts of the batch's pairs (``scene_pairs(scene, B)``), or None.
+        gravity: (3,).
+    """
+
+    scene: object
+    fixed: torch.Tensor
+    q_t: torch.Tensor
+    q_p: torch.Tensor
+    force: torch.Tensor
+    torque: torch.Tensor
+    mass: torch.Tensor
+    second_moment: torch.Tensor
+    friction: torch.Tensor
+    lagged: LaggedContacts | None
+    gravity: torch.Tensor
+
+
+class EnergyEval(NamedTuple):
+    """L and what the solver needs of it, for A scenes (derivative fields None below the order asked for).
+
+    Attributes:
+        value: (A,) L, +inf where some pair is infeasible.
+        grad: (A, Q) dL/dq.
+        hess: (A, Q, Q) d2L/dq2 (exact; friction's exact Hessian).
+        contact_hess: (A, 6N, 6N) the contact Hessian over all bodies' poses (its cross blocks with the bodies the
+            map does not move feed the adjoint).
+        scale: (A,) the magnitude L is computed from (|L| plus each body's own terms and the contact and friction
+            terms it takes part in): the line search treats differences below 1e-12 of it as rounding.
+        majorizer_gap: (A, Q, Q) friction's quadratic majorizer minus its exact Hessian (positive semi-definite),
+            or None without friction.
+        h_floor: (A,) a tenth of the smallest eigenvalue of the inertia Hessians: the saddle-free direction's
+            floor on eigenvalue magnitudes.
+        contact_force, friction_force: (A, N, 6) -dP/dpose and -dD/dpose.
+        node_pairs, leaf_pairs: the contact model's work in this evaluation.
+    """
+
+    value: torch.Tensor
+    grad: torch.Tensor | None
+    hess: torch.Tensor | None
+    contact_hess: torch.Tensor | None
+    scale: torch.Tensor
+    majorizer_gap: torch.Tensor | None
+    h_floor: torch.Tensor | None
+    contact_force: torch.Tensor | None
+    friction_force: torch.Tensor | None
+    node_pairs: int
+    leaf_pairs: int
+
+
+def scene_pairs(scene, num_scenes: int) -> torch.Tensor:
+    """(num_scenes P, 3) rows (s, i, j): the scene's interacting body pairs, repeated for each pose set s."""
+    P = scene.pairs.shape[0]
+    s = torch.arange(num_scenes).repeat_interleave(P)
+    return torch.cat([s[:, None], scene.pairs.repeat(num_scenes, 1)], 1)
+
+
+def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
+    """The sub-problem of the scenes ``idx`` (A,) (lagged contacts renumbered)."""
+    lag = prob.lagged
+    if lag is not None:
+        P = prob.scene.pairs.shape[0]
+        pos = torch.full((prob.q_t.shape[0],), -1, dtype=torch.long, device=idx.device)
+        pos[idx] = torch.arange(len(idx), device=idx.device)
+        s = pos[lag.pair // P] if P else lag.pair
+        keep = s >= 0
+        lag = LaggedContacts(
+            (s * P + lag.pair % P)[keep],
+            lag.X[keep],
+            lag.x_t[keep],
+            lag.tangent[keep],
+            lag.normal_force[keep],
+        )
+    take = (
+        prob.fixed,
+        prob.q_t,
+        prob.q_p,
+        prob.force,
+        prob.torque,
+        prob.mass,
+        prob.second_moment,
+        prob.friction,
+    )
+    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity)
+
+
+def _axial(M: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axial vector of the skew part of (..., 3, 3) M (last two dims)."""
+    return 0.5 * torch.stack(
+        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1
+    )
+
+
+def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
+    """Inertia, gravity and actuation of E dynamic bodies (pose rows (E, 6)): values (E,), grad (E, 6), Hessian
+    (E, 6, 6).
+
+    Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
+    """
+    R, dR, d2R = rotation_derivatives(q[:, 3:], order)
+    Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
+    b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
+    A = R - Rt @ Rp.transpose(1, 2) @ Rt  # R minus the predicted rotation R_t R_{t-1}^T R_t
+    AS = A @ S  # (E, 3, 3)
+    pull = mass[:, None] * gravity + force  # (E, 3)
+    inv = 1.0 / (dt * dt)
+    value = 0.5 * inv * (mass * (b * b).sum(1) + (AS * A).sum((1, 2)))
+    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum(1) - (torque * _axial(R @ Rt.transpose(1, 2))).sum(1)
+    if order == 0:
+        return value, None, None
+    dRRt = torch.einsum("nijk,nlj->nkil", dR, Rt)  # (E, k, 3, 3): dR_k R_t^T
+    g_t = inv * mass[:, None] * b - pull
+    g_w = inv * torch.einsum("nijk,nij->nk", dR, AS) - (torque[:, None, :] * _axial(dRRt)).sum(-1)
+    grad = torch.cat([g_t, g_w], 1)
+    if order == 1:
+        return value, grad, None
+    E = q.shape[0]
+    H = q.new_zeros(E, 6, 6)
+    H[:, :3, :3] = inv * mass[:, None, None] * torch.eye(3, dtype=q.dtype, device=q.device)
+    d2RRt = torch.einsum("nijkl,nmj->nklim", d2R, Rt)  # (E, k, l, 3, 3)
+    H[:, 3:, 3:] = inv * (
+        torch.einsum("nijkl,nij->nkl", d2R, AS) + torch.einsum("nijk,njm,niml->nkl", dR, S, dR)
+    ) - (torque[:, None, None, :] * _axial(d2RRt)).sum(-1)
+    return value, grad, H
+
+
+def scatter_pairs(A: int, N: int, pairs: torch.Tensor, g: torch.Tensor | None, h: torch.Tensor | None):
+    """Per-pair derivatives over [q_i, q_j] (g (P, 12), h (P, 12, 12)) of pairs (P, 3) rows (s, i, j) summed into
+    per-scene ones: (A, N, 6) and (A, 6N, 6N)."""
+    G = H = None
+    s, i, j = pairs[:, 0], pairs[:, 1], pairs[:, 2]
+    if g is not None:
+        G = g.new_zeros(A, N, 6)
+        G.index_put_((s, i), g[:, :6], accumulate=True)
+        G.index_put_((s, j), g[:, 6:], accumulate=True)
+    if h is not None:
+        Hb = h.new_zeros(A, N, N, 6, 6)
+        Hb.index_put_((s, i, i), h[:, :6, :6], accumulate=True)
+        Hb.index_put_((s, i, j), h[:, :6, 6:], accumulate=True)
+        Hb.index_put_((s, j, i), h[:, 6:, :6], accumulate=True)
+        Hb.index_put_((s, j, j), h[:, 6:, 6:], accumulate=True)
+        H = Hb.permute(0, 1, 3, 2, 4).reshape(A, 6 * N, 6 * N)
+    return G, H
+
+
+def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> EnergyEval:
+    """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2)."""
+    scene = prob.scene
+    B, N = prob.q_t.shape[:2]
+    dyn = scene.dynamic.to(q.device)
+    Nd = len(dyn)
+    kin = scene.kinematics
+    poses = kin.poses(q, prob.fixed)  # (B, N, 6)
+    rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
+    vb, g_b, h_b = body_terms(
+        rows(poses[:, dyn]), rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.force[:, dyn]),
+        rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0], rows(prob.second_moment), prob.gravity,
+        scene.dt, order,
+    )  # fmt: skip
+    # each body's "local" energy: its own terms plus the contact and friction terms it takes part in (the sum of
+    # their magnitudes sets the line search's rounding scale)
+    local = q.new_zeros(B, N)
+    local[:, dyn] = vb.reshape(B, Nd)
+    value = vb.reshape(B, Nd).sum(1)
+    pairs = scene_pairs(scene, B).to(q.device)
+    G = Hc = None
+    node_pairs = leaf_pairs = 0
+    if pairs.shape[0]:
+        ce = scene.contact_model.evaluate(poses, pairs, order)
+        node_pairs, leaf_pairs = ce.node_pairs, ce.leaf_pairs
+        v = ce.value
+        local.index_put_((pairs[:, 0], pairs[:, 1]), v, accumulate=True)
+        local.index_put_((pairs[:, 0], pairs[:, 2]), v, accumulate=True)
+        value = value + v.reshape(B, -1).sum(1)
+        G, Hc = scatter_pairs(B, N, pairs, ce.grad, ce.hess)
+    elif order:
+        G = q.new_zeros(B, N, 6)
+        Hc = q.new_zeros(B, 6 * N, 6 * N) if order > 1 else None
+    Gf = Hf = gap = None
+    lag = prob.lagged
+    if lag is not None:
+        cp = pairs[lag.pair]  # (C, 3)
+        frows = cp[:, :1] * N + cp[:, 1:]
+        vf, gf, hf, *gap_c = friction_terms(
+            lag, poses.reshape(B * N, 6), frows, prob.friction[cp[:, 0]], scene.friction.eps_v * scene.dt, order,
+            reduce=False, majorizer_gap=order >= 2,
+        )  # fmt: skip
+        local.index_put_((cp[:, 0], cp[:, 1]), vf, accumulate=True)
+        local.index_put_((cp[:, 0], cp[:, 2]), vf, accumulate=True)
+        value = value + torch.zeros_like(value).index_add_(0, cp[:, 0], vf)
+        if order:
+            Gf, Hf = scatter_pairs(B, N, cp, gf, hf)
+            if order >= 2:
+                gap = scatter_pairs(B, N, cp, None, gap_c[0])[1]
+    scale = value.abs() + local.abs().sum(1)
+    if order == 0:
+        return EnergyEval(value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs)
+    Gp = G if Gf is None else G + Gf
+    Hp = None
+    if order >= 2:
+        Hp = Hc if Hf is None else Hc + Hf
+        Hb = q.new_zeros(B, N, N, 6, 6)
+        Hb[:, dyn, dyn] = h_b.reshape(B, Nd, 6, 6)
+        Hp = Hp + Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N)
+    Gb = q.new_zeros(B, N, 6)
+    Gb[:, dyn] = g_b.reshape(B, Nd, 6)
+    grad, hess = kin.pullback(q, Gb + Gp, Hp)
+    h_floor = gap_q = None
+    if order >= 2:
+        if gap is not None:
+            gap_q = kin.pullback(q, torch.zeros_like(Gb), gap)[1]
+        h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
+    return EnergyEval(
+        value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
+        node_pairs, leaf_pairs,
+    )  # fmt: skip

@@ -1,0 +1,79 @@
+"""Kinematics maps: generalised coordinates q (A, Q) to the poses (A, N, 6) of all bodies of a scene.
+
+The energy, the Newton solve and the adjoint see the simulated bodies only through this map: contact, friction and
+inertia are evaluated in pose space and pulled back,
+
+    grad_q = J^T grad_pose,    hess_q = J^T hess_pose J + sum_k grad_pose_k d2pose_k / dq2,
+
+so articulated bodies (a floating base and joint angles through forward kinematics) are a new map, not a new
+stepper. Rows of bodies the map does not move (static, kinematic) come from the step's fixed poses.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+
+__all__ = ["Kinematics", "FreeBodies"]
+
+
+@runtime_checkable
+class Kinematics(Protocol):
+    """A map from generalised coordinates to body poses, with its first and second derivatives."""
+
+    num_coords: int  # Q
+
+    def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
+        ...
+
+    def coords(self, poses: torch.Tensor) -> torch.Tensor:
+        """(A, Q) the coordinates whose map gives the moving rows of ``poses`` (A, N, 6)."""
+        ...
+
+    def pullback(
+        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """J^T grad (A, Q) and J^T hess J + sum_k grad_k d2pose_k/dq2 (A, Q, Q) for pose-space grad (A, N, 6) and
+        hess (A, 6N, 6N)."""
+        ...
+
+    def push(self, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """(A, N, 6) J v for coordinate vectors v (A, Q) (zero rows for bodies the map does not move)."""
+        ...
+
+
+class FreeBodies:
+    """Free rigid bodies: q is the poses of the dynamic bodies, (A, 6 Nd), an identity map onto their rows.
+
+    Args:
+        dynamic: (Nd,) indices of the dynamic bodies.
+        num_bodies: N.
+    """
+
+    def __init__(self, dynamic: torch.Tensor, num_bodies: int) -> None:
+        self.dynamic = dynamic
+        self.num_bodies = num_bodies
+        self.num_coords = 6 * len(dynamic)
+        self._d6 = (dynamic[:, None] * 6 + torch.arange(6)).reshape(-1)  # their rows of a (6N,) pose vector
+
+    def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        out = fixed.clone()
+        out[:, self.dynamic.to(q.device)] = q.reshape(q.shape[0], -1, 6)
+        return out
+
+    def coords(self, poses: torch.Tensor) -> torch.Tensor:
+        return poses[:, self.dynamic.to(poses.device)].reshape(poses.shape[0], -1)
+
+    def pullback(
+        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        d6 = self._d6.to(q.device)
+        g = grad.reshape(grad.shape[0], -1)[:, d6]
+        return g, (None if hess is None else hess[:, d6][:, :, d6])
+
+    def push(self, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        out = v.new_zeros(v.shape[0], self.num_bodies, 6)
+        out[:, self.dynamic.to(v.device)] = v.reshape(v.shape[0], -1, 6)
+        return out

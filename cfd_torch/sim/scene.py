@@ -1,0 +1,169 @@
+"""A simulation's model: its bodies, time step, gravity and the three config objects, with the layout the step
+needs computed once (which bodies are simulated, which pairs interact, the kinematics map, the contact model)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import torch
+
+from ..config import ContactConfig, FrictionConfig, SolverConfig
+from ..contact.cfd import CfdContact
+from ..contact.model import ContactModel
+from ..contact.scene import body_pairs
+from .bodies import RigidBody
+from .kinematics import FreeBodies
+from .types import Params, State
+
+__all__ = ["Scene"]
+
+# shorthand keywords of Scene(...) and the config field each one sets
+_SHORTHAND = {
+    "mu": ("contact", "stiffness"),
+    "margin": ("contact", "margin"),
+    "eps": ("contact", "eps"),
+    "split": ("contact", "split"),
+    "pair_tol": ("contact", "pair_tol"),
+    "pair_max_iter": ("contact", "pair_max_iter"),
+    "backend": ("contact", "backend"),
+    "friction_eps_v": ("friction", "eps_v"),
+    "friction_active": ("friction", "active"),
+    "newton_tol": ("solver", "newton_tol"),
+    "max_newton_iter": ("solver", "max_newton_iter"),
+    "ccd_spacing": ("solver", "ccd_spacing"),
+    "reach_shrink": ("solver", "reach_shrink"),
+    "substeps": ("solver", "substeps"),
+}
+
+
+class Scene:
+    """Bodies and every physical and numerical setting of a simulation.
+
+    Args:
+        bodies: the N bodies (:func:`cfd_torch.rigid_body`), in state order.
+        dt: time step [s].
+        gravity: (3,) gravitational acceleration [m/s^2].
+        contact: the contact potential's settings (default ``ContactConfig()``).
+        friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off).
+        solver: the Newton solve's settings (default ``SolverConfig()``).
+        exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
+        contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the paper's
+            potential, ``CfdContact`` with ``contact``).
+        **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
+            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``friction_eps_v`` (``friction.eps_v``),
+            ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``, ``reach_shrink``,
+            ``substeps``.
+
+    Attributes (computed once): ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies,
+    ``pairs`` (P, 2) the interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map
+    from the step's unknowns to poses, ``contact_model``.
+    """
+
+    def __init__(
+        self,
+        bodies: Sequence[RigidBody],
+        *,
+        dt: float = 0.01,
+        gravity: Sequence[float] = (0.0, 0.0, -9.81),
+        contact: ContactConfig | None = None,
+        friction: FrictionConfig | float | None = None,
+        solver: SolverConfig | None = None,
+        exclude: Sequence[tuple[int, int]] = (),
+        contact_model: ContactModel | None = None,
+        **shorthand: float | int | str,
+    ) -> None:
+        bodies = tuple(bodies)
+        if not bodies or not all(isinstance(b, RigidBody) for b in bodies):
+            raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
+        if not any(b.kind == "dynamic" for b in bodies):
+            raise ValueError("a scene needs at least one dynamic body")
+        if not (isinstance(dt, (int, float)) and 0 < dt < math.inf):
+            raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+        gravity = tuple(float(x) for x in gravity)
+        if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):
+            raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        if isinstance(friction, (int, float)):
+            friction = FrictionConfig(coefficient=friction)
+        cfg = {
+            "contact": contact or ContactConfig(),
+            "friction": friction or FrictionConfig(),
+            "solver": solver or SolverConfig(),
+        }
+        updates: dict[str, dict] = {"contact": {}, "friction": {}, "solver": {}}
+        for key, value in shorthand.items():
+            if key not in _SHORTHAND:
+                raise TypeError(f"Scene() got an unexpected keyword argument {key!r}")
+            which, name = _SHORTHAND[key]
+            updates[which][name] = value
+        for which, kw in updates.items():
+            if kw:
+                cfg[which] = dataclasses.replace(cfg[which], **kw)  # validates
+        self.bodies = bodies
+        self.dt = float(dt)
+        self.gravity = gravity
+        self.contact: ContactConfig = cfg["contact"]
+        self.friction: FrictionConfig = cfg["friction"]
+        self.solver: SolverConfig = cfg["solver"]
+        self.exclude = tuple((int(a), int(b)) for a, b in exclude)
+        N = len(bodies)
+        self.dynamic = torch.tensor(
+            [i for i, b in enumerate(bodies) if b.kind == "dynamic"], dtype=torch.long
+        )
+        self.kinematic = torch.tensor(
+            [i for i, b in enumerate(bodies) if b.kind == "kinematic"], dtype=torch.long
+        )
+        self.static_mask = torch.tensor([b.kind == "static" for b in bodies])
+        self.pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude)
+        self.kinematics = FreeBodies(self.dynamic, N)
+        self._given_contact_model = contact_model
+        self.contact_model = (
+            CfdContact([b.bsh for b in bodies], self.contact) if contact_model is None else contact_model
+        )
+        # farthest vertex of each body from its frame origin: bounds vertex displacements
+        self.extent = torch.tensor(
+            [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
+        )
+
+    @property
+    def num_bodies(self) -> int:
+        return len(self.bodies)
+
+    def replace(self, **changes) -> Scene:
+        """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand)."""
+        kw = {
+            "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
+            "solver": self.solver, "exclude": self.exclude, "contact_model": self._given_contact_model,
+        }  # fmt: skip
+        kw.update(changes)
+        return Scene(self.bodies, **kw)
+
+    def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
+        """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients)."""
+        d = self.dynamic.tolist()
+        return Params(
+            torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
+            torch.stack([self.bodies[i].second_moment for i in d]).to(dtype=dtype, device=device),
+            torch.tensor(float(self.friction.coefficient), dtype=dtype, device=device),
+        )
+
+    def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:
+        """State at rest (or moving with constant generalised ``velocities``) at ``poses``, both ([B,] N, 6)."""
+        from .step import check_state_tensor
+
+        check_state_tensor(poses, "poses", self.num_bodies)
+        if velocities is None:
+            return State(poses, poses.clone())
+        check_state_tensor(velocities, "velocities", self.num_bodies)
+        if velocities.shape != poses.shape:
+            raise ValueError(f"velocities must have the shape of poses {tuple(poses.shape)}")
+        v = velocities.clone()
+        v[..., self.static_mask | _mask(self.kinematic, self.num_bodies), :] = 0.0
+        return State(poses, poses - self.dt * v)
+
+
+def _mask(index: torch.Tensor, n: int) -> torch.Tensor:
+    m = torch.zeros(n, dtype=torch.bool)
+    m[index] = True
+    return m

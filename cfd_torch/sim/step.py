@@ -1,0 +1,298 @@
+"""The simulator's public face: ``step`` and ``rollout`` (SPEC section 5).
+
+    step(scene, state, action, params) -> State
+
+reads like a table of contents: check the inputs, batch them, solve the step (:mod:`.feasibility` finds a start,
+:mod:`.newton` minimises the incremental potential of :mod:`.energy`, :mod:`.adjoint` differentiates the solution),
+re-centre rotations. Every tensor may carry a leading batch dimension B of independent scenes that share one
+:class:`Scene` (its bodies and settings); they are solved together (one contact evaluation over all their body
+pairs, a Newton masked per scene) and each scene's result equals stepping it alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+from .adjoint import StepFn
+from .energy import scene_pairs
+from .scene import Scene
+from .types import Action, Params, State, StepError, StepInfo, Trajectory
+
+__all__ = ["step", "rollout", "recentre_rotation", "pair_forces", "check_state_tensor"]
+
+
+def check_state_tensor(x: object, name: str, n: int, cols: int = 6, batch: int | None = None) -> None:
+    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given)."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    ok = (
+        x.shape[-2:] == (n, cols)
+        and x.dim() in (2, 3)
+        and (batch is None or x.dim() == 2 or x.shape[0] == batch)
+    )
+    if not ok:
+        want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
+    bad = ~torch.isfinite(x).all(-1)
+    if bool(bad.any()):
+        at = tuple(int(i) for i in torch.nonzero(bad)[0])
+        raise ValueError(
+            f"{name} contains NaN or inf (first at {'scene, body' if x.dim() == 3 else 'body'} {at})"
+        )
+
+
+def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
+    """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi / |omega|) (same rotation, norm
+    below pi), differentiably; translations and small rotation vectors pass through unchanged."""
+    w = q[..., 3:]
+    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
+    big = n > math.pi
+    ns = torch.where(big, n, torch.ones_like(n))
+    w = torch.where(big, w * (1.0 - 2.0 * math.pi / ns), w)
+    return torch.cat([q[..., :3], w], -1)
+
+
+def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """q_prev (..., 6) with each rotation vector replaced by the equivalent omega + 2 pi k omega/|omega| (k in -1, 0,
+    1; the same rotation) closest to q's, so that (q - q_prev) / dt stays the velocity after q was re-centred."""
+    w = q_prev[..., 3:]
+    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
+    u = w / torch.where(n > 0, n, torch.ones_like(n))
+    cands = torch.stack([w - 2.0 * math.pi * u, w, w + 2.0 * math.pi * u])  # (3, ..., 3)
+    k = torch.linalg.vector_norm(cands - q[..., 3:].detach(), dim=-1).argmin(0)  # (...)
+    pick = torch.gather(cands, 0, k[None, ..., None].expand(1, *w.shape))[0]
+    w = torch.where((n > 0) & (k[..., None] != 1), pick, w)
+    return torch.cat([q_prev[..., :3], w], -1)
+
+
+def _check_params(params: Params, B: int, Nd: int, device: torch.device) -> Params:
+    """Finite, physical, on the state's device; returned with a batch dimension B: mass > 0, friction >= 0, the
+    symmetric part of S positive semi-definite with a positive definite inertia tr(S) I - S."""
+    for name, x in (
+        ("mass", params.mass),
+        ("second_moment", params.second_moment),
+        ("friction", params.friction),
+    ):
+        if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+            raise ValueError(f"params.{name} must be a floating-point tensor")
+        if x.device != device:
+            raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"params.{name} contains NaN or inf")
+    shapes = (params.mass.shape, params.second_moment.shape, params.friction.shape)
+    if shapes == ((Nd,), (Nd, 3, 3), ()):
+        params = Params(*(x.expand(B, *x.shape) for x in params))
+    elif shapes != ((B, Nd), (B, Nd, 3, 3), (B,)):
+        raise ValueError(
+            f"params must hold mass ([B,] {Nd}), second_moment ([B,] {Nd}, 3, 3) and friction ([B]), with B = {B} "
+            f"the state's batch, got {tuple(shapes[0])}, {tuple(shapes[1])}, {tuple(shapes[2])}"
+        )
+    if not bool((params.mass > 0).all()):
+        raise ValueError("params.mass must be positive")
+    if bool((params.friction.detach() < 0).any()):
+        raise ValueError("params.friction must be >= 0")
+    S = params.second_moment.detach().to(torch.float64).reshape(-1, 3, 3)
+    S = 0.5 * (S + S.transpose(1, 2))  # the step uses the symmetric part
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
+    if bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) or not bool(
+        (torch.linalg.eigvalsh(inertia) > 0).all()
+    ):
+        raise ValueError(
+            "params.second_moment must be positive semi-definite with a positive definite inertia"
+        )
+    return params
+
+
+def _batch(x: torch.Tensor, B: int) -> torch.Tensor:
+    return x.expand(B, *x.shape) if x.dim() == 2 else x
+
+
+def _solve(scene: Scene, state: State, force, torque, target, params: Params):
+    """One step of the batch (all float64, batched); returns the next State and the StepFn's extras."""
+    f64 = torch.float64
+    S = params.second_moment.to(f64)
+    q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
+    q, iters, fc, ff, nfc, counts, seconds = StepFn.apply(
+        scene, q_t, q_p, force.to(f64), torque.to(f64), target.to(f64), params.mass.to(f64),
+        0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64),
+    )  # fmt: skip
+    moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
+    moved[scene.dynamic] = True
+    fixed = q_t
+    if len(scene.kinematic):
+        kin = torch.zeros_like(moved)
+        kin[scene.kinematic] = True
+        fixed = torch.where(kin, _scatter_rows(target.to(f64), scene.kinematic, scene.num_bodies), q_t)
+    q_next = scene.kinematics.poses(q, fixed)
+    q_next = torch.where(moved, recentre_rotation(q_next), q_next)
+    return q_next, (iters, fc, ff, nfc, counts, seconds)
+
+
+def _scatter_rows(x: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, n, C) with rows ``index`` from x (B, K, C), zeros elsewhere (differentiable)."""
+    return torch.zeros(x.shape[0], n, x.shape[2], dtype=x.dtype, device=x.device).index_add(
+        1, index.to(x.device), x
+    )
+
+
+def step(
+    scene: Scene,
+    state: State,
+    action: Action | None = None,
+    params: Params | None = None,
+    *,
+    return_info: bool = False,
+    info: dict | None = None,
+) -> State | tuple[State, StepInfo]:
+    """Advance the scene by one time step (differentiable by autograd).
+
+    Args:
+        scene: bodies and settings.
+        state: State(q, q_prev), each ([B,] N, 6), float32 or float64 (solved in float64, returned in its dtype).
+        action: forces ([B,] N, 3), torques ([B,] N, 3) and kinematic targets ([B,] K, 6); unbatched fields are
+            shared by a batch; None: nothing acts, kinematic bodies stay put.
+        params: differentiable mass / second moment / friction coefficient, shared ((Nd,), (Nd, 3, 3), ()) or per
+            scene ((B, Nd), ...) (default: ``scene.params()``).
+        return_info: also return the :class:`StepInfo` (solver statistics, end-of-step forces).
+        info: a dict that receives the StepInfo's fields (for code written before ``return_info``).
+
+    Returns:
+        The next State(q_next, q): dynamic rows solved, kinematic rows at their targets, static rows unchanged,
+        rotation vectors re-centred when |omega| > pi; with ``return_info``, (State, StepInfo).
+
+    Raises:
+        ValueError: bad shapes, dtypes or NaN/inf inputs (naming the argument), or a start state that penetrates.
+        StepError: the Newton solve stopped without converging (the message says why), also after the
+            ``scene.solver.substeps`` retries.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
+    if not isinstance(state, State):
+        raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
+    N = scene.num_bodies
+    check_state_tensor(state.q, "state.q", N)
+    check_state_tensor(state.q_prev, "state.q_prev", N)
+    if state.q.shape != state.q_prev.shape:
+        raise ValueError(
+            f"state.q {tuple(state.q.shape)} and state.q_prev {tuple(state.q_prev.shape)} differ"
+        )
+    batched = state.q.dim() == 3
+    B = state.q.shape[0] if batched else 1
+    dtype, dev = state.q.dtype, state.q.device
+    action = Action() if action is None else action
+    f64 = torch.float64
+    force = action.force if action.force is not None else torch.zeros(N, 3, dtype=f64, device=dev)
+    torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=f64, device=dev)
+    check_state_tensor(force, "action.force", N, 3, B if batched else 1)
+    check_state_tensor(torque, "action.torque", N, 3, B if batched else 1)
+    K = len(scene.kinematic)
+    kin = scene.kinematic.to(dev)
+    target = action.target if action.target is not None else state.q[..., kin, :]
+    check_state_tensor(target, "action.target", K, 6, B if batched else 1)
+    if not batched and any(x.dim() == 3 for x in (force, torque, target)):
+        raise ValueError("action fields have a batch dimension but state.q does not")
+    params = scene.params(f64, dev) if params is None else params
+    params = _check_params(params, B, len(scene.dynamic), dev)
+    st = State(_batch(state.q, B), _batch(state.q_prev, B))
+    force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
+    substeps, q_prev_next = 1, None
+    try:
+        q_next, extras = _solve(scene, st, force, torque, target, params)
+    except StepError:
+        if scene.solver.substeps == 1:
+            raise
+        k = 2
+        while q_prev_next is None:
+            try:
+                q_next, extras, q_prev_next = _substeps(scene, st, force, torque, target, params, k)
+                substeps = k
+            except StepError:
+                if 2 * k > scene.solver.substeps:
+                    raise
+                k *= 2
+    q_next = q_next.to(dtype)
+    q_prev_next = _unwrap_previous(st.q, q_next) if q_prev_next is None else q_prev_next.to(dtype)
+    nxt = State(q_next, q_prev_next)
+    if not batched:
+        nxt = State(nxt.q[0], nxt.q_prev[0])
+    if not (return_info or info is not None):
+        return nxt
+    iters, fc, ff, nfc, counts, seconds = extras
+    one = (lambda x: x) if batched else (lambda x: x[0])  # noqa: E731
+    si = StepInfo(
+        one(iters), int(counts[0]), int(counts[1]), int(counts[2]), one(nfc), one(fc), one(ff), substeps,
+        float(seconds.sum()),
+    )  # fmt: skip
+    if info is not None:
+        info.update(si._asdict())
+    return (nxt, si) if return_info else nxt
+
+
+def _substeps(scene: Scene, state: State, force, torque, target, params: Params, k: int):
+    """The step as k equal sub-steps of dt / k (kinematic targets interpolated, the velocity carried over)."""
+    fine = scene.replace(dt=scene.dt / k)
+    q, q_prev = state.q, state.q - (state.q - state.q_prev) / k
+    kin = scene.kinematic.to(q.device)
+    start = state.q[:, kin]
+    all_extras = []
+    for i in range(1, k + 1):
+        tgt = start + (i / k) * (target - start)
+        q_next, extras = _solve(fine, State(q, q_prev), force, torque, tgt, params)
+        q, q_prev = q_next, _unwrap_previous(q, q_next)
+        all_extras.append(extras)
+    iters = sum(e[0] for e in all_extras)
+    counts = sum(e[4] for e in all_extras)
+    seconds = sum(e[5] for e in all_extras)
+    last = all_extras[-1]
+    # the state at the coarse step: (q, q - k (q - q_prev)) keeps the velocity
+    return q, (iters, last[1], last[2], last[3], counts, seconds), q - k * (q - q_prev)
+
+
+def rollout(
+    scene: Scene,
+    state: State,
+    actions: Sequence[Action | None] | int,
+    params: Params | None = None,
+    *,
+    progress: bool = False,
+) -> Trajectory:
+    """Step ``len(actions)`` times (or ``actions`` times with no action).
+
+    Returns:
+        The :class:`Trajectory` of the T + 1 states, the first included: fields (T + 1, [B,] N, 6); ``traj[t]`` is
+        a State.
+    """
+    seq = [None] * actions if isinstance(actions, int) else list(actions)
+    it = seq
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(seq, desc="rollout")
+    states = [state]
+    for a in it:
+        states.append(step(scene, states[-1], a, params))
+    return Trajectory(torch.stack([s.q for s in states]), torch.stack([s.q_prev for s in states]))
+
+
+def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
+    """Contact forces between every two bodies at poses q ([B,] N, 6): F[..., i, j, :] (N, N, 6) is the generalised
+    force of body i on body j, -dP_ij/dq_j (columns 0-2 the world-frame force [N], 3-5 conjugate to the rotation
+    vector); zero for pairs without contact (static-static, excluded). Not differentiable."""
+    check_state_tensor(q, "q", scene.num_bodies)
+    poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
+    B, N = poses.shape[:2]
+    pairs = scene_pairs(scene, B).to(poses.device)
+    F = poses.new_zeros(B, N, N, 6)
+    if pairs.shape[0]:
+        g = scene.contact_model.evaluate(poses, pairs, 1).grad
+        s, i, j = pairs.unbind(1)
+        F[s, i, j] = -g[:, 6:]
+        F[s, j, i] = -g[:, :6]
+    F = F.to(q.dtype)
+    return F if q.dim() == 3 else F[0]

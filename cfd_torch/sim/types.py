@@ -1,0 +1,111 @@
+"""The simulator's state, action, parameters and step statistics: NamedTuples of tensors.
+
+Shapes: B scenes of a batch (absent for an unbatched call), N bodies, Nd dynamic bodies, K kinematic bodies.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+__all__ = ["State", "Trajectory", "Action", "Params", "StepInfo", "StepError"]
+
+
+class StepError(RuntimeError):
+    """A step's Newton solve stopped without converging; the message says why (see ``NewtonResult.reason``)."""
+
+
+class State(NamedTuple):
+    """Simulator state: poses ([B,] N, 6) [translation m, rotation vector rad] now and one step earlier."""
+
+    q: torch.Tensor
+    q_prev: torch.Tensor
+
+    def velocity(self, dt: float) -> torch.Tensor:
+        """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt."""
+        return (self.q - self.q_prev) / dt
+
+
+class Trajectory:
+    """States of a rollout stacked along a leading time dimension: ``q`` and ``q_prev`` (T + 1, [B,] N, 6).
+
+    ``traj[t]`` is the State at step t (a slice gives a Trajectory), ``len(traj)`` is T + 1, and iterating yields
+    the States in order.
+    """
+
+    def __init__(self, q: torch.Tensor, q_prev: torch.Tensor) -> None:
+        self.q = q
+        self.q_prev = q_prev
+
+    def __len__(self) -> int:
+        return self.q.shape[0]
+
+    def __getitem__(self, t):
+        if isinstance(t, slice):
+            return Trajectory(self.q[t], self.q_prev[t])
+        return State(self.q[t], self.q_prev[t])
+
+    def __iter__(self):
+        return (State(q, qp) for q, qp in zip(self.q, self.q_prev, strict=True))
+
+    def __repr__(self) -> str:
+        return f"Trajectory(q={tuple(self.q.shape)}, q_prev={tuple(self.q_prev.shape)})"
+
+
+class Action(NamedTuple):
+    """What acts on a step (None: nothing).
+
+    Attributes:
+        force: ([B,] N, 3) world-frame forces on the bodies' centres of mass [N] (rows of non-dynamic bodies
+            ignored).
+        torque: ([B,] N, 3) world-frame torques [N m] (rows of non-dynamic bodies ignored).
+        target: ([B,] K, 6) end-of-step poses of the K kinematic bodies (``Scene.kinematic`` order); None keeps
+            them where they are.
+    """
+
+    force: torch.Tensor | None = None
+    torque: torch.Tensor | None = None
+    target: torch.Tensor | None = None
+
+
+class Params(NamedTuple):
+    """Differentiable physical parameters, per scene or shared by a batch.
+
+    Attributes:
+        mass: ([B,] Nd) masses of the dynamic bodies [kg].
+        second_moment: ([B,] Nd, 3, 3) second moments of mass about the centres of mass, body frame [kg m^2]
+            (the step uses their symmetric part).
+        friction: ([B]) Coulomb's coefficient.
+    """
+
+    mass: torch.Tensor
+    second_moment: torch.Tensor
+    friction: torch.Tensor
+
+
+class StepInfo(NamedTuple):
+    """Solver statistics and end-of-step forces of one step (``step(..., return_info=True)``).
+
+    Attributes:
+        newton_iters: ([B]) Newton iterations of each scene's solve.
+        contact_evals: contact-model evaluations of the step (all scenes together, line-search trials included).
+        node_pairs: hierarchy node pairs visited over those evaluations.
+        leaf_pairs: exact leaf pairs solved over those evaluations.
+        friction_contacts: ([B]) lagged friction contacts of each scene.
+        contact_force: ([B,] N, 6) -dP/dq at the end-of-step poses: columns 0-2 world-frame forces [N], columns 3-5
+            conjugate to the rotation vector (the world torque when the rotation vector is zero).
+        friction_force: ([B,] N, 6) -dD/dq of the lagged friction potential, same layout.
+        substeps: sub-steps the step took (1 unless it was retried after a StepError, ``SolverConfig.substeps``).
+        seconds: wall time of the forward solve [s].
+    """
+
+    newton_iters: torch.Tensor
+    contact_evals: int
+    node_pairs: int
+    leaf_pairs: int
+    friction_contacts: torch.Tensor
+    contact_force: torch.Tensor
+    friction_force: torch.Tensor
+    substeps: int
+    seconds: float

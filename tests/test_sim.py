@@ -1,0 +1,331 @@
+"""Tests of the simulator's seams: batches of scenes, the Newton solver's stop reasons, the contact-model protocol,
+the config objects, sub-stepping, pairwise forces, StepInfo and the torch backend of a step.
+
+Oracle of the batch tests: stepping B scenes together equals stepping each alone (to 1e-12), forward and adjoint.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import trimesh
+
+from cfd_torch import (
+    Action,
+    CfdContact,
+    ContactConfig,
+    ContactModel,
+    FrictionConfig,
+    Scene,
+    SolverConfig,
+    State,
+    StepError,
+    StepInfo,
+    pair_forces,
+    rigid_body,
+    rollout,
+    step,
+)
+from cfd_torch.sim.newton import Stop, newton
+
+F64 = torch.float64
+G = 9.81
+
+
+def _box(extents, *, kind="dynamic", max_edge=None):
+    return rigid_body(trimesh.creation.box(extents=extents), kind=kind, max_edge=max_edge)
+
+
+@pytest.fixture(scope="module")
+def bodies():
+    cube = _box((0.2, 0.2, 0.2), max_edge=0.1)
+    mesh = trimesh.creation.box(extents=(1.4, 0.6, 0.05))
+    mesh.apply_translation([0.0, 0.0, -0.025])
+    ground = rigid_body(mesh, kind="static", max_edge=0.2)
+    pusher = _box((0.05, 0.2, 0.1), kind="kinematic", max_edge=0.1)
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+    return cube, ground, pusher, ball
+
+
+def _pose(*xyz_rot) -> list[float]:
+    return list(xyz_rot) + [0.0] * (6 - len(xyz_rot))
+
+
+def _scene_batch(bodies):
+    """Three scenes of a cube, the ground, a kinematic pusher and a ball, in different states: resting, pushed and
+    sliding into the ball, and dropping with a spin."""
+    cube, ground, pusher, ball = bodies
+    scene = Scene((cube, ground, pusher, ball), friction=0.4)
+    h = 0.1 + 1.5e-3
+    q = torch.tensor(
+        [
+            [_pose(0.0, 0.0, h), _pose(), _pose(-0.5, 0.0, 0.06), _pose(0.4, 0.0, 0.1015)],
+            [_pose(0.0, 0.0, h), _pose(), _pose(-0.128, 0.0, 0.06), _pose(0.3, 0.05, 0.1015)],
+            [_pose(0.1, 0.0, 0.3, 0.2, 0.1), _pose(), _pose(-0.5, 0.0, 0.06), _pose(-0.2, 0.1, 0.35)],
+        ],
+        dtype=F64,
+    )
+    v = torch.zeros_like(q)
+    v[1, 0, 0] = 0.3
+    v[2, 0, 3:] = torch.tensor([2.0, -1.0, 0.5], dtype=F64)
+    v[2, 3, 2] = -0.5
+    target = q[:, 2:3].clone()
+    target[1, 0, 0] += 0.004  # the pusher advances 4 mm per step in scene 1
+    force = torch.zeros(3, 4, 3, dtype=F64)
+    force[0, 3, 0] = -5.0
+    return scene, scene.initial_state(q, v), target, force
+
+
+def test_batch_of_scenes_equals_stepping_each_alone(bodies):
+    scene, state, target, force = _scene_batch(bodies)
+    B = state.q.shape[0]
+    batched, infos = state, []
+    singles = [State(state.q[b], state.q_prev[b]) for b in range(B)]
+    for _ in range(4):
+        batched, info = step(scene, batched, Action(force=force, target=target), return_info=True)
+        infos.append(info)
+        for b in range(B):
+            singles[b] = step(scene, singles[b], Action(force=force[b], target=target[b]))
+    iters = torch.stack([i.newton_iters for i in infos])
+    assert iters.shape == (4, B) and bool((iters >= 1).all())
+    assert len(set(iters[-1].tolist())) > 1  # the scenes needed different numbers of iterations
+    for b in range(B):
+        assert float((singles[b].q - state.q[b]).abs().max()) > 1e-6  # something moved
+        torch.testing.assert_close(batched.q[b], singles[b].q, rtol=0, atol=1e-12)
+        torch.testing.assert_close(batched.q_prev[b], singles[b].q_prev, rtol=0, atol=1e-12)
+
+
+def test_batched_adjoint_equals_single_adjoints(bodies):
+    scene, state, target, force = _scene_batch(bodies)
+    B = state.q.shape[0]
+    w = torch.linspace(0.5, 1.5, 6, dtype=F64)
+
+    q0 = state.q.clone().requires_grad_(True)
+    f = force.clone().requires_grad_(True)
+    tgt = target.clone().requires_grad_(True)
+    st = State(q0, q0 - (state.q - state.q_prev))
+    for _ in range(2):
+        st = step(scene, st, Action(force=f, target=tgt))
+    gq, gf, gt = torch.autograd.grad((st.q * w).sum(), (q0, f, tgt))
+    for b in range(B):
+        q0b = state.q[b].clone().requires_grad_(True)
+        fb = force[b].clone().requires_grad_(True)
+        tb = target[b].clone().requires_grad_(True)
+        sb = State(q0b, q0b - (state.q[b] - state.q_prev[b]))
+        for _ in range(2):
+            sb = step(scene, sb, Action(force=fb, target=tb))
+        hq, hf, ht = torch.autograd.grad((sb.q * w).sum(), (q0b, fb, tb))
+        assert float(hq.abs().max()) > 0 and float(hf.abs().max()) > 0
+        torch.testing.assert_close(gq[b], hq, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(gf[b], hf, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(gt[b], ht, rtol=1e-10, atol=1e-12)
+
+
+def test_no_pair_between_scenes(bodies):
+    """Scene 1's ball sits where scene 0's ball is: no penetration is seen (no pair crosses scenes), each scene's
+    result is its own, and one scene's outcome has exactly zero gradient with respect to the other's start."""
+    _, _, _, ball = bodies
+    scene = Scene((ball, ball), gravity=(0.0, 0.0, 0.0))
+    q = torch.tensor([[_pose(0.0), _pose(0.5)], [_pose(0.02), _pose(0.7, 0.02)]], dtype=F64)
+    v = torch.zeros_like(q)
+    v[:, 0, 0] = 0.5
+    q0 = q.clone().requires_grad_(True)
+    st = scene.initial_state(q0, v)
+    for _ in range(3):
+        st = step(scene, st)
+    alone = scene.initial_state(q[1], v[1])
+    for _ in range(3):
+        alone = step(scene, alone)
+    torch.testing.assert_close(st.q[1].detach(), alone.q, rtol=0, atol=1e-12)
+    (g,) = torch.autograd.grad(st.q[1, 1, 0], q0)
+    assert float(g[1].abs().max()) > 0  # the long-range gradient within scene 1
+    assert float(g[0].abs().max()) == 0.0  # nothing from scene 0
+
+
+def test_rollout_returns_a_stacked_trajectory(bodies):
+    cube, ground, _, _ = bodies
+    scene = Scene((cube, ground))
+    traj = rollout(scene, scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.12), _pose()], dtype=F64)), 3)
+    assert len(traj) == 4 and traj.q.shape == (4, 2, 6)
+    assert isinstance(traj[-1], State) and torch.equal(traj[-1].q, traj.q[3])
+    assert [s.q.shape for s in traj] == [(2, 6)] * 4
+    assert float(traj.q[-1, 0, 2]) < 0.12  # falling
+
+
+# ------------------------------------------------------------------------------------------------ Newton
+def _quadratic(A: torch.Tensor, b: torch.Tensor):
+    from cfd_torch.sim.energy import EnergyEval
+
+    def energy(q, scenes, order):
+        Aq = torch.einsum("aij,aj->ai", A[scenes], q)
+        value = 0.5 * (q * Aq).sum(1) - (b[scenes] * q).sum(1)
+        value = torch.where((q.abs() < 10).all(1), value, torch.full_like(value, math.inf))
+        n = len(scenes)
+        z = q.new_zeros(n, 6, 6)
+        return EnergyEval(value, Aq - b[scenes], A[scenes], z, value.abs(), None, q.new_ones(n) * 1e-3, None, None,
+                          0, 0)  # fmt: skip
+
+    return energy
+
+
+def _run(energy, q, **kw):
+    args = {"tol": 1e-10, "max_iter": 20, "max_move": 100.0, "free_move": 100.0}
+    args.update(kw)
+    return newton(
+        energy, q, energy(q, torch.arange(len(q)), 2), move_ok=lambda a, b, s: torch.ones(len(a), dtype=torch.bool),
+        displacement=lambda a, b, s: (b - a).abs().amax(1), **args,
+    )  # fmt: skip
+
+
+def test_newton_converges_per_scene_and_says_why_it_stops():
+    A = torch.stack([torch.eye(6, dtype=F64) * s for s in (1.0, 4.0)])
+    A[1, 0, 1] = A[1, 1, 0] = 1.0
+    b = torch.ones(2, 6, dtype=F64)
+    res = _run(_quadratic(A, b), torch.zeros(2, 6, dtype=F64))
+    assert res.reason.tolist() == [Stop.CONVERGED, Stop.CONVERGED]
+    torch.testing.assert_close(res.q, torch.linalg.solve(A, b[:, :, None])[:, :, 0], rtol=1e-12, atol=0)
+    # a start outside the finite region, and an iteration cap of 1 from far away
+    q = torch.zeros(2, 6, dtype=F64)
+    q[0, 0] = 20.0
+    res = _run(_quadratic(A, 1e3 * b), q, max_iter=1)
+    assert res.reason[0] == Stop.INFEASIBLE_START
+    assert res.reason[1] in (Stop.MAX_ITER, Stop.LINE_SEARCH_FAILED)
+
+
+def test_newton_line_search_failure_is_reported():
+    """Every trial along the direction is infeasible (+inf): the line search fails, and says so."""
+    A = torch.eye(6, dtype=F64)[None]
+    quad = _quadratic(A, torch.full((1, 6), 5.0, dtype=F64))
+
+    def walled(q, scenes, order):
+        ev = quad(q, scenes, order)
+        return ev._replace(value=torch.where((q == 0).all(1), ev.value, torch.full_like(ev.value, math.inf)))
+
+    res = _run(walled, torch.zeros(1, 6, dtype=F64))
+    assert res.reason.tolist() == [Stop.LINE_SEARCH_FAILED] and res.iters.tolist() == [1]
+
+
+def test_step_error_names_the_reason(bodies):
+    cube, ground, _, _ = bodies
+    scene = Scene((cube, ground), max_newton_iter=1)
+    state = scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.2), _pose()], dtype=F64))
+    with pytest.raises(StepError, match="did not converge in 1 Newton iterations"):
+        step(scene, state)
+
+
+def test_substeps_retry_a_failed_step(bodies):
+    """A fast drop that the full step cannot solve in its iteration cap goes through as sub-steps, and lands
+    where the same scene with a 4 times smaller dt lands."""
+    cube, ground, _, _ = bodies
+    q = torch.tensor([_pose(0.0, 0.0, 0.103), _pose()], dtype=F64)
+    v = torch.zeros_like(q)
+    v[0, 2] = -0.1
+    hard = Scene((cube, ground), dt=0.04, max_newton_iter=8)  # 14 iterations needed; 8 and 4 at dt = 0.02
+    state = hard.initial_state(q, v)
+    with pytest.raises(StepError):
+        step(hard, state)
+    retry = hard.replace(substeps=4)
+    nxt, info = step(retry, state, return_info=True)
+    assert info.substeps == 2
+    fine = Scene((cube, ground), dt=0.04 / info.substeps)
+    st = fine.initial_state(q, v)
+    for _ in range(info.substeps):
+        st = step(fine, st)
+    torch.testing.assert_close(nxt.q, st.q, rtol=0, atol=1e-12)
+    torch.testing.assert_close(nxt.velocity(0.04), st.velocity(fine.dt), rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------------------------ contact models
+class _CountingModel:
+    """A contact model of its own class (delegating to the paper's): the stepper needs nothing else."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.calls = 0
+
+    def evaluate(self, poses, pairs, order):
+        self.calls += 1
+        return self.inner.evaluate(poses, pairs, order)
+
+    def infeasible(self, poses, pairs, scale=None):
+        return self.inner.infeasible(poses, pairs, scale)
+
+    def lagged(self, poses, pairs, active, create_graph=False):
+        return self.inner.lagged(poses, pairs, active, create_graph)
+
+
+def test_a_contact_model_is_a_class_not_a_stepper_change(bodies):
+    cube, ground, _, _ = bodies
+    model = _CountingModel(CfdContact([cube.bsh, ground.bsh], ContactConfig()))
+    assert isinstance(model, ContactModel)
+    ref = Scene((cube, ground), friction=0.5)
+    own = Scene((cube, ground), friction=0.5, contact_model=model)
+    q = torch.tensor([_pose(0.0, 0.0, 0.108, 0.05), _pose()], dtype=F64)
+    a, b = ref.initial_state(q), own.initial_state(q)
+    for _ in range(3):
+        a, b = step(ref, a), step(own, b)
+    assert model.calls > 0
+    torch.testing.assert_close(a.q, b.q, rtol=0, atol=0)
+
+
+def test_configs_hold_the_defaults_and_check_their_fields(bodies):
+    cube, ground, _, _ = bodies
+    s = Scene((cube, ground), mu=1e-9, friction=0.3, newton_tol=1e-11)
+    assert s.contact == ContactConfig(stiffness=1e-9)
+    assert s.friction == FrictionConfig(coefficient=0.3)
+    assert s.solver == SolverConfig(newton_tol=1e-11)
+    assert Scene((cube, ground), friction=FrictionConfig(0.3, active=0.0)).friction.active == 0.0
+    for bad, match in (
+        ({"mu": -1.0}, "ContactConfig.stiffness"),
+        ({"split": "all"}, "ContactConfig.split"),
+        ({"friction": -0.1}, "FrictionConfig.coefficient"),
+        ({"friction_active": 1.0}, "FrictionConfig.active"),
+        ({"max_newton_iter": 0}, "SolverConfig.max_newton_iter"),
+        ({"substeps": 0}, "SolverConfig.substeps"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            Scene((cube, ground), **bad)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'stiffness'"):
+        Scene((cube, ground), stiffness=1.0)
+
+
+# ------------------------------------------------------------------------------------------------ read-outs
+def test_pair_forces_and_step_info_at_rest(bodies):
+    cube, ground, _, _ = bodies
+    scene = Scene((cube, ground), friction=0.5)
+    state = scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.1 + 1.2e-3), _pose()], dtype=F64))
+    for _ in range(30):
+        state, info = step(scene, state, return_info=True)
+    assert isinstance(info, StepInfo) and info.contact_evals >= 1 and info.leaf_pairs > 0 and info.seconds > 0
+    F = pair_forces(scene, state.q)
+    assert F.shape == (2, 2, 6)
+    weight = cube.mass * G
+    assert abs(float(F[1, 0, 2]) - weight) < 1e-3 * weight  # the ground carries the cube
+    torch.testing.assert_close(F[0, 1, :3], -F[1, 0, :3], rtol=1e-12, atol=1e-12)  # action = reaction
+    torch.testing.assert_close(info.contact_force[0], F[1, 0], rtol=1e-9, atol=1e-9)  # same read-out
+    legacy: dict = {}
+    step(scene, state, info=legacy)
+    assert set(legacy) == set(StepInfo._fields) and legacy["newton_iters"] >= 1
+
+
+def test_torch_backend_step_matches_numba(bodies):
+    """The GPU route (batched tensor traversal and pair solves) on the CPU: a step with friction and its
+    gradient agree with the numba kernels."""
+    cube, ground, _, _ = bodies
+    q = torch.tensor([_pose(0.02, 0.0, 0.107, 0.03, -0.02), _pose()], dtype=F64)
+    v = torch.zeros_like(q)
+    v[0, 0] = 0.2
+    out = {}
+    for backend in ("auto", "torch"):
+        scene = Scene((cube, ground), friction=0.5, backend=backend)
+        q0 = q.clone().requires_grad_(True)
+        st = scene.initial_state(q0, v)
+        for _ in range(2):
+            st = step(scene, st)
+        (g,) = torch.autograd.grad(st.q[0, 0], q0)
+        out[backend] = (st.q.detach(), g)
+    assert float(out["torch"][1].abs().max()) > 0
+    torch.testing.assert_close(out["torch"][0], out["auto"][0], rtol=0, atol=1e-10)
+    torch.testing.assert_close(out["torch"][1], out["auto"][1], rtol=1e-6, atol=1e-8)
