@@ -300,8 +300,22 @@ def test_gradcheck_gradgradcheck_and_no_third_derivative():
     assert g[0].abs().max() > 0
     (h,) = torch.autograd.grad(g[0, 0], pb, create_graph=True)
     assert h[0].abs().max() > 0
-    with pytest.raises(RuntimeError):
+    assert h.requires_grad
+    with pytest.raises(RuntimeError, match="mesh_potential: third derivatives are not implemented"):
         torch.autograd.grad(h.sum(), pb)
+
+
+def test_third_derivative_is_refused_even_beside_a_differentiable_term():
+    # the Hessian must stay connected to the poses: a third derivative through it raises instead of silently
+    # contributing zero next to a term that does depend on the poses
+    bsh_a, bsh_b = _bsh("ico0"), _bsh("box")
+    pa = _pose((0.0, 0.1, 0.0), (0.2, -0.4, 0.3)).requires_grad_(True)
+    pb = _place(bsh_a, pa.detach(), bsh_b, torch.tensor([0.5, 0.1, -0.2], dtype=F64), (0.3, 1.0, 0.2), 0.08)
+    (g,) = torch.autograd.grad(mesh_potential(bsh_a, pa, bsh_b, pb, mu=1.0), pa, create_graph=True)
+    (h,) = torch.autograd.grad(g.sum(), pa, create_graph=True)
+    assert h.abs().max() > 0
+    with pytest.raises(RuntimeError, match="third derivatives"):
+        torch.autograd.grad(h.sum() + (pa**4).sum(), pa)
 
 
 # ------------------------------------------------------------------------------------------------ 4. far field
@@ -594,6 +608,17 @@ def test_contact_potential_autograd_differentiates_static_poses_too():
     assert g2[1].abs().max() > 0
     assert torch.autograd.gradcheck(f2, (y,), eps=1e-6, atol=1e-6, rtol=1e-5)
     assert torch.autograd.gradgradcheck(f2, (y,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_contact_potential_refuses_third_derivatives():
+    bshes, poses, static, exclude = _scene()
+    x = poses.clone().requires_grad_(True)
+    v = contact_potential(bshes, x, static=static, exclude=exclude, mu=1.0, margin=MARGIN).value
+    (g,) = torch.autograd.grad(v, x, create_graph=True)
+    (h,) = torch.autograd.grad(g[0, 0], x, create_graph=True)
+    assert h.abs().max() > 0
+    with pytest.raises(RuntimeError, match="contact_potential: third derivatives are not implemented"):
+        torch.autograd.grad(h.sum() + (x**4).sum(), x)
 
 
 def test_contact_potential_computes_the_gradient_only_when_it_is_needed():

@@ -183,5 +183,5 @@ def mesh_potential(
         v, g, h, _ = _derivs(bsh_a, bsh_b, q[:, :6], q[:, 6:], order=order, **params)
         return v, g, h
 
-    v = ClosedFormPotential.apply(torch.cat([qa, qb], -1), evaluate)
+    v = ClosedFormPotential.apply(torch.cat([qa, qb], -1), evaluate, "mesh_potential")
     return v.reshape(batch).to(pose_a.dtype)

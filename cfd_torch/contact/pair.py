@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._autograd import RefuseThirdOrder
 from .._validate import check_positive, check_triangles
 from . import _pair_torch
 
@@ -195,23 +196,8 @@ class _PairGradFn(torch.autograd.Function):
             hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
         hv = hv.reshape(-1, 6, 3)
         if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
-            hv = _RefuseThirdOrder.apply(hv, X, v)
+            hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
         return hv, None, None, None, None
-
-
-class _RefuseThirdOrder(torch.autograd.Function):
-    """Identity on the Hessian-vector product whose backward (a third derivative) raises."""
-
-    @staticmethod
-    def forward(ctx, hv, X, v):
-        return hv.clone()
-
-    @staticmethod
-    def backward(ctx, grad):
-        raise RuntimeError(
-            "pair_potential: third derivatives are not implemented; the second derivative (implicit Hessian) "
-            "is exact but cannot be differentiated again"
-        )
 
 
 class _PairPotentialFn(torch.autograd.Function):

@@ -56,7 +56,7 @@ class _KnownGradPotential(torch.autograd.Function):
     def backward(ctx, gout):
         q, g = ctx.saved_tensors
         if torch.is_grad_enabled():
-            g = ClosedFormGrad.apply(q, ctx.evaluate)
+            g = ClosedFormGrad.apply(q, ctx.evaluate, "contact_potential")
         elif not ctx.has_grad:
             _, g, _ = ctx.evaluate(q, 1)
         return gout[:, None] * g, None, None, None
