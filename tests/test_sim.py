@@ -277,6 +277,7 @@ def test_configs_hold_the_defaults_and_check_their_fields(bodies):
     assert s.friction == FrictionConfig(coefficient=0.3)
     assert s.solver == SolverConfig(newton_tol=1e-11)
     assert Scene((cube, ground), friction=FrictionConfig(0.3, active=0.0)).friction.active == 0.0
+    assert (s.mu, s.margin, s.newton_tol) == (1e-9, s.contact.margin, 1e-11)  # shorthands read the configs
     for bad, match in (
         ({"mu": -1.0}, "ContactConfig.stiffness"),
         ({"split": "all"}, "ContactConfig.split"),

@@ -53,12 +53,21 @@ _FOREST_CACHE_SIZE = 8
 
 
 def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
-    """Concatenate hierarchies into one node table (cached for the last few hierarchy tuples)."""
+    """:func:`build_forest`, cached for the last few hierarchy tuples (the function API's repeated calls)."""
     key = (tuple(id(b) for b in bshes), dtype, device)
     hit = _FOREST_CACHE.get(key)
     if hit is not None and all(x is y for x, y in zip(hit[0], bshes, strict=True)):
         _FOREST_CACHE.move_to_end(key)
         return hit[1]
+    f = build_forest(bshes, dtype, device)
+    _FOREST_CACHE[key] = (bshes, f)
+    if len(_FOREST_CACHE) > _FOREST_CACHE_SIZE:
+        _FOREST_CACHE.popitem(last=False)
+    return f
+
+
+def build_forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
+    """Concatenate hierarchies into one node table."""
     node_off = tri_off = 0
     centre, radius, child, tri, tris, roots = [], [], [], [], [], []
     for b in bshes:
@@ -70,7 +79,7 @@ def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) 
         roots.append(node_off)
         node_off += b.num_nodes
         tri_off += b.num_faces
-    f = Forest(
+    return Forest(
         torch.cat(centre).to(dtype=dtype, device=device),
         torch.cat(radius).to(dtype=dtype, device=device),
         torch.cat(child).to(device),
@@ -78,10 +87,6 @@ def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) 
         torch.cat(tris).to(dtype=dtype, device=device),
         torch.tensor(roots, device=device),
     )
-    _FOREST_CACHE[key] = (bshes, f)
-    if len(_FOREST_CACHE) > _FOREST_CACHE_SIZE:
-        _FOREST_CACHE.popitem(last=False)
-    return f
 
 
 # ---------------------------------------------------------------------------------------------- kinematics

@@ -23,7 +23,7 @@ import torch
 
 from ..config import ContactConfig
 from ..rotation import rotation_matrix
-from ._traverse import Forest, forest_of, penetrating, traverse
+from ._traverse import Forest, build_forest, penetrating, traverse
 from .bsh import BSH
 from .model import ContactEval, LaggedContacts
 from .pair import pair_potential, pair_potential_derivatives
@@ -49,11 +49,14 @@ class CfdContact:
         self._bshes = tuple({id(b): b for b in bshes}.values())
         self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
         self.num_bodies = len(bshes)
+        self._forests: dict[torch.device, tuple[Forest, torch.Tensor]] = {}  # built once per device
 
     def _forest(self, device: torch.device) -> tuple[Forest, torch.Tensor]:
         """The concatenated float64 hierarchies on ``device`` and each body's root node (N,)."""
-        forest = forest_of(self._bshes, torch.float64, device)
-        return forest, forest.roots[self._which.to(device)]
+        if device not in self._forests:
+            forest = build_forest(self._bshes, torch.float64, device)
+            self._forests[device] = (forest, forest.roots[self._which.to(device)])
+        return self._forests[device]
 
     def _rows(self, poses: torch.Tensor, pairs: torch.Tensor):
         """Pose table (S N, 6), pair rows (P, 2) into it, root nodes (P, 2)."""

@@ -130,6 +130,14 @@ class Scene:
     def num_bodies(self) -> int:
         return len(self.bodies)
 
+    def __getattr__(self, name: str):
+        """The constructor's shorthand names read the config fields too (``scene.margin`` is
+        ``scene.contact.margin``)."""
+        if name in _SHORTHAND:
+            which, field = _SHORTHAND[name]
+            return getattr(self.__dict__[which], field)
+        raise AttributeError(f"'Scene' object has no attribute {name!r}")
+
     def replace(self, **changes) -> Scene:
         """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand)."""
         kw = {
