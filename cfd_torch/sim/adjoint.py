@@ -14,9 +14,11 @@ from contextlib import contextmanager
 
 import torch
 
+from ..contact.pair import PairSolveError
 from .energy import StepProblem, body_terms, scatter_pairs, scene_pairs
 from .feasibility import solve_step
 from .friction import friction_terms
+from .types import StepError
 
 __all__ = ["StepFn"]
 
@@ -63,7 +65,10 @@ class StepFn(torch.autograd.Function):
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
             prob = StepProblem(scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, lagged, gravity)
             tally = [0, 0, 0]
-            res = solve_step(prob, tally)
+            try:
+                res = solve_step(prob, tally)
+            except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
+                raise StepError(f"the step failed: {err}") from err
         ctx.scene, ctx.friction = scene, lagged is not None
         ctx.save_for_backward(
             res.q, res.hess, res.contact_hess, q_t, q_p, force, torque, target, mass, S, mu_f
@@ -100,7 +105,7 @@ class StepFn(torch.autograd.Function):
         scene = ctx.scene
         q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f = ctx.saved_tensors
         B, N = q_t.shape[:2]
-        dyn = scene.dynamic.to(q.device)
+        dyn = scene.kinematics.bodies.to(q.device)
         Nd = len(dyn)
         chol, _ = torch.linalg.cholesky_ex(H)
         lam = torch.cholesky_solve(gout.to(H.dtype)[:, :, None], chol)[:, :, 0]

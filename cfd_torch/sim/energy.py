@@ -189,7 +189,7 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
     """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2)."""
     scene = prob.scene
     B, N = prob.q_t.shape[:2]
-    dyn = scene.dynamic.to(q.device)
+    dyn = scene.kinematics.bodies.to(q.device)  # the moving bodies: inertia, gravity, actuation
     Nd = len(dyn)
     kin = scene.kinematics
     poses = kin.poses(q, prob.fixed)  # (B, N, 6)

@@ -66,7 +66,8 @@ def penetrating(scene, poses: torch.Tensor) -> str:
 def displacement(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:
     """(A,) largest vertex displacement [m] of the moves q0 -> q1 (A, Q) (bound |dt| + |dw| r_max per body)."""
     scene = prob.scene
-    kin, dyn = scene.kinematics, scene.dynamic.to(q0.device)
+    kin = scene.kinematics
+    dyn = kin.bodies.to(q0.device)
     fixed = prob.fixed[scenes]
     d = kin.poses(q1, fixed)[:, dyn] - kin.poses(q0, fixed)[:, dyn]  # (A, Nd, 6)
     r = scene.extent.to(q0)[dyn]

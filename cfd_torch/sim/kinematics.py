@@ -23,6 +23,9 @@ class Kinematics(Protocol):
     """A map from generalised coordinates to body poses, with its first and second derivatives."""
 
     num_coords: int  # Q
+    bodies: (
+        torch.Tensor
+    )  # (M,) the bodies the map moves: they carry inertia, and Params have one row per body
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
@@ -54,6 +57,7 @@ class FreeBodies:
 
     def __init__(self, dynamic: torch.Tensor, num_bodies: int) -> None:
         self.dynamic = dynamic
+        self.bodies = dynamic
         self.num_bodies = num_bodies
         self.num_coords = 6 * len(dynamic)
         self._d6 = (dynamic[:, None] * 6 + torch.arange(6)).reshape(-1)  # their rows of a (6N,) pose vector

@@ -123,7 +123,7 @@ def _solve(scene: Scene, state: State, force, torque, target, params: Params):
         0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64),
     )  # fmt: skip
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
-    moved[scene.dynamic] = True
+    moved[scene.kinematics.bodies] = True
     fixed = q_t
     if len(scene.kinematic):
         kin = torch.zeros_like(moved)
@@ -198,7 +198,7 @@ def step(
     if not batched and any(x.dim() == 3 for x in (force, torque, target)):
         raise ValueError("action fields have a batch dimension but state.q does not")
     params = scene.params(f64, dev) if params is None else params
-    params = _check_params(params, B, len(scene.dynamic), dev)
+    params = _check_params(params, B, len(scene.kinematics.bodies), dev)
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
     substeps, q_prev_next = 1, None
