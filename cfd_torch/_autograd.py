@@ -1,53 +1,150 @@
-"""Autograd Functions shared by the contact potentials whose derivatives are known in closed form.
+"""Autograd Functions shared by the contact potentials whose derivatives are known in closed form, and the
+potentials' contract with torch.func.
 
 A potential ``value(q)`` with a closed-form gradient and Hessian is attached to autograd by
 :class:`ClosedFormPotential`; its backward is :class:`ClosedFormGrad`, whose backward is the closed-form
 Hessian-vector product; a third derivative raises through :class:`RefuseThirdOrder` (also used by
 ``pair_potential``, whose Hessian is implicit).
+
+torch.func: the Functions are in the new style (``forward`` without ctx, ``setup_context``), so ``torch.func.grad``
+and ``torch.func.jacrev`` work, nested to second order (grad of grad, jacrev of jacrev) like ``torch.autograd``, and
+a third level raises as there. Inside ``forward`` the inputs are plain tensors with no transform active, which the
+numba kernels need; code outside the Functions that needs plain tensors (validation, precomputation, caches) runs in
+:func:`outside_transforms` on :func:`plain` values. ``torch.func.vmap`` and forward mode (``jvp``, ``jacfwd``,
+``hessian``) raise ``NotImplementedError`` saying so. The functorch hooks used here are private torch APIs
+(``torch._C._functorch``, ``torch._functorch.pyfunctorch``).
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterator
+
 import torch
+from torch._functorch.pyfunctorch import temporarily_clear_interpreter_stack
+
+_functorch = torch._C._functorch
+
+
+def plain(x: torch.Tensor) -> torch.Tensor:
+    """The plain tensor under torch.func wrappers, to read values from (validation; kernels that need storage).
+
+    Use it inside :func:`outside_transforms` (otherwise every op on it is wrapped again). Not connected to any
+    transform: the values only. Under ``grad``/``jacrev`` levels it has the input's shape; each ``vmap`` level adds
+    its batch dimension in front (outermost vmap first), so it holds all the vmapped instances' values.
+    """
+    bdims = []
+    while _functorch.is_functorch_wrapped_tensor(x):
+        if _functorch.is_batchedtensor(x):
+            bdims.append(_functorch.maybe_get_bdim(x))
+        x = _functorch.get_unwrapped(x)
+    if not bdims:
+        return x
+    # the innermost level's batch dimension indexes the physical tensor; each outer level's indexes what is left
+    axes = list(range(x.dim()))
+    front = [axes.pop(b) for b in reversed(bdims)]
+    return x.permute(*front, *axes)
+
+
+@contextlib.contextmanager
+def outside_transforms() -> Iterator[None]:
+    """Run code on plain tensors with torch.func's transforms set aside (the interpreter stack is emptied and
+    restored on exit): inside, ops do not wrap their results, so tensors keep their storage (numpy views, numba
+    kernels) and may be cached, and custom Functions run as under plain autograd. Read inputs through
+    :func:`plain`; do not operate on the transforms' wrapped tensors inside."""
+    with temporarily_clear_interpreter_stack():
+        yield
+
+
+def tracked(x: torch.Tensor) -> bool:
+    """Whether a result computed from ``x`` must be attached to a differentiable Function: ``x`` requires grad
+    with autograd on, carries a torch.func transform (grad, jacrev, jvp), or has a forward-mode tangent."""
+    if _functorch.is_functorch_wrapped_tensor(x):
+        return True
+    if x.requires_grad and torch.is_grad_enabled():
+        return True
+    return torch.autograd.forward_ad.unpack_dual(x).tangent is not None
+
+
+def vmap_error(name: str) -> NotImplementedError:
+    return NotImplementedError(
+        f"{name} does not support torch.func.vmap (its solvers need plain tensors); pass the batch as leading "
+        "dimensions of the inputs, or loop"
+    )
+
+
+def forward_mode_error(name: str) -> NotImplementedError:
+    return NotImplementedError(
+        f"{name} does not support forward-mode AD (torch.func.jvp, jacfwd, hessian); use reverse mode "
+        "(torch.autograd, torch.func.grad or jacrev, to second order)"
+    )
+
+
+def refuse_vmap(name: str, *tensors: torch.Tensor) -> None:
+    """Raise :func:`vmap_error` if one of ``tensors`` is batched by torch.func.vmap (at any level)."""
+    for x in tensors:
+        while isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
+            if _functorch.is_batchedtensor(x):
+                raise vmap_error(name)
+            x = _functorch.get_unwrapped(x)
+
+
+Evaluate = Callable[[torch.Tensor, int], tuple]
 
 
 class ClosedFormPotential(torch.autograd.Function):
     """value(q) for q (B, n) whose derivatives come from ``evaluate(q, order) -> (value (B,), grad (B, n),
-    hess (B, n, n))`` in closed form; ``name`` (the public function) appears in the third-derivative error.
+    hess (B, n, n))`` in closed form; ``name`` (the public function) appears in the error messages.
     Backward: the closed-form gradient; under create_graph it comes from ClosedFormGrad, whose backward is the
     closed-form Hessian-vector product; a third derivative raises."""
 
     @staticmethod
-    def forward(ctx, q, evaluate, name):
+    def forward(q: torch.Tensor, evaluate: Evaluate, name: str) -> torch.Tensor:
         v, _, _ = evaluate(q, 0)
-        ctx.save_for_backward(q)
-        ctx.evaluate = evaluate
-        ctx.name = name
         return v
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        q, ctx.evaluate, ctx.name = inputs
+        ctx.save_for_backward(q)
 
     @staticmethod
     def backward(ctx, gout):
         # d (gout . value) / dq = gout g(q), g from evaluate in closed form
         (q,) = ctx.saved_tensors
         if torch.is_grad_enabled():
-            g = ClosedFormGrad.apply(q, ctx.evaluate, ctx.name)
+            g, _ = ClosedFormGrad.apply(q, ctx.evaluate, ctx.name)
         else:
             _, g, _ = ctx.evaluate(q, 1)
         return gout[:, None] * g, None, None
 
+    @staticmethod
+    def vmap(info, in_dims, q, evaluate, name):
+        raise vmap_error(name)
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error(ctx.name)
+
 
 class ClosedFormGrad(torch.autograd.Function):
-    """grad(q) (B, n) of a closed-form potential (see ClosedFormPotential); backward: the Hessian-vector product."""
+    """(grad (B, n), hess (B, n, n)) of a closed-form potential (see ClosedFormPotential); the Hessian output is not
+    differentiable (it is what backward uses); backward: the Hessian-vector product."""
 
     @staticmethod
-    def forward(ctx, q, evaluate, name):
+    def forward(q: torch.Tensor, evaluate: Evaluate, name: str) -> tuple[torch.Tensor, torch.Tensor]:
         _, g, h = evaluate(q, 2)
-        ctx.save_for_backward(q, h)
-        ctx.name = name
-        return g
+        return g, h
 
     @staticmethod
-    def backward(ctx, v):
+    def setup_context(ctx, inputs, output):
+        q, _, ctx.name = inputs
+        _, h = output
+        ctx.mark_non_differentiable(h)
+        ctx.save_for_backward(q, h)
+
+    @staticmethod
+    def backward(ctx, v, _):
         # d (v . g(q)) / dq = v^T H(q), H symmetric
         q, h = ctx.saved_tensors
         hv = torch.einsum("bi,bij->bj", v, h)
@@ -56,6 +153,14 @@ class ClosedFormGrad(torch.autograd.Function):
             hv = RefuseThirdOrder.apply(hv, q, v, ctx.name)
         return hv, None, None
 
+    @staticmethod
+    def vmap(info, in_dims, q, evaluate, name):
+        raise vmap_error(name)
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error(ctx.name)
+
 
 class RefuseThirdOrder(torch.autograd.Function):
     """Identity on a Hessian-vector product ``hv`` computed from the point ``x`` and the vector ``v``; its backward
@@ -63,13 +168,18 @@ class RefuseThirdOrder(torch.autograd.Function):
 
     ``x`` must be the differentiable point itself (a tensor that requires grad when the Hessian's own derivative
     would be needed): an input that does not require grad leaves the refusal out of the graph, and the third
-    derivative would silently be dropped.
+    derivative would silently be dropped. Under vmap (e.g. ``jacrev`` of ``jacrev``) it stays the identity.
     """
 
+    generate_vmap_rule = True
+
     @staticmethod
-    def forward(ctx, hv, x, v, name):
-        ctx.name = name
+    def forward(hv: torch.Tensor, x: torch.Tensor, v: torch.Tensor, name: str) -> torch.Tensor:
         return hv.clone()
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.name = inputs[3]
 
     @staticmethod
     def backward(ctx, grad):
@@ -77,3 +187,7 @@ class RefuseThirdOrder(torch.autograd.Function):
             f"{ctx.name}: third derivatives are not implemented; the second derivative is exact but cannot be "
             "differentiated again"
         )
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error(ctx.name)

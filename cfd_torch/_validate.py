@@ -1,5 +1,6 @@
 """Input checks shared by the public functions: each raises a ``ValueError`` naming the argument and the first
-offending batch index."""
+offending batch index. Values are read from the plain tensor under torch.func wrappers (see ``_autograd.plain``), so
+the checks run unchanged under ``torch.func.grad``."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import math
 
 import numba
 import torch
+
+from ._autograd import outside_transforms, plain
 
 # A triangle is degenerate when twice its area is below this many machine epsilons of its longest edge squared
 # (scale-free: a tiny well-shaped triangle is valid, a needle or a collinear triple is not).
@@ -24,12 +27,14 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise ValueError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
-    bad = torch.isnan(x) if allow_inf else ~torch.isfinite(x)
-    if bool(bad.any()):
-        what = "NaN" if allow_inf else "NaN or inf"
-        raise ValueError(
-            f"{name} contains {what} (first at index {_index_str(bad)}, {int(bad.sum())} entries)"
-        )
+    with outside_transforms():
+        x = plain(x)
+        bad = torch.isnan(x) if allow_inf else ~torch.isfinite(x)
+        if bool(bad.any()):
+            what = "NaN" if allow_inf else "NaN or inf"
+            raise ValueError(
+                f"{name} contains {what} (first at index {_index_str(bad)}, {int(bad.sum())} entries)"
+            )
 
 
 def check_triangles(tri: object, name: str) -> None:
@@ -46,6 +51,11 @@ def check_triangles(tri: object, name: str) -> None:
     if tri.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name} must be float32 or float64, got {tri.dtype}")
     tol = _DEGENERACY_EPS_MULTIPLE * torch.finfo(tri.dtype).eps
+    with outside_transforms():
+        _check_triangle_values(plain(tri), name, tol)
+
+
+def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
     if tri.device.type == "cpu":  # one fused pass (the tensor form below makes ~20 passes over the data)
         flat = tri.detach().reshape(-1, 3, 3).contiguous()
         code = torch.empty(flat.shape[0], dtype=torch.uint8)

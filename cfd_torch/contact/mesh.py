@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._autograd import ClosedFormPotential
+from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
 from ._traverse import SPLIT_RULES, forest_of, traverse
 from .bsh import BSH
 from .pair import DEFAULT_MAX_ITER, DEFAULT_TOL
@@ -63,10 +63,11 @@ def _check_pose(pose: object, name: str) -> None:
         )
     if not pose.is_floating_point():
         raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
-    bad = ~torch.isfinite(pose).all(-1)
-    if bool(bad.any()):
-        idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
-        raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
+    with outside_transforms():
+        bad = ~torch.isfinite(plain(pose)).all(-1)
+        if bool(bad.any()):
+            idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
+            raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
 
 
 def _check_params(mu, margin, eps, split):
@@ -133,12 +134,13 @@ def mesh_potential_derivatives(
         MeshDerivatives(value (...), grad (..., 12), hessian (..., 12, 12) | None, stats), float64 inside, in
         the poses' dtype. Not connected to autograd (use :func:`mesh_potential` for that).
     """
+    refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
     _check_params(mu, margin, eps, split)
     dt = pose_a.dtype
-    qa = pose_a.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    qb = pose_b.detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    with torch.no_grad():
+    with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
+        qa = plain(pose_a).detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+        qb = plain(pose_b).detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
         v, g, h, stats = _derivs(
             bsh_a, bsh_b, qa, qb, order=2 if hessian else 1, mu=mu, margin=margin, eps=eps, split=split, tol=tol,
             max_iter=max_iter,
@@ -171,8 +173,10 @@ def mesh_potential(
     Returns:
         (...) potential in the poses' dtype; +inf when the bodies are within the margin. The backward pass uses
         the closed-form pose gradient; ``create_graph=True`` then gives the closed-form Hessian; a third
-        derivative raises.
+        derivative raises. ``torch.func.grad`` and ``jacrev`` work the same way; ``vmap`` and forward mode raise
+        ``NotImplementedError``.
     """
+    refuse_vmap("mesh_potential", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
     _check_params(mu, margin, eps, split)
     qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)

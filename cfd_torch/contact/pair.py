@@ -25,7 +25,14 @@ from typing import NamedTuple
 
 import torch
 
-from .._autograd import RefuseThirdOrder
+from .._autograd import (
+    RefuseThirdOrder,
+    forward_mode_error,
+    outside_transforms,
+    plain,
+    refuse_vmap,
+    vmap_error,
+)
 from .._validate import check_positive, check_triangles
 from . import _pair_torch
 
@@ -178,12 +185,16 @@ class _PairGradFn(torch.autograd.Function):
     """grad_x P at the optimal plane; its backward is the IFT Hessian-vector product (second order)."""
 
     @staticmethod
-    def forward(ctx, X, P, feasible, mu, margin):  # X (K, 6, 3), P (K, 4), feasible (K,) bool
+    def forward(X, P, feasible, mu, margin):  # X (K, 6, 3), P (K, 4), feasible (K,) bool
         Xs, Ps = _safe_rows(X, P, feasible)
-        ctx.save_for_backward(X, P, feasible)
-        ctx.params = (mu, margin)
         Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        X, P, feasible, mu, margin = inputs
+        ctx.save_for_backward(X, P, feasible)
+        ctx.params = (mu, margin)
 
     @staticmethod
     def backward(ctx, v):
@@ -199,12 +210,21 @@ class _PairGradFn(torch.autograd.Function):
             hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
         return hv, None, None, None, None
 
-
-class _PairPotentialFn(torch.autograd.Function):
-    """P(X) for X (K, 6, 3) float64; backward via the envelope theorem, double backward via _PairGradFn."""
+    @staticmethod
+    def vmap(info, in_dims, *args):
+        raise vmap_error("pair_potential")
 
     @staticmethod
-    def forward(ctx, X, mu, margin, tol, max_iter, backend):
+    def jvp(ctx, *tangents):
+        raise forward_mode_error("pair_potential")
+
+
+class _PairPotentialFn(torch.autograd.Function):
+    """(P(X) (K,), optimal planes (K, 4), feasible (K,) bool) for X (K, 6, 3) float64; only P is differentiable.
+    Backward via the envelope theorem, double backward via _PairGradFn."""
+
+    @staticmethod
+    def forward(X, mu, margin, tol, max_iter, backend):
         val, P, _, _ = _solve(
             X,
             mu=mu,
@@ -215,19 +235,32 @@ class _PairPotentialFn(torch.autograd.Function):
             want_hess=False,
             backend=backend,
         )
-        feasible = torch.isfinite(val)
-        ctx.save_for_backward(X, P, feasible)
-        ctx.params = (mu, margin)
-        return val
+        return val, P, torch.isfinite(val)
 
     @staticmethod
-    def backward(ctx, gout):
+    def setup_context(ctx, inputs, output):
+        X, mu, margin = inputs[:3]
+        _, P, feasible = output
+        ctx.mark_non_differentiable(P, feasible)
+        ctx.save_for_backward(X, P, feasible)
+        ctx.params = (mu, margin)
+
+    @staticmethod
+    def backward(ctx, gout, _gP, _gfeasible):
         # dP/dx = mu dE/dx at p* (envelope theorem: dE/dp = 0 there). Computed by a differentiable Function so
         # that create_graph=True gives the exact implicit Hessian on the second pass.
         X, P, feasible = ctx.saved_tensors
         mu, margin = ctx.params
         g = _PairGradFn.apply(X, P, feasible, mu, margin)
         return gout[:, None, None] * g, None, None, None, None, None
+
+    @staticmethod
+    def vmap(info, in_dims, *args):
+        raise vmap_error("pair_potential")
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error("pair_potential")
 
 
 def _prepare(tri_a, tri_b, mu, margin, tol, max_iter):
@@ -279,14 +312,16 @@ def pair_potential(
     Returns:
         (...) potential in the input dtype (the solve runs in float64), +inf where the triangles are within
         ``margin`` or intersect. ``torch.autograd.grad`` with ``create_graph=True`` gives exact implicit
-        Hessians; a third derivative raises.
+        Hessians; a third derivative raises. ``torch.func.grad`` and ``jacrev`` work the same way; ``vmap`` and
+        forward mode raise ``NotImplementedError``.
 
     Raises:
         ValueError: bad shapes, dtypes, NaN/inf coordinates or degenerate triangles (naming argument and index).
         PairSolveError: the inner solve did not converge for some pair.
     """
+    refuse_vmap("pair_potential", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
-    val = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)
+    val, _, _ = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)
     return val.reshape(batch).to(tri_a.dtype)
 
 
@@ -312,10 +347,11 @@ def pair_potential_derivatives(
         dtype. The 18 coordinates are [a0, a1, a2, b0, b1, b2] flattened xyz. Where value is +inf the other
         fields are zero.
     """
+    refuse_vmap("pair_potential_derivatives", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
-    with torch.no_grad():
+    with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
         val, P, grad, hess = _solve(
-            X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,
+            plain(X), mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,
             want_hess=hessian, backend=backend,
         )  # fmt: skip
     dt = tri_a.dtype

@@ -13,7 +13,15 @@ from typing import NamedTuple
 
 import torch
 
-from .._autograd import ClosedFormGrad
+from .._autograd import (
+    ClosedFormGrad,
+    forward_mode_error,
+    outside_transforms,
+    plain,
+    refuse_vmap,
+    tracked,
+    vmap_error,
+)
 from ._traverse import forest_of, traverse
 from .bsh import BSH
 from .mesh import _check_params
@@ -26,7 +34,8 @@ class ContactPotential(NamedTuple):
     """Scene contact potential.
 
     Attributes:
-        value: () total potential (connected to autograd when ``poses`` requires grad), +inf on penetration.
+        value: () total potential, +inf on penetration; differentiable in ``poses`` (autograd, torch.func.grad and
+            jacrev) to second order.
         grad: (N, 6) d value / d poses with the rows of static bodies set to zero (the forces that move bodies),
             or None when not computed. Autograd through ``value`` gives the full derivative instead, static
             poses included.
@@ -46,20 +55,31 @@ class _KnownGradPotential(torch.autograd.Function):
     autograd: backward reuses the gradient; under create_graph the Hessian comes from ClosedFormGrad."""
 
     @staticmethod
-    def forward(ctx, q, value, grad, evaluate):
-        ctx.save_for_backward(q, grad if grad is not None else q.new_zeros(0))
-        ctx.has_grad = grad is not None
-        ctx.evaluate = evaluate
+    def forward(q, value, grad, evaluate):
         return value.clone()
 
     @staticmethod
+    def setup_context(ctx, inputs, output):
+        q, _, grad, ctx.evaluate = inputs
+        ctx.save_for_backward(q, grad)
+
+    @staticmethod
     def backward(ctx, gout):
+        # d (gout . value) / dq = gout g(q); g from the forward's evaluation when it was computed there
         q, g = ctx.saved_tensors
         if torch.is_grad_enabled():
-            g = ClosedFormGrad.apply(q, ctx.evaluate, "contact_potential")
-        elif not ctx.has_grad:
+            g, _ = ClosedFormGrad.apply(q, ctx.evaluate, "contact_potential")
+        elif g is None:
             _, g, _ = ctx.evaluate(q, 1)
         return gout[:, None] * g, None, None, None
+
+    @staticmethod
+    def vmap(info, in_dims, *args):
+        raise vmap_error("contact_potential")
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error("contact_potential")
 
 
 def scatter_pair_derivatives(
@@ -138,42 +158,48 @@ def contact_potential(
     """
     if not isinstance(poses, torch.Tensor) or poses.dim() != 2 or poses.shape[1] != 6:
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
+    refuse_vmap("contact_potential", poses)
     N = poses.shape[0]
     if len(bshes) != N or not all(isinstance(b, BSH) for b in bshes):
         raise ValueError(f"bshes must be a sequence of N = {N} BSH objects, got {len(bshes)}")
     if not poses.is_floating_point():
         raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
-    bad = ~torch.isfinite(poses).all(1)
-    if bool(bad.any()):
-        raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
+    with outside_transforms():
+        bad = ~torch.isfinite(plain(poses)).all(1)
+        if bool(bad.any()):
+            raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
     _check_params(mu, margin, eps, split)
-    static_t = (
-        torch.zeros(N, dtype=torch.bool) if static is None else torch.as_tensor(static, dtype=torch.bool)
-    )
-    if static_t.shape != (N,):
-        raise ValueError(f"static must have shape ({N},), got {tuple(static_t.shape)}")
-    attach = poses.requires_grad and torch.is_grad_enabled()
     if grad is None:
-        grad = attach
+        grad = poses.requires_grad and torch.is_grad_enabled()
     order = 2 if hessian else (1 if grad else 0)
-
-    unique: dict[int, int] = {}
-    for b in bshes:
-        unique.setdefault(id(b), len(unique))
-    uniq = tuple({id(b): b for b in bshes}.values())
     q64 = poses.to(torch.float64)
     dev = poses.device
-    forest = forest_of(uniq, torch.float64, dev)
-    which = torch.tensor([unique[id(b)] for b in bshes], device=dev)
-    pairs = body_pairs(N, static_t, exclude).to(dev)
-    pair_root = forest.roots[which[pairs]] if len(pairs) else torch.zeros(0, 2, dtype=torch.long, device=dev)
-    moving = (~static_t).to(dtype=torch.float64, device=dev)[:, None]
+
+    # Everything but the autograd attachment runs on plain tensors: the traversal's kernels need storage, and the
+    # forest cache must not keep tensors wrapped by a torch.func transform.
+    with outside_transforms():
+        static_t = (
+            torch.zeros(N, dtype=torch.bool) if static is None else torch.as_tensor(static, dtype=torch.bool)
+        )
+        if static_t.shape != (N,):
+            raise ValueError(f"static must have shape ({N},), got {tuple(static_t.shape)}")
+        unique: dict[int, int] = {}
+        for b in bshes:
+            unique.setdefault(id(b), len(unique))
+        uniq = tuple({id(b): b for b in bshes}.values())
+        forest = forest_of(uniq, torch.float64, dev)
+        which = torch.tensor([unique[id(b)] for b in bshes], device=dev)
+        pairs = body_pairs(N, static_t, exclude).to(dev)
+        pair_root = (
+            forest.roots[which[pairs]] if len(pairs) else torch.zeros(0, 2, dtype=torch.long, device=dev)
+        )
+        moving = (~static_t).to(dtype=torch.float64, device=dev)[:, None]
     params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
     stats: dict = {"body_pairs": int(len(pairs))}
 
     def evaluate(q: torch.Tensor, order_: int):
-        """q (1, 6N) -> value (1,), grad (1, 6N), hess (1, 6N, 6N): the derivatives over all poses, static ones
-        included (the value depends on a static pose through the pairs it forms with moving bodies)."""
+        """q (1, 6N) plain -> value (1,), grad (1, 6N), hess (1, 6N, 6N): the derivatives over all poses, static
+        ones included (the value depends on a static pose through the pairs it forms with moving bodies)."""
         if len(pairs) == 0:
             z = q.new_zeros(1)
             return (
@@ -187,20 +213,19 @@ def contact_potential(
         G, H = scatter_pair_derivatives(N, pairs, g, h)
         return value, (G.reshape(1, 6 * N) if G is not None else None), (H[None] if H is not None else None)
 
-    with torch.no_grad():
-        value, G, H = evaluate(q64.detach().reshape(1, 6 * N), order)
-    if attach:
+    with outside_transforms(), torch.no_grad():
+        value, G, H = evaluate(plain(q64).detach().reshape(1, 6 * N), order)
+        # the fields hold the derivatives over the moving bodies' poses: static rows (and columns) are zero
+        G_field = G.reshape(N, 6) * moving if G is not None else None
+        if H is not None:
+            mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
+            H = (H.reshape(N, 6, N, 6) * mask).reshape(6 * N, 6 * N)
+    if tracked(poses):
         value = _KnownGradPotential.apply(q64.reshape(1, 6 * N), value, G, evaluate)
     value = value[0]
-    # the fields hold the derivatives over the moving bodies' poses: static rows (and columns) are zero
-    if G is not None:
-        G = G.reshape(N, 6) * moving
-    if H is not None:
-        mask = moving.reshape(N, 1, 1, 1) * moving.reshape(1, 1, N, 1)
-        H = (H.reshape(N, 6, N, 6) * mask).reshape(6 * N, 6 * N)
     return ContactPotential(
         value.to(poses.dtype),
-        G.to(poses.dtype) if G is not None else None,
+        G_field.to(poses.dtype) if G_field is not None else None,
         H.to(poses.dtype) if H is not None else None,
         stats,
     )
