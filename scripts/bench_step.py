@@ -1,4 +1,4 @@
-"""Cost of one simulator step: forward, forward + backward, breakdown, Newton iterations.
+"""Cost of one simulator step: forward, forward + backward, Newton iterations, optionally against an older revision.
 
 Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol unless stated):
 
@@ -14,27 +14,35 @@ Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol u
 
 Every scene first runs ``warmup`` untimed steps (numba compilation, landing), then two passes from the same state:
 
-- forward: ``steps`` consecutive steps, each timed, with ``info`` (Newton iterations, contact evaluations, leaf and
-  node pairs).
+- forward: ``steps`` consecutive steps ``step(scene, state, return_info=True)``. Timed: the forward solve, the
+  :class:`cfd_torch.StepInfo`'s ``seconds``, and the whole ``step()`` call (wall time in this script: the solve
+  plus input checks and re-centring). Statistics from the StepInfo: Newton iterations, contact evaluations, leaf
+  and node pairs, friction contacts, sub-steps.
 - forward + backward: one untimed warm-up step with backward, then ``steps`` steps from the same start again, each
   with ``q = state.q.clone().requires_grad_()``, ``step`` (timed: "forward with grad") and ``(w * q_next).sum()
-  .backward()`` for a fixed random w (timed separately: "backward").
+  .backward()`` for a fixed random w (timed around ``.backward()`` here: "backward").
 
-Breakdown (wrappers installed by this script only, around what ``cfd_torch.stepper`` calls): contact =
-``_Problem.contact`` (BSH traversal, leaf-pair solves, scatter; split by derivative order: 2 = value + gradient +
-Hessian, 0 = value only), friction = ``lagged_friction`` + ``friction_terms``, linear solves =
-``torch.linalg.cholesky_ex`` + ``torch.cholesky_solve`` + ``torch.linalg.solve``, other = total - those. Each is
-summed per step; the tables give medians over the timed steps (medians of the parts do not add up exactly).
+No breakdown of the step into contact / friction / linear solves: earlier versions of this script measured one by
+wrapping library internals (``stepper._Problem.contact``, ``lagged_friction``, ``torch.linalg`` functions); that
+monkeypatching is gone, and the library reports no such split, so those columns are dropped. ``--profile`` writes
+cProfile and torch.profiler tables per scene (``<out>/profile_<case>.txt``), which give the same split by function.
+
+``--baseline REV`` times the git revision REV of the package side by side in the same run: it checks REV out with
+``git worktree add`` into a temporary directory and, right after each case at the working tree's package, runs the
+same case in a subprocess with PYTHONPATH pointing at that checkout (its API may be the one before ``StepInfo``:
+``step(..., info=dict)``; the forward time compared is then the ``step()`` call's wall time on both sides). The
+table gives per case the median forward and backward ms of both and their ratio (this / REV), and whether the
+results agree: Newton iterations per step, end poses of the forward pass, gradient norms.
 
 The machine may be shared: the load average is recorded at the start and end of every scene. ``--threads`` sets
 torch's intra-op threads (default: torch's own default); the numba kernels use ``--numba-threads``.
 
 Writes ``<out>/bench_step.json`` (every per-step figure), ``<out>/table.md`` (printed too) and
-``<out>/bench_step_breakdown.png`` (``--replot`` rewrites the last two from the JSON); ``--profile`` adds cProfile
-and torch.profiler tables per scene (``<out>/profile_<case>.txt``).
+``<out>/bench_step_breakdown.png`` (forward and backward per case; ``--replot`` rewrites the last two from the JSON).
 
     python scripts/bench_step.py --out results/bench_step --profile       # ~10 min on 2 shared cores
     python scripts/bench_step.py --out results/bench_step_quick --quick   # a few minutes
+    python scripts/bench_step.py --quick --cases boxes --baseline e5289f1 # this revision against e5289f1
 """
 
 from __future__ import annotations
@@ -49,10 +57,11 @@ import os
 import platform
 import pstats
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
-from collections import defaultdict
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 
 import matplotlib
@@ -66,7 +75,7 @@ import trimesh  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-import cfd_torch.stepper as stepper  # noqa: E402
+import cfd_torch  # noqa: E402
 from cfd_torch import Scene, State, StepError, rigid_body, step  # noqa: E402
 
 F64 = torch.float64
@@ -74,7 +83,9 @@ F64 = torch.float64
 CPP_DOUBLE_S = 0.57
 CPP_DOUBLE_BACKWARD_S = 0.06
 TARGET_S = CPP_DOUBLE_S / 20.0  # 20x faster than their double-precision step: 28.5 ms
-CATEGORIES = ("contact", "friction", "solve", "other")
+# step(..., return_info=True) -> (State, StepInfo); revisions before it fill a dict: step(..., info=dict)
+HAS_STEPINFO = hasattr(cfd_torch, "StepInfo")
+STATS = ("newton_iters", "contact_evals", "leaf_pairs", "node_pairs", "friction_contacts", "substeps")
 
 
 # ------------------------------------------------------------------------------------------------ scenes
@@ -180,82 +191,25 @@ def make_cases(args) -> list[Case]:
     return cases
 
 
-# ------------------------------------------------------------------------------------------------ timers
-class Timers:
-    """Wall time and call counts per key, accumulated by wrapped functions."""
-
-    def __init__(self) -> None:
-        self.t: dict[str, float] = defaultdict(float)
-        self.n: dict[str, int] = defaultdict(int)
-        self.hooks: list[str] = []
-
-    def reset(self) -> None:
-        self.t.clear()
-        self.n.clear()
-
-    def wrap(self, key, fn):
-        def timed(*a, **k):
-            t0 = time.perf_counter()
-            try:
-                return fn(*a, **k)
-            finally:
-                self.t[key] += time.perf_counter() - t0
-                self.n[key] += 1
-
-        return timed
-
-    def wrap_contact(self, fn):
-        """``_Problem.contact(self, poses, order)``: keyed by derivative order."""
-
-        def timed(prob, *a, **k):
-            order = k.get("order", a[1] if len(a) > 1 else "?")
-            t0 = time.perf_counter()
-            try:
-                return fn(prob, *a, **k)
-            finally:
-                self.t[f"contact_o{order}"] += time.perf_counter() - t0
-                self.n[f"contact_o{order}"] += 1
-
-        return timed
-
-    def snapshot(self) -> dict:
-        """Per-category seconds (contact, friction, solve) and the raw keys with their call counts."""
-        cat = {
-            "contact": sum(v for k, v in self.t.items() if k.startswith("contact")),
-            "friction": sum(v for k, v in self.t.items() if k.startswith("friction")),
-            "solve": sum(v for k, v in self.t.items() if k.startswith("solve")),
-        }
-        return {**cat, "raw_s": dict(self.t), "calls": dict(self.n)}
-
-
-@contextmanager
-def instrumented(timers: Timers):
-    """Install the timing wrappers on what the stepper calls; restore the originals on exit."""
-    patches = []  # (owner, attribute, original)
-
-    def patch(owner, attr, make):
-        orig = getattr(owner, attr, None)
-        if orig is None:
-            return
-        patches.append((owner, attr, orig))
-        setattr(owner, attr, make(orig))
-        timers.hooks.append(f"{getattr(owner, '__name__', owner)}.{attr}")
-
-    timers.hooks = []
-    patch(stepper._Problem, "contact", timers.wrap_contact)
-    patch(stepper, "lagged_friction", lambda f: timers.wrap("friction_lagged", f))
-    patch(stepper, "friction_terms", lambda f: timers.wrap("friction_terms", f))
-    patch(torch.linalg, "cholesky_ex", lambda f: timers.wrap("solve_cholesky_ex", f))
-    patch(torch, "cholesky_solve", lambda f: timers.wrap("solve_cholesky_solve", f))
-    patch(torch.linalg, "solve", lambda f: timers.wrap("solve_linalg_solve", f))
-    try:
-        yield timers
-    finally:
-        for owner, attr, orig in reversed(patches):
-            setattr(owner, attr, orig)
-
-
 # ------------------------------------------------------------------------------------------------ passes
+def timed_step(scene: Scene, state: State) -> tuple[State, dict]:
+    """One step; returns the next state and a row: ``call_s`` (wall time of the ``step()`` call), ``total_s`` (the
+    forward solve's time from the StepInfo; the call's time on revisions without StepInfo) and the statistics."""
+    t0 = time.perf_counter()
+    if HAS_STEPINFO:
+        nxt, si = step(scene, state, return_info=True)
+        call = time.perf_counter() - t0
+        info = {k: getattr(si, k) for k in STATS}
+        solve = si.seconds
+    else:
+        info = {}
+        nxt = step(scene, state, info=info)
+        call = time.perf_counter() - t0
+        solve = call
+    stats = {k: int(info[k]) for k in STATS if k in info}
+    return nxt, {"total_s": solve, "call_s": call, "info": stats}
+
+
 def _max_speed(case: Case, state: State) -> float:
     """Largest |(q - q_prev) / dt| entry of the dynamic bodies [m/s or rad/s]."""
     v = (state.q - state.q_prev)[case.scene.dynamic] / case.scene.dt
@@ -266,97 +220,79 @@ def _detach(state: State) -> State:
     return State(state.q.detach(), state.q_prev.detach())
 
 
-def _record(total: float, timers: Timers, info: dict) -> dict:
-    snap = timers.snapshot()
-    row = {"total_s": total, **{k: snap[k] for k in ("contact", "friction", "solve")}}
-    row["other"] = total - row["contact"] - row["friction"] - row["solve"]
-    row.update({"raw_s": snap["raw_s"], "calls": snap["calls"]})
-    row["info"] = {k: (v if isinstance(v, (int, float)) else str(v)) for k, v in info.items()}
-    return row
-
-
-def forward_pass(case: Case, state: State, steps: int, timers: Timers, desc: str) -> tuple[list[dict], State]:
+def forward_pass(case: Case, state: State, steps: int, desc: str) -> tuple[list[dict], State]:
     rows = []
     for _ in tqdm(range(steps), desc=desc, leave=False):
-        info: dict = {}
-        timers.reset()
-        t0 = time.perf_counter()
-        state = step(case.scene, state, info=info)
-        rows.append(_record(time.perf_counter() - t0, timers, info))
+        state, row = timed_step(case.scene, state)
+        rows.append(row)
     return rows, state
 
 
-def backward_pass(
-    case: Case, state: State, steps: int, timers: Timers, w: torch.Tensor, desc: str
-) -> list[dict]:
+def backward_pass(case: Case, state: State, steps: int, w: torch.Tensor, desc: str) -> list[dict]:
     rows = []
     for _ in tqdm(range(steps), desc=desc, leave=False):
-        info: dict = {}
         q = state.q.clone().requires_grad_()
-        timers.reset()
-        t0 = time.perf_counter()
-        out = step(case.scene, State(q, state.q_prev), info=info)
-        fwd = _record(time.perf_counter() - t0, timers, info)
+        out, fwd = timed_step(case.scene, State(q, state.q_prev))
         loss = (w * out.q).sum()
-        timers.reset()
         t0 = time.perf_counter()
         loss.backward()
-        bwd = _record(time.perf_counter() - t0, timers, {})
-        bwd["grad_norm"] = float(q.grad.norm())
+        bwd = {"total_s": time.perf_counter() - t0, "grad_norm": float(q.grad.norm())}
         rows.append({"forward": fwd, "backward": bwd})
         state = _detach(out)
     return rows
 
 
-def _median(rows: list[dict], key: str) -> float:
-    return statistics.median(r[key] for r in rows)
-
-
 def summarise(rows: list[dict]) -> dict:
-    """Medians over the timed steps of the total, the parts, Newton iterations and traversal counts."""
-    s = {"total_s": _median(rows, "total_s")} | {f"{c}_s": _median(rows, c) for c in CATEGORIES}
-    s["min_s"] = min(r["total_s"] for r in rows)
-    s["max_s"] = max(r["total_s"] for r in rows)
-    s["mean_s"] = statistics.fmean(r["total_s"] for r in rows)
-    infos = [r["info"] for r in rows if r["info"]]
+    """Medians over the timed steps of the time, Newton iterations and traversal counts."""
+    t = [r["total_s"] for r in rows]
+    s = {"total_s": statistics.median(t), "min_s": min(t), "max_s": max(t), "mean_s": statistics.fmean(t)}
+    if all("call_s" in r for r in rows):
+        s["call_s"] = statistics.median(r["call_s"] for r in rows)
+    infos = [r["info"] for r in rows if r.get("info")]
     if infos:
-        for k in ("newton_iters", "contact_evals", "leaf_pairs", "node_pairs", "friction_contacts"):
+        for k in STATS:
             if all(k in i for i in infos):
                 s[f"{k}_median"] = statistics.median(i[k] for i in infos)
-        if all("contact_evals" in i and i["contact_evals"] for i in infos):
+        if all(i.get("contact_evals") for i in infos):
             s["leaf_pairs_per_eval"] = statistics.median(i["leaf_pairs"] / i["contact_evals"] for i in infos)
             s["node_pairs_per_eval"] = statistics.median(i["node_pairs"] / i["contact_evals"] for i in infos)
         s["newton_iters_all"] = [i.get("newton_iters") for i in infos]
-    for key in ("contact_o2", "contact_o1", "contact_o0"):
-        if any(key in r["raw_s"] for r in rows):
-            s[f"{key}_s"] = statistics.median(r["raw_s"].get(key, 0.0) for r in rows)
-            s[f"{key}_calls"] = statistics.median(r["calls"].get(key, 0) for r in rows)
     return s
 
 
-def run_case(case: Case, args, timers: Timers) -> dict:
+def scene_settings(scene: Scene) -> dict:
+    """The scene's settings: its config objects, or the flat fields of revisions before them."""
+    out: dict = {"dt": scene.dt}
+    for name in ("contact", "friction", "solver"):
+        cfg = getattr(scene, name, None)
+        if is_dataclass(cfg):
+            out[name] = asdict(cfg)
+    if len(out) == 1:  # the flat Scene dataclass
+        for k in ("mu", "margin", "eps", "split", "friction", "newton_tol", "max_newton_iter"):
+            out[k] = getattr(scene, k)
+    return out
+
+
+def run_case(case: Case, args) -> dict:
     res: dict = {"meta": case.meta, "bodies": case.scene.num_bodies, "body_pairs": int(len(case.scene.pairs))}
-    res["scene"] = {
-        k: getattr(case.scene, k)
-        for k in ("dt", "mu", "margin", "eps", "split", "friction", "newton_tol", "max_newton_iter")
-    }
+    res["scene"] = scene_settings(case.scene)
     res["loadavg_start"] = os.getloadavg()
     state = case.state
     try:
         t0 = time.perf_counter()
-        with instrumented(timers):
-            for _ in tqdm(range(case.warmup), desc=f"{case.name} warm-up", leave=False):
-                state = step(case.scene, state)
-            res["warmup_s"] = time.perf_counter() - t0
-            start = _detach(state)
-            res["max_speed_start"] = _max_speed(case, start)
-            fwd, end = forward_pass(case, start, case.steps, timers, f"{case.name} forward")
-            res["max_speed_end"] = _max_speed(case, end)
-            res["velocity_end"] = ((end.q - end.q_prev)[case.scene.dynamic] / case.scene.dt).tolist()
-            w = torch.randn(start.q.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
-            # the first backward compiles kernels: one untimed step
-            backward_pass(case, start, 1, timers, w, f"{case.name} fwd+bwd warm-up")
-            bwd = backward_pass(case, start, case.steps, timers, w, f"{case.name} fwd+bwd")
+        for _ in tqdm(range(case.warmup), desc=f"{case.name} warm-up", leave=False):
+            state = step(case.scene, state)
+        res["warmup_s"] = time.perf_counter() - t0
+        start = _detach(state)
+        res["max_speed_start"] = _max_speed(case, start)
+        fwd, end = forward_pass(case, start, case.steps, f"{case.name} forward")
+        res["max_speed_end"] = _max_speed(case, end)
+        res["velocity_end"] = ((end.q - end.q_prev)[case.scene.dynamic] / case.scene.dt).tolist()
+        res["q_end"] = end.q.tolist()
+        w = torch.randn(start.q.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
+        # the first backward compiles kernels: one untimed step
+        backward_pass(case, start, 1, w, f"{case.name} fwd+bwd warm-up")
+        bwd = backward_pass(case, start, case.steps, w, f"{case.name} fwd+bwd")
     except StepError as err:
         res["error"] = f"{type(err).__name__}: {err}"
         res["loadavg_end"] = os.getloadavg()
@@ -418,6 +354,95 @@ def profile_case(case: Case, state: State, args) -> str:
     return str(path)
 
 
+# ------------------------------------------------------------------------------------------------ baseline
+class Baseline:
+    """An older revision of the package checked out in a temporary git worktree; runs one case at a time in a
+    subprocess (this script in worker mode, PYTHONPATH at the checkout)."""
+
+    def __init__(self, rev: str) -> None:
+        root = Path(__file__).resolve().parent.parent
+        self.rev = rev
+        self.commit = subprocess.run(
+            ["git", "rev-parse", "--short", f"{rev}^{{commit}}"], cwd=root, capture_output=True, text=True,
+            check=True,
+        ).stdout.strip()  # fmt: skip
+        self._tmp = tempfile.TemporaryDirectory(prefix=f"bench_step_{self.commit}_")
+        self.dir = Path(self._tmp.name) / "src"
+        self._root = root
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(self.dir), self.commit], cwd=root, check=True,
+            capture_output=True,
+        )  # fmt: skip
+
+    def run(self, case_name: str, args) -> dict:
+        spec = Path(self._tmp.name) / "spec.json"
+        result = Path(self._tmp.name) / f"{case_name}.json"
+        spec.write_text(json.dumps({"args": _jsonable(vars(args)), "case": case_name, "result": str(result)}))
+        path = [str(self.dir)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", str(spec)], cwd=self.dir, env=env,
+            capture_output=True, text=True,
+        )  # fmt: skip
+        if proc.returncode != 0:
+            return {"error": f"baseline worker failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}"}
+        return json.loads(result.read_text())
+
+    def close(self) -> None:
+        subprocess.run(
+            ["git", "worktree", "remove", "--force", str(self.dir)], cwd=self._root, capture_output=True
+        )
+        self._tmp.cleanup()
+
+
+def worker(spec_path: Path) -> None:
+    """Run one case of a spec written by :class:`Baseline` with the cfd_torch on PYTHONPATH; write its result."""
+    if not Path(cfd_torch.__file__).resolve().is_relative_to(Path.cwd().resolve()):
+        raise SystemExit(f"the worker imported {cfd_torch.__file__}, not the checkout {Path.cwd()}")
+    spec = json.loads(spec_path.read_text())
+    args = argparse.Namespace(**spec["args"])
+    args.out, args.profile = Path(args.out), False
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.numba_threads:
+        numba.set_num_threads(args.numba_threads)
+    (case,) = [c for c in make_cases(args) if c.name == spec["case"]]
+    res = run_case(case, args)
+    res["cfd_torch_file"] = cfd_torch.__file__
+    res["git"] = git_revision()
+    res["api"] = "StepInfo" if HAS_STEPINFO else "info dict"
+    Path(spec["result"]).write_text(json.dumps(res))
+
+
+def compare(head: dict, base: dict) -> dict:
+    """Median times of both revisions, their ratios (this / baseline) and whether the results agree. The forward
+    compared is the ``step()`` call's wall time (the only forward time a revision without StepInfo has)."""
+    if "error" in head or "error" in base:
+        return {"error": head.get("error") or base.get("error")}
+
+    def fwd(r: dict) -> float:
+        return r["forward"].get("call_s", r["forward"]["total_s"])
+
+    qa, qb = torch.tensor(head["q_end"]), torch.tensor(base["q_end"])
+    ga, gb = torch.tensor(head["grad_norms"]), torch.tensor(base["grad_norms"])
+    return {
+        "forward_s": fwd(head),
+        "forward_baseline_s": fwd(base),
+        "forward_ratio": fwd(head) / fwd(base),
+        "backward_s": head["backward"]["total_s"],
+        "backward_baseline_s": base["backward"]["total_s"],
+        "backward_ratio": head["backward"]["total_s"] / base["backward"]["total_s"],
+        "newton_iters_equal": head["forward"].get("newton_iters_all")
+        == base["forward"].get("newton_iters_all"),
+        "q_end_max_abs_diff": float((qa - qb).abs().max()),
+        "grad_norm_max_rel_diff": float(((ga - gb).abs() / gb.abs().clamp_min(1e-300)).max()),
+    }
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+
+
 # ------------------------------------------------------------------------------------------------ output
 def _ms(x: float | None, digits: int = 1) -> str:
     return "-" if x is None else f"{1e3 * x:.{digits}f}"
@@ -434,53 +459,73 @@ def tables(out: dict) -> str:
         f"Step time [ms per step], medians over the timed steps (cfd_torch at {out['meta']['git']}); torch "
         f"threads {out['meta']['torch_threads']}, "
         f"numba threads {out['meta']['numba_threads']}, load average at start {_load(out['meta']['loadavg_start'])}"
-        f", at end {_load(out['meta']['loadavg_end'])} (2 cores). Target: < {_ms(TARGET_S)} ms per step (20x the "
-        f"authors' C++ double precision, {_ms(CPP_DOUBLE_S, 0)} ms / step, {_ms(CPP_DOUBLE_BACKWARD_S, 0)} ms / "
-        "backward, for ball_box).",
+        f", at end {_load(out['meta']['loadavg_end'])} ({out['meta']['cpus']} cores). Target: < {_ms(TARGET_S)} ms "
+        f"per step (20x the authors' C++ double precision, {_ms(CPP_DOUBLE_S, 0)} ms / step, "
+        f"{_ms(CPP_DOUBLE_BACKWARD_S, 0)} ms / backward, for ball_box).",
         "",
-        "Forward (no grad): total and breakdown",
+        "Forward (no grad): fwd = the forward solve (StepInfo.seconds), call = the whole step() call",
         "",
-        "| case | faces | fwd | (min) | contact | (o2 / o0 calls) | friction | solves | other | Newton it "
-        "| evals/step | leaf pairs/eval | node pairs/eval | < 28.5 ms | vs C++ 570 ms | load |",
-        "|" + "---|" * 16,
+        "| case | faces | fwd | (min) | call | Newton it | evals/step | leaf pairs/eval | node pairs/eval "
+        "| sub-steps | < 28.5 ms | vs C++ 570 ms | load |",
+        "|" + "---|" * 13,
     ]
     for name, r in out["cases"].items():
         faces = _faces(r)
         if "error" in r:
-            lines.append(f"| {name} | {faces} | failed: {r['error'][:120]} |" + " |" * 13)
+            lines.append(f"| {name} | {faces} | failed: {r['error'][:120]} |" + " |" * 10)
             continue
         f = r["forward"]
-        calls = f"{_n(f.get('contact_o2_calls'))} / {_n(f.get('contact_o0_calls'))}"
         lines.append(
-            f"| {name} | {faces} | {_ms(f['total_s'])} | {_ms(f['min_s'])} | {_ms(f['contact_s'])} | {calls} "
-            f"| {_ms(f['friction_s'])} "
-            f"| {_ms(f['solve_s'], 2)} | {_ms(f['other_s'])} | {_n(f.get('newton_iters_median'))} "
+            f"| {name} | {faces} | {_ms(f['total_s'])} | {_ms(f['min_s'])} | {_ms(f.get('call_s'))} "
+            f"| {_n(f.get('newton_iters_median'))} "
             f"| {_n(f.get('contact_evals_median'))} | {_n(f.get('leaf_pairs_per_eval'))} "
-            f"| {_n(f.get('node_pairs_per_eval'))} | {'yes' if f['total_s'] < TARGET_S else 'no'} "
+            f"| {_n(f.get('node_pairs_per_eval'))} | {_n(f.get('substeps_median'))} "
+            f"| {'yes' if f['total_s'] < TARGET_S else 'no'} "
             f"| {CPP_DOUBLE_S / f['total_s']:.2f}x | {_load(r['loadavg_start'])} |"
         )
     lines += [
         "",
         "Forward + backward: forward with q requiring grad, backward of (w * q_next).sum()",
         "",
-        "| case | fwd (grad) | bwd | bwd solves | bwd friction | bwd other | fwd + bwd | bwd vs C++ 60 ms |",
-        "|" + "---|" * 8,
+        "| case | fwd (grad) | bwd | fwd + bwd | bwd vs C++ 60 ms |",
+        "|" + "---|" * 5,
     ]
     for name, r in out["cases"].items():
         if "error" in r:
             continue
         f, b = r["forward_with_grad"], r["backward"]
         lines.append(
-            f"| {name} | {_ms(f['total_s'])} | {_ms(b['total_s'], 2)} | {_ms(b['solve_s'], 2)} "
-            f"| {_ms(b['friction_s'], 2)} | {_ms(b['other_s'], 2)} | {_ms(r['forward_backward_s'])} "
+            f"| {name} | {_ms(f['total_s'])} | {_ms(b['total_s'], 2)} | {_ms(r['forward_backward_s'])} "
             f"| {CPP_DOUBLE_BACKWARD_S / b['total_s']:.1f}x |"
         )
+    base = out.get("baseline")
+    if base:
+        rev = f"{base['rev']} ({base['commit']})"
+        lines += [
+            "",
+            f"Against {rev}, each case run right after this revision's, in a subprocess: medians of the step() "
+            "call (forward, no grad) and of backward(); ratio = this / baseline. Same results: Newton iterations "
+            "of every forward step equal, largest |difference| of the end poses, largest relative difference of "
+            "the gradient norms.",
+            "",
+            f"| case | fwd {base['commit']} | fwd this | ratio | bwd {base['commit']} | bwd this | ratio "
+            "| Newton its equal | max abs dq_end | max rel d|grad| |",
+            "|" + "---|" * 10,
+        ]
+        for name, c in base["cases"].items():
+            if "error" in c:
+                lines.append(f"| {name} | failed: {c['error'][:160]} |" + " |" * 8)
+                continue
+            lines.append(
+                f"| {name} | {_ms(c['forward_baseline_s'])} | {_ms(c['forward_s'])} | {c['forward_ratio']:.2f} "
+                f"| {_ms(c['backward_baseline_s'], 2)} | {_ms(c['backward_s'], 2)} | {c['backward_ratio']:.2f} "
+                f"| {'yes' if c['newton_iters_equal'] else 'no'} | {c['q_end_max_abs_diff']:.1e} "
+                f"| {c['grad_norm_max_rel_diff']:.1e} |"
+            )
     lines += [
         "",
-        "contact = `_Problem.contact` (o2: value + gradient + Hessian, o0: value only, median calls per step); "
-        "friction = `lagged_friction` + `friction_terms`; solves = `cholesky_ex` + `cholesky_solve` + "
-        "`linalg.solve`; other = total - those (body terms, Hessian assembly, Python). Medians of the parts need "
-        "not add up to the median total.",
+        "No contact / friction / linear-solve breakdown: it needed wrappers around library internals (see the "
+        "script's docstring); --profile gives the split by function.",
     ]
     return "\n".join(lines)
 
@@ -501,34 +546,54 @@ def _faces(r: dict) -> str:
 
 
 def plot(out: dict, path: Path) -> None:
+    """Per case: forward (the solve, and the rest of the step() call) and backward medians; the baseline's beside
+    them when there is one."""
     cases = {k: r for k, r in out["cases"].items() if "error" not in r}
     if not cases:
         return
+    base = (out.get("baseline") or {}).get("cases", {})
     n = len(cases)
     cols = min(n, 4)
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.4 * rows), squeeze=False)
-    colors = {"contact": "C0", "friction": "C2", "solve": "C3", "other": "C7"}
     for ax, (name, r) in zip(axes.flat, cases.items(), strict=False):
-        for x, key in ((0, "forward"), (1, "backward")):
+        solve, call = r["forward"]["total_s"], r["forward"].get("call_s", r["forward"]["total_s"])
+        bars = [
+            (0, [(solve, "C0", "forward solve"), (call - solve, "C7", "rest of step()")]),
+            (1, [(r["backward"]["total_s"], "C3", "backward")]),
+        ]
+        b = base.get(name, {})
+        if "error" not in b and b:
+            bars += [
+                (0.45, [(b["forward_baseline_s"], "C0", None)]),
+                (1.45, [(b["backward_baseline_s"], "C3", None)]),
+            ]
+        top = 1e3 * TARGET_S
+        for x, parts in bars:
+            baseline = x % 1 != 0
             bottom = 0.0
-            for c in CATEGORIES:
-                h = 1e3 * max(r[key][f"{c}_s"], 0.0)
-                ax.bar(x, h, bottom=bottom, color=colors[c], label=c if x == 0 else None, width=0.6)
+            for v, color, label in parts:
+                h = 1e3 * max(v, 0.0)
+                ax.bar(
+                    x, h, bottom=bottom, color=color, label=label, width=0.4, alpha=0.4 if baseline else 1.0,
+                    hatch="//" if baseline else None,
+                )  # fmt: skip
                 bottom += h
-            ax.annotate(f"{1e3 * r[key]['total_s']:.1f}", (x, bottom), ha="center", va="bottom", fontsize=8)
+            ax.annotate(f"{bottom:.1f}", (x, bottom), ha="center", va="bottom", fontsize=7)
+            top = max(top, bottom)
         ax.axhline(1e3 * TARGET_S, ls="--", lw=0.8, color="k", label="28.5 ms target")
-        ax.set_xticks([0, 1], ["forward", "backward"])
+        ticks = ([0, 1], ["forward", "backward"])
+        if b and "error" not in b:
+            ticks = ([0, 0.45, 1, 1.45], ["fwd", out["baseline"]["commit"], "bwd", out["baseline"]["commit"]])
+        ax.set_xticks(*ticks)
         ax.set_title(name, fontsize=9)
         ax.set_ylabel("ms per step (medians)")
-        ax.set_ylim(
-            0, 1.15 * max(1e3 * r["forward"]["total_s"], 1e3 * r["backward"]["total_s"], 1e3 * TARGET_S)
-        )
+        ax.set_ylim(0, 1.15 * top)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7)
     fig.suptitle(
-        f"step breakdown (torch threads {out['meta']['torch_threads']}, load {_load(out['meta']['loadavg_start'])})",
+        f"step time (torch threads {out['meta']['torch_threads']}, load {_load(out['meta']['loadavg_start'])})",
         fontsize=10,
     )
     fig.tight_layout()
@@ -539,7 +604,9 @@ def plot(out: dict, path: Path) -> None:
 def _source_hash() -> str:
     """sha256 of the library's sources (the working tree may be dirty while the benchmark runs)."""
     h = hashlib.sha256()
-    for p in sorted(Path(stepper.__file__).parent.glob("*.py")):
+    root = Path(cfd_torch.__file__).parent
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode())
         h.update(p.read_bytes())
     return h.hexdigest()[:16]
 
@@ -577,12 +644,24 @@ def main() -> None:
         help="refined ground: max_edge = this x ball mean edge",
     )
     ap.add_argument("--friction", type=float, default=0.5, help="friction coefficient of the 'on' ball case")
+    ap.add_argument(
+        "--only", nargs="+", default=None, metavar="NAME",
+        help="run only these case names (e.g. ball_box_mu0 boxes4) of the selected --cases",
+    )  # fmt: skip
+    ap.add_argument(
+        "--baseline", metavar="REV", default=None,
+        help="also time git revision REV of the package, case by case in a subprocess (e.g. e5289f1)",
+    )  # fmt: skip
     ap.add_argument("--profile", action="store_true", help="cProfile + torch.profiler tables per case")
     ap.add_argument("--profile-steps", type=int, default=5)
     ap.add_argument(
         "--replot", action="store_true", help="rewrite table.md and the plot from <out>/bench_step.json"
     )
+    ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
     args = ap.parse_args()
+    if args.worker:
+        worker(args.worker)
+        return
     if args.replot:
         out = json.loads((args.out / "bench_step.json").read_text())
         text = tables(out)
@@ -609,26 +688,35 @@ def main() -> None:
             "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
             "git": git_revision(), "cfd_torch_sources_sha256": _source_hash(), "quick": args.quick,
-            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+            "args": _jsonable(vars(args)),
             "loadavg_start": os.getloadavg(),
             "target_s": TARGET_S, "cpp_double_step_s": CPP_DOUBLE_S, "cpp_double_backward_s": CPP_DOUBLE_BACKWARD_S,
         },
         "timed": {
-            "forward": "wall time of step(scene, state, info=info) (state not requiring grad)",
-            "forward_with_grad": "wall time of step() with state.q requiring grad",
+            "forward": "StepInfo.seconds of step(scene, state, return_info=True), the forward solve (state not "
+            "requiring grad); call_s: wall time of the whole step() call",
+            "forward_with_grad": "the same with state.q requiring grad",
             "backward": "wall time of (w * q_next).sum().backward(), w fixed random (N, 6)",
-            "contact": "cfd_torch.stepper._Problem.contact (traversal + leaf solves + scatter), all orders",
-            "friction": "cfd_torch.stepper.lagged_friction + friction_terms",
-            "solve": "torch.linalg.cholesky_ex + torch.cholesky_solve + torch.linalg.solve",
-            "other": "total - contact - friction - solve",
+            "baseline": "step() call (forward, no grad) and backward() wall times of --baseline REV, same cases",
         },
         "cases": {},
     }  # fmt: skip
-    timers = Timers()
     cases = make_cases(args)
-    for case in tqdm(cases, desc="scenes"):
-        out["cases"][case.name] = run_case(case, args, timers)
-        out["meta"]["hooks"] = timers.hooks
+    if args.only:
+        cases = [c for c in cases if c.name in args.only]
+    baseline = Baseline(args.baseline) if args.baseline else None
+    if baseline:
+        out["baseline"] = {"rev": args.baseline, "commit": baseline.commit, "cases": {}, "results": {}}
+    try:
+        for case in tqdm(cases, desc="scenes"):
+            out["cases"][case.name] = run_case(case, args)
+            if baseline:
+                res = baseline.run(case.name, args)
+                out["baseline"]["results"][case.name] = res
+                out["baseline"]["cases"][case.name] = compare(out["cases"][case.name], res)
+    finally:
+        if baseline:
+            baseline.close()
     out["meta"]["numba_threading_layer"] = _threading_layer()
     # the run used the code imported at the start; a different hash here means the files changed meanwhile
     out["meta"]["cfd_torch_sources_sha256_end"] = _source_hash()

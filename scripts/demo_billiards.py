@@ -29,20 +29,14 @@ import torch  # noqa: E402
 import trimesh  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from cfd_torch import Scene, State, rigid_body, step  # noqa: E402
+from cfd_torch import Scene, rigid_body, rollout  # noqa: E402
 
 
-def simulate(scene: Scene, q0: torch.Tensor, v_cue: torch.Tensor, steps: int) -> list[torch.Tensor]:
-    """Poses (N, 6) after each step, starting from the cue ball moving at ``v_cue`` (2,) in the plane."""
-    v = torch.zeros_like(q0)
-    v = v.index_put((torch.tensor([0]), torch.tensor([0])), v_cue[0:1])
-    v = v.index_put((torch.tensor([0]), torch.tensor([1])), v_cue[1:2])
-    state = State(q0, q0 - scene.dt * v)
-    out = [q0]
-    for _ in range(steps):
-        state = step(scene, state)
-        out.append(state.q)
-    return out
+def simulate(scene: Scene, q0: torch.Tensor, v_cue: torch.Tensor, steps: int) -> torch.Tensor:
+    """Poses (T + 1, N, 6) of a rollout of ``steps`` steps, the cue ball (body 0) starting at ``v_cue`` (2,) in
+    the plane (differentiable in ``v_cue``)."""
+    v = torch.stack([torch.cat([v_cue, v_cue.new_zeros(4)]), v_cue.new_zeros(6)])  # (N, 6)
+    return rollout(scene, scene.initial_state(q0, v), steps).q
 
 
 def main() -> None:
@@ -76,21 +70,21 @@ def main() -> None:
         opt.zero_grad()
         loss.backward()
         gnorm = float(v.grad.norm())
-        touched = float(torch.stack([t[1, :2].detach() - q0[1, :2] for t in traj]).norm(dim=1).max())
+        touched = float((traj[:, 1, :2].detach() - q0[1, :2]).norm(dim=1).max())
         history.append(
             {
                 "iter": it,
-                "loss": float(loss),
+                "loss": float(loss.detach()),
                 "grad_norm": gnorm,
                 "v": v.detach().tolist(),
                 "object_moved": touched,
             }
         )
-        xy = torch.stack([t[:, :2] for t in traj]).detach()
+        xy = traj[..., :2].detach()
         if it == 0:
             first_traj = xy
         last_traj = xy
-        bar.set_postfix(loss=f"{float(loss):.4f}", grad=f"{gnorm:.1e}")
+        bar.set_postfix(loss=f"{float(loss.detach()):.4f}", grad=f"{gnorm:.1e}")
         opt.step()
         sched.step()
     wall = time.perf_counter() - t0

@@ -17,7 +17,8 @@ steps), and a quasi-static step ``--dt`` = 0.1 s: implicit Euler at that step da
 kinetic energy of the initial settling does not throw a board past its equilibrium tilt (a single board on the table
 edge at mu = 1e-9 overshoots and topples at dt = 0.01 s but settles at dt = 0.1 s). The question asked is whether
 the stack has a static equilibrium that the model reaches from the placement, not how a dropped stack bounces.
-A step whose Newton solve fails is retried as ``--substeps`` = 10 steps of dt / 10 (same model, shorter step).
+A step whose Newton solve fails is retried by the library as 2, 4, ... up to ``--substeps`` = 16 steps of dt / k
+(``SolverConfig.substeps``: same model, shorter step, the velocity carried over).
 
 Definitions (every figure in the outputs is one of these):
 
@@ -40,7 +41,7 @@ Definitions (every figure in the outputs is one of these):
   bodies, so the force through interface c deviates from statics by the resultant of the forces that the bodies
   below the interface exert on the bodies above it, except the touching pair:
   ``e_c = | sum_{i below c, j above c, (i, j) != (c - 1, c)} F_ij |``, F_ij the force of body i on body j from
-  their two-body potential (``-grad`` of ``mesh_potential_derivatives``). At rest this is
+  their two-body potential (``cfd_torch.pair_forces``, ``-grad`` of that pair's potential). At rest this is
   |F_contact,c - F_statics,c| up to friction and inertia, which vanish at rest. The contact force itself is not
   differenced against the weight because at rest the tilted contact planes give it a horizontal part that friction
   carries: that is not a long-range effect. Headline: the largest e_c over the interfaces (each e_c, the top board's
@@ -72,7 +73,6 @@ force error vs mu, log-log, ours and the paper's).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import platform
@@ -90,7 +90,7 @@ import trimesh  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
-from cfd_torch import Scene, State, StepError, mesh_potential_derivatives, rigid_body, step  # noqa: E402
+from cfd_torch import Scene, StepError, mesh_potential_derivatives, rigid_body, step  # noqa: E402
 from cfd_torch.rotation import rotation_matrix, transform_points  # noqa: E402
 
 # mu: (margin [m], contact-force error [N], stable) from the paper's table
@@ -136,8 +136,9 @@ def parse_args() -> argparse.Namespace:
     )  # fmt: skip
     p.add_argument("--max-newton-iter", type=int, default=50)
     p.add_argument(
-        "--substeps", type=int, default=10,
-        help="a step whose Newton solve fails is retried as this many steps of dt / substeps (0: no retry)",
+        "--substeps", type=int, default=16,
+        help="a step whose Newton solve fails is retried as 2, 4, ... up to this many steps of dt / k "
+        "(SolverConfig.substeps; 0 or 1: no retry)",
     )  # fmt: skip
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     a = p.parse_args()
@@ -208,7 +209,7 @@ def build(args, mu: float):
     scene = Scene(
         [table] + [board] * n, dt=args.dt, gravity=GRAVITY, mu=mu, margin=args.margin, eps=args.eps,
         friction=args.friction, friction_eps_v=args.friction_eps_v, newton_tol=args.newton_tol,
-        max_newton_iter=args.max_newton_iter,
+        max_newton_iter=args.max_newton_iter, substeps=max(1, args.substeps),
     )  # fmt: skip
     return scene, poses, board, weight
 
@@ -238,14 +239,7 @@ def measure(scene: Scene, poses: torch.Tensor, weight: float, args) -> dict:
     """Margins, pair forces and contact-force errors at ``poses`` (see the module docstring)."""
     bodies, n = scene.bodies, args.boards
     N = n + 1
-    F = torch.zeros(N, N, 3, dtype=torch.float64)  # F[i, j]: force of body i on body j [N]
-    for i, j in scene.pairs.tolist():
-        d = mesh_potential_derivatives(
-            bodies[i].bsh, poses[i], bodies[j].bsh, poses[j], mu=scene.mu, margin=scene.margin, eps=scene.eps,
-            hessian=False,
-        )  # fmt: skip
-        F[i, j] = -d.grad[6:9]
-        F[j, i] = -d.grad[:3]
+    F = cfd_torch.pair_forces(scene, poses)[..., :3]  # (N, N, 3) F[i, j]: force of body i on body j [N]
     gaps, cut, pair, statics = [], [], [], []
     for c in range(1, N):  # interface c: body c - 1 below, body c above
         gaps.append(surface_gap(bodies[c - 1], poses[c - 1], bodies[c], poses[c]))
@@ -296,26 +290,6 @@ def support(q: torch.Tensor, masses: torch.Tensor, length: float) -> tuple[torch
 
 
 # ------------------------------------------------------------------------------------------------ one run
-def advance(scene: Scene, fine: Scene | None, state: State, info: dict) -> State:
-    """One step of ``scene.dt``; if its Newton solve fails, the same interval as steps of ``fine.dt`` (the same
-    model with a shorter step), the velocity carried over. Raises StepError if that fails too."""
-    try:
-        return step(scene, state, None, info=info)
-    except StepError:
-        if fine is None:
-            raise
-    r = fine.dt / scene.dt
-    st = State(state.q, state.q - r * (state.q - state.q_prev))
-    for _ in range(round(1 / r)):
-        sub: dict = {}
-        st = step(fine, st, None, info=sub)
-        for key, v in sub.items():
-            if isinstance(v, int):
-                info[key] = info.get(key, 0) + v
-    info["substepped"] = 1
-    return State(st.q, st.q - (st.q - st.q_prev) / r)
-
-
 def board_radius(args) -> float:
     return 0.5 * math.sqrt(args.length**2 + args.width**2 + args.thickness**2)
 
@@ -332,27 +306,27 @@ def run(args, mu: float) -> dict:
     quiet, stable, reason = 0, None, f"not at rest by t_max = {args.t_max} s"
     best = (math.inf, poses0.clone(), 0)  # quietest state: (largest vertex speed, poses, step)
     stats = {"newton_iters": 0, "contact_evals": 0, "leaf_pairs": 0, "substepped": 0}
-    fine = dataclasses.replace(scene, dt=dt / args.substeps) if args.substeps > 1 else None
     hist = []
     steps = 0
     bar = tqdm(range(max_steps), desc=f"mu={mu:.0e}", leave=False)
     t1 = time.perf_counter()
     for s in bar:
-        info: dict = {}
         try:
-            state = advance(scene, fine, state, info)
+            state, info = step(scene, state, return_info=True)
         except StepError as e:
             stable, reason = False, f"StepError at t = {(s + 1) * dt:.2f} s: {e}"
             break
         steps = s + 1
-        for key in stats:
-            stats[key] += int(info.get(key, 0))
+        stats["newton_iters"] += int(info.newton_iters)
+        stats["contact_evals"] += info.contact_evals
+        stats["leaf_pairs"] += info.leaf_pairs
+        stats["substepped"] += int(info.substeps > 1)
         v = (state.q - state.q_prev)[1:] / dt
         speed = float((v[:, :3].norm(dim=1) + v[:, 3:].norm(dim=1) * R).max())
         sup, rel = support(state.q, masses, args.length)
         tilt, sup_min = float(rel.max()), float(sup.min())
         hist.append((steps * dt, speed, tilt, sup_min))
-        bar.set_postfix(v=f"{speed:.1e}", tilt=f"{tilt:.1e}", it=info.get("newton_iters"))
+        bar.set_postfix(v=f"{speed:.1e}", tilt=f"{tilt:.1e}", it=int(info.newton_iters))
         if tilt > args.tilt_fail or sup_min < -args.topple_fail:
             stable = False
             reason = (
