@@ -1,6 +1,11 @@
 """The custom autograd Functions: float64 gradcheck of each, gradgradcheck or an asserted refusal of the next
 order, and the torch.func transforms (grad and jacrev work; vmap and forward mode raise saying so).
 
+Functions and where their checks are: ClosedFormPotential, ClosedFormGrad, RefuseThirdOrder (cfd_torch/_autograd.py),
+_KnownGradPotential (contact/scene.py) and _PairGradFn (contact/pair.py) here, on their own; _PairPotentialFn through
+pair_potential in test_pair_potential.py; the closed-form ones also through mesh_potential and contact_potential in
+test_mesh_potential.py.
+
 Small inputs throughout: the whole file runs in a few seconds.
 """
 
@@ -13,6 +18,7 @@ import torch
 import trimesh
 
 from cfd_torch import contact_potential, mesh_potential, pair_potential
+from cfd_torch._autograd import ClosedFormGrad, ClosedFormPotential, RefuseThirdOrder
 from cfd_torch.contact import mesh as mesh_module
 from cfd_torch.contact import pair as pair_module
 from cfd_torch.contact import scene as scene_module
@@ -50,6 +56,98 @@ def _assert_close(actual: torch.Tensor, expected: torch.Tensor, rtol: float, wha
     assert scale > 0, f"{what}: the reference is zero"
     err = float((actual - expected).abs().max())
     assert err <= rtol * scale, f"{what}: max error {err:.3e} > {rtol:.1e} * {scale:.3e}"
+
+
+# ------------------------------------------------------------------------------------------------ the Functions
+_C = torch.tensor([0.3, -0.5, 0.2, 0.7], dtype=F64)
+
+
+def _evaluate(q: torch.Tensor, order: int):
+    """Closed-form f(q) = exp(c.q) + sum sin(q) for q (B, 4): value (B,), grad (B, 4), Hessian (B, 4, 4)."""
+    e = torch.exp(q @ _C)
+    v = e + torch.sin(q).sum(-1)
+    g = _C * e[:, None] + torch.cos(q) if order >= 1 else None
+    h = _C[:, None] * _C * e[:, None, None] - torch.diag_embed(torch.sin(q)) if order >= 2 else None
+    return v, g, h
+
+
+def _q() -> torch.Tensor:
+    return torch.tensor([[0.1, -0.4, 0.8, 0.3], [1.2, 0.5, -0.7, -0.2]], dtype=F64, requires_grad=True)
+
+
+def _third(f, q: torch.Tensor) -> None:
+    (g,) = torch.autograd.grad(f(q).sum(), q, create_graph=True)
+    (h,) = torch.autograd.grad(g[:, 0].sum(), q, create_graph=True)
+    assert h.abs().max() > 0 and h.requires_grad
+    torch.autograd.grad(h.sum() + (q**4).sum(), q)
+
+
+def test_closed_form_potential_gradcheck_gradgradcheck_and_refused_third_order():
+    def f(q):
+        return ClosedFormPotential.apply(q, _evaluate, "test_potential")
+
+    q = _q()
+    _assert_close(f(q), _evaluate(q.detach(), 0)[0], 0.0, "value")
+    assert torch.autograd.gradcheck(f, (q,))
+    assert torch.autograd.gradgradcheck(f, (q,))
+    with pytest.raises(RuntimeError, match="test_potential: third derivatives are not implemented"):
+        _third(f, q)
+
+
+def test_closed_form_grad_gradcheck_and_refused_second_backward():
+    def f(q):
+        g, h = ClosedFormGrad.apply(q, _evaluate, "test_potential")
+        assert not h.requires_grad  # the Hessian output is what backward uses, not differentiable
+        return g
+
+    q = _q()
+    _assert_close(f(q), _evaluate(q.detach(), 1)[1], 0.0, "grad")
+    assert torch.autograd.gradcheck(f, (q,))
+    with pytest.raises(RuntimeError, match="test_potential: third derivatives"):
+        torch.autograd.gradgradcheck(f, (q,))
+
+
+@pytest.mark.parametrize("known_grad", [True, False], ids=["grad-given", "grad-lazy"])
+def test_known_grad_potential_gradcheck_gradgradcheck_and_refused_third_order(known_grad):
+    def f(q):
+        v, g, _ = _evaluate(q.detach(), 1 if known_grad else 0)
+        return scene_module._KnownGradPotential.apply(q, v, g, _evaluate)
+
+    q = _q()
+    assert torch.autograd.gradcheck(f, (q,))
+    assert torch.autograd.gradgradcheck(f, (q,))
+    with pytest.raises(RuntimeError, match="contact_potential: third derivatives"):
+        _third(f, q)
+
+
+def test_pair_grad_fn_gradcheck_and_refused_second_backward():
+    # _PairGradFn(X, P, feasible) is grad_x P at the optimal plane P = p*(X); its backward is the implicit Hessian,
+    # the derivative of the whole map X -> grad_x P(X, p*(X)), so the check re-solves the plane at every X
+    a, b = _pairs()
+    X0 = torch.cat([a, b], -2)  # (K, 6, 3)
+
+    def f(X):
+        with torch.no_grad():
+            val, P, _, _ = pair_module._solve(
+                X.detach(), mu=1.0, margin=1e-3, tol=1e-14, max_iter=100, want_grad=False, want_hess=False,
+                backend="numba",
+            )  # fmt: skip
+        return pair_module._PairGradFn.apply(X, P, torch.isfinite(val), 1.0, 1e-3)
+
+    X = X0.clone().requires_grad_(True)
+    assert f(X).abs().max() > 0
+    assert torch.autograd.gradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
+    with pytest.raises(RuntimeError, match="pair_potential: third derivatives"):
+        torch.autograd.gradgradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_refuse_third_order_is_the_identity_and_refuses_every_backward():
+    hv = torch.randn(2, 4, dtype=F64, requires_grad=True)
+    x, v = _q(), torch.randn(2, 4, dtype=F64)
+    out = RefuseThirdOrder.apply(hv, x, v, "test_potential")
+    assert torch.equal(out, hv)
+    with pytest.raises(RuntimeError, match="test_potential: third derivatives are not implemented"):
+        torch.autograd.gradcheck(lambda h, y: RefuseThirdOrder.apply(h, y, v, "test_potential"), (hv, x))
 
 
 # ------------------------------------------------------------------------------------------------ torch.func
