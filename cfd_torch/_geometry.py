@@ -1,4 +1,5 @@
-"""Exact closest points between two triangles in 3D.
+"""Exact closest points between two triangles in 3D (and a batched segment-triangle crossing test,
+:func:`segment_hits_triangle`, at the end of the torch section).
 
 Two forms of one algorithm:
 
@@ -44,7 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TriangleClosestPoints", "tri_tri_closest_nb", "triangle_closest_points"]
+__all__ = ["TriangleClosestPoints", "segment_hits_triangle", "tri_tri_closest_nb", "triangle_closest_points"]
 
 
 class TriangleClosestPoints(NamedTuple):
@@ -254,6 +255,68 @@ def triangle_closest_points(tri_a: Tensor, tri_b: Tensor) -> TriangleClosestPoin
     pos = d2 > 0
     dist = torch.where(pos, torch.where(pos, d2, torch.ones_like(d2)).sqrt(), torch.zeros_like(d2))
     return TriangleClosestPoints(dist, qa, qb)
+
+
+def segment_hits_triangle(p: Tensor, q: Tensor, tri: Tensor) -> Tensor:
+    """Whether the segments p -> q cross the triangles (Moller-Trumbore), batched and branch-free.
+
+    The convention and the arithmetic of the collision query's numba kernel
+    (``contact._traverse_numba._segment_hits_triangle``), operation for operation, so the two agree exactly: with
+    ``d = q - p``, ``det = e1 . (d x e2)`` (e1, e2 the edges from vertex 0), the barycentric ``u``, ``v`` and the
+    segment parameter ``t`` (each a dot product times ``1 / det``), a hit is ``det != 0``, ``0 <= u <= 1``,
+    ``v >= 0``, ``u + v <= 1`` and ``0 <= t <= 1`` (the bounds included: an endpoint on the triangle, a segment
+    through an edge or a vertex counts). A segment parallel to the plane (``det`` exactly 0) never counts, even
+    one lying in the triangle (its distance, 0, is the caller's test for that). Not differentiable (a boolean).
+
+    Args:
+        p: (..., 3) segment starts.
+        q: (..., 3) segment ends.
+        tri: (..., 3, 3) triangle vertices (vertex index, then xyz); all leading dims broadcast.
+
+    Returns:
+        (...) bool, the broadcast leading shape.
+
+    Raises:
+        ValueError: a shape other than (..., 3) / (..., 3, 3), a non-float dtype, mismatched dtypes or devices, or
+            leading dims that do not broadcast.
+    """
+    for name, x, tail in (("p", p, (3,)), ("q", q, (3,)), ("tri", tri, (3, 3))):
+        if not isinstance(x, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if x.dim() < len(tail) or tuple(x.shape[-len(tail) :]) != tail:
+            want = "(..., 3)" if len(tail) == 1 else "(..., 3, 3)"
+            raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+        if not x.is_floating_point():
+            raise ValueError(f"{name} must have a floating dtype, got {x.dtype}")
+    if not (p.dtype == q.dtype == tri.dtype):
+        raise ValueError(f"p, q and tri must share a dtype, got {p.dtype}, {q.dtype} and {tri.dtype}")
+    if not (p.device == q.device == tri.device):
+        raise ValueError(f"p, q and tri must be on one device, got {p.device}, {q.device} and {tri.device}")
+    try:
+        torch.broadcast_shapes(p.shape[:-1], q.shape[:-1], tri.shape[:-2])
+    except RuntimeError as err:
+        raise ValueError(
+            f"the leading dims of p {tuple(p.shape[:-1])}, q {tuple(q.shape[:-1])} and tri {tuple(tri.shape[:-2])} "
+            "do not broadcast"
+        ) from err
+
+    def vec(x: Tensor) -> Vec:
+        return (x[..., 0], x[..., 1], x[..., 2])
+
+    t0, t1, t2 = vec(tri[..., 0, :]), vec(tri[..., 1, :]), vec(tri[..., 2, :])
+    pp, qq = vec(p), vec(q)
+    e1, e2, d = _sub(t1, t0), _sub(t2, t0), _sub(qq, pp)
+    pv = _cross(d, e2)
+    det = _dot(e1, pv)
+    nonzero = det != 0.0
+    inv = 1.0 / torch.where(nonzero, det, torch.ones_like(det))
+    tv = _sub(pp, t0)
+    u = _dot(tv, pv) * inv
+    qv = _cross(tv, e1)
+    v = _dot(d, qv) * inv
+    t = _dot(e2, qv) * inv
+    # the kernel's early returns, negated as written there (u < 0 or u > 1 -> miss; ...), so NaN behaves the same
+    return nonzero & ~((u < 0.0) | (u > 1.0)) & ~((v < 0.0) | (u + v > 1.0)) & (t >= 0.0) & (t <= 1.0)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -487,3 +487,144 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(gpu.dist.cpu(), cpu.dist, rtol=1e-12, atol=0)
     gpu32 = triangle_closest_points(torch.from_numpy(A).float().cuda(), torch.from_numpy(B).float().cuda())
     assert gpu32.dist.dtype == torch.float32
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Segment-triangle crossing: torch against the numba kernel of the collision query
+
+
+def _segment_cases(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) starts, (N, 3) ends, (N, 3, 3) triangles: generic, near-degenerate and borderline configurations."""
+    P, Q, T = [], [], []
+
+    def add(p, q, t):
+        P.append(np.asarray(p, float).reshape(-1, 3))
+        Q.append(np.asarray(q, float).reshape(-1, 3))
+        T.append(np.asarray(t, float).reshape(-1, 3, 3))
+
+    n = 4000
+    # generic, at several scales and offsets from the origin
+    for scale, offset in ((1.0, 0.0), (1e-6, 0.0), (1e3, 0.0), (1.0, 1e4)):
+        add(offset + scale * rng.normal(size=(n, 3)), offset + scale * rng.normal(size=(n, 3)),
+            offset + scale * rng.normal(size=(n, 3, 3)))  # fmt: skip
+    # segments through the triangle's interior (hits) and short of it (t just outside [0, 1])
+    t = rng.normal(size=(n, 3, 3))
+    w = rng.dirichlet(np.ones(3), size=n)
+    x = np.einsum("nk,nkc->nc", w, t)  # a point of the triangle
+    d = rng.normal(size=(n, 3))
+    s = rng.uniform(0.0, 1.0, size=(n, 1))
+    add(x - s * d, x + (1.0 - s) * d, t)
+    add(x + 1e-9 * d, x + d, t)  # the start just beside the plane
+    # an endpoint on the plane (as rounding puts it), inside and outside the triangle
+    w2 = rng.normal(size=(n, 3))
+    w2 /= w2.sum(1, keepdims=True)
+    on_plane = np.einsum("nk,nkc->nc", w2, t)
+    add(on_plane, on_plane + rng.normal(size=(n, 3)), t)
+    add(on_plane + rng.normal(size=(n, 3)), on_plane, t)
+    # exact borderlines: the triangle (0,0,0), (1,0,0), (0,1,0) and vertical segments on a grid that includes its
+    # edges and vertices (u, v or u + v exactly 0 or 1), ends exactly on the plane z = 0, parallel segments
+    # (det exactly 0) and zero-length ones
+    unit = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    g = np.arange(-0.25, 1.5, 0.25)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    for z0, z1 in ((1.0, -1.0), (0.0, -1.0), (1.0, 0.0), (0.5, 0.25), (0.0, 0.0)):
+        m = len(xy)
+        add(np.c_[xy, np.full(m, z0)], np.c_[xy, np.full(m, z1)], np.broadcast_to(unit, (m, 3, 3)))
+    m = len(xy)
+    add(
+        np.c_[xy, np.zeros(m)], np.c_[xy[::-1], np.zeros(m)], np.broadcast_to(unit, (m, 3, 3))
+    )  # in the plane
+    add(
+        np.c_[xy, np.ones(m)], np.c_[xy[::-1], np.ones(m)], np.broadcast_to(unit, (m, 3, 3))
+    )  # parallel above
+    # near-degenerate triangles: needles and almost collinear triples, with segments through their middle
+    a, b = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    for eps in (1e-8, 1e-12, 1e-15, 0.0):
+        c = 0.5 * (a + b) + eps * rng.normal(size=(n, 3))
+        tri = np.stack([a, b, c], 1)
+        mid = (a + b + c) / 3.0
+        dd = rng.normal(size=(n, 3))
+        add(mid - dd, mid + dd, tri)
+    # nearly parallel segments crossing the triangle's interior
+    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    along = (t[:, 1] - t[:, 0]) + 1e-12 * nrm
+    add(x - along, x + along, t)
+    return np.concatenate(P), np.concatenate(Q), np.concatenate(T)
+
+
+def test_segment_hits_triangle_matches_the_numba_kernel():
+    from cfd_torch._geometry import segment_hits_triangle
+    from cfd_torch.contact._traverse_numba import _segment_hits_triangle
+
+    P, Q, T = _segment_cases(np.random.default_rng(11))
+    expected = np.array([_segment_hits_triangle(P[i], Q[i], T[i]) for i in range(len(P))])
+    got = segment_hits_triangle(torch.from_numpy(P), torch.from_numpy(Q), torch.from_numpy(T))
+    assert got.dtype == torch.bool and got.shape == (len(P),)
+    assert 0.1 < expected.mean() < 0.9  # both outcomes well represented
+    mismatch = np.nonzero(got.numpy() != expected)[0]
+    assert len(mismatch) == 0, f"{len(mismatch)} of {len(P)} differ, first at {mismatch[:5]}"
+
+    # leading dimensions broadcast: (Nd, 1, 3) segments against (1, T, 3, 3) triangles
+    p, q, t = (torch.from_numpy(x[:60]) for x in (P, Q, T))
+    grid = segment_hits_triangle(p[:6, None], q[:6, None], t[None, :10])
+    assert grid.shape == (6, 10)
+    for i in range(6):
+        for j in range(10):
+            assert bool(grid[i, j]) == _segment_hits_triangle(P[i], Q[i], T[j])
+
+
+def test_segment_hits_triangle_validation():
+    from cfd_torch._geometry import segment_hits_triangle
+
+    p, t = torch.zeros(4, 3), torch.eye(3).expand(4, 3, 3)
+    with pytest.raises(ValueError, match="p must"):
+        segment_hits_triangle(torch.zeros(4, 2), p, t)
+    with pytest.raises(ValueError, match="tri must"):
+        segment_hits_triangle(p, p, torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="q must"):
+        segment_hits_triangle(p, p.long(), t)
+    with pytest.raises(ValueError, match="dtype"):
+        segment_hits_triangle(p, p.double(), t)
+    with pytest.raises(ValueError, match="broadcast"):
+        segment_hits_triangle(p, p, t[:3])
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Rotation derivatives: the torch path against the numba kernel
+
+
+def test_rotation_derivatives_torch_path_matches_numba():
+    from cfd_torch._rotation_numba import rotation_derivatives_cpu
+    from cfd_torch.rotation import _rotation_derivatives_torch, rotation_derivatives
+
+    rng = np.random.default_rng(12)
+    axes = rng.normal(size=(400, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    norms = np.concatenate(
+        [
+            [0.0, 1e-12, 1e-9, 1e-9, 1e-6, 1e-3],
+            np.sqrt(0.25)
+            * (1.0 + np.array([-1e-12, 0.0, 1e-12, -1e-6, 1e-6])),  # the series switch at |w|^2 = 0.25
+            rng.uniform(0.01, 3.0, size=300),  # moderate
+            np.pi - np.logspace(-12, -1, 40),  # near pi, from below
+            [np.pi, np.pi + 1e-9, np.pi + 1e-3],
+            rng.uniform(3.5, 10.0, size=46),  # beyond pi (not wrapped)
+        ]
+    )
+    assert len(norms) == len(axes)
+    omega = axes * norms[:, None]
+    w = torch.from_numpy(omega)
+    for order in (0, 1, 2):
+        ref = rotation_derivatives_cpu(omega, order)
+        got = _rotation_derivatives_torch(w, order)
+        via_grad = rotation_derivatives(
+            w.clone().requires_grad_(True), order
+        )  # the dispatch takes the torch path
+        for k in range(3):
+            if k > order:
+                assert ref[k] is None and got[k] is None
+                continue
+            assert got[k].shape == ref[k].shape
+            err = float((got[k] - torch.from_numpy(ref[k])).abs().max())
+            assert err <= 1e-14, f"order {order}, output {k}: max error {err:.3e}"
+            assert torch.equal(via_grad[k].detach(), got[k])
