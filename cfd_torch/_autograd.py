@@ -18,7 +18,7 @@ numba kernels need; code outside the Functions that needs plain tensors (validat
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import torch
 from torch._functorch.pyfunctorch import temporarily_clear_interpreter_stack
@@ -46,14 +46,15 @@ def plain(x: torch.Tensor) -> torch.Tensor:
     return x.permute(*front, *axes)
 
 
-@contextlib.contextmanager
-def outside_transforms() -> Iterator[None]:
-    """Run code on plain tensors with torch.func's transforms set aside (the interpreter stack is emptied and
-    restored on exit): inside, ops do not wrap their results, so tensors keep their storage (numpy views, numba
-    kernels) and may be cached, and custom Functions run as under plain autograd. Read inputs through
-    :func:`plain`; do not operate on the transforms' wrapped tensors inside."""
-    with temporarily_clear_interpreter_stack():
-        yield
+def outside_transforms() -> contextlib.AbstractContextManager:
+    """Context in which code runs on plain tensors with torch.func's transforms set aside (the interpreter stack is
+    emptied and restored on exit): inside, ops do not wrap their results, so tensors keep their storage (numpy
+    views, numba kernels) and may be cached, and custom Functions run as under plain autograd. Read inputs through
+    :func:`plain`; do not operate on the transforms' wrapped tensors inside. A no-op when no transform is active
+    (the common case costs well under a microsecond)."""
+    if _functorch.peek_interpreter_stack() is None:
+        return contextlib.nullcontext()
+    return temporarily_clear_interpreter_stack()
 
 
 def tracked(x: torch.Tensor) -> bool:
