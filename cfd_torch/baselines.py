@@ -19,6 +19,7 @@ import torch
 
 from ._geometry import triangle_closest_points
 from ._validate import check_positive, check_triangles
+from .config import DEFAULT_CONTACT
 
 __all__ = ["ipc_barrier", "ipc_pair_barrier", "sdrs_barrier", "sdrs_pair_potential"]
 
@@ -90,7 +91,7 @@ def sdrs_pair_potential(
     tri_b: torch.Tensor,
     *,
     dhat: float = 1e-2,
-    margin: float = 1e-3,
+    margin: float = DEFAULT_CONTACT.margin,
     kappa: float = 1.0,
     iters: int = 60,
 ) -> torch.Tensor:

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES"]
+__all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "DEFAULT_CONTACT"]
 
 SPLIT_RULES = ("both", "larger")
 
@@ -57,6 +57,9 @@ class ContactConfig:
         _count("ContactConfig", "pair_max_iter", self.pair_max_iter)
         if self.split not in SPLIT_RULES:
             raise ValueError(f"ContactConfig.split must be one of {SPLIT_RULES}, got {self.split!r}")
+
+
+DEFAULT_CONTACT = ContactConfig()  # the contact functions' keyword defaults read this (no literal elsewhere)
 
 
 @dataclass(frozen=True)

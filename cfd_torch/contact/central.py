@@ -16,11 +16,12 @@ from __future__ import annotations
 import torch
 
 from .._validate import check_finite_tensor
+from ..config import DEFAULT_CONTACT
 
 __all__ = ["central_potential", "smoothstep", "blend_weight"]
 
 
-def central_potential(r: torch.Tensor, *, mu: float = 1e-8) -> torch.Tensor:
+def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness) -> torch.Tensor:
     """Closed-form potential of two contracted clusters whose centres are ``r`` apart.
 
     Args:

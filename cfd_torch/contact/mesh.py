@@ -29,9 +29,9 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
+from ..config import DEFAULT_CONTACT
 from ._traverse import SPLIT_RULES, forest_of, traverse
 from .bsh import BSH
-from .pair import DEFAULT_MAX_ITER, DEFAULT_TOL
 
 __all__ = ["MeshDerivatives", "mesh_potential", "mesh_potential_derivatives"]
 
@@ -112,13 +112,13 @@ def mesh_potential_derivatives(
     bsh_b: BSH,
     pose_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    eps: float = DEFAULT_CONTACT.eps,
+    split: str = DEFAULT_CONTACT.split,
     hessian: bool = True,
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
+    tol: float = DEFAULT_CONTACT.pair_tol,
+    max_iter: int = DEFAULT_CONTACT.pair_max_iter,
 ) -> MeshDerivatives:
     """Value, pose gradient and pose Hessian of the BSH potential of two bodies, in closed form.
 
@@ -159,12 +159,12 @@ def mesh_potential(
     bsh_b: BSH,
     pose_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    eps: float = DEFAULT_CONTACT.eps,
+    split: str = DEFAULT_CONTACT.split,
+    tol: float = DEFAULT_CONTACT.pair_tol,
+    max_iter: int = DEFAULT_CONTACT.pair_max_iter,
 ) -> torch.Tensor:
     """BSH contact potential of two rigid bodies, differentiable in both poses to first and second order.
 

@@ -34,13 +34,12 @@ from .._autograd import (
     vmap_error,
 )
 from .._validate import check_positive, check_triangles
+from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
 __all__ = ["pair_potential", "pair_potential_derivatives", "PairDerivatives", "PairSolveError", "LAMBDA"]
 
 LAMBDA = 12.0  # weight of the normal regulariser lam / (1 - |n|)
-DEFAULT_TOL = 1e-12  # relative gradient tolerance of the inner solve
-DEFAULT_MAX_ITER = 100
 _HUGEPAGE_MIN_BYTES = 1 << 25
 
 
@@ -292,10 +291,10 @@ def pair_potential(
     tri_a: torch.Tensor,
     tri_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    tol: float = DEFAULT_CONTACT.pair_tol,
+    max_iter: int = DEFAULT_CONTACT.pair_max_iter,
     backend: str = "auto",
 ) -> torch.Tensor:
     """Exact separating-plane potential of triangle pairs, differentiable to second order.
@@ -329,11 +328,11 @@ def pair_potential_derivatives(
     tri_a: torch.Tensor,
     tri_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
     hessian: bool = True,
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
+    tol: float = DEFAULT_CONTACT.pair_tol,
+    max_iter: int = DEFAULT_CONTACT.pair_max_iter,
     backend: str = "auto",
 ) -> PairDerivatives:
     """Value, gradient, Hessian and optimal plane in closed form from the converged plane (no autograd graph).

@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 
 from .._validate import check_positive
+from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from .bsh import BSH
 from .central import central_potential, smoothstep
@@ -116,10 +117,10 @@ def mesh_potential_reference(
     bsh_b: BSH,
     pose_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    eps: float = DEFAULT_CONTACT.eps,
+    split: str = DEFAULT_CONTACT.split,
 ) -> torch.Tensor:
     """BSH contact potential of two rigid bodies by naive recursion (the oracle for the batched version).
 
@@ -150,10 +151,10 @@ def mesh_traversal_counts_reference(
     bsh_b: BSH,
     pose_b: torch.Tensor,
     *,
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    eps: float = DEFAULT_CONTACT.eps,
+    split: str = DEFAULT_CONTACT.split,
 ) -> dict[str, int]:
     """Traversal statistics of :func:`mesh_potential_reference` at one pose pair.
 

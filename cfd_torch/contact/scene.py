@@ -22,10 +22,10 @@ from .._autograd import (
     tracked,
     vmap_error,
 )
+from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
 from .mesh import _check_params
-from .pair import DEFAULT_MAX_ITER, DEFAULT_TOL
 
 __all__ = ["ContactPotential", "contact_potential", "body_pairs", "scatter_pair_derivatives"]
 
@@ -132,14 +132,14 @@ def contact_potential(
     *,
     static: Sequence[bool] | torch.Tensor | None = None,
     exclude: Sequence[tuple[int, int]] = (),
-    mu: float = 1e-8,
-    margin: float = 1e-3,
-    eps: float = 0.01,
-    split: str = "both",
+    mu: float = DEFAULT_CONTACT.stiffness,
+    margin: float = DEFAULT_CONTACT.margin,
+    eps: float = DEFAULT_CONTACT.eps,
+    split: str = DEFAULT_CONTACT.split,
     grad: bool | None = None,
     hessian: bool = False,
-    tol: float = DEFAULT_TOL,
-    max_iter: int = DEFAULT_MAX_ITER,
+    tol: float = DEFAULT_CONTACT.pair_tol,
+    max_iter: int = DEFAULT_CONTACT.pair_max_iter,
 ) -> ContactPotential:
     """Total contact potential of N rigid bodies and, on request, its gradient and Hessian in closed form.
 
