@@ -43,7 +43,7 @@ from .contact.scene import ContactPotential, contact_potential
 from .sim.bodies import RigidBody, rigid_body
 from .sim.kinematics import FreeBodies, Kinematics
 from .sim.scene import Scene
-from .sim.step import pair_forces, recentre_rotation, rollout, step
+from .sim.stepper import pair_forces, recentre_rotation, rollout, step
 from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory
 
 __all__ = [

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["rotation_matrix", "rotation_derivatives", "transform_points"]
+__all__ = ["rotation_matrix", "rotation_derivatives", "transform_points", "point_jacobian", "rot_second"]
 
 _SMALL = 1e-4
 
@@ -206,3 +206,13 @@ def rotation_vector(quat: torch.Tensor) -> torch.Tensor:
     angle = 2.0 * torch.atan2(s, q[..., :1])
     k = torch.where(s > 1e-12, angle / torch.where(s > 1e-12, s, torch.ones_like(s)), 2.0 / q[..., :1])
     return k * v
+
+
+def point_jacobian(dR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """(E, 3, 3) d(R X)/d omega for per-element dR (E, 3, 3, 3) and body-frame points X (E, 3)."""
+    return torch.einsum("eimk,em->eik", dR, X)
+
+
+def rot_second(d2R: torch.Tensor, X: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(E, 3, 3) sum_i w_i d2(R X)_i / d omega d omega."""
+    return torch.einsum("ei,eimkl,em->ekl", w, d2R, X)

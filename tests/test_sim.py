@@ -228,13 +228,48 @@ def test_substeps_retry_a_failed_step(bodies):
         step(hard, state)
     retry = hard.replace(substeps=4)
     nxt, info = step(retry, state, return_info=True)
-    assert info.substeps == 2
-    fine = Scene((cube, ground), dt=0.04 / info.substeps)
+    k = int(info.substeps)
+    assert k == 2
+    fine = Scene((cube, ground), dt=0.04 / k)
     st = fine.initial_state(q, v)
-    for _ in range(info.substeps):
+    for _ in range(k):
         st = step(fine, st)
     torch.testing.assert_close(nxt.q, st.q, rtol=0, atol=1e-12)
     torch.testing.assert_close(nxt.velocity(0.04), st.velocity(fine.dt), rtol=0, atol=1e-9)
+
+
+def test_batch_with_a_failing_scene_and_per_scene_params_equals_each_alone(bodies):
+    """A batch in which one scene needs sub-steps and the others do not, with per-scene friction coefficients
+    (0 in the failing one) and shared masses: each scene comes out as it does alone (sub-steps, friction contacts,
+    poses)."""
+    cube, ground, _, _ = bodies
+    scene = Scene((cube, ground), dt=0.04, max_newton_iter=8, substeps=4)
+    q = torch.tensor(
+        [
+            [_pose(0.0, 0.0, 0.103), _pose()],
+            [_pose(0.0, 0.0, 0.1014), _pose()],
+            [_pose(0.1, 0.0, 0.1014), _pose()],
+        ],
+        dtype=F64,
+    )
+    v = torch.zeros_like(q)
+    v[0, 0, 2] = -0.1  # the drop that needs sub-steps
+    p = scene.params()
+    params = p._replace(friction=torch.tensor([0.0, 0.3, 0.5], dtype=F64))
+    state = scene.initial_state(q, v)
+    nxt, info = step(scene, state, params=params, return_info=True)
+    for b in range(3):
+        alone, ai = step(
+            scene, State(state.q[b], state.q_prev[b]), params=p._replace(friction=params.friction[b]),
+            return_info=True,
+        )  # fmt: skip
+        assert int(info.substeps[b]) == int(ai.substeps)
+        assert int(info.friction_contacts[b]) == int(ai.friction_contacts)
+        torch.testing.assert_close(nxt.q[b], alone.q, rtol=0, atol=1e-12)
+        torch.testing.assert_close(nxt.q_prev[b], alone.q_prev, rtol=0, atol=1e-12)
+    assert info.substeps.tolist() == [2, 1, 1] and info.friction_contacts.tolist()[0] == 0
+    with pytest.raises(ValueError, match=r"params.mass must have shape"):
+        step(scene, state, params=p._replace(mass=p.mass.expand(2, -1)))
 
 
 # ------------------------------------------------------------------------------------------------ contact models

@@ -31,11 +31,9 @@ from typing import NamedTuple
 
 import torch
 
-from ..rotation import rotation_derivatives
+from ..rotation import point_jacobian, rot_second, rotation_derivatives
 from .bsh import BSH
 from .pair import pair_potential_derivatives
-
-SPLIT_RULES = ("both", "larger")
 
 
 # ---------------------------------------------------------------------------------------------- the forest
@@ -87,17 +85,6 @@ def build_forest(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.devic
         torch.cat(tris).to(dtype=dtype, device=device),
         torch.tensor(roots, device=device),
     )
-
-
-# ---------------------------------------------------------------------------------------------- kinematics
-def point_jacobian(dR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
-    """(E, 3, 3) d(R X)/d omega for per-element dR (E, 3, 3, 3) and body-frame points X (E, 3)."""
-    return torch.einsum("eimk,em->eik", dR, X)
-
-
-def rot_second(d2R: torch.Tensor, X: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """(E, 3, 3) sum_i w_i d2(R X)_i / d omega d omega."""
-    return torch.einsum("ei,eimkl,em->ekl", w, d2R, X)
 
 
 def _product(a, da, d2a, b, db, d2b):

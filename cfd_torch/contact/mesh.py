@@ -29,8 +29,8 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
-from ..config import DEFAULT_CONTACT
-from ._traverse import SPLIT_RULES, forest_of, traverse
+from ..config import DEFAULT_CONTACT, SPLIT_RULES
+from ._traverse import forest_of, traverse
 from .bsh import BSH
 
 __all__ = ["MeshDerivatives", "mesh_potential", "mesh_potential_derivatives"]

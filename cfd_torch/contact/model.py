@@ -12,7 +12,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import torch
 
-__all__ = ["ContactEval", "LaggedContacts", "ContactModel"]
+__all__ = ["ContactEval", "LaggedContacts", "ContactModel", "sum_pairs"]
 
 
 class ContactEval(NamedTuple):
@@ -77,3 +77,33 @@ class ContactModel(Protocol):
     def lagged(
         self, poses: torch.Tensor, pairs: torch.Tensor, active: float, create_graph: bool = False
     ) -> LaggedContacts: ...
+
+
+def sum_pairs(
+    num_sets: int, num_bodies: int, pairs: torch.Tensor, g: torch.Tensor | None, h: torch.Tensor | None
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """Per-pair derivatives over [q_i, q_j] summed into per-pose-set ones.
+
+    Args:
+        num_sets: S; num_bodies: N.
+        pairs: (P, 3) rows (s, i, j).
+        g: (P, 12) pair gradients, or None.
+        h: (P, 12, 12) pair Hessians, or None.
+
+    Returns:
+        (S, N, 6) gradients and (S, 6N, 6N) Hessians (None where the input is None).
+    """
+    G = H = None
+    s, i, j = pairs[:, 0], pairs[:, 1], pairs[:, 2]
+    if g is not None:
+        G = g.new_zeros(num_sets, num_bodies, 6)
+        G.index_put_((s, i), g[:, :6], accumulate=True)
+        G.index_put_((s, j), g[:, 6:], accumulate=True)
+    if h is not None:
+        Hb = h.new_zeros(num_sets, num_bodies, num_bodies, 6, 6)
+        Hb.index_put_((s, i, i), h[:, :6, :6], accumulate=True)
+        Hb.index_put_((s, i, j), h[:, :6, 6:], accumulate=True)
+        Hb.index_put_((s, j, i), h[:, 6:, :6], accumulate=True)
+        Hb.index_put_((s, j, j), h[:, 6:, 6:], accumulate=True)
+        H = Hb.permute(0, 1, 3, 2, 4).reshape(num_sets, 6 * num_bodies, 6 * num_bodies)
+    return G, H

@@ -26,8 +26,9 @@ from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
 from .mesh import _check_params
+from .model import sum_pairs
 
-__all__ = ["ContactPotential", "contact_potential", "body_pairs", "scatter_pair_derivatives"]
+__all__ = ["ContactPotential", "contact_potential", "body_pairs"]
 
 
 class ContactPotential(NamedTuple):
@@ -80,37 +81,6 @@ class _KnownGradPotential(torch.autograd.Function):
     @staticmethod
     def jvp(ctx, *tangents):
         raise forward_mode_error("contact_potential")
-
-
-def scatter_pair_derivatives(
-    n: int, pairs: torch.Tensor, g: torch.Tensor | None, h: torch.Tensor | None
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """Sum per-pair derivatives into scene ones.
-
-    Args:
-        n: number of bodies N.
-        pairs: (P, 2) body indices (a, b) of each pair.
-        g: (P, 12) pair gradients over [q_a, q_b], or None.
-        h: (P, 12, 12) pair Hessians, or None.
-
-    Returns:
-        (N, 6) gradient and (6N, 6N) Hessian (None where the input is None).
-    """
-    G = H = None
-    i, j = pairs[:, 0], pairs[:, 1]
-    if g is not None:
-        G = g.new_zeros(n, 6)
-        G.index_add_(0, i, g[:, :6])
-        G.index_add_(0, j, g[:, 6:])
-    if h is not None:
-        H = h.new_zeros(n, 6, n, 6)
-        Hf = H.permute(0, 2, 1, 3)  # (N, N, 6, 6) view
-        Hf.index_put_((i, i), h[:, :6, :6], accumulate=True)
-        Hf.index_put_((i, j), h[:, :6, 6:], accumulate=True)
-        Hf.index_put_((j, i), h[:, 6:, :6], accumulate=True)
-        Hf.index_put_((j, j), h[:, 6:, 6:], accumulate=True)
-        H = H.reshape(6 * n, 6 * n)
-    return G, H
 
 
 def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] = ()) -> torch.Tensor:
@@ -210,8 +180,9 @@ def contact_potential(
         v, g, h, st = traverse(forest, pairs, pair_root, q.detach().reshape(N, 6), order=order_, **params)
         stats.update(st)
         value = v.sum()[None]
-        G, H = scatter_pair_derivatives(N, pairs, g, h)
-        return value, (G.reshape(1, 6 * N) if G is not None else None), (H[None] if H is not None else None)
+        rows = torch.cat([torch.zeros_like(pairs[:, :1]), pairs], 1)  # (P, 3): one pose set
+        G, H = sum_pairs(1, N, rows, g, h)
+        return value, (G.reshape(1, 6 * N) if G is not None else None), H
 
     with outside_transforms(), torch.no_grad():
         value, G, H = evaluate(plain(q64).detach().reshape(1, 6 * N), order)

@@ -14,10 +14,11 @@ from contextlib import contextmanager
 
 import torch
 
+from ..contact.model import LaggedContacts, sum_pairs
 from ..contact.pair import PairSolveError
-from .energy import StepProblem, body_terms, scatter_pairs, scene_pairs
-from .feasibility import solve_step
+from .energy import StepProblem, body_terms, end_poses, scene_pairs
 from .friction import friction_terms
+from .solve import solve_step
 from .types import StepError
 
 __all__ = ["StepFn"]
@@ -39,51 +40,56 @@ def _serial_torch():
         torch.set_num_threads(n)
 
 
-def _lagged(scene, q_t: torch.Tensor, create_graph: bool = False):
-    """The lagged friction contacts of the batch's pairs at the start-of-step poses q_t (B, N, 6)."""
-    pairs = scene_pairs(scene, q_t.shape[0]).to(q_t.device)
-    return scene.contact_model.lagged(q_t, pairs, scene.friction.active, create_graph=create_graph)
+def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = False) -> LaggedContacts:
+    """The lagged friction contacts of the scenes ``on`` (B,) bool at the start-of-step poses q_t (B, N, 6),
+    indexed into the pairs of all B scenes (``scene_pairs(scene, B)``)."""
+    B, P = q_t.shape[0], scene.pairs.shape[0]
+    idx = torch.nonzero(on)[:, 0]
+    pairs = scene_pairs(scene, len(idx)).to(q_t.device)
+    lag = scene.contact_model.lagged(q_t[idx], pairs, scene.friction.active, create_graph=create_graph)
+    if len(idx) < B and P:  # renumber into the pairs of all B scenes
+        lag = lag._replace(pair=idx[lag.pair // P] * P + lag.pair % P)
+    return lag
 
 
 class StepFn(torch.autograd.Function):
     """(scene, q_t, q_p, force, torque, target, mass, S, mu_f) -> q* (B, Q) and, not differentiable, the solver's
-    statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,), counts (3,)
-    (contact evaluations, node pairs, leaf pairs) and the forward's wall time (1,)."""
+    statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,), work (3,)
+    (energy evaluations, node pairs, leaf pairs) and the forward's wall time (1,)."""
 
     @staticmethod
     def forward(ctx, scene, q_t, q_p, force, torque, target, mass, S, mu_f):
         t0 = time.perf_counter()
+        B = q_t.shape[0]
         with _serial_torch():
-            fixed = q_t.clone()
-            if len(scene.kinematic):
-                fixed[:, scene.kinematic.to(q_t.device)] = target
-            lagged = None
+            fixed = end_poses(scene, q_t, target)
             # friction off costs nothing, unless its coefficient needs a gradient (at mu_f = 0 the term is zero but
             # its derivative is not)
-            if bool((mu_f > 0).any()) or ctx.needs_input_grad[8]:
-                lagged = _lagged(scene, q_t)
+            on = (mu_f > 0) | ctx.needs_input_grad[8]
+            lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
-            prob = StepProblem(scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, lagged, gravity)
-            tally = [0, 0, 0]
+            prob = StepProblem(scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity)
             try:
-                res = solve_step(prob, tally)
+                res, work = solve_step(prob)
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
                 raise StepError(f"the step failed: {err}") from err
-        ctx.scene, ctx.friction = scene, lagged is not None
+        # the adjoint needs the contact Hessian's cross blocks with the bodies the map does not move only
+        N = scene.num_bodies
+        still = torch.ones(N, dtype=torch.bool)
+        still[scene.kinematics.bodies] = False
+        rows6 = (torch.nonzero(still)[:, 0, None] * 6 + torch.arange(6)).reshape(-1).to(q_t.device)
+        cross = res.at.contact_hess[:, rows6]  # (B, 6 F, 6 N)
+        ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
-            res.q, res.hess, res.contact_hess, q_t, q_p, force, torque, target, mass, S, mu_f
+            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f
         )
-        B = q_t.shape[0]
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
         else:
-            P = scene.pairs.shape[0]
-            n_fc = torch.bincount(lagged.pair // max(P, 1), minlength=B)
-        stats = torch.tensor(tally, dtype=torch.long)
-        extras = (res.iters, res.contact_force, res.friction_force, n_fc, stats)
-        ctx.mark_non_differentiable(*extras)
+            n_fc = torch.bincount(lagged.pair // max(scene.pairs.shape[0], 1), minlength=B)
+        extras = (res.iters, res.at.contact_force, res.at.friction_force, n_fc, torch.tensor(work))
         seconds = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
-        ctx.mark_non_differentiable(seconds)
+        ctx.mark_non_differentiable(*extras, seconds)
         return (res.q, *extras, seconds)
 
     @staticmethod
@@ -103,20 +109,20 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, Hc, q_t, q_p, force, torque, target, mass, S, mu_f = ctx.saved_tensors
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f = ctx.saved_tensors
         B, N = q_t.shape[:2]
-        dyn = scene.kinematics.bodies.to(q.device)
+        kin = scene.kinematics
+        dyn = kin.bodies.to(q.device)
         Nd = len(dyn)
-        chol, _ = torch.linalg.cholesky_ex(H)
+        chol, info = torch.linalg.cholesky_ex(H)
+        if bool((info != 0).any()):  # cannot happen: Newton converges only at a positive definite Hessian
+            raise RuntimeError("cfd_torch.step backward: the step's Hessian is not positive definite")
         lam = torch.cholesky_solve(gout.to(H.dtype)[:, :, None], chol)[:, :, 0]
-        Jlam = scene.kinematics.push(q, lam)  # (B, N, 6)
+        Jlam = kin.push(q, lam)  # (B, N, 6)
         with torch.enable_grad():
             th = [x.detach().requires_grad_(True) for x in (q_t, q_p, force, torque, target, mass, S, mu_f)]
             tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu = th
-            fixed = tq_t.clone()
-            if len(scene.kinematic):
-                fixed[:, scene.kinematic.to(q.device)] = ttarget
-            poses_next = scene.kinematics.poses(q, fixed)
+            poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
             _, g_b, _ = body_terms(
@@ -124,19 +130,23 @@ class StepFn(torch.autograd.Function):
                 rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
-            if ctx.friction:
-                lagged = _lagged(scene, tq_t, create_graph=True)
+            if ctx.friction_on is not None:
+                lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True)
                 cp = scene_pairs(scene, B).to(q.device)[lagged.pair]
                 frows = cp[:, :1] * N + cp[:, 1:]
                 _, gf, _ = friction_terms(
-                    lagged, poses_next.reshape(B * N, 6), frows, tmu[cp[:, 0]], scene.friction.eps_v * scene.dt, 1,
-                    reduce=False,
-                )  # fmt: skip
-                Gf, _ = scatter_pairs(B, N, cp, gf, None)
+                    lagged,
+                    poses_next.reshape(B * N, 6),
+                    frows,
+                    tmu[cp[:, 0]],
+                    scene.friction.eps_v * scene.dt,
+                    1,
+                )
+                Gf, _ = sum_pairs(B, N, cp, gf, None)
                 s = s + (Gf * Jlam).sum()
             # contact: d(g)/d(pose_j) for a pose the map does not move is the cross block of the contact Hessian
-            cross = (Hc @ Jlam.reshape(B, 6 * N, 1)).reshape(B, N, 6)
-            s = s + (cross.detach() * poses_next).sum()
+            c = (cross @ Jlam.reshape(B, 6 * N, 1))[:, :, 0]  # (B, 6 F)
+            s = s + (c * poses_next.reshape(B, 6 * N)[:, rows6]).sum()
             grads = torch.autograd.grad(-s, th, allow_unused=True)
         out = [
             None if gth is None else gth.to(x.dtype)

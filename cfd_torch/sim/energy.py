@@ -25,11 +25,19 @@ from typing import NamedTuple
 
 import torch
 
-from ..contact.model import LaggedContacts
+from ..contact.model import LaggedContacts, sum_pairs
 from ..rotation import rotation_derivatives, rotation_matrix
 from .friction import friction_terms
 
-__all__ = ["StepProblem", "EnergyEval", "incremental_potential", "select_scenes", "body_terms", "scene_pairs"]
+__all__ = [
+    "StepProblem",
+    "EnergyEval",
+    "incremental_potential",
+    "select_scenes",
+    "body_terms",
+    "scene_pairs",
+    "end_poses",
+]
 
 
 class StepProblem(NamedTuple):
@@ -41,7 +49,10 @@ class StepProblem(NamedTuple):
         q_t, q_p: (B, N, 6) poses at the start of the step and one step earlier.
         force, torque: (B, N, 3) the action's world-frame forces and torques.
         mass: (B, Nd); second_moment: (B, Nd, 3, 3) symmetric; friction: (B,) Coulomb's coefficient.
-        lagged: the lagged friction contacts of the batch's pairs (``scene_pairs(scene, B)``), or None.
+        friction_on: (B,) bool, the scenes with friction terms (a positive coefficient, or one whose gradient is
+            asked for).
+        lagged: the lagged friction contacts of the batch's pairs (``scene_pairs(scene, B)``) in the scenes with
+            friction, or None when none has.
         gravity: (3,).
     """
 
@@ -54,6 +65,7 @@ class StepProblem(NamedTuple):
     mass: torch.Tensor
     second_moment: torch.Tensor
     friction: torch.Tensor
+    friction_on: torch.Tensor
     lagged: LaggedContacts | None
     gravity: torch.Tensor
 
@@ -71,8 +83,8 @@ class EnergyEval(NamedTuple):
             terms it takes part in): the line search treats differences below 1e-12 of it as rounding.
         majorizer_gap: (A, Q, Q) friction's quadratic majorizer minus its exact Hessian (positive semi-definite),
             or None without friction.
-        h_floor: (A,) a tenth of the smallest eigenvalue of the inertia Hessians: the saddle-free direction's
-            floor on eigenvalue magnitudes.
+        h_floor: (A,) a tenth of the smallest eigenvalue of the moving bodies' inertia Hessians (pose space: the
+            coordinates' own for free bodies): the saddle-free direction's floor on eigenvalue magnitudes.
         contact_force, friction_force: (A, N, 6) -dP/dpose and -dD/dpose.
         node_pairs, leaf_pairs: the contact model's work in this evaluation.
     """
@@ -95,6 +107,18 @@ def scene_pairs(scene, num_scenes: int) -> torch.Tensor:
     P = scene.pairs.shape[0]
     s = torch.arange(num_scenes).repeat_interleave(P)
     return torch.cat([s[:, None], scene.pairs.repeat(num_scenes, 1)], 1)
+
+
+def end_poses(scene, q_t: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B, N, 6) the end-of-step poses of the bodies the step does not solve for: the start poses q_t (B, N, 6),
+    kinematic rows at their targets (B, K, 6) (differentiable in both)."""
+    if len(scene.kinematic) == 0:
+        return q_t
+    kin = scene.kinematic.to(q_t.device)
+    mask = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
+    mask[kin] = True
+    rows = torch.zeros_like(q_t).index_add(1, kin, target)
+    return torch.where(mask, rows, q_t)
 
 
 def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
@@ -122,6 +146,7 @@ def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
         prob.mass,
         prob.second_moment,
         prob.friction,
+        prob.friction_on,
     )
     return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity)
 
@@ -166,25 +191,6 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     return value, grad, H
 
 
-def scatter_pairs(A: int, N: int, pairs: torch.Tensor, g: torch.Tensor | None, h: torch.Tensor | None):
-    """Per-pair derivatives over [q_i, q_j] (g (P, 12), h (P, 12, 12)) of pairs (P, 3) rows (s, i, j) summed into
-    per-scene ones: (A, N, 6) and (A, 6N, 6N)."""
-    G = H = None
-    s, i, j = pairs[:, 0], pairs[:, 1], pairs[:, 2]
-    if g is not None:
-        G = g.new_zeros(A, N, 6)
-        G.index_put_((s, i), g[:, :6], accumulate=True)
-        G.index_put_((s, j), g[:, 6:], accumulate=True)
-    if h is not None:
-        Hb = h.new_zeros(A, N, N, 6, 6)
-        Hb.index_put_((s, i, i), h[:, :6, :6], accumulate=True)
-        Hb.index_put_((s, i, j), h[:, :6, 6:], accumulate=True)
-        Hb.index_put_((s, j, i), h[:, 6:, :6], accumulate=True)
-        Hb.index_put_((s, j, j), h[:, 6:, 6:], accumulate=True)
-        H = Hb.permute(0, 1, 3, 2, 4).reshape(A, 6 * N, 6 * N)
-    return G, H
-
-
 def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> EnergyEval:
     """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2)."""
     scene = prob.scene
@@ -214,7 +220,7 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
         local.index_put_((pairs[:, 0], pairs[:, 1]), v, accumulate=True)
         local.index_put_((pairs[:, 0], pairs[:, 2]), v, accumulate=True)
         value = value + v.reshape(B, -1).sum(1)
-        G, Hc = scatter_pairs(B, N, pairs, ce.grad, ce.hess)
+        G, Hc = sum_pairs(B, N, pairs, ce.grad, ce.hess)
     elif order:
         G = q.new_zeros(B, N, 6)
         Hc = q.new_zeros(B, 6 * N, 6 * N) if order > 1 else None
@@ -225,15 +231,15 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
         frows = cp[:, :1] * N + cp[:, 1:]
         vf, gf, hf, *gap_c = friction_terms(
             lag, poses.reshape(B * N, 6), frows, prob.friction[cp[:, 0]], scene.friction.eps_v * scene.dt, order,
-            reduce=False, majorizer_gap=order >= 2,
+            majorizer_gap=order >= 2,
         )  # fmt: skip
         local.index_put_((cp[:, 0], cp[:, 1]), vf, accumulate=True)
         local.index_put_((cp[:, 0], cp[:, 2]), vf, accumulate=True)
         value = value + torch.zeros_like(value).index_add_(0, cp[:, 0], vf)
         if order:
-            Gf, Hf = scatter_pairs(B, N, cp, gf, hf)
+            Gf, Hf = sum_pairs(B, N, cp, gf, hf)
             if order >= 2:
-                gap = scatter_pairs(B, N, cp, None, gap_c[0])[1]
+                gap = sum_pairs(B, N, cp, None, gap_c[0])[1]
     scale = value.abs() + local.abs().sum(1)
     if order == 0:
         return EnergyEval(value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs)

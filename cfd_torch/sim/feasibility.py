@@ -14,28 +14,24 @@ reachable. One contract for all three:
   only if some centre of mass crosses a static surface. With a huge dt the minimiser can lie beyond an obstacle,
   reached by iterates that went around it. Pairs of moving bodies are not checked here: their straight
   interpolation may overlap after a legitimate collision.
-* The **start** is the constant-velocity extrapolation if it and the path to it are feasible; else q_t; else (a
-  kinematic body moved into a dynamic one) the dynamic bodies carried with each kinematic body's displacement, or
-  a continuation: the kinematic motion split into fractions (adaptively halved), the step's problem solved loosely
-  at each fraction from the previous solution, so the pushed bodies make room. A start state that itself
-  penetrates is a ``ValueError``.
+* The Newton solve **starts** at a feasible configuration (:func:`cfd_torch.sim.solve.start` says how it is
+  found); a start state that itself penetrates is a ``ValueError``.
 """
 
 from __future__ import annotations
 
 import torch
 
+from .._geometry import segment_hits_triangle
 from ..rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
-from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
-from .newton import Stop, newton
-from .types import StepError
+from .energy import StepProblem
 
-__all__ = ["infeasible_pairs", "feasible", "displacement", "path_clear", "reachable", "start", "solve_step"]
+__all__ = ["infeasible_pairs", "feasible", "penetrating", "displacement", "path_clear", "reachable"]
 
 
 def infeasible_pairs(scene, poses: torch.Tensor, sel: torch.Tensor | None = None, shrink: float = 0.0):
     """(S, P') bool: the interacting pairs (or those selected by the (P,) mask ``sel``) whose potential is +inf in
-    each of the S pose sets ``poses`` (S, N, 6), the dynamic bodies scaled by 1 - ``shrink``."""
+    each of the S pose sets ``poses`` (S, N, 6), the moving bodies scaled by 1 - ``shrink``."""
     S = poses.shape[0]
     base = scene.pairs if sel is None else scene.pairs[sel]
     P = base.shape[0]
@@ -46,7 +42,7 @@ def infeasible_pairs(scene, poses: torch.Tensor, sel: torch.Tensor | None = None
     scale = None
     if shrink:
         scale = torch.ones(scene.num_bodies, dtype=torch.float64)
-        scale[scene.dynamic] = 1.0 - shrink
+        scale[scene.kinematics.bodies] = 1.0 - shrink
     return scene.contact_model.infeasible(poses, pairs.to(poses.device), scale).reshape(S, P)
 
 
@@ -96,13 +92,13 @@ def path_clear(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: to
     return clear
 
 
-def _pivot_path(prob: StepProblem, b: int, q0: torch.Tensor, q1: torch.Tensor):
-    """Scene b's dynamic bodies' motion q0 -> q1 (Nd, 6) as a rotation about, and a straight motion of, each
+def _pivot_path(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor):
+    """The moving bodies' motion q0 -> q1 (Nd, 6) as a rotation about, and a straight motion of, each
     body's vertex that moves least (a body tipping over an edge turns about that edge); returns s -> (Nd, 6)."""
     scene = prob.scene
     R0, R1 = rotation_matrix(q0[:, 3:]), rotation_matrix(q1[:, 3:])
     pivots = []
-    for i, k in enumerate(scene.dynamic.tolist()):
+    for i, k in enumerate(scene.kinematics.bodies.tolist()):
         X = scene.bodies[k].bsh.vertices.to(q0)
         d = (X @ (R1[i] - R0[i]).T + (q1[i, :3] - q0[i, :3])).norm(dim=1)
         pivots.append(X[int(d.argmin())])
@@ -124,8 +120,6 @@ def _pivot_path(prob: StepProblem, b: int, q0: torch.Tensor, q1: torch.Tensor):
 def _centre_crosses_static(prob: StepProblem, b: int, q0: torch.Tensor, q1: torch.Tensor) -> bool:
     """Whether the segment from some dynamic body's centre of mass at q0 to that at q1 ((Nd, 6); dynamic frames sit
     at the centres of mass) crosses a triangle of a static body of scene b (exact; both ends are outside)."""
-    from .._geometry import segment_hits_triangle
-
     scene = prob.scene
     for j in torch.nonzero(scene.static_mask)[:, 0].tolist():
         pose = prob.fixed[b, j]
@@ -147,7 +141,7 @@ def reachable(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor) -> torch.Te
     a, b = scene.pairs[:, 0], scene.pairs[:, 1]
     st = scene.static_mask
     dyn_mask = torch.zeros(scene.num_bodies, dtype=torch.bool)
-    dyn_mask[scene.dynamic] = True
+    dyn_mask[scene.kinematics.bodies] = True
     sel = (st[a] ^ st[b]) & (dyn_mask[a] | dyn_mask[b])
     ok = torch.ones(B, dtype=torch.bool, device=q0.device)
     if not bool(sel.any()):
@@ -155,7 +149,8 @@ def reachable(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor) -> torch.Te
     scenes = torch.arange(B, device=q0.device)
     n = torch.ceil(displacement(prob, q0, q1, scenes) / scene.solver.ccd_spacing).long()
     shrink = scene.solver.reach_shrink
-    kin, dyn = scene.kinematics, scene.dynamic.to(q0.device)
+    kin = scene.kinematics
+    dyn = kin.bodies.to(q0.device)
     for i in torch.nonzero(n > 1)[:, 0].tolist():
         k = torch.arange(1, int(n[i]), device=q0.device, dtype=q0.dtype)[:, None] / float(n[i])
         straight = q0[i] + k * (q1[i] - q0[i])  # (n - 1, Q)
@@ -164,157 +159,10 @@ def reachable(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor) -> torch.Te
             continue
         p0 = kin.poses(q0[i : i + 1], prob.fixed[i : i + 1])[0, dyn]
         p1 = kin.poses(q1[i : i + 1], prob.fixed[i : i + 1])[0, dyn]
-        at = _pivot_path(prob, i, p0, p1)
+        at = _pivot_path(prob, p0, p1)
         pivot = fixed.clone()
         pivot[:, dyn] = torch.stack([at(float(s)) for s in k[:, 0]])
         if not bool(infeasible_pairs(scene, pivot, sel, shrink).any()):
             continue
         ok[i] = not _centre_crosses_static(prob, i, p0, p1)
     return ok
-
-
-def _energy(prob: StepProblem, tally: list[int]):
-    """L of the scenes ``scenes`` of ``prob``; ``tally`` accumulates [contact evaluations, node pairs, leaf pairs]."""
-    B = prob.q_t.shape[0]
-    counted = prob.scene.pairs.shape[0] > 0
-
-    def energy(q: torch.Tensor, scenes: torch.Tensor, order: int) -> EnergyEval:
-        whole = len(scenes) == B and bool((scenes == torch.arange(B, device=scenes.device)).all())
-        ev = incremental_potential(prob if whole else select_scenes(prob, scenes), q, order)
-        tally[0] += int(counted)
-        tally[1] += ev.node_pairs
-        tally[2] += ev.leaf_pairs
-        return ev
-
-    return energy
-
-
-def _newton(prob: StepProblem, q: torch.Tensor, first: EnergyEval | None, tol: float, tally: list[int]):
-    s = prob.scene.solver
-    energy = _energy(prob, tally)
-    all_ = torch.arange(q.shape[0], device=q.device)
-    return newton(
-        energy, q, energy(q, all_, 2) if first is None else first, tol=tol, max_iter=s.max_newton_iter,
-        max_move=20.0 * s.ccd_spacing, free_move=s.ccd_spacing,
-        move_ok=lambda a, b, sc: path_clear(prob, a, b, sc), displacement=lambda a, b, sc: displacement(prob, a, b, sc),
-    )  # fmt: skip
-
-
-def _continuation(prob: StepProblem, q: torch.Tensor, tally: list[int]) -> torch.Tensor:
-    """Scene 0 of ``prob`` (one scene): push the dynamic bodies out of a kinematic body's way (see the contract)."""
-    scene = prob.scene
-    kin = scene.kinematic.to(q.device)
-    target = prob.fixed.clone()
-    origin = prob.q_t[:, kin]
-    done, inc = 0.0, 0.5
-    tol = max(scene.solver.newton_tol, 1e-7)
-    while done < 1.0:
-        frac = min(1.0, done + inc)
-        fixed = target.clone()
-        fixed[:, kin] = origin + frac * (target[:, kin] - origin)
-        sub = prob._replace(fixed=fixed)
-        if bool(feasible(scene, scene.kinematics.poses(q, fixed))[0]):
-            res = _newton(sub, q, None, tol, tally)
-            if int(res.reason[0]) != Stop.CONVERGED:
-                raise StepError(
-                    f"pushing bodies out of a kinematic body's way: the solve at {frac:.3g} of the kinematic motion "
-                    f"stopped: {Stop(int(res.reason[0])).name}"
-                )
-            q = res.q
-            done, inc = frac, inc * 2.0
-        else:
-            inc *= 0.5
-            if inc < 1e-4:
-                raise StepError(
-                    f"the kinematic targets: bodies penetrate (within the margin {scene.contact.margin}): pairs "
-                    f"{penetrating(scene, scene.kinematics.poses(q, fixed)[0])}, and pushing them out of the way "
-                    "failed; move kinematic bodies less per step"
-                )
-    return q
-
-
-def start(prob: StepProblem, tally: list[int]) -> tuple[torch.Tensor, EnergyEval | None]:
-    """A feasible start (B, Q) for every scene, and its order-2 evaluation where already done (None if none)."""
-    scene = prob.scene
-    kin = scene.kinematics
-    q_t = kin.coords(prob.q_t)
-    v = q_t - kin.coords(prob.q_p)
-    B = q_t.shape[0]
-    v6 = v.reshape(B, -1, 6)
-    # constant-velocity extrapolation, dropped for a body turning by 1 rad or more per step
-    extrap = q_t + torch.where((v6[..., 3:].abs() < 1.0).all(-1, keepdim=True), v6, v6 * 0.0).reshape(B, -1)
-    ok_t = feasible(scene, kin.poses(q_t, prob.fixed))
-    q0 = q_t.clone()
-    if bool(ok_t.all()):
-        all_ = torch.arange(B, device=q_t.device)
-        ev = _energy(prob, tally)(extrap, all_, 2)
-        good = torch.isfinite(ev.value) & path_clear(prob, q_t, extrap, all_)
-        if bool(good.all()):
-            return extrap, ev
-        q0 = torch.where(good[:, None], extrap, q_t)
-        return q0, None
-    for b in torch.nonzero(ok_t)[:, 0].tolist():  # the scenes that start as usual
-        one = select_scenes(prob, torch.tensor([b], device=q_t.device))
-        e = incremental_potential(one, extrap[b : b + 1], 0)
-        zero = torch.zeros(1, dtype=torch.long, device=q_t.device)
-        if bool(torch.isfinite(e.value[0])) and bool(
-            path_clear(one, q_t[b : b + 1], extrap[b : b + 1], zero)[0]
-        ):
-            q0[b] = extrap[b]
-    kin_idx = scene.kinematic.to(q_t.device)
-    for b in torch.nonzero(~ok_t)[:, 0].tolist():
-        bad = penetrating(scene, prob.q_t[b])
-        if bad:
-            raise ValueError(
-                f"state.q: bodies penetrate (are within the margin {scene.contact.margin} of each other): "
-                f"pairs {bad}" + (f" (scene {b})" if B > 1 else "")
-            )
-        if len(kin_idx) == 0:
-            raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
-        shift = prob.fixed[b, kin_idx, :3] - prob.q_t[b, kin_idx, :3]  # (K, 3)
-        for k in range(len(kin_idx)):
-            cand = q_t[b].reshape(-1, 6).clone()
-            cand[:, :3] += shift[k]
-            if bool(feasible(scene, kin.poses(cand.reshape(1, -1), prob.fixed[b : b + 1]))[0]):
-                q0[b] = cand.reshape(-1)
-                break
-        else:
-            q0[b] = _continuation(
-                select_scenes(prob, torch.tensor([b], device=q_t.device)), q_t[b : b + 1], tally
-            )[0]
-    return q0, None
-
-
-def solve_step(prob: StepProblem, tally: list[int]):
-    """Feasible start, Newton, reachability: the step's NewtonResult; raises StepError saying why it failed.
-    ``tally`` accumulates [contact evaluations, node pairs, leaf pairs]."""
-    q0, first = start(prob, tally)
-    s = prob.scene.solver
-    res = _newton(prob, q0, first, s.newton_tol, tally)
-    B = q0.shape[0]
-    for b in range(B):
-        r = Stop(int(res.reason[b]))
-        if r == Stop.CONVERGED:
-            continue
-        where = f" (scene {b})" if B > 1 else ""
-        if r == Stop.INFEASIBLE_START:
-            raise StepError(f"infeasible Newton start (non-finite energy){where}")
-        what = {
-            Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "
-            "decreasing, reachable trial along the direction)",
-            Stop.MAX_ITER: f"the step did not converge in {s.max_newton_iter} Newton iterations",
-        }[r]
-        raise StepError(
-            f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {float(res.grad_max[b]):.3e}, last line "
-            f"search step {float(res.alpha[b]):.1e}; try a smaller dt or a larger max_newton_iter"
-        )
-    q_t = prob.scene.kinematics.coords(prob.q_t)
-    ok = reachable(prob, q_t, res.q)
-    if not bool(ok.all()):
-        b = int(torch.nonzero(~ok)[0, 0])
-        moved = float(displacement(prob, q_t[b : b + 1], res.q[b : b + 1], torch.tensor([b]))[0])
-        raise StepError(
-            f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
-            f"{moved:.3g} m, through a static body{f', scene {b}' if B > 1 else ''}): reduce dt"
-        )
-    return res

@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from ..contact._traverse import point_jacobian, rot_second
 from ..contact.model import LaggedContacts
-from ..rotation import rotation_derivatives
+from ..rotation import point_jacobian, rot_second, rotation_derivatives
 
 __all__ = ["friction_terms"]
 
@@ -32,7 +31,6 @@ def friction_terms(
     mu_f: torch.Tensor,
     e: float,
     order: int,
-    reduce: bool = True,
     majorizer_gap: bool = False,
 ):
     """Value, gradient and Hessian of the lagged friction potential D at ``poses``.
@@ -44,14 +42,13 @@ def friction_terms(
         mu_f: () or (C,) friction coefficient.
         e: slip threshold eps_v dt [m].
         order: 0, 1 or 2.
-        reduce: return the total value (); else the per-contact values (C,).
         majorizer_gap: at order 2, also return the positive semi-definite (C, 12, 12) difference between the Hessian
             of the quadratic majorizer of f0 at |u| (curvature f1 / y in every direction of the plane) and the exact
             one (which has curvature f1' <= f1 / y along u: none at all when slipping). Newton directions from the
             majorizer do not step across the tip of the friction cone u = 0 (iteratively reweighted least squares).
 
     Returns:
-        value, per-contact gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order), and
+        per-contact value (C,), gradient (C, 12) over [q_a, q_b] and Hessian (C, 12, 12) (None below the order), and
         with ``majorizer_gap`` the gap (C, 12, 12).
     """
     ba, bb = rows[:, 0], rows[:, 1]
@@ -66,7 +63,7 @@ def friction_terms(
     ys = torch.where(slip, y, torch.full_like(y, e))  # safe in the unused branch
     f0 = torch.where(slip, y, -(y**3) / (3 * e * e) + y * y / e + e / 3)
     w = mu_f * data.normal_force
-    value = (w * f0).sum() if reduce else w * f0
+    value = w * f0
     if order == 0:
         return value, None, None
     f1_y = torch.where(slip, 1.0 / ys, -y / (e * e) + 2.0 / e)  # f1(y) / y, finite at y = 0

@@ -46,6 +46,15 @@ class Kinematics(Protocol):
         """(A, N, 6) J v for coordinate vectors v (A, Q) (zero rows for bodies the map does not move)."""
         ...
 
+    def extrapolate(self, q_t: torch.Tensor, q_p: torch.Tensor) -> torch.Tensor:
+        """(A, Q) the constant-velocity prediction of the next coordinates (the Newton solve's warm start)."""
+        ...
+
+    def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        """(A, Q) the coordinates with every moving body translated by ``shift`` (A, 3) [m] (a start that carries
+        the bodies along with a kinematic pusher)."""
+        ...
+
 
 class FreeBodies:
     """Free rigid bodies: q is the poses of the dynamic bodies, (A, 6 Nd), an identity map onto their rows.
@@ -81,3 +90,14 @@ class FreeBodies:
         out = v.new_zeros(v.shape[0], self.num_bodies, 6)
         out[:, self.dynamic.to(v.device)] = v.reshape(v.shape[0], -1, 6)
         return out
+
+    def extrapolate(self, q_t: torch.Tensor, q_p: torch.Tensor) -> torch.Tensor:
+        # dropped for a body turning by 1 rad or more per step (its rotation vector would wrap)
+        v = (q_t - q_p).reshape(q_t.shape[0], -1, 6)
+        v = torch.where((v[..., 3:].abs() < 1.0).all(-1, keepdim=True), v, v * 0.0)
+        return q_t + v.reshape(q_t.shape[0], -1)
+
+    def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        out = q.reshape(q.shape[0], -1, 6).clone()
+        out[..., :3] += shift[:, None, :]
+        return out.reshape(q.shape[0], -1)

@@ -40,28 +40,30 @@ class Stop(enum.IntEnum):
 
 
 class NewtonResult(NamedTuple):
-    """Per scene (B of them): q (B, Q), the exact Hessian and contact Hessian at q, the evaluation at q (forces,
-    scale), iterations (B,), reason (B,) codes of :class:`Stop`, max |dL/dq| (B,) and the last line-search step
-    (B,)."""
+    """Per scene (B of them).
+
+    Attributes:
+        q: (B, Q) the last iterate.
+        at: the order-2 evaluation at q (exact Hessian, contact Hessian, forces, ...).
+        iters: (B,) Newton iterations.
+        reason: (B,) codes of :class:`Stop`.
+        alpha: (B,) the last line search's step.
+        work: (evaluations, node pairs, leaf pairs) of the energy evaluations this solve made (``first`` excluded).
+    """
 
     q: torch.Tensor
-    hess: torch.Tensor
-    contact_hess: torch.Tensor
-    contact_force: torch.Tensor
-    friction_force: torch.Tensor
+    at: EnergyEval
     iters: torch.Tensor
     reason: torch.Tensor
-    grad_max: torch.Tensor
     alpha: torch.Tensor
+    work: tuple[int, int, int]
 
 
-def _put(state: list, idx: torch.Tensor, ev: EnergyEval) -> None:
-    """Write the order-2 evaluation ``ev`` of scenes ``idx`` into the per-scene state rows."""
-    fields = (ev.value, ev.grad, ev.hess, ev.contact_hess, ev.scale, ev.majorizer_gap, ev.h_floor,
-              ev.contact_force, ev.friction_force)  # fmt: skip
-    for k, x in enumerate(fields):
-        if x is not None:
-            state[k][idx] = x
+def _assign(cur: EnergyEval, idx: torch.Tensor, ev: EnergyEval) -> None:
+    """Write the rows ``ev`` (order 2, scenes ``idx``) into the per-scene evaluation ``cur`` (in place)."""
+    for mine, new in zip(cur, ev, strict=True):
+        if isinstance(mine, torch.Tensor) and new is not None:
+            mine[idx] = new
 
 
 def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
@@ -77,55 +79,54 @@ def newton(
     max_iter: int,
     max_move: float,
     free_move: float,
-    move_ok: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+    move_ok: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
     displacement: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
-    majorize: bool = True,
+    majorize: torch.Tensor | None = None,
 ) -> NewtonResult:
     """Minimise B independent energies from feasible starts.
 
     Args:
         energy: (q (A, Q), scenes (A,) indices, order) -> EnergyEval of those scenes.
-        q: (B, Q) starts; ``first`` their order-2 evaluation.
+        q: (B, Q) starts; ``first`` their order-2 evaluation (all B scenes).
         tol: convergence threshold on the Newton step [coordinate units].
         max_iter: iteration cap.
         max_move: largest vertex displacement of one iteration [m].
         free_move: moves whose vertex displacement is at most this need no ``move_ok`` check [m].
         move_ok: (q0, q1, scenes) -> (A,) bool: whether the move q0 -> q1 of those scenes is free of tunnelling.
         displacement: (q0, q1, scenes) -> (A,) largest vertex displacement of the move [m].
-        majorize: use friction's majorizer in the iteration after a rejected full step.
+        majorize: (B,) bool, the scenes whose iteration after a rejected full step uses the energy's majorizer
+            (``EnergyEval.majorizer_gap``); default: all, if the energy has one.
     """
     B = q.shape[0]
     dev = q.device
     q = q.clone()
-    zeros = lambda *s: q.new_zeros(B, *s)  # noqa: E731
-    Q = q.shape[1]
-    N6 = first.contact_hess.shape[-1]
-    # per-scene state: L, g, H, Hc, scale, gap, floor, contact force, friction force
-    state = [zeros(), zeros(Q), zeros(Q, Q), zeros(N6, N6), zeros(), zeros(Q, Q), zeros(),
-             zeros(N6 // 6, 6), zeros(N6 // 6, 6)]  # fmt: skip
-    has_gap = first.majorizer_gap is not None
-    _put(state, torch.arange(B, device=dev), first)
+    cur = EnergyEval(*(x.clone() if isinstance(x, torch.Tensor) else x for x in first))
+    evals = nodes = leaves = 0  # (``first`` is the caller's)
+    if first.majorizer_gap is None:
+        majorize = torch.zeros(B, dtype=torch.bool, device=dev)
+    elif majorize is None:
+        majorize = torch.ones(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
-    majorized = torch.zeros(B, dtype=torch.bool, device=dev)
-    active = torch.isfinite(state[0])
+    majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
+    active = torch.isfinite(cur.value)
     reason[~active] = int(Stop.INFEASIBLE_START)
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
         if idx.numel() == 0:
             break
         iters[idx] = it
-        L, g, H = state[0][idx], state[1][idx], state[2][idx]
-        maj = majorized[idx] & has_gap
-        Hd = torch.where(maj[:, None, None], H + state[5][idx], H) if has_gap else H
+        L, g, H = cur.value[idx], cur.grad[idx], cur.hess[idx]
+        maj = majorized[idx] & majorize[idx]
+        Hd = torch.where(maj[:, None, None], H + cur.majorizer_gap[idx], H) if bool(maj.any()) else H
         chol, info = torch.linalg.cholesky_ex(Hd)
         pd = info == 0
         p = torch.cholesky_solve(-g[:, :, None], chol)[:, :, 0]
         if not bool(pd.all()):
             bad = torch.nonzero(~pd)[:, 0]
             ev, V = torch.linalg.eigh(Hd[bad])
-            floor = torch.maximum(state[6][idx][bad], 1e-12 * ev.abs().amax(1))
+            floor = torch.maximum(cur.h_floor[idx][bad], 1e-12 * ev.abs().amax(1))
             mag = torch.maximum(ev.abs(), floor[:, None])
             p[bad] = -(V @ ((V.transpose(1, 2) @ g[bad][:, :, None])[:, :, 0] / mag)[:, :, None])[:, :, 0]
         done = pd & ~maj & (p.abs().amax(1) <= tol)
@@ -142,7 +143,7 @@ def newton(
         p = torch.where(over[:, None], p * (max_move / torch.where(over, reach, 1.0))[:, None], p)
         reach = torch.where(over, torch.full_like(reach, max_move), reach)
         slope = (g * p).sum(1)
-        noise = 1e-12 * (L.abs() + state[4][idx])
+        noise = 1e-12 * cur.scale[idx]  # rounding level of L: the full step must not be rejected for noise
         alpha = torch.ones_like(L)
         pending = torch.ones_like(L, dtype=torch.bool)
         taken = torch.full_like(L, -1, dtype=torch.long)  # the try at which each scene's step was accepted
@@ -154,6 +155,7 @@ def newton(
             q_try = q0[sub] + alpha[sub, None] * p[sub]
             # the full step is usually accepted: evaluate it with derivatives at once, backtrack value-only
             ev = energy(q_try, idx[sub], 2 if k == 0 else 0)
+            evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
             if k == 0:
                 full = ev
             L_try = ev.value
@@ -177,11 +179,11 @@ def newton(
             active[idx[failed]] = False
         first_try = taken == 0
         if bool(first_try.any()):
-            _put(state, idx[first_try], _rows(full, first_try))
+            _assign(cur, idx[first_try], _rows(full, first_try))
         later = taken > 0
         if bool(later.any()):
-            _put(state, idx[later], energy(q[idx[later]], idx[later], 2))
-        majorized[idx] = later & majorize
-    return NewtonResult(
-        q, state[2], state[3], state[7], state[8], iters, reason, state[1].abs().amax(1), alpha_last
-    )
+            ev = energy(q[idx[later]], idx[later], 2)
+            evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
+            _assign(cur, idx[later], ev)
+        majorized[idx] = later
+    return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves))

@@ -13,6 +13,7 @@ from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact.cfd import CfdContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
+from ._checks import check_state_tensor
 from .bodies import RigidBody
 from .kinematics import FreeBodies
 from .types import Params, State
@@ -158,8 +159,6 @@ class Scene:
 
     def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:
         """State at rest (or moving with constant generalised ``velocities``) at ``poses``, both ([B,] N, 6)."""
-        from .step import check_state_tensor
-
         check_state_tensor(poses, "poses", self.num_bodies)
         if velocities is None:
             return State(poses, poses.clone())

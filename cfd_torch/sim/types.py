@@ -89,14 +89,16 @@ class StepInfo(NamedTuple):
 
     Attributes:
         newton_iters: ([B]) Newton iterations of each scene's solve.
-        contact_evals: contact-model evaluations of the step (all scenes together, line-search trials included).
+        contact_evals: evaluations of the incremental potential, each one contact-model call over the scenes still
+            iterating (line-search trials included).
         node_pairs: hierarchy node pairs visited over those evaluations.
         leaf_pairs: exact leaf pairs solved over those evaluations.
         friction_contacts: ([B]) lagged friction contacts of each scene.
         contact_force: ([B,] N, 6) -dP/dq at the end-of-step poses: columns 0-2 world-frame forces [N], columns 3-5
             conjugate to the rotation vector (the world torque when the rotation vector is zero).
         friction_force: ([B,] N, 6) -dD/dq of the lagged friction potential, same layout.
-        substeps: sub-steps the step took (1 unless it was retried after a StepError, ``SolverConfig.substeps``).
+        substeps: ([B]) sub-steps each scene's step took (1 unless it was retried after a StepError,
+            ``SolverConfig.substeps``).
         seconds: wall time of the forward solve [s].
     """
 
@@ -107,5 +109,5 @@ class StepInfo(NamedTuple):
     friction_contacts: torch.Tensor
     contact_force: torch.Tensor
     friction_force: torch.Tensor
-    substeps: int
+    substeps: torch.Tensor
     seconds: float

@@ -16,34 +16,13 @@ from collections.abc import Sequence
 
 import torch
 
+from ._checks import check_params, check_state_tensor
 from .adjoint import StepFn
-from .energy import scene_pairs
+from .energy import end_poses, scene_pairs
 from .scene import Scene
 from .types import Action, Params, State, StepError, StepInfo, Trajectory
 
-__all__ = ["step", "rollout", "recentre_rotation", "pair_forces", "check_state_tensor"]
-
-
-def check_state_tensor(x: object, name: str, n: int, cols: int = 6, batch: int | None = None) -> None:
-    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given)."""
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    ok = (
-        x.shape[-2:] == (n, cols)
-        and x.dim() in (2, 3)
-        and (batch is None or x.dim() == 2 or x.shape[0] == batch)
-    )
-    if not ok:
-        want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
-        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
-    bad = ~torch.isfinite(x).all(-1)
-    if bool(bad.any()):
-        at = tuple(int(i) for i in torch.nonzero(bad)[0])
-        raise ValueError(
-            f"{name} contains NaN or inf (first at {'scene, body' if x.dim() == 3 else 'body'} {at})"
-        )
+__all__ = ["step", "rollout", "recentre_rotation", "pair_forces"]
 
 
 def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
@@ -70,75 +49,88 @@ def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     return torch.cat([q_prev[..., :3], w], -1)
 
 
-def _check_params(params: Params, B: int, Nd: int, device: torch.device) -> Params:
-    """Finite, physical, on the state's device; returned with a batch dimension B: mass > 0, friction >= 0, the
-    symmetric part of S positive semi-definite with a positive definite inertia tr(S) I - S."""
-    for name, x in (
-        ("mass", params.mass),
-        ("second_moment", params.second_moment),
-        ("friction", params.friction),
-    ):
-        if not isinstance(x, torch.Tensor) or not x.is_floating_point():
-            raise ValueError(f"params.{name} must be a floating-point tensor")
-        if x.device != device:
-            raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
-        if not bool(torch.isfinite(x).all()):
-            raise ValueError(f"params.{name} contains NaN or inf")
-    shapes = (params.mass.shape, params.second_moment.shape, params.friction.shape)
-    if shapes == ((Nd,), (Nd, 3, 3), ()):
-        params = Params(*(x.expand(B, *x.shape) for x in params))
-    elif shapes != ((B, Nd), (B, Nd, 3, 3), (B,)):
-        raise ValueError(
-            f"params must hold mass ([B,] {Nd}), second_moment ([B,] {Nd}, 3, 3) and friction ([B]), with B = {B} "
-            f"the state's batch, got {tuple(shapes[0])}, {tuple(shapes[1])}, {tuple(shapes[2])}"
-        )
-    if not bool((params.mass > 0).all()):
-        raise ValueError("params.mass must be positive")
-    if bool((params.friction.detach() < 0).any()):
-        raise ValueError("params.friction must be >= 0")
-    S = params.second_moment.detach().to(torch.float64).reshape(-1, 3, 3)
-    S = 0.5 * (S + S.transpose(1, 2))  # the step uses the symmetric part
-    eye = torch.eye(3, dtype=S.dtype, device=S.device)
-    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
-    if bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) or not bool(
-        (torch.linalg.eigvalsh(inertia) > 0).all()
-    ):
-        raise ValueError(
-            "params.second_moment must be positive semi-definite with a positive definite inertia"
-        )
-    return params
-
-
 def _batch(x: torch.Tensor, B: int) -> torch.Tensor:
     return x.expand(B, *x.shape) if x.dim() == 2 else x
 
 
-def _solve(scene: Scene, state: State, force, torque, target, params: Params):
-    """One step of the batch (all float64, batched); returns the next State and the StepFn's extras."""
+def _solve(
+    scene: Scene, state: State, force, torque, target, params: Params
+) -> tuple[torch.Tensor, StepInfo]:
+    """One step of the batch at once (float64, batched): the next poses and the (batched) StepInfo."""
     f64 = torch.float64
     S = params.second_moment.to(f64)
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
-    q, iters, fc, ff, nfc, counts, seconds = StepFn.apply(
+    q, iters, fc, ff, nfc, work, seconds = StepFn.apply(
         scene, q_t, q_p, force.to(f64), torque.to(f64), target.to(f64), params.mass.to(f64),
         0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64),
     )  # fmt: skip
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     moved[scene.kinematics.bodies] = True
-    fixed = q_t
-    if len(scene.kinematic):
-        kin = torch.zeros_like(moved)
-        kin[scene.kinematic] = True
-        fixed = torch.where(kin, _scatter_rows(target.to(f64), scene.kinematic, scene.num_bodies), q_t)
-    q_next = scene.kinematics.poses(q, fixed)
+    q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target.to(f64)))
     q_next = torch.where(moved, recentre_rotation(q_next), q_next)
-    return q_next, (iters, fc, ff, nfc, counts, seconds)
-
-
-def _scatter_rows(x: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
-    """(B, n, C) with rows ``index`` from x (B, K, C), zeros elsewhere (differentiable)."""
-    return torch.zeros(x.shape[0], n, x.shape[2], dtype=x.dtype, device=x.device).index_add(
-        1, index.to(x.device), x
+    ones = torch.ones_like(iters)
+    return q_next, StepInfo(
+        iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
     )
+
+
+def _substeps(scene: Scene, state: State, force, torque, target, params: Params, k: int):
+    """The step as k equal sub-steps of dt / k (kinematic targets interpolated, the velocity carried over): the
+    next poses, the previous poses that keep the velocity at the coarse step, and the StepInfo."""
+    fine = scene.replace(dt=scene.dt / k)
+    q, q_prev = state.q, state.q - (state.q - state.q_prev) / k
+    kin = scene.kinematic.to(q.device)
+    start = state.q[:, kin]
+    infos = []
+    for i in range(1, k + 1):
+        tgt = start + (i / k) * (target - start)
+        q_next, info = _solve(fine, State(q, q_prev), force, torque, tgt, params)
+        q, q_prev = q_next, _unwrap_previous(q, q_next)
+        infos.append(info)
+    info = infos[-1]._replace(
+        newton_iters=sum(i.newton_iters for i in infos), contact_evals=sum(i.contact_evals for i in infos),
+        node_pairs=sum(i.node_pairs for i in infos), leaf_pairs=sum(i.leaf_pairs for i in infos),
+        substeps=torch.full_like(infos[-1].newton_iters, k), seconds=sum(i.seconds for i in infos),
+    )  # fmt: skip
+    return q, q - k * (q - q_prev), info
+
+
+def _advance(scene: Scene, state: State, force, torque, target, params: Params):
+    """The step of a batch: next poses, previous poses (None: from the step itself) and StepInfo. A step that
+    fails is retried in sub-steps (``scene.solver.substeps``); in a batch, each scene on its own, so that every
+    scene's result is the one it gets alone."""
+    try:
+        q, info = _solve(scene, state, force, torque, target, params)
+        return q, None, info
+    except StepError:
+        if scene.solver.substeps == 1:
+            raise
+    B = state.q.shape[0]
+    if B > 1:
+        outs = []
+        for b in range(B):
+            one = slice(b, b + 1)
+            q, q_prev, info = _advance(
+                scene, State(state.q[one], state.q_prev[one]), force[one], torque[one], target[one],
+                Params(*(x[one] for x in params)),
+            )  # fmt: skip
+            outs.append((q, _unwrap_previous(state.q[one], q) if q_prev is None else q_prev, info))
+        infos = [o[2] for o in outs]
+        cat = lambda f: torch.cat([getattr(i, f) for i in infos])  # noqa: E731
+        info = StepInfo(
+            cat("newton_iters"), sum(i.contact_evals for i in infos), sum(i.node_pairs for i in infos),
+            sum(i.leaf_pairs for i in infos), cat("friction_contacts"), cat("contact_force"), cat("friction_force"),
+            cat("substeps"), sum(i.seconds for i in infos),
+        )  # fmt: skip
+        return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs]), info
+    k = 2
+    while True:
+        try:
+            return _substeps(scene, state, force, torque, target, params, k)
+        except StepError:
+            if 2 * k > scene.solver.substeps:
+                raise
+            k *= 2
 
 
 def step(
@@ -198,60 +190,22 @@ def step(
     if not batched and any(x.dim() == 3 for x in (force, torque, target)):
         raise ValueError("action fields have a batch dimension but state.q does not")
     params = scene.params(f64, dev) if params is None else params
-    params = _check_params(params, B, len(scene.kinematics.bodies), dev)
+    params = check_params(params, B, len(scene.kinematics.bodies), dev, batched)
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
-    substeps, q_prev_next = 1, None
-    try:
-        q_next, extras = _solve(scene, st, force, torque, target, params)
-    except StepError:
-        if scene.solver.substeps == 1:
-            raise
-        k = 2
-        while q_prev_next is None:
-            try:
-                q_next, extras, q_prev_next = _substeps(scene, st, force, torque, target, params, k)
-                substeps = k
-            except StepError:
-                if 2 * k > scene.solver.substeps:
-                    raise
-                k *= 2
+    q_next, q_prev_next, si = _advance(scene, st, force, torque, target, params)
     q_next = q_next.to(dtype)
     q_prev_next = _unwrap_previous(st.q, q_next) if q_prev_next is None else q_prev_next.to(dtype)
     nxt = State(q_next, q_prev_next)
     if not batched:
         nxt = State(nxt.q[0], nxt.q_prev[0])
-    if not (return_info or info is not None):
-        return nxt
-    iters, fc, ff, nfc, counts, seconds = extras
-    one = (lambda x: x) if batched else (lambda x: x[0])  # noqa: E731
-    si = StepInfo(
-        one(iters), int(counts[0]), int(counts[1]), int(counts[2]), one(nfc), one(fc), one(ff), substeps,
-        float(seconds.sum()),
-    )  # fmt: skip
+        si = si._replace(**{f: getattr(si, f)[0] for f in _PER_SCENE})
     if info is not None:
         info.update(si._asdict())
     return (nxt, si) if return_info else nxt
 
 
-def _substeps(scene: Scene, state: State, force, torque, target, params: Params, k: int):
-    """The step as k equal sub-steps of dt / k (kinematic targets interpolated, the velocity carried over)."""
-    fine = scene.replace(dt=scene.dt / k)
-    q, q_prev = state.q, state.q - (state.q - state.q_prev) / k
-    kin = scene.kinematic.to(q.device)
-    start = state.q[:, kin]
-    all_extras = []
-    for i in range(1, k + 1):
-        tgt = start + (i / k) * (target - start)
-        q_next, extras = _solve(fine, State(q, q_prev), force, torque, tgt, params)
-        q, q_prev = q_next, _unwrap_previous(q, q_next)
-        all_extras.append(extras)
-    iters = sum(e[0] for e in all_extras)
-    counts = sum(e[4] for e in all_extras)
-    seconds = sum(e[5] for e in all_extras)
-    last = all_extras[-1]
-    # the state at the coarse step: (q, q - k (q - q_prev)) keeps the velocity
-    return q, (iters, last[1], last[2], last[3], counts, seconds), q - k * (q - q_prev)
+_PER_SCENE = ("newton_iters", "friction_contacts", "contact_force", "friction_force", "substeps")
 
 
 def rollout(

@@ -1,0 +1,183 @@
+"""One step's solve: a feasible start, Newton on the incremental potential, and the reachability of its end.
+
+The start (the configuration the Newton solve begins from, feasible by :mod:`.feasibility`'s contract): the
+constant-velocity extrapolation if it and the path to it are feasible; else q_t; else (a kinematic body moved into
+a dynamic one) the moving bodies carried with each kinematic body's displacement, or a continuation: the kinematic
+motion split into fractions (adaptively halved), the step's problem solved loosely at each fraction from the
+previous solution, so the pushed bodies make room. Only the final solve, at the real targets, is the step.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
+from .feasibility import displacement, feasible, path_clear, penetrating, reachable
+from .newton import NewtonResult, Stop, newton
+from .types import StepError
+
+__all__ = ["solve_step", "start"]
+
+Work = tuple[int, int, int]  # energy evaluations, node pairs, leaf pairs
+
+
+def _add(a: Work, b: Work) -> Work:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def _work(ev: EnergyEval) -> Work:
+    return (1, ev.node_pairs, ev.leaf_pairs)
+
+
+def _energy(prob: StepProblem):
+    """(q (A, Q), scenes (A,), order) -> L of those scenes of ``prob``."""
+    B = prob.q_t.shape[0]
+
+    def energy(q: torch.Tensor, scenes: torch.Tensor, order: int) -> EnergyEval:
+        whole = len(scenes) == B and bool((scenes == torch.arange(B, device=scenes.device)).all())
+        return incremental_potential(prob if whole else select_scenes(prob, scenes), q, order)
+
+    return energy
+
+
+def _newton(
+    prob: StepProblem, q: torch.Tensor, first: EnergyEval | None, tol: float
+) -> tuple[NewtonResult, Work]:
+    s = prob.scene.solver
+    energy = _energy(prob)
+    work: Work = (0, 0, 0)
+    if first is None:
+        first = energy(q, torch.arange(q.shape[0], device=q.device), 2)
+        work = _work(first)
+    majorize = None
+    if prob.lagged is not None:  # the scenes with friction (their coefficient, or its gradient, asked for it)
+        majorize = prob.friction_on
+    res = newton(
+        energy, q, first, tol=tol, max_iter=s.max_newton_iter, max_move=20.0 * s.ccd_spacing,
+        free_move=s.ccd_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
+        displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize,
+    )  # fmt: skip
+    return res, _add(work, res.work)
+
+
+def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Work]:
+    """Scene 0 of ``prob`` (one scene): push the moving bodies out of a kinematic body's way."""
+    scene = prob.scene
+    kin = scene.kinematic.to(q.device)
+    target = prob.fixed.clone()
+    origin = prob.q_t[:, kin]
+    done, inc = 0.0, 0.5
+    tol = max(scene.solver.newton_tol, 1e-7)
+    work: Work = (0, 0, 0)
+    while done < 1.0:
+        frac = min(1.0, done + inc)
+        fixed = target.clone()
+        fixed[:, kin] = origin + frac * (target[:, kin] - origin)
+        sub = prob._replace(fixed=fixed)
+        if bool(feasible(scene, scene.kinematics.poses(q, fixed))[0]):
+            res, w = _newton(sub, q, None, tol)
+            work = _add(work, w)
+            if int(res.reason[0]) != Stop.CONVERGED:
+                raise StepError(
+                    f"pushing bodies out of a kinematic body's way: the solve at {frac:.3g} of the kinematic motion "
+                    f"stopped: {Stop(int(res.reason[0])).name}"
+                )
+            q = res.q
+            done, inc = frac, inc * 2.0
+        else:
+            inc *= 0.5
+            if inc < 1e-4:
+                raise StepError(
+                    f"the kinematic targets: bodies penetrate (within the margin {scene.contact.margin}): pairs "
+                    f"{penetrating(scene, scene.kinematics.poses(q, fixed)[0])}, and pushing them out of the way "
+                    "failed; move kinematic bodies less per step"
+                )
+    return q, work
+
+
+def start(prob: StepProblem) -> tuple[torch.Tensor, EnergyEval | None, Work]:
+    """A feasible start (B, Q) for every scene, its order-2 evaluation where already done (None if not), and the
+    work spent."""
+    scene = prob.scene
+    kin = scene.kinematics
+    q_t = kin.coords(prob.q_t)
+    extrap = kin.extrapolate(q_t, kin.coords(prob.q_p))
+    B = q_t.shape[0]
+    dev = q_t.device
+    ok_t = feasible(scene, kin.poses(q_t, prob.fixed))
+    work: Work = (0, 0, 0)
+    if bool(ok_t.all()):
+        all_ = torch.arange(B, device=dev)
+        ev = _energy(prob)(extrap, all_, 2)  # the usual start: evaluated with derivatives at once
+        work = _work(ev)
+        good = torch.isfinite(ev.value) & path_clear(prob, q_t, extrap, all_)
+        if bool(good.all()):
+            return extrap, ev, work
+        return torch.where(good[:, None], extrap, q_t), None, work
+    q0 = q_t.clone()
+    zero = torch.zeros(1, dtype=torch.long, device=dev)
+    for b in torch.nonzero(ok_t)[:, 0].tolist():  # the scenes that start as usual
+        one = select_scenes(prob, torch.tensor([b], device=dev))
+        e = incremental_potential(one, extrap[b : b + 1], 0)
+        work = _add(work, _work(e))
+        if bool(torch.isfinite(e.value[0])) and bool(
+            path_clear(one, q_t[b : b + 1], extrap[b : b + 1], zero)[0]
+        ):
+            q0[b] = extrap[b]
+    kin_idx = scene.kinematic.to(dev)
+    for b in torch.nonzero(~ok_t)[:, 0].tolist():
+        bad = penetrating(scene, prob.q_t[b])
+        if bad:
+            raise ValueError(
+                f"state.q: bodies penetrate (are within the margin {scene.contact.margin} of each other): "
+                f"pairs {bad}" + (f" (scene {b})" if B > 1 else "")
+            )
+        if len(kin_idx) == 0:
+            raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
+        shift = prob.fixed[b, kin_idx, :3] - prob.q_t[b, kin_idx, :3]  # (K, 3)
+        for k in range(len(kin_idx)):
+            cand = kin.carry(q_t[b : b + 1], shift[k : k + 1])
+            if bool(feasible(scene, kin.poses(cand, prob.fixed[b : b + 1]))[0]):
+                q0[b] = cand[0]
+                break
+        else:
+            q, w = _continuation(select_scenes(prob, torch.tensor([b], device=dev)), q_t[b : b + 1])
+            q0[b], work = q[0], _add(work, w)
+    return q0, None, work
+
+
+def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
+    """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
+    pairs, leaf pairs); raises StepError saying why it failed."""
+    q0, first, work = start(prob)
+    s = prob.scene.solver
+    res, w = _newton(prob, q0, first, s.newton_tol)
+    work = _add(work, w)
+    B = q0.shape[0]
+    for b in range(B):
+        r = Stop(int(res.reason[b]))
+        if r == Stop.CONVERGED:
+            continue
+        where = f" (scene {b})" if B > 1 else ""
+        if r == Stop.INFEASIBLE_START:
+            raise StepError(f"infeasible Newton start (non-finite energy){where}")
+        what = {
+            Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "
+            "decreasing, reachable trial along the direction)",
+            Stop.MAX_ITER: f"the step did not converge in {s.max_newton_iter} Newton iterations",
+        }[r]
+        gmax = float(res.at.grad[b].abs().max())
+        raise StepError(
+            f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {gmax:.3e}, last line search step "
+            f"{float(res.alpha[b]):.1e}; try a smaller dt or a larger max_newton_iter"
+        )
+    q_t = prob.scene.kinematics.coords(prob.q_t)
+    ok = reachable(prob, q_t, res.q)
+    if not bool(ok.all()):
+        b = int(torch.nonzero(~ok)[0, 0])
+        moved = float(displacement(prob, q_t[b : b + 1], res.q[b : b + 1], torch.tensor([b]))[0])
+        raise StepError(
+            f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
+            f"{moved:.3g} m, through a static body{f', scene {b}' if B > 1 else ''}): reduce dt"
+        )
+    return res, work
