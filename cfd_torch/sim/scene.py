@@ -149,8 +149,9 @@ class Scene:
         return Scene(self.bodies, **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
-        """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients)."""
-        d = self.dynamic.tolist()
+        """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one
+        row per body the kinematics map moves."""
+        d = self.kinematics.bodies.tolist()
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
             torch.stack([self.bodies[i].second_moment for i in d]).to(dtype=dtype, device=device),
