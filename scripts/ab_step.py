@@ -1,0 +1,105 @@
+"""A/B timing of simulator steps between two revisions, both in fresh processes, alternating.
+
+``bench_step.py --baseline`` times this revision in its own (warm, plotting) process and the baseline in a
+subprocess; this script removes that asymmetry: every run is a fresh ``python -c`` with one torch and one numba
+thread, the revisions alternate, and the figure is the CPU time per step (``time.process_time``), which a loaded
+machine disturbs less than wall time. Scenes: a 320-face ball resting on a 12-triangle box (without and with
+friction 0.5), and 4 stacked 12-triangle boxes. Uses only the API both revisions share (``Scene``, ``step``,
+``rigid_body``).
+
+    python scripts/ab_step.py --baseline e5289f1 --runs 3 --out results/ab_step
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHILD = r"""
+import json, statistics, time, torch, trimesh
+import cfd_torch as c
+def scenes():
+    ball = c.rigid_body(trimesh.creation.icosphere(subdivisions=2, radius=0.1))
+    m = trimesh.creation.box(extents=(1.0, 1.0, 0.1)); m.apply_translation([0, 0, -0.05])
+    box = c.rigid_body(m, kind="static")
+    q = torch.zeros(2, 6, dtype=torch.float64); q[0, 2] = 0.1 + 2e-3
+    yield "ball_box", c.Scene((ball, box)), q
+    yield "ball_box_friction", c.Scene((ball, box), friction=0.5), q
+    cube = c.rigid_body(trimesh.creation.box(extents=(0.2, 0.2, 0.2)))
+    q = torch.zeros(5, 6, dtype=torch.float64)
+    for k in range(4): q[k + 1, 2] = 0.1 + 1.3e-3 + k * (0.2 + 1.3e-3)
+    yield "boxes4", c.Scene((box, cube, cube, cube, cube)), q
+out = {}
+for name, sc, q in scenes():
+    st = sc.initial_state(q)
+    for _ in range(WARM): st = c.step(sc, st)
+    ts = []
+    for _ in range(STEPS):
+        t0 = time.process_time(); st = c.step(sc, st); ts.append(time.process_time() - t0)
+    out[name] = 1e3 * statistics.median(ts)
+print(json.dumps(out))
+"""
+
+
+def run(path: Path, steps: int, warm: int) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(path), "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    code = CHILD.replace("WARM", str(warm)).replace("STEPS", str(steps))
+    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=tempfile.gettempdir(), capture_output=True,
+                         text=True, check=True)  # fmt: skip
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--baseline", required=True, help="git revision to compare with (e.g. e5289f1)")
+    ap.add_argument("--runs", type=int, default=3, help="runs per revision (alternating)")
+    ap.add_argument("--steps", type=int, default=40, help="timed steps per scene and run")
+    ap.add_argument("--warm", type=int, default=10, help="untimed steps first")
+    ap.add_argument("--out", type=Path, default=Path("results/ab_step"))
+    args = ap.parse_args()
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp) / "baseline"
+        subprocess.run(["git", "worktree", "add", "--detach", str(base), args.baseline], cwd=ROOT, check=True,
+                       capture_output=True)  # fmt: skip
+        try:
+            runs: dict[str, list[dict]] = {"baseline": [], "head": []}
+            for _ in tqdm(range(args.runs), desc="A/B runs"):
+                runs["baseline"].append(run(base, args.steps, args.warm))
+                runs["head"].append(run(ROOT, args.steps, args.warm))
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
+    cases = list(runs["head"][0])
+    med = {k: {c: statistics.median(r[c] for r in v) for c in cases} for k, v in runs.items()}
+    lines = [
+        f"CPU ms per step, median over {args.runs} alternating runs of {args.steps} steps (one thread), "
+        f"{args.baseline} against {head.stdout.strip()}",
+        "",
+        f"| case | {args.baseline} | {head.stdout.strip()} | ratio | runs {args.baseline} | runs now |",
+        "|---|---:|---:|---:|---|---|",
+    ]
+    for c in cases:
+        b, h = med["baseline"][c], med["head"][c]
+        rb = " / ".join(f"{r[c]:.1f}" for r in runs["baseline"])
+        rh = " / ".join(f"{r[c]:.1f}" for r in runs["head"])
+        lines.append(f"| {c} | {b:.2f} | {h:.2f} | {h / b:.2f} | {rb} | {rh} |")
+    table = "\n".join(lines)
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "ab_step.json").write_text(json.dumps({"runs": runs, "median": med, "baseline": args.baseline,
+                                                        "head": head.stdout.strip()}, indent=1))  # fmt: skip
+    (args.out / "table.md").write_text(table + "\n")
+
+
+if __name__ == "__main__":
+    main()
