@@ -144,7 +144,8 @@ def _cat(xs) -> torch.Tensor:
 
 
 def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):
-    """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs."""
+    """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
+    weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2)."""
     from ._traverse_numba import traverse_nodes
 
     Nb = R.shape[0]
@@ -154,19 +155,21 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
     # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
     g = grad if grad is not None else torch.zeros(0, 12, dtype=dt)
     h = hess if hess is not None else torch.zeros(0, 12, 12, dtype=dt)
-    LI, LJ, lp, lw, ldw, ld2w, n_leaf, n_pairs = traverse_nodes(
+    LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs = traverse_nodes(
         forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pair_body.numpy(),
         pair_root.contiguous().numpy(), R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu),
         float(eps), split == "both", int(order), value.numpy(), g.numpy(), h.numpy(),
     )  # fmt: skip
     leaves = []
+    n = n_leaf
+    wid = torch.from_numpy(lwid[:n])
+    table = (wid, torch.from_numpy(wv), torch.from_numpy(wd1), torch.from_numpy(wd2))
     if n_leaf:
-        n = n_leaf
         leaves.append(
-            (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), torch.from_numpy(lp[:n]), torch.from_numpy(lw[:n]),
-             torch.from_numpy(ldw[:n]) if order >= 1 else None, torch.from_numpy(ld2w[:n]) if order >= 2 else None)
+            (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), torch.from_numpy(lp[:n]), table[1][wid],
+             table[2][wid] if order >= 1 else None, None)
         )  # fmt: skip
-    return leaves, int(n_pairs), -1
+    return leaves, int(n_pairs), -1, table
 
 
 def traverse(
@@ -212,12 +215,12 @@ def traverse(
     eye = torch.eye(3, dtype=dt, device=dev)
 
     if dev.type == "cpu" and backend != "torch":
-        leaves, n_pairs, levels = _traverse_cpu(
+        leaves, n_pairs, levels, wtable = _traverse_cpu(
             forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess
         )
         I = pair_root[:0, 0]  # skip the tensor traversal below
     else:
-        leaves, n_pairs, levels = [], 0, 0
+        leaves, n_pairs, levels, wtable = [], 0, 0, None
         I = pair_root[:, 0]
     # frontier
     J, pid = pair_root[: len(I), 1], torch.arange(len(I), device=dev)
@@ -335,10 +338,10 @@ def traverse(
             )  # fmt: skip
             z = torch.zeros(0, dtype=dt)
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
+            lwid, wv, wd1, wd2 = wtable
             accumulate_leaves_lowrank(
-                lp.numpy(), lw.numpy(), ldw.numpy(), ld2w.numpy() if ld2w is not None else z.reshape(0, 12, 12).numpy(),
-                pv.numpy(), gx.numpy(), WT.numpy(), gaps.numpy(), Pl.numpy(), Xa.numpy(), Xb.numpy(), ba.numpy(),
-                bb.numpy(), dR.contiguous().numpy(),
+                lp.numpy(), lwid.numpy(), wv.numpy(), wd1.numpy(), wd2.numpy(), pv.numpy(), gx.numpy(), WT.numpy(),
+                gaps.numpy(), Pl.numpy(), Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(), dR.contiguous().numpy(),
                 d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
                 int(order), value.numpy(), grad.numpy(),
                 hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),

@@ -40,32 +40,38 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                    value, grad, hess):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
 
+    Inherited weights live in a table, not on the stack: entry 0 is the weight 1 (zero derivatives) that every
+    node pair starts with, and a node pair in the blend band (0 < s < 1) that descends appends its children's weight
+    W (1 - phi) with its gradient and Hessian; stack entries and leaves carry an entry's index. Node pairs whose
+    spheres overlap (s <= 0, most of them near contact) pass their parent's index on without copying anything.
+
     Returns:
-        (LI, LJ, lp, lw, ldw, ld2w, n_leaf, n_pairs): leaf node ids, body pair, weight (1 - phi) prod, and its
-        gradient (L, 12) and Hessian (L, 12, 12) (zeros below ``order``), valid up to index n_leaf.
+        (LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs): leaf node ids, body pair and weight entry (valid up to
+        index n_leaf); the weight table: value (M,), gradient (M, 12) (order >= 1) and Hessian (M, 12, 12)
+        (order >= 2) of the inherited weight (1 - phi) prod.
     """
     P = pair_body.shape[0]
     cap = 1024
     sI = np.empty(cap, np.int64)
     sJ = np.empty(cap, np.int64)
     sP = np.empty(cap, np.int64)
-    sW = np.empty(cap)
-    sdW = np.zeros((cap, 12))
-    sd2W = np.zeros((cap, 12, 12))
+    sK = np.empty(cap, np.int64)
+    wcap = 256
+    wv = np.empty(wcap)
+    wd1 = np.zeros((wcap if order >= 1 else 1, 12))
+    wd2 = np.zeros((wcap if order >= 2 else 1, 12, 12))
+    wv[0] = 1.0
+    nw = 1
     lcap = 256
     LI = np.empty(lcap, np.int64)
     LJ = np.empty(lcap, np.int64)
     lp = np.empty(lcap, np.int64)
-    lw = np.empty(lcap)
-    ldw = np.zeros((lcap, 12))
-    ld2w = np.zeros((lcap, 12, 12))
+    lwid = np.empty(lcap, np.int64)
     n_leaf = 0
     n_pairs = 0
     dd = np.zeros((3, 12))
     dr = np.zeros(12)
     d2r = np.zeros((12, 12))
-    W1 = np.zeros(12)
-    W2 = np.zeros((12, 12))
     ca = np.zeros(3)
     cb = np.zeros(3)
     d = np.zeros(3)
@@ -74,20 +80,12 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         dd[k, 6 + k] = -1.0
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
-        top = 0
-        sI[0], sJ[0], sP[0], sW[0] = pair_root[p, 0], pair_root[p, 1], p, 1.0
-        if order >= 1:
-            sdW[0, :] = 0.0
-        if order >= 2:
-            sd2W[0, :, :] = 0.0
+        sI[0], sJ[0], sP[0], sK[0] = pair_root[p, 0], pair_root[p, 1], p, 0
         top = 1
         while top > 0:
             top -= 1
-            I, J, W = sI[top], sJ[top], sW[top]
-            if order >= 1:
-                W1[:] = sdW[top]
-            if order >= 2:
-                W2[:, :] = sd2W[top]
+            I, J, wid = sI[top], sJ[top], sK[top]
+            W = wv[wid]
             n_pairs += 1
             CI = centre[I]
             CJ = centre[J]
@@ -154,10 +152,12 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                 g = phi * pc
                 value[p] += W * g
                 if order >= 1:
+                    W1 = wd1[wid]
                     g1 = phi1 * pc + phi * pc1
                     for a in range(12):
                         grad[p, a] += g * W1[a] + W * g1 * dr[a]
                     if order >= 2:
+                        W2 = wd2[wid]
                         g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
                         for a in range(12):
                             for c in range(12):
@@ -168,56 +168,60 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                                 )
             if s >= 1.0:
                 continue
-            # inherited weight W (1 - phi) and its derivatives (product rule); unchanged for s <= 0
+            # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
+            # s <= 0
             if s > 0.0:
+                if nw == wv.shape[0]:
+                    wv = _grow(wv, 0)
+                    if order >= 1:
+                        wd1 = _grow(wd1, 0)
+                    if order >= 2:
+                        wd2 = _grow(wd2, 0)
                 h = 1.0 - phi
                 if order >= 2:
+                    W1 = wd1[wid]
+                    W2 = wd2[wid]
+                    N2 = wd2[nw]
                     for a in range(12):
                         for c in range(12):
-                            W2[a, c] = (
+                            N2[a, c] = (
                                 h * W2[a, c]
                                 - phi1 * (W1[a] * dr[c] + dr[a] * W1[c])
                                 - W * (phi2 * dr[a] * dr[c] + phi1 * d2r[a, c])
                             )
                 if order >= 1:
+                    W1 = wd1[wid]
+                    N1 = wd1[nw]
                     for a in range(12):
-                        W1[a] = h * W1[a] - W * phi1 * dr[a]
-                W = W * h
+                        N1[a] = h * W1[a] - W * phi1 * dr[a]
+                wv[nw] = W * h
+                wid = nw
+                nw += 1
             leaf_i = child[I, 0] < 0
             leaf_j = child[J, 0] < 0
             if leaf_i and leaf_j:
                 if n_leaf == LI.shape[0]:
-                    LI, LJ, lp, lw = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lw, 0)
-                    ldw, ld2w = _grow(ldw, 0), _grow(ld2w, 0)
-                LI[n_leaf], LJ[n_leaf], lp[n_leaf], lw[n_leaf] = I, J, p, W
-                if order >= 1:
-                    ldw[n_leaf] = W1
-                if order >= 2:
-                    ld2w[n_leaf] = W2
+                    LI, LJ, lp, lwid = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lwid, 0)
+                LI[n_leaf], LJ[n_leaf], lp[n_leaf], lwid[n_leaf] = I, J, p, wid
                 n_leaf += 1
                 continue
             si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)
             ni = 2 if si else 1
             nj = 2 if sj else 1
             if top + 4 > sI.shape[0]:
-                sI, sJ, sP, sW = (
+                sI, sJ, sP, sK = (
                     _grow(sI, top + 4),
                     _grow(sJ, top + 4),
                     _grow(sP, top + 4),
-                    _grow(sW, top + 4),
+                    _grow(sK, top + 4),
                 )
-                sdW, sd2W = _grow(sdW, top + 4), _grow(sd2W, top + 4)
             for a in range(ni):
                 ci = child[I, a] if si else I
                 for b in range(nj):
                     cj = child[J, b] if sj else J
-                    sI[top], sJ[top], sP[top], sW[top] = ci, cj, p, W
-                    if order >= 1:
-                        sdW[top] = W1
-                    if order >= 2:
-                        sd2W[top] = W2
+                    sI[top], sJ[top], sP[top], sK[top] = ci, cj, p, wid
                     top += 1
-    return LI, LJ, lp, lw, ldw, ld2w, n_leaf, n_pairs
+    return LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs
 
 
 @numba.njit(**_JIT)
@@ -333,13 +337,14 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
 
 
 @numba.njit(**_JIT)
-def accumulate_leaves_lowrank(lp, lw, ldw, ld2w, pv, gx, WT, S, Pl, Xa, Xb, ba, bb, dR, d2R, mu, order, value,
+def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb, ba, bb, dR, d2R, mu, order, value,
                               grad, hess):  # fmt: skip
     """Add the leaf terms w * P_exact to value/grad/hess of their body pairs, from the leaf Hessians' factors.
 
     Chain rule to pose space with x_v = R X_v + t: J (18, 12) has identity blocks for the translations and
     dR[..., k] X_v for the rotations; hess_q = J^T hess_x J + sum_v grad_x_v . d2R X_v (rotation blocks). Then the
-    product rule with the weight: value w P, grad P dw + w gq, hess P d2w + dw gq^T + gq dw^T + w hq.
+    product rule with the weight: value w P, grad P dw + w gq, hess P d2w + dw gq^T + gq dw^T + w hq, the leaf's
+    weight w, dw, d2w being entry ``lwid`` of the weight table (wv, wd1, wd2) of :func:`traverse_nodes`.
 
     hess_x = mu (D - W W^T) (``_pair_numba.solve_pairs`` with ``lowrank``): D is block diagonal, 2 n n^T / s_v^3
     per vertex v, and W (18, 4). With J_v = [I | A_v] (A_v = dR X_v) the vertex's rows of the (18, 12) pose
@@ -355,7 +360,8 @@ def accumulate_leaves_lowrank(lp, lw, ldw, ld2w, pv, gx, WT, S, Pl, Xa, Xb, ba, 
     G = np.empty((3, 3))
     for e in range(L):
         p = lp[e]
-        w = lw[e]
+        wid = lwid[e]
+        w = wv[wid]
         P = pv[e]
         value[p] += w * P
         if order < 1 or not math.isfinite(P):
@@ -378,7 +384,7 @@ def accumulate_leaves_lowrank(lp, lw, ldw, ld2w, pv, gx, WT, S, Pl, Xa, Xb, ba, 
                 for k in range(3):
                     gq[o + 3 + k] += A[v, i, k] * gi
         for c in range(12):
-            grad[p, c] += P * ldw[e, c] + w * gq[c]
+            grad[p, c] += P * wd1[wid, c] + w * gq[c]
         if order < 2:
             continue
         n0, n1, n2 = Pl[e, 0], Pl[e, 1], Pl[e, 2]
@@ -429,4 +435,4 @@ def accumulate_leaves_lowrank(lp, lw, ldw, ld2w, pv, gx, WT, S, Pl, Xa, Xb, ba, 
                     hq[o + k, o + l2] += acc
         for a in range(12):
             for c in range(12):
-                hess[p, a, c] += P * ld2w[e, a, c] + ldw[e, a] * gq[c] + gq[a] * ldw[e, c] + w * hq[a, c]
+                hess[p, a, c] += P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
