@@ -87,6 +87,13 @@ class EnergyEval(NamedTuple):
             coordinates' own for free bodies): the saddle-free direction's floor on eigenvalue magnitudes.
         contact_force, friction_force: (A, N, 6) -dP/dpose and -dD/dpose.
         node_pairs, leaf_pairs: the contact model's work in this evaluation.
+        body_value: (A, M) each moving body's own terms (inertia, gravity, actuation), or None (an energy
+            without the split: the Newton solve then freezes no body).
+        pair_value: (A, P) each interacting body pair's contact and friction terms (0 for pairs not evaluated).
+
+    With ``active`` (a subset of the moving bodies), L is the sum of the terms that involve an active body (their
+    own terms, and the pairs with at least one of them), and grad / hess are exact in the active bodies'
+    coordinates only: the rest of L is constant while the other bodies stay put.
     """
 
     value: torch.Tensor
@@ -100,6 +107,8 @@ class EnergyEval(NamedTuple):
     friction_force: torch.Tensor | None
     node_pairs: int
     leaf_pairs: int
+    body_value: torch.Tensor | None = None
+    pair_value: torch.Tensor | None = None
 
 
 def scene_pairs(scene, num_scenes: int) -> torch.Tensor:
@@ -191,8 +200,11 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     return value, grad, H
 
 
-def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> EnergyEval:
-    """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2)."""
+def incremental_potential(
+    prob: StepProblem, q: torch.Tensor, order: int, active: torch.Tensor | None = None
+) -> EnergyEval:
+    """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2); with ``active``
+    (B, M) bool over the moving bodies, only the terms that involve an active body (see :class:`EnergyEval`)."""
     scene = prob.scene
     B, N = prob.q_t.shape[:2]
     dyn = scene.kinematics.bodies.to(q.device)  # the moving bodies: inertia, gravity, actuation
@@ -207,20 +219,40 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
     )  # fmt: skip
     # each body's "local" energy: its own terms plus the contact and friction terms it takes part in (the sum of
     # their magnitudes sets the line search's rounding scale)
+    body_value = vb.reshape(B, Nd)
+    if active is not None:
+        vb = torch.where(active.reshape(-1), vb, torch.zeros_like(vb))
     local = q.new_zeros(B, N)
     local[:, dyn] = vb.reshape(B, Nd)
     value = vb.reshape(B, Nd).sum(1)
     pairs = scene_pairs(scene, B).to(q.device)
+    P = scene.pairs.shape[0]
+    pair_value = q.new_zeros(B * P)
+    on = None  # (B P,) the pairs evaluated: all, or those with an active body
+    if active is not None and P:
+        pos = torch.full((N,), -1, dtype=torch.long, device=q.device)
+        pos[dyn] = torch.arange(Nd, device=q.device)
+        act = torch.cat([active, active.new_zeros(B, 1)], 1)  # column Nd: "not a moving body"
+        pi, pj = pos[pairs[:, 1]], pos[pairs[:, 2]]
+        on = act[pairs[:, 0], torch.where(pi >= 0, pi, Nd)] | act[pairs[:, 0], torch.where(pj >= 0, pj, Nd)]
     G = Hc = None
     node_pairs = leaf_pairs = 0
     if pairs.shape[0]:
-        ce = scene.contact_model.evaluate(poses, pairs, order)
+        sel = pairs if on is None else pairs[on]
+        ce = scene.contact_model.evaluate(poses, sel, order)
         node_pairs, leaf_pairs = ce.node_pairs, ce.leaf_pairs
         v = ce.value
-        local.index_put_((pairs[:, 0], pairs[:, 1]), v, accumulate=True)
-        local.index_put_((pairs[:, 0], pairs[:, 2]), v, accumulate=True)
-        value = value + v.reshape(B, -1).sum(1)
-        G, Hc = sum_pairs(B, N, pairs, ce.grad, ce.hess)
+        if on is None:
+            pair_value = pair_value + v
+        else:
+            pair_value[on] = v
+        local.index_put_((sel[:, 0], sel[:, 1]), v, accumulate=True)
+        local.index_put_((sel[:, 0], sel[:, 2]), v, accumulate=True)
+        if on is None:
+            value = value + v.reshape(B, -1).sum(1)
+        else:
+            value = value + torch.zeros_like(value).index_add_(0, sel[:, 0], v)
+        G, Hc = sum_pairs(B, N, sel, ce.grad, ce.hess)
     elif order:
         G = q.new_zeros(B, N, 6)
         Hc = q.new_zeros(B, 6 * N, 6 * N) if order > 1 else None
@@ -233,6 +265,9 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
             lag, poses.reshape(B * N, 6), frows, prob.friction[cp[:, 0]], scene.friction.eps_v * scene.dt, order,
             majorizer_gap=order >= 2,
         )  # fmt: skip
+        if on is not None:  # the contacts of pairs without an active body do not count
+            vf = torch.where(on[lag.pair], vf, torch.zeros_like(vf))
+        pair_value = pair_value.index_add(0, lag.pair, vf)
         local.index_put_((cp[:, 0], cp[:, 1]), vf, accumulate=True)
         local.index_put_((cp[:, 0], cp[:, 2]), vf, accumulate=True)
         value = value + torch.zeros_like(value).index_add_(0, cp[:, 0], vf)
@@ -242,7 +277,10 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
                 gap = sum_pairs(B, N, cp, None, gap_c[0])[1]
     scale = value.abs() + local.abs().sum(1)
     if order == 0:
-        return EnergyEval(value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs)
+        return EnergyEval(
+            value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs, body_value,
+            pair_value.reshape(B, P),
+        )  # fmt: skip
     Gp = G if Gf is None else G + Gf
     Hp = None
     if order >= 2:
@@ -260,5 +298,5 @@ def incremental_potential(prob: StepProblem, q: torch.Tensor, order: int) -> Ene
         h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
-        node_pairs, leaf_pairs,
+        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P),
     )  # fmt: skip

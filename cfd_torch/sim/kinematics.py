@@ -22,10 +22,12 @@ __all__ = ["Kinematics", "FreeBodies"]
 class Kinematics(Protocol):
     """A map from generalised coordinates to body poses, with its first and second derivatives."""
 
-    num_coords: int  # Q
-    bodies: (
-        torch.Tensor
-    )  # (M,) the bodies the map moves: they carry inertia, and Params have one row per body
+    #: Q, the number of generalised coordinates
+    num_coords: int
+    #: (M,) the bodies the map moves: they carry inertia, and Params have one row per body
+    bodies: torch.Tensor
+    #: (Q,) the moving body (0..M-1) each coordinate belongs to (the Newton solve freezes converged bodies)
+    coord_body: torch.Tensor
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
@@ -69,6 +71,7 @@ class FreeBodies:
         self.bodies = dynamic
         self.num_bodies = num_bodies
         self.num_coords = 6 * len(dynamic)
+        self.coord_body = torch.arange(self.num_coords) // 6
         self._d6 = (dynamic[:, None] * 6 + torch.arange(6)).reshape(-1)  # their rows of a (6N,) pose vector
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:

@@ -12,7 +12,13 @@ trial is accepted only if its energy is finite, decreases enough (up to the ener
 to it passes ``move_ok`` (no tunnelling). Converged when the undamped Newton step is at most ``tol`` in every
 coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's).
 
-Scenes that converged or failed stop costing: each evaluation covers only the scenes still iterating.
+Scenes that converged or failed stop costing: each evaluation covers only the scenes still iterating. Within a
+scene, bodies stop costing too (with ``pair_bodies``): a body whose Newton step is within ``tol`` while every
+body its Hessian couples it to (contact within the blend band; the far field's coupling is below 1e-6 of their own
+curvature) is also within ``tol`` is frozen, and the evaluations that follow cover only the terms of the bodies
+still iterating (their own terms and their pairs). A scene converges only at an evaluation of all its bodies: when
+the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
+iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
 """
 
 from __future__ import annotations
@@ -70,6 +76,25 @@ def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
     return EnergyEval(*(x[sel] if isinstance(x, torch.Tensor) else x for x in ev))
 
 
+def _call(energy, q, scenes, order, active):
+    """energy(q, scenes, order[, active]): the active set is passed only when some body is frozen."""
+    return energy(q, scenes, order) if active is None else energy(q, scenes, order, active)
+
+
+def _restricted(ev: EnergyEval, act: torch.Tensor, pair_bodies: torch.Tensor):
+    """The value and rounding scale of the terms of ``ev`` (A scenes, evaluated over a superset of bodies) that
+    involve the bodies ``act`` (A, M): their own terms and their pairs'."""
+    A, M = act.shape
+    ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
+    pb = torch.where(pair_bodies >= 0, pair_bodies, M)
+    on = ext[:, pb[:, 0]] | ext[:, pb[:, 1]]  # (A, P)
+    zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
+    own = torch.where(act, ev.body_value, zero)
+    pv = torch.where(on, ev.pair_value, zero)
+    value = own.sum(1) + pv.sum(1)
+    return value, value.abs() + own.abs().sum(1) + 2.0 * pv.abs().sum(1)
+
+
 def newton(
     energy: Callable[[torch.Tensor, torch.Tensor, int], EnergyEval],
     q: torch.Tensor,
@@ -82,11 +107,14 @@ def newton(
     move_ok: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
     displacement: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
     majorize: torch.Tensor | None = None,
+    block: torch.Tensor | None = None,
+    pair_bodies: torch.Tensor | None = None,
 ) -> NewtonResult:
     """Minimise B independent energies from feasible starts.
 
     Args:
-        energy: (q (A, Q), scenes (A,) indices, order) -> EnergyEval of those scenes.
+        energy: (q (A, Q), scenes (A,) indices, order[, active]) -> EnergyEval of those scenes; ``active``
+            (A, M) bool, passed only while some body is frozen: the moving bodies whose terms to evaluate.
         q: (B, Q) starts; ``first`` their order-2 evaluation (all B scenes).
         tol: convergence threshold on the Newton step [coordinate units].
         max_iter: iteration cap.
@@ -96,6 +124,9 @@ def newton(
         displacement: (q0, q1, scenes) -> (A,) largest vertex displacement of the move [m].
         majorize: (B,) bool, the scenes whose iteration after a rejected full step uses the energy's majorizer
             (``EnergyEval.majorizer_gap``); default: all, if the energy has one.
+        block: (Q,) the moving body (0..M-1) each coordinate belongs to; with ``pair_bodies`` (P, 2), each
+            interacting pair's two bodies (moving-body index, -1 for a body that does not move), converged bodies
+            are frozen (module docstring). None: every body iterates until the scene converges.
     """
     B = q.shape[0]
     dev = q.device
@@ -112,6 +143,15 @@ def newton(
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
     active = torch.isfinite(cur.value)
     reason[~active] = int(Stop.INFEASIBLE_START)
+    freeze = block is not None and pair_bodies is not None and first.body_value is not None
+    M = int(block.max()) + 1 if freeze and block.numel() else 0
+    act = torch.ones(B, M, dtype=torch.bool, device=dev)  # the bodies iterating
+    whole = torch.ones(B, dtype=torch.bool, device=dev)  # cur evaluated every body of the scene
+    # a scene whose whole evaluation did not confirm its frozen bodies' convergence iterates whole from then on
+    # (freezing again could cycle: the bodies' coupled steps are within tol one by one, not together)
+    may_freeze = torch.ones(B, dtype=torch.bool, device=dev)
+    if freeze:
+        onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
         if idx.numel() == 0:
@@ -120,6 +160,11 @@ def newton(
         L, g, H = cur.value[idx], cur.grad[idx], cur.hess[idx]
         maj = majorized[idx] & majorize[idx]
         Hd = torch.where(maj[:, None, None], H + cur.majorizer_gap[idx], H) if bool(maj.any()) else H
+        if freeze and not bool(act[idx].all()):  # frozen coordinates: identity rows, no step
+            cm = act[idx][:, block]  # (A, Q)
+            eye = torch.eye(Hd.shape[1], dtype=Hd.dtype, device=dev)
+            Hd = torch.where(cm[:, :, None] & cm[:, None, :], Hd, eye)
+            g = torch.where(cm, g, torch.zeros((), dtype=g.dtype, device=dev))
         chol, info = torch.linalg.cholesky_ex(Hd)
         pd = info == 0
         p = torch.cholesky_solve(-g[:, :, None], chol)[:, :, 0]
@@ -129,14 +174,43 @@ def newton(
             floor = torch.maximum(cur.h_floor[idx][bad], 1e-12 * ev.abs().amax(1))
             mag = torch.maximum(ev.abs(), floor[:, None])
             p[bad] = -(V @ ((V.transpose(1, 2) @ g[bad][:, :, None])[:, :, 0] / mag)[:, :, None])[:, :, 0]
-        done = pd & ~maj & (p.abs().amax(1) <= tol)
+        small = pd & ~maj & (p.abs().amax(1) <= tol)
+        done = small & whole[idx]
         if bool(done.any()):
             reason[idx[done]] = int(Stop.CONVERGED)
             active[idx[done]] = False
-            keep = ~done
+        check = small & ~whole[idx]  # the bodies iterating converged: evaluate the whole scene
+        if bool(check.any()):
+            sc = idx[check]
+            act[sc] = True
+            whole[sc] = True
+            may_freeze[sc] = False
+            ev = _call(energy, q[sc], sc, 2, None)
+            evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
+            _assign(cur, sc, ev)
+        keep = ~small
+        if freeze and bool(keep.any()):
+            # freeze the bodies within tol whose coupled bodies are all within tol
+            k = torch.nonzero(keep)[:, 0]
+            pb = (p[k].abs()[:, :, None] * onehot).amax(1)  # (A, M) largest step per body
+            C = onehot.T @ H[k].abs() @ onehot  # (A, M, M) coupling
+            dC = torch.diagonal(C, dim1=1, dim2=2)
+            coupled = C > 1e-6 * torch.minimum(dC[:, :, None], dC[:, None, :])
+            moving = act[idx[k]] & (pb > tol)
+            frz = act[idx[k]] & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[idx[k], None]
+            if bool(frz.any()):
+                sc = idx[k]
+                act[sc] = act[sc] & ~frz
+                whole[sc] = whole[sc] & ~frz.any(1)
+                p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
+                value, scale = _restricted(_rows(cur, sc), act[sc], pair_bodies)
+                cur.value[sc], cur.scale[sc] = value, scale
+                L = L.clone()
+                L[k] = value
+        if bool(small.any()):
             idx, L, g, p = idx[keep], L[keep], g[keep], p[keep]
             if idx.numel() == 0:
-                break
+                continue
         q0 = q[idx]
         reach = displacement(q0, q0 + p, idx)
         over = reach > max_move
@@ -154,7 +228,7 @@ def newton(
                 break
             q_try = q0[sub] + alpha[sub, None] * p[sub]
             # the full step is usually accepted: evaluate it with derivatives at once, backtrack value-only
-            ev = energy(q_try, idx[sub], 2 if k == 0 else 0)
+            ev = _call(energy, q_try, idx[sub], 2 if k == 0 else 0, act[idx[sub]] if freeze else None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
             if k == 0:
                 full = ev
@@ -182,7 +256,7 @@ def newton(
             _assign(cur, idx[first_try], _rows(full, first_try))
         later = taken > 0
         if bool(later.any()):
-            ev = energy(q[idx[later]], idx[later], 2)
+            ev = _call(energy, q[idx[later]], idx[later], 2, act[idx[later]] if freeze else None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
             _assign(cur, idx[later], ev)
         majorized[idx] = later

@@ -30,14 +30,25 @@ def _work(ev: EnergyEval) -> Work:
 
 
 def _energy(prob: StepProblem):
-    """(q (A, Q), scenes (A,), order) -> L of those scenes of ``prob``."""
+    """(q (A, Q), scenes (A,), order, active (A, M) | None) -> L of those scenes of ``prob``."""
     B = prob.q_t.shape[0]
 
-    def energy(q: torch.Tensor, scenes: torch.Tensor, order: int) -> EnergyEval:
+    def energy(
+        q: torch.Tensor, scenes: torch.Tensor, order: int, active: torch.Tensor | None = None
+    ) -> EnergyEval:
         whole = len(scenes) == B and bool((scenes == torch.arange(B, device=scenes.device)).all())
-        return incremental_potential(prob if whole else select_scenes(prob, scenes), q, order)
+        if active is not None and bool(active.all()):
+            active = None
+        return incremental_potential(prob if whole else select_scenes(prob, scenes), q, order, active)
 
     return energy
+
+
+def _pair_bodies(scene) -> torch.Tensor:
+    """(P, 2) each interacting pair's bodies as indices into the moving bodies (-1: a body that does not move)."""
+    pos = torch.full((scene.num_bodies,), -1, dtype=torch.long)
+    pos[scene.kinematics.bodies] = torch.arange(len(scene.kinematics.bodies))
+    return pos[scene.pairs]
 
 
 def _newton(
@@ -56,6 +67,7 @@ def _newton(
         energy, q, first, tol=tol, max_iter=s.max_newton_iter, max_move=20.0 * s.ccd_spacing,
         free_move=s.ccd_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
         displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize,
+        block=prob.scene.kinematics.coord_body.to(q.device), pair_bodies=_pair_bodies(prob.scene).to(q.device),
     )  # fmt: skip
     return res, _add(work, res.work)
 
