@@ -1,20 +1,45 @@
 """Cost of one simulator step: forward, forward + backward, Newton iterations, optionally against an older revision.
 
-Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol unless stated):
+Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol unless stated; every random choice
+from a fixed seed, so both sides of ``--baseline`` and every run get the same scene). Case names in brackets; the
+``--cases`` names are billiards, cubes, push, boxes, ball.
 
-1. billiards: 16 balls (icosphere subdivision 2 = 320 faces, radius ``--ball-radius``), a 15-ball triangle rack
-   (neighbours 2 mm apart) and a cue ball moving at ``--cue-speed`` m/s toward the rack's apex, on a static
-   12-triangle box ground refined with ``max_edge`` = ``--ground-edge-factor`` x the ball's mean edge length. The
-   timed window covers the cue ball's approach and its impact on the rack.
-2. boxes: 4 boxes (trimesh.creation.box, 12 triangles each, 0.2 x 0.2 x 0.1) stacked 2 mm apart on a 12-triangle box
-   ground, timed after they have landed.
-3. ball on box: one 320-face ball (radius 0.5) resting on a 12-triangle box (4 x 4 x 0.5; the configuration of
-   ``bench_contact.py`` section 4), the box as-is and refined with ``max_edge`` = ``--ground-edge-factor`` x the
-   ball's mean edge length, each with friction off (0) and on (``--friction``). Timed after the ball has settled.
+1. billiards (``billiards{n}``, n = rack balls + cue ball, 16 by default): a break shot, then the balls rolling
+   (sliding: friction ``--billiards-friction``, default 0). Balls: icosphere subdivision 2 (320 faces), radius
+   ``--ball-radius`` (0.05). A triangle rack of ``--num-balls-rows`` rows (1..5: 1, 3, 6, 10, 15 balls; rows along
+   +x, neighbours 2 mm apart) and a cue ball on the -x side moving at ``--cue-speed`` (2 m/s) along +x toward the
+   rack's apex, its surface 2 mm + ``--cue-lead-steps`` (4) x 2 cm behind the apex ball's. The set-up (cue ball to
+   the rack's last row) is centred on a static 24 r x 12 r x 2 r box table (top face at z = r) refined with
+   ``max_edge`` = ``--ground-edge-factor`` (2) x the ball's mean edge length (the same mesh on both sides of
+   ``--baseline``). Every ball starts with its lowest vertex 2 mm above the table and lands in the 2 warm-up steps;
+   the cue ball hits the apex in step 4 (counted from 0: the third timed step), and the 12 timed steps (3 with
+   ``--quick``) cover the impact and all balls moving apart.
+2. cubes (``cubes10``): ``--num-cubes`` (10) cubes of 5 cm (trimesh.creation.box, 12 triangles) over a static
+   1 x 1 x 0.1 box floor (12 triangles, top face at z = 0), friction 0.5. From ``numpy.random.default_rng(0)``:
+   centres uniform in [-0.3, 0.3]^2 with footprints (circles of the half diagonal) 5 mm apart (rejection
+   sampling), yaw uniform in [-pi, pi], lowest face ``--cube-drop`` (uniform in [5, 20] mm) above the floor,
+   horizontal velocities of speed uniform in [0, ``--cube-speed``] (0.5 m/s) and uniform heading. 3 warm-up steps;
+   the cubes land in the first timed steps and slide (to rest after ~13 steps), so the default timed window is
+   10 steps (3 with ``--quick``).
+3. push: a kinematic pole (box 0.1 x 0.1 x 0.8, ``rigid_body(mesh, kind="kinematic")``) pushes a dynamic 0.3 m
+   cube along +x over the 1 x 1 x 0.1 floor, friction 0.5. Both start 2 mm above the floor, the pole's +x face
+   ``--push-gap`` (15 mm) behind the cube's -x face. The pole moves at ``--push-speed`` (0.3 m/s, 3 mm per step)
+   through ``Action(target=...)``: its end-of-step pose start + (t + 1) dt v at step t (a function of t only, so
+   no gradient flows through it). The cube lands in the 4 warm-up steps; the pole reaches it in the first timed
+   step and pushes it for the rest (20 steps, 3 with ``--quick``).
+4. boxes (``boxes4``): 4 boxes (12 triangles each, 0.2 x 0.2 x 0.1) stacked 2 mm apart on the 12-triangle floor,
+   timed after they have landed.
+5. ball (``ball_box[_refined]_mu{0,0.5}``): one 320-face ball (radius 0.5) resting on a 12-triangle box (4 x 4 x
+   0.5; the configuration of ``bench_contact.py`` section 4), the box as-is and refined with ``max_edge`` =
+   ``--ground-edge-factor`` x the ball's mean edge length, each with friction off (0) and on (``--friction``).
+   Timed after the ball has settled.
+
+A case may act on its steps: ``Case.action(t, state)`` returns the step's :class:`cfd_torch.Action` (push's
+kinematic target), t counted from the case's start state; the warm-up, both passes and ``--profile`` pass it.
 
 Every scene first runs ``warmup`` untimed steps (numba compilation, landing), then two passes from the same state:
 
-- forward: ``steps`` consecutive steps ``step(scene, state, return_info=True)``. Timed: the forward solve, the
+- forward: ``steps`` consecutive steps ``step(scene, state, action, return_info=True)``. Timed: the forward solve, the
   :class:`cfd_torch.StepInfo`'s ``seconds``, and the whole ``step()`` call (wall time in this script: the solve
   plus input checks and re-centring). Statistics from the StepInfo: Newton iterations, contact evaluations, leaf
   and node pairs, friction contacts, sub-steps.
@@ -29,10 +54,12 @@ cProfile and torch.profiler tables per scene (``<out>/profile_<case>.txt``), whi
 
 ``--baseline REV`` times the git revision REV of the package side by side in the same run: it checks REV out with
 ``git worktree add`` into a temporary directory and, right after each case at the working tree's package, runs the
-same case in a subprocess with PYTHONPATH pointing at that checkout (its API may be the one before ``StepInfo``:
-``step(..., info=dict)``; the forward time compared is then the ``step()`` call's wall time on both sides). The
-table gives per case the median forward and backward ms of both and their ratio (this / REV), and whether the
-results agree: Newton iterations per step, end poses of the forward pass, gradient norms.
+same case in a subprocess with PYTHONPATH pointing at that checkout. The subprocess is this script (the working
+tree's, so it builds the same scenes, also ones REV's own script lacks) importing REV's package; that API may be
+the one before ``StepInfo`` (``step(..., info=dict)``; the forward time compared is then the ``step()`` call's wall
+time on both sides), and push needs ``Action.target`` (4b00007 has it). The table gives per case the median
+forward and backward ms of both and their ratio (this / REV), and whether the results agree: Newton iterations per
+step, end poses of the forward pass, gradient norms.
 
 The machine may be shared: the load average is recorded at the start and end of every scene. ``--threads`` sets
 torch's intra-op threads (default: torch's own default); the numba kernels use ``--numba-threads``.
@@ -43,6 +70,8 @@ Writes ``<out>/bench_step.json`` (every per-step figure), ``<out>/table.md`` (pr
     python scripts/bench_step.py --out results/bench_step --profile       # ~10 min on 2 shared cores
     python scripts/bench_step.py --out results/bench_step_quick --quick   # a few minutes
     python scripts/bench_step.py --quick --cases boxes --baseline e5289f1 # this revision against e5289f1
+    python scripts/bench_step.py --quick --cases cubes push --baseline 4b00007
+    python scripts/bench_step.py --cases billiards --num-balls-rows 3    # billiards7: 6 rack balls + cue ball
 """
 
 from __future__ import annotations
@@ -61,6 +90,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 
@@ -76,7 +106,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
-from cfd_torch import Scene, State, StepError, rigid_body, step  # noqa: E402
+from cfd_torch import Action, Scene, State, StepError, rigid_body, step  # noqa: E402
 
 F64 = torch.float64
 # the authors' C++ on the resting 320-face ball on a 12-triangle box, double precision: per step, per backward
@@ -91,7 +121,9 @@ STATS = ("newton_iters", "contact_evals", "leaf_pairs", "node_pairs", "friction_
 # ------------------------------------------------------------------------------------------------ scenes
 @dataclass
 class Case:
-    """A scene with its start state and how many steps to run before and while timing."""
+    """A scene with its start state, how many steps to run before and while timing, and what acts on each step:
+    ``action(t, state)`` gives the step's :class:`cfd_torch.Action` (or None) for the step from ``state`` at step
+    index t (counted from the case's start state, warm-up included); None: nothing acts."""
 
     name: str
     scene: Scene
@@ -99,6 +131,10 @@ class Case:
     warmup: int
     steps: int
     meta: dict = field(default_factory=dict)
+    action: Callable[[int, State], Action | None] | None = None
+
+    def act(self, t: int, state: State) -> Action | None:
+        return None if self.action is None else self.action(t, state)
 
 
 def _ball(radius: float) -> trimesh.Trimesh:
@@ -110,34 +146,40 @@ def _mean_edge(mesh: trimesh.Trimesh) -> float:
 
 
 def billiards(args) -> Case:
-    """16 balls: a 15-ball rack (rows of 1..5 along +x, 2 mm apart) and a cue ball on the -x side moving at +x."""
-    r, gap = args.ball_radius, 2e-3
+    """A break shot: a triangle rack of ``--num-balls-rows`` rows (1..5: 1, 3, 6, 10, 15 balls, 2 mm apart) and a cue
+    ball moving at ``--cue-speed`` along +x toward the rack's apex, on a static table refined with ``max_edge``."""
+    r, gap, rows = args.ball_radius, 2e-3, args.num_balls_rows
+    if not 1 <= rows <= 5:
+        raise ValueError(f"--num-balls-rows must be in 1..5, got {rows}")
     ball = _ball(r)
     max_edge = args.ground_edge_factor * _mean_edge(ball)
-    ground = trimesh.creation.box(extents=(24 * r, 12 * r, 2 * r))  # top face at z = r
-    bodies = [rigid_body(ground, kind="static", max_edge=max_edge)]
+    extents = (24 * r, 12 * r, 2 * r)
+    table = trimesh.creation.box(extents=extents)  # at the origin: top face at z = r
     ball_body = rigid_body(ball)
-    z = r - float(ball.vertices[:, 2].min()) + gap  # lowest vertex gap above the ground's top face
-    d = 2 * r + gap  # centre distance of touching neighbours in the rack
-    apex = 2 * r
-    poses = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]
-    for row in range(5):
-        for k in range(row + 1):
-            poses.append([apex + row * d * math.sqrt(3) / 2, (k - row / 2) * d, z, 0.0, 0.0, 0.0])
-    cue_x = apex - d - args.cue_speed * 0.01 * args.cue_lead_steps
-    poses.append([cue_x, 0.0, z, 0.0, 0.0, 0.0])
-    bodies += [ball_body] * 16
+    z = r - float(ball.vertices[:, 2].min()) + gap  # lowest vertex gap above the table's top face
+    d = 2 * r + gap  # centre distance of neighbours in the rack
+    h = d * math.sqrt(3) / 2  # distance of the rack's rows
+    # the cue ball's surface starts gap + cue_speed * dt * cue_lead_steps behind the apex ball's; x is shifted so
+    # that the set-up (cue ball to the rack's last row) is centred on the table
+    cue_x = -d - args.cue_speed * 0.01 * args.cue_lead_steps
+    shift = -0.5 * (cue_x + (rows - 1) * h)
+    rack = [[row * h, (k - row / 2) * d] for row in range(rows) for k in range(row + 1)]
+    poses = [[0.0] * 6] + [[x + shift, y, z, 0.0, 0.0, 0.0] for x, y in rack]
+    poses.append([cue_x + shift, 0.0, z, 0.0, 0.0, 0.0])
+    n = len(poses) - 1
+    bodies = [rigid_body(table, kind="static", max_edge=max_edge)] + [ball_body] * n
     vel = torch.zeros(len(poses), 6, dtype=F64)
     vel[-1, 0] = args.cue_speed
-    scene = Scene(bodies)
+    scene = Scene(bodies, friction=args.billiards_friction)
     state = scene.initial_state(torch.tensor(poses, dtype=F64), vel)
     meta = {
-        "ball_radius": r, "ball_faces": ball_body.bsh.num_faces, "ground_faces": bodies[0].bsh.num_faces,
-        "ground_max_edge": max_edge, "ground_extents": [24 * r, 12 * r, 2 * r], "rack_gap": gap,
-        "cue_speed": args.cue_speed, "cue_start_x": cue_x,
-        "note": f"the cue ball reaches the rack after about {args.cue_lead_steps} steps",
+        "balls": n, "rack_rows": rows, "ball_radius": r, "ball_faces": ball_body.bsh.num_faces,
+        "ground_faces": bodies[0].bsh.num_faces, "ground_max_edge": max_edge, "ground_extents": list(extents),
+        "rack_gap": gap, "drop_gap": gap, "cue_speed": args.cue_speed, "cue_start_x": cue_x + shift,
+        "apex_x": shift, "friction": args.billiards_friction,
+        "note": f"the cue ball reaches the rack's apex after about {args.cue_lead_steps} steps",
     }  # fmt: skip
-    return Case("billiards16", scene, state, args.warmup_billiards, args.steps_billiards, meta)
+    return Case(f"billiards{n}", scene, state, args.warmup_billiards, args.steps_billiards, meta)
 
 
 def boxes(args) -> Case:
@@ -158,6 +200,81 @@ def boxes(args) -> Case:
         "gap": gap,
     }
     return Case(f"boxes{args.num_boxes}", scene, state, args.warmup_boxes, args.steps_boxes, meta)
+
+
+def cubes(args) -> Case:
+    """``--num-cubes`` 5 cm cubes (12 triangles each) dropped onto a 12-triangle 1 x 1 x 0.1 floor (top face at
+    z = 0), sliding: random positions, yaw, drop heights and horizontal velocities from ``default_rng(0)``."""
+    a, n, friction = 0.05, args.num_cubes, 0.5
+    rng = np.random.default_rng(0)
+    half_diag = a * math.sqrt(2) / 2  # the cube's footprint lies within this radius whatever its yaw
+    spread, min_dist = 0.3, 2 * half_diag + 5e-3  # centres in [-spread, spread]^2, footprints 5 mm apart
+    xy: list[np.ndarray] = []
+    while len(xy) < n:  # rejection sampling: no two footprints overlap
+        p = rng.uniform(-spread, spread, 2)
+        if all(np.linalg.norm(p - o) >= min_dist for o in xy):
+            xy.append(p)
+    yaw = rng.uniform(-math.pi, math.pi, n)
+    drop = rng.uniform(*args.cube_drop, n)  # lowest face above the floor [m]
+    speed = rng.uniform(0.0, args.cube_speed, n)
+    heading = rng.uniform(-math.pi, math.pi, n)
+    cube = trimesh.creation.box(extents=(a, a, a))
+    floor = trimesh.creation.box(extents=(1.0, 1.0, 0.1))
+    bodies = [rigid_body(floor, kind="static")] + [rigid_body(cube)] * n
+    poses = [[0.0, 0.0, -0.05, 0.0, 0.0, 0.0]]
+    poses += [[*xy[i], a / 2 + drop[i], 0.0, 0.0, yaw[i]] for i in range(n)]
+    vel = torch.zeros(n + 1, 6, dtype=F64)
+    vel[1:, 0] = torch.from_numpy(speed * np.cos(heading))
+    vel[1:, 1] = torch.from_numpy(speed * np.sin(heading))
+    scene = Scene(bodies, friction=friction)
+    state = scene.initial_state(torch.tensor(poses, dtype=F64), vel)
+    meta = {
+        "cubes": n, "cube_extents": [a, a, a], "box_faces": 12, "ground_faces": 12, "floor_extents": [1.0, 1.0, 0.1],
+        "friction": friction, "seed": 0, "drop_heights": drop.tolist(), "speeds": speed.tolist(),
+        "max_speed": args.cube_speed,
+    }  # fmt: skip
+    return Case(f"cubes{n}", scene, state, args.warmup_cubes, args.steps_cubes, meta)
+
+
+def push(args) -> Case:
+    """A kinematic pole (0.1 x 0.1 x 0.8) moving at ``--push-speed`` along +x pushes a dynamic 0.3 m cube, both
+    2 mm above a 12-triangle 1 x 1 x 0.1 floor (top face at z = 0), friction 0.5."""
+    gap, side, friction, v = 2e-3, 0.3, 0.5, args.push_speed
+    floor = trimesh.creation.box(extents=(1.0, 1.0, 0.1))
+    pole = trimesh.creation.box(extents=(0.1, 0.1, 0.8))
+    box = trimesh.creation.box(extents=(side, side, side))
+    bodies = [
+        rigid_body(floor, kind="static"),
+        rigid_body(pole, kind="kinematic"),
+        rigid_body(box),
+    ]
+    box_x = 0.0
+    pole_x = box_x - side / 2 - args.push_gap - 0.05  # the pole's +x face push_gap behind the box's -x face
+    poses = torch.tensor(
+        [
+            [0.0, 0.0, -0.05, 0, 0, 0],
+            [pole_x, 0.0, 0.4 + gap, 0, 0, 0],
+            [box_x, 0.0, side / 2 + gap, 0, 0, 0],
+        ],
+        dtype=F64,
+    )
+    scene = Scene(bodies, friction=friction)
+    start = poses[scene.kinematic].clone()
+    delta = torch.zeros(6, dtype=F64)
+    delta[0] = v * scene.dt
+
+    def action(t: int, state: State) -> Action:
+        # the pole's pose at the end of step t: constant velocity from its start pose (independent of the state,
+        # so that the backward pass sees no gradient through it)
+        return Action(target=start + (t + 1) * delta)
+
+    meta = {
+        "pole_extents": [0.1, 0.1, 0.8], "box_extents": [side] * 3, "box_faces": 12, "pole_faces": 12,
+        "ground_faces": 12, "floor_extents": [1.0, 1.0, 0.1], "friction": friction, "push_speed": v,
+        "push_gap": args.push_gap, "drop_gap": gap,
+        "note": f"the pole reaches the box after about {args.push_gap / (v * scene.dt):.0f} steps",
+    }  # fmt: skip
+    return Case("push", scene, scene.initial_state(poses), args.warmup_push, args.steps_push, meta, action)
 
 
 def ball_on_box(args, refined: bool, friction: float) -> Case:
@@ -182,6 +299,10 @@ def make_cases(args) -> list[Case]:
     for name in args.cases:
         if name == "billiards":
             cases.append(billiards(args))
+        elif name == "cubes":
+            cases.append(cubes(args))
+        elif name == "push":
+            cases.append(push(args))
         elif name == "boxes":
             cases.append(boxes(args))
         elif name == "ball":
@@ -192,18 +313,19 @@ def make_cases(args) -> list[Case]:
 
 
 # ------------------------------------------------------------------------------------------------ passes
-def timed_step(scene: Scene, state: State) -> tuple[State, dict]:
-    """One step; returns the next state and a row: ``call_s`` (wall time of the ``step()`` call), ``total_s`` (the
-    forward solve's time from the StepInfo; the call's time on revisions without StepInfo) and the statistics."""
+def timed_step(scene: Scene, state: State, action: Action | None = None) -> tuple[State, dict]:
+    """One step with ``action`` (None: nothing acts); returns the next state and a row: ``call_s`` (wall time of the
+    ``step()`` call), ``total_s`` (the forward solve's time from the StepInfo; the call's time on revisions without
+    StepInfo) and the statistics."""
     t0 = time.perf_counter()
     if HAS_STEPINFO:
-        nxt, si = step(scene, state, return_info=True)
+        nxt, si = step(scene, state, action, return_info=True)
         call = time.perf_counter() - t0
         info = {k: getattr(si, k) for k in STATS}
         solve = si.seconds
     else:
         info = {}
-        nxt = step(scene, state, info=info)
+        nxt = step(scene, state, action, info=info)
         call = time.perf_counter() - t0
         solve = call
     stats = {k: int(info[k]) for k in STATS if k in info}
@@ -220,19 +342,20 @@ def _detach(state: State) -> State:
     return State(state.q.detach(), state.q_prev.detach())
 
 
-def forward_pass(case: Case, state: State, steps: int, desc: str) -> tuple[list[dict], State]:
+def forward_pass(case: Case, state: State, t0: int, steps: int, desc: str) -> tuple[list[dict], State]:
+    """``steps`` timed steps from ``state`` at step index ``t0`` (the index the case's action reads)."""
     rows = []
-    for _ in tqdm(range(steps), desc=desc, leave=False):
-        state, row = timed_step(case.scene, state)
+    for i in tqdm(range(steps), desc=desc, leave=False):
+        state, row = timed_step(case.scene, state, case.act(t0 + i, state))
         rows.append(row)
     return rows, state
 
 
-def backward_pass(case: Case, state: State, steps: int, w: torch.Tensor, desc: str) -> list[dict]:
+def backward_pass(case: Case, state: State, t0: int, steps: int, w: torch.Tensor, desc: str) -> list[dict]:
     rows = []
-    for _ in tqdm(range(steps), desc=desc, leave=False):
+    for i in tqdm(range(steps), desc=desc, leave=False):
         q = state.q.clone().requires_grad_()
-        out, fwd = timed_step(case.scene, State(q, state.q_prev))
+        out, fwd = timed_step(case.scene, State(q, state.q_prev), case.act(t0 + i, state))
         loss = (w * out.q).sum()
         t0 = time.perf_counter()
         loss.backward()
@@ -280,19 +403,19 @@ def run_case(case: Case, args) -> dict:
     state = case.state
     try:
         t0 = time.perf_counter()
-        for _ in tqdm(range(case.warmup), desc=f"{case.name} warm-up", leave=False):
-            state = step(case.scene, state)
+        for t in tqdm(range(case.warmup), desc=f"{case.name} warm-up", leave=False):
+            state = step(case.scene, state, case.act(t, state))
         res["warmup_s"] = time.perf_counter() - t0
         start = _detach(state)
         res["max_speed_start"] = _max_speed(case, start)
-        fwd, end = forward_pass(case, start, case.steps, f"{case.name} forward")
+        fwd, end = forward_pass(case, start, case.warmup, case.steps, f"{case.name} forward")
         res["max_speed_end"] = _max_speed(case, end)
         res["velocity_end"] = ((end.q - end.q_prev)[case.scene.dynamic] / case.scene.dt).tolist()
         res["q_end"] = end.q.tolist()
         w = torch.randn(start.q.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
         # the first backward compiles kernels: one untimed step
-        backward_pass(case, start, 1, w, f"{case.name} fwd+bwd warm-up")
-        bwd = backward_pass(case, start, case.steps, w, f"{case.name} fwd+bwd")
+        backward_pass(case, start, case.warmup, 1, w, f"{case.name} fwd+bwd warm-up")
+        bwd = backward_pass(case, start, case.warmup, case.steps, w, f"{case.name} fwd+bwd")
     except StepError as err:
         res["error"] = f"{type(err).__name__}: {err}"
         res["loadavg_end"] = os.getloadavg()
@@ -318,22 +441,23 @@ def profile_case(case: Case, state: State, args) -> str:
     n = args.profile_steps
     pr = cProfile.Profile()
     s = state
+    t0 = case.warmup
     pr.enable()
-    for _ in range(n):
-        s = step(case.scene, s)
+    for i in range(n):
+        s = step(case.scene, s, case.act(t0 + i, s))
     pr.disable()
     buf = io.StringIO()
     pstats.Stats(pr, stream=buf).sort_stats("tottime").print_stats(20)
     pstats.Stats(pr, stream=buf).sort_stats("cumulative").print_stats(25)
     s = state
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        for _ in range(n):
-            s = step(case.scene, s)
+        for i in range(n):
+            s = step(case.scene, s, case.act(t0 + i, s))
     w = torch.randn(state.q.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
     s, pr_b = state, cProfile.Profile()
-    for _ in range(n):
+    for i in range(n):
         q = s.q.clone().requires_grad_()
-        out = step(case.scene, State(q, s.q_prev))
+        out = step(case.scene, State(q, s.q_prev), case.act(t0 + i, s))
         pr_b.enable()
         (w * out.q).sum().backward()
         pr_b.disable()
@@ -539,9 +663,13 @@ def _faces(r: dict) -> str:
     if "ball_faces" in m and "box_faces" in m:
         return f"{m['ball_faces']} + {m['box_faces']}"
     if "ground_faces" in m and "ball_faces" in m:
-        return f"16 x {m['ball_faces']} + {m['ground_faces']}"
+        return f"{m.get('balls', 16)} x {m['ball_faces']} + {m['ground_faces']}"
     if "boxes" in m:
         return f"{m['boxes']} x {m['box_faces']} + {m['ground_faces']}"
+    if "cubes" in m:
+        return f"{m['cubes']} x {m['box_faces']} + {m['ground_faces']}"
+    if "pole_faces" in m:
+        return f"{m['box_faces']} + {m['pole_faces']} + {m['ground_faces']}"
     return "?"
 
 
@@ -611,7 +739,8 @@ def _source_hash() -> str:
     return h.hexdigest()[:16]
 
 
-CASES = ("billiards", "boxes", "ball")
+CUE_LEAD_STEPS = 4
+CASES = ("billiards", "cubes", "push", "boxes", "ball")
 
 
 def main() -> None:
@@ -620,8 +749,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer warm-up and timed steps (a smoke test)")
     ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     ap.add_argument(
-        "--steps", type=int, default=None, help="timed steps per ball/boxes pass (default 20, quick 3)"
-    )
+        "--steps", type=int, default=None,
+        help="timed steps of the cubes, push, boxes and ball cases (default 20, cubes 10; quick 3)",
+    )  # fmt: skip
     ap.add_argument(
         "--billiards-steps", type=int, default=None, help="timed billiards steps (default 12, quick 3)"
     )
@@ -634,7 +764,27 @@ def main() -> None:
     ap.add_argument("--ball-radius", type=float, default=0.05, help="billiard ball radius [m]")
     ap.add_argument("--cue-speed", type=float, default=2.0, help="[m/s]")
     ap.add_argument(
-        "--cue-lead-steps", type=int, default=4, help="steps before the cue ball reaches the rack"
+        "--cue-lead-steps", type=int, default=CUE_LEAD_STEPS,
+        help=f"steps before the cue ball reaches the rack (default {CUE_LEAD_STEPS})",
+    )  # fmt: skip
+    ap.add_argument(
+        "--num-balls-rows", type=int, default=5,
+        help="rows of the billiards rack, 1..5 (1, 3, 6, 10, 15 balls; plus the cue ball; default 5)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--billiards-friction", type=float, default=0.0, help="friction coefficient of billiards (default 0)"
+    )
+    ap.add_argument("--num-cubes", type=int, default=10)
+    ap.add_argument(
+        "--cube-speed", type=float, default=0.5, help="cubes: largest random horizontal speed [m/s]"
+    )
+    ap.add_argument(
+        "--cube-drop", type=float, nargs=2, default=[0.005, 0.02], metavar=("LO", "HI"),
+        help="cubes: random drop heights of the lowest face above the floor [m] (default 0.005 0.02)",
+    )  # fmt: skip
+    ap.add_argument("--push-speed", type=float, default=0.3, help="push: the pole's speed along +x [m/s]")
+    ap.add_argument(
+        "--push-gap", type=float, default=0.015, help="push: the pole's start distance behind the box [m]"
     )
     ap.add_argument("--num-boxes", type=int, default=4)
     ap.add_argument(
@@ -674,11 +824,14 @@ def main() -> None:
     if args.numba_threads:
         numba.set_num_threads(args.numba_threads)
     steps = args.steps or (3 if args.quick else 20)
-    args.steps_ball = args.steps_boxes = steps
+    args.steps_ball = args.steps_boxes = args.steps_push = steps
+    args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps
     args.steps_billiards = args.billiards_steps or (3 if args.quick else 12)
     args.warmup_ball = 10 if args.quick else 30  # the ball lands and settles
     args.warmup_boxes = 10 if args.quick else 20  # the stack lands (2 Newton iterations per step after ~10)
-    args.warmup_billiards = 2  # contact with the ground; the cue ball then approaches and hits the rack
+    args.warmup_billiards = 2  # the balls land on the table; the cue ball then approaches and hits the rack
+    args.warmup_cubes = 3  # compilation; the cubes land in the first timed steps, then slide
+    args.warmup_push = 4  # the box lands (~3 steps); the pole reaches it in the first timed step
     args.out.mkdir(parents=True, exist_ok=True)
 
     out: dict = {
