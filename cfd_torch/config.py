@@ -39,6 +39,11 @@ class ContactConfig:
         backend: "auto" (numba kernels on the CPU, batched tensors elsewhere) or "torch" (batched tensors
             everywhere: the GPU route, which this exercises on the CPU). The collision query of the simulator's
             feasibility checks runs on the CPU either way.
+        refine_obstacles: a :class:`cfd_torch.Scene` refines each static or kinematic body whose triangles have
+            edges longer than this times the longest edge of the finest dynamic body it interacts with (midpoint
+            splits, the same surface; see :func:`cfd_torch.sim.bodies.refine_obstacles`); None keeps every mesh
+            as given. A leaf sphere much larger than its partner's makes every partner triangle inside it an exact
+            leaf pair, so a coarse floor costs several times a fine one.
     """
 
     stiffness: float = 1e-8
@@ -48,8 +53,11 @@ class ContactConfig:
     pair_tol: float = 1e-12
     pair_max_iter: int = 100
     backend: Literal["auto", "torch"] = "auto"
+    refine_obstacles: float | None = 2.0
 
     def __post_init__(self) -> None:
+        if self.refine_obstacles is not None:
+            _positive("ContactConfig", "refine_obstacles", self.refine_obstacles)
         if self.backend not in ("auto", "torch"):
             raise ValueError(f"ContactConfig.backend must be 'auto' or 'torch', got {self.backend!r}")
         for name in ("stiffness", "margin", "eps", "pair_tol"):

@@ -293,9 +293,10 @@ class _CountingModel:
 
 def test_a_contact_model_is_a_class_not_a_stepper_change(bodies):
     cube, ground, _, _ = bodies
-    model = _CountingModel(CfdContact([cube.bsh, ground.bsh], ContactConfig()))
-    assert isinstance(model, ContactModel)
     ref = Scene((cube, ground), friction=0.5)
+    # the contact model of the bodies as simulated (the ground refined to the cube's scale)
+    model = _CountingModel(CfdContact([b.bsh for b in ref.bodies], ContactConfig()))
+    assert isinstance(model, ContactModel)
     own = Scene((cube, ground), friction=0.5, contact_model=model)
     q = torch.tensor([_pose(0.0, 0.0, 0.108, 0.05), _pose()], dtype=F64)
     a, b = ref.initial_state(q), own.initial_state(q)
@@ -365,3 +366,54 @@ def test_torch_backend_step_matches_numba(bodies):
     assert float(out["torch"][1].abs().max()) > 0
     torch.testing.assert_close(out["torch"][0], out["auto"][0], rtol=0, atol=1e-10)
     torch.testing.assert_close(out["torch"][1], out["auto"][1], rtol=1e-6, atol=1e-8)
+
+
+# ================================================================================================ coarse obstacles
+def _ball_on_box_scene(**kw):
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+    box = rigid_body(trimesh.creation.box(extents=(2.0, 2.0, 0.2)), kind="static")  # 12 triangles, 2 m edges
+    return ball, box, Scene((ball, box, ball), **kw)
+
+
+def test_scene_refines_coarse_obstacles_to_their_partners_scale():
+    ball, box, scene = _ball_on_box_scene()
+    longest = lambda b: float((b.bsh.triangles[:, [1, 2, 0]] - b.bsh.triangles).norm(dim=-1).max())  # noqa: E731
+    assert scene.bodies[0] is ball and scene.bodies[2] is ball  # dynamic bodies untouched, shared ones shared
+    refined = scene.bodies[1]
+    assert refined.kind == "static" and refined.bsh.num_faces > box.bsh.num_faces
+    assert longest(refined) <= 2.0 * longest(ball) * (1 + 1e-12)
+    # the same surface: every refined vertex lies on the box's faces
+    v = refined.bsh.vertices
+    assert float((v.abs() - torch.tensor([1.0, 1.0, 0.1], dtype=F64)).abs().amin(1).max()) < 1e-12
+    assert Scene((ball, box), refine_obstacles=None).bodies[1] is box  # off: meshes as given
+    again = scene.replace(dt=0.005)  # already fine enough: not refined twice
+    assert again.bodies[1].bsh.num_faces == refined.bsh.num_faces
+
+
+def test_refined_obstacle_costs_fewer_leaf_pairs_and_holds_the_ball_the_same():
+    """A ball resting on a plain 12-triangle box: the automatic refinement cuts the exact leaf pairs per evaluation
+    several-fold, and the ball comes to rest at the same height (the surface is the same) to within the rest gap's
+    sensitivity to the triangulation."""
+    heights, leaves = {}, {}
+    for ref in (None, 2.0):
+        ball, box, _ = _ball_on_box_scene()
+        scene = Scene((ball, box), refine_obstacles=ref)
+        # the lowest vertex 2 mm above the box's top face (z = 0)
+        z0 = 2e-3 - float(ball.bsh.vertices[:, 2].min())
+        state = scene.initial_state(torch.tensor([_pose(0.03, 0.02, z0), _pose(0, 0, -0.1)], dtype=F64))
+        for _ in range(25):
+            state, info = step(scene, state, return_info=True)
+        heights[ref] = float(state.q[0, 2])
+        leaves[ref] = info.leaf_pairs / info.contact_evals
+    assert leaves[2.0] < 0.5 * leaves[None]  # observed 191 against 960
+    assert abs(heights[2.0] - heights[None]) < 5e-5  # observed 1.7e-5 m (rest gaps about 1e-3 m)
+
+
+def test_refinement_beyond_the_face_cap_warns_and_coarsens(monkeypatch):
+    import cfd_torch.sim.bodies as bodies_mod
+
+    monkeypatch.setattr(bodies_mod, "MAX_REFINED_FACES", 100)
+    ball, box, _ = _ball_on_box_scene(refine_obstacles=None)
+    with pytest.warns(UserWarning, match="more than 100 triangles"):
+        scene = Scene((ball, box))
+    assert 12 < scene.bodies[1].bsh.num_faces <= 100

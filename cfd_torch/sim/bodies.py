@@ -14,6 +14,9 @@ the first moment vanishing because the frame is centred at the COM.
 
 from __future__ import annotations
 
+import math
+import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +24,7 @@ import torch
 
 from ..contact.bsh import BSH
 
-__all__ = ["RigidBody", "rigid_body", "KINDS"]
+__all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
 
 KINDS = ("dynamic", "static", "kinematic")
 
@@ -96,3 +99,65 @@ def rigid_body(
     return RigidBody(
         bsh, kind, float(m.mass), torch.from_numpy(0.5 * (S + S.T)).clone(), torch.from_numpy(com).clone()
     )
+
+
+# the most triangles automatic refinement gives one obstacle (a larger edge is chosen beyond it, with a warning)
+MAX_REFINED_FACES = 200_000
+
+
+def _edges(bsh: BSH) -> np.ndarray:
+    """(F, 3) edge lengths of each triangle."""
+    T = bsh.triangles.numpy()
+    return np.linalg.norm(T[:, [1, 2, 0]] - T, axis=-1)
+
+
+def _refined_faces(longest: np.ndarray, edge: float) -> int:
+    """Faces after midpoint splits until no edge exceeds ``edge`` (each split level quarters a face)."""
+    levels = np.ceil(np.log2(np.maximum(longest / edge, 1.0)))
+    return int((4.0**levels).sum())
+
+
+def refine_obstacles(
+    bodies: Sequence[RigidBody], pairs: torch.Tensor, factor: float
+) -> tuple[RigidBody, ...]:
+    """The bodies with each static or kinematic one refined to the scale of the dynamic bodies it touches.
+
+    An obstacle whose longest edge exceeds ``factor`` times the longest edge of its finest dynamic partner (the
+    other bodies of its rows in ``pairs`` (P, 2); the finest has the smallest longest edge) gets a hierarchy of the
+    same surface split at midpoints until no edge exceeds that length (``BSH.build(max_edge=...)``); if that would
+    give more than ``MAX_REFINED_FACES`` triangles, the length grows by factors of sqrt(2) until it does not (with
+    a warning). The potential of an obstacle therefore depends on the finest body it interacts with in the scene,
+    a scale set once when the scene is built. Bodies shared by several slots stay shared; dynamic bodies are never
+    changed.
+    """
+    bodies = tuple(bodies)
+    longest_edge = {id(b): float(_edges(b.bsh).max()) for b in bodies if b.kind == "dynamic"}
+    out = list(bodies)
+    done: dict[tuple[int, float], RigidBody] = {}
+    for k, b in enumerate(bodies):
+        if b.kind == "dynamic":
+            continue
+        partners = [int(j) for row in pairs.tolist() if k in row for j in row if j != k]
+        scales = [longest_edge[id(bodies[j])] for j in partners if bodies[j].kind == "dynamic"]
+        if not scales:
+            continue
+        edge = factor * min(scales)
+        longest = _edges(b.bsh).max(1)
+        if not longest.max() > edge:
+            continue
+        if _refined_faces(longest, edge) > MAX_REFINED_FACES:
+            wanted = edge
+            while _refined_faces(longest, edge) > MAX_REFINED_FACES:
+                edge *= math.sqrt(2.0)
+            warnings.warn(
+                f"body {k}: refining this obstacle to edges of {wanted:.3g} m (refine_obstacles={factor} x its "
+                f"finest partner's mean edge) would give more than {MAX_REFINED_FACES} triangles; refined to "
+                f"{edge:.3g} m instead",
+                stacklevel=3,
+            )
+        key = (id(b), edge)
+        if key not in done:
+            bsh = BSH.build(b.bsh.vertices, b.bsh.faces, max_edge=edge)
+            done[key] = RigidBody(bsh, b.kind, b.mass, b.second_moment, b.com)
+        out[k] = done[key]
+    return tuple(out)

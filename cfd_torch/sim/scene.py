@@ -14,7 +14,7 @@ from ..contact.cfd import CfdContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
 from ._checks import check_state_tensor
-from .bodies import RigidBody
+from .bodies import RigidBody, refine_obstacles
 from .kinematics import FreeBodies
 from .types import Params, State
 
@@ -29,6 +29,7 @@ _SHORTHAND = {
     "pair_tol": ("contact", "pair_tol"),
     "pair_max_iter": ("contact", "pair_max_iter"),
     "backend": ("contact", "backend"),
+    "refine_obstacles": ("contact", "refine_obstacles"),
     "friction_eps_v": ("friction", "eps_v"),
     "friction_active": ("friction", "active"),
     "newton_tol": ("solver", "newton_tol"),
@@ -53,13 +54,15 @@ class Scene:
         contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the paper's
             potential, ``CfdContact`` with ``contact``).
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
-            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``friction_eps_v`` (``friction.eps_v``),
-            ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``, ``reach_shrink``,
-            ``substeps``.
+            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``friction_eps_v``
+            (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
+            ``reach_shrink``, ``substeps``.
 
-    Attributes (computed once): ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies,
-    ``pairs`` (P, 2) the interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map
-    from the step's unknowns to poses, ``contact_model``.
+    Attributes (computed once): ``bodies`` as simulated (static and kinematic bodies coarser than the dynamic
+    bodies they touch are refined, ``ContactConfig.refine_obstacles``, unless a ``contact_model`` is given),
+    ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies, ``pairs`` (P, 2) the
+    interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map from the step's
+    unknowns to poses, ``contact_model``.
     """
 
     def __init__(
@@ -101,7 +104,6 @@ class Scene:
         for which, kw in updates.items():
             if kw:
                 cfg[which] = dataclasses.replace(cfg[which], **kw)  # validates
-        self.bodies = bodies
         self.dt = float(dt)
         self.gravity = gravity
         self.contact: ContactConfig = cfg["contact"]
@@ -109,6 +111,10 @@ class Scene:
         self.solver: SolverConfig = cfg["solver"]
         self.exclude = tuple((int(a), int(b)) for a, b in exclude)
         N = len(bodies)
+        pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude)
+        if self.contact.refine_obstacles is not None and contact_model is None:
+            bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
+        self.bodies = bodies
         self.dynamic = torch.tensor(
             [i for i, b in enumerate(bodies) if b.kind == "dynamic"], dtype=torch.long
         )
@@ -116,7 +122,7 @@ class Scene:
             [i for i, b in enumerate(bodies) if b.kind == "kinematic"], dtype=torch.long
         )
         self.static_mask = torch.tensor([b.kind == "static" for b in bodies])
-        self.pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude)
+        self.pairs = pairs
         self.kinematics = FreeBodies(self.dynamic, N)
         self._given_contact_model = contact_model
         self.contact_model = (
