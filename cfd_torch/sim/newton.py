@@ -34,6 +34,7 @@ from .energy import EnergyEval
 __all__ = ["Stop", "NewtonResult", "newton"]
 
 _LINE_SEARCH_TRIES = 60
+_ISLAND_TRIES = 20  # an island that finds no step within this many halvings hands its scene to a whole search
 
 
 class Stop(enum.IntEnum):
@@ -76,18 +77,41 @@ def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
     return EnergyEval(*(x[sel] if isinstance(x, torch.Tensor) else x for x in ev))
 
 
+def _islands(C: torch.Tensor, act: torch.Tensor, split: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The islands of the bodies ``act`` (A, M) of A scenes under the coupling C (A, M, M) (bodies coupled when
+    |C_ij| > 1e-6 min(C_ii, C_jj), transitively; all one island in the scenes not ``split`` (A,)): (G,) each
+    island's scene and (G, M) its bodies."""
+    A, M = act.shape
+    d = torch.diagonal(C, dim1=1, dim2=2)
+    R = (C > 1e-6 * torch.minimum(d[:, :, None], d[:, None, :])) | ~split[:, None, None]
+    R = R & act[:, :, None] & act[:, None, :]
+    R = R | torch.diag_embed(act)
+    for _ in range(max(1, (M - 1).bit_length())):  # transitive closure by squaring
+        R = (R.to(C.dtype) @ R.to(C.dtype)) > 0
+    first = torch.where(R, torch.arange(M, device=C.device), M).amin(2)  # (A, M) smallest body of each island
+    lead = act & (first == torch.arange(M, device=C.device))  # (A, M): the bodies that name an island
+    gs, gb = torch.nonzero(lead, as_tuple=True)
+    return gs, R[gs, gb]
+
+
 def _call(energy, q, scenes, order, active):
     """energy(q, scenes, order[, active]): the active set is passed only when some body is frozen."""
     return energy(q, scenes, order) if active is None else energy(q, scenes, order, active)
 
 
-def _restricted(ev: EnergyEval, act: torch.Tensor, pair_bodies: torch.Tensor):
+def _restricted(
+    ev: EnergyEval, act: torch.Tensor, pair_bodies: torch.Tensor, others: torch.Tensor | None = None
+):
     """The value and rounding scale of the terms of ``ev`` (A scenes, evaluated over a superset of bodies) that
-    involve the bodies ``act`` (A, M): their own terms and their pairs'."""
+    involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of ``others``
+    (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move)."""
     A, M = act.shape
     ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
     pb = torch.where(pair_bodies >= 0, pair_bodies, M)
     on = ext[:, pb[:, 0]] | ext[:, pb[:, 1]]  # (A, P)
+    if others is not None:
+        oth = torch.cat([others, others.new_zeros(A, 1)], 1)
+        on = on & ~(oth[:, pb[:, 0]] | oth[:, pb[:, 1]])
     zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
     own = torch.where(act, ev.body_value, zero)
     pv = torch.where(on, ev.pair_value, zero)
@@ -150,6 +174,8 @@ def newton(
     # a scene whose whole evaluation did not confirm its frozen bodies' convergence iterates whole from then on
     # (freezing again could cycle: the bodies' coupled steps are within tol one by one, not together)
     may_freeze = torch.ones(B, dtype=torch.bool, device=dev)
+    # scenes whose islands' separate steps ended infeasible together search whole from then on
+    split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
     for it in range(1, max_iter + 1):
@@ -211,53 +237,109 @@ def newton(
             idx, L, g, p = idx[keep], L[keep], g[keep], p[keep]
             if idx.numel() == 0:
                 continue
+        # line search groups: the islands of coupled bodies of each scene (each scene whole without freezing)
+        A = idx.numel()
         q0 = q[idx]
-        reach = displacement(q0, q0 + p, idx)
+        if freeze:
+            C = onehot.T @ H[keep].abs() @ onehot if bool(small.any()) else onehot.T @ H.abs() @ onehot
+            gs, gm = _islands(C, act[idx], split[idx])
+            gp = p[gs] * gm[:, block].to(p.dtype)  # (G, Q) each island's part of the step
+        else:
+            gs = torch.arange(A, device=dev)
+            gm = None
+            gp = p
+        reach = displacement(q0[gs], q0[gs] + gp, idx[gs])
         over = reach > max_move
-        p = torch.where(over[:, None], p * (max_move / torch.where(over, reach, 1.0))[:, None], p)
+        gp = torch.where(over[:, None], gp * (max_move / torch.where(over, reach, 1.0))[:, None], gp)
         reach = torch.where(over, torch.full_like(reach, max_move), reach)
-        slope = (g * p).sum(1)
-        noise = 1e-12 * cur.scale[idx]  # rounding level of L: the full step must not be rejected for noise
-        alpha = torch.ones_like(L)
-        pending = torch.ones_like(L, dtype=torch.bool)
-        taken = torch.full_like(L, -1, dtype=torch.long)  # the try at which each scene's step was accepted
+        slope = (g[gs] * gp).sum(1)
+        if freeze:
+            others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
+            L0, scale0 = _restricted(_rows(cur, idx[gs]), gm, pair_bodies, others)
+        else:
+            L0, scale0 = L, cur.scale[idx]
+        noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
+        G = gs.numel()
+        many = torch.bincount(gs, minlength=A)[gs] > 1  # (G,) the island is one of several in its scene
+        alpha = torch.ones(G, dtype=q.dtype, device=dev)
+        pending = torch.ones(G, dtype=torch.bool, device=dev)
+        taken = torch.full((G,), -1, dtype=torch.long, device=dev)  # the try at which each group was accepted
         full = None
         for k in range(_LINE_SEARCH_TRIES):
             sub = torch.nonzero(pending)[:, 0]
             if sub.numel() == 0:
                 break
-            q_try = q0[sub] + alpha[sub, None] * p[sub]
+            step_ = torch.where((pending | (taken >= 0))[:, None], alpha[:, None] * gp, torch.zeros_like(gp))
+            q_try = q0.index_add(0, gs, step_)  # (A, Q): every group at its trial (or accepted) step
+            rows = torch.unique(gs[sub])  # the scenes with groups pending
+            pos = torch.full((A,), -1, dtype=torch.long, device=dev)
+            pos[rows] = torch.arange(rows.numel(), device=dev)
+            on = None
+            if freeze:
+                on = torch.zeros(rows.numel(), M, dtype=torch.bool, device=dev)
+                on.index_put_((pos[gs[sub]],), gm[sub], accumulate=True)
             # the full step is usually accepted: evaluate it with derivatives at once, backtrack value-only
-            ev = _call(energy, q_try, idx[sub], 2 if k == 0 else 0, act[idx[sub]] if freeze else None)
+            ev = _call(energy, q_try[rows], idx[rows], 2 if k == 0 else 0, on)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
             if k == 0:
                 full = ev
-            L_try = ev.value
-            ok = torch.isfinite(L_try) & (L_try <= L[sub] + 1e-4 * alpha[sub] * slope[sub] + noise[sub])
+            if freeze:
+                rows_ev = _rows(ev, pos[gs[sub]])
+                L_try = _restricted(rows_ev, gm[sub], pair_bodies, others[sub])[0]
+                feas = torch.isfinite(_restricted(rows_ev, gm[sub], pair_bodies)[0])  # its pairs with others too
+            else:
+                L_try = ev.value[pos[gs[sub]]]
+                feas = torch.isfinite(L_try)
+            # an island's decrease is measured without its far-field pairs with the other islands (they move those
+            # too); an island whose predicted decrease is below L's rounding is accepted when feasible
+            tiny = (-slope[sub] <= noise[sub]) & many[sub]
+            ok = feas & ((L_try <= L0[sub] + 1e-4 * alpha[sub] * slope[sub] + noise[sub]) | tiny)
             if bool(ok.any()):
                 cand = sub[ok]
                 near = alpha[cand] * reach[cand] <= free_move
                 clear = near.clone()
                 if not bool(near.all()):
                     far = cand[~near]
-                    clear[~near] = move_ok(q0[far], q0[far] + alpha[far, None] * p[far], idx[far])
+                    q_far = q0[gs[far]]
+                    clear[~near] = move_ok(q_far, q_far + alpha[far, None] * gp[far], idx[gs[far]])
                 acc = cand[clear]
                 pending[acc] = False
                 taken[acc] = k
-                q[idx[acc]] = q0[acc] + alpha[acc, None] * p[acc]
             alpha[pending] = alpha[pending] * 0.5
-        alpha_last[idx] = torch.where(taken >= 0, alpha, alpha * 2.0)
-        failed = taken < 0
+            if k + 1 == _ISLAND_TRIES:  # islands that backtrack this far: their scene searches whole
+                pending = pending & ~many
+        step_ = torch.where((taken >= 0)[:, None], alpha[:, None] * gp, torch.zeros_like(gp))
+        q_new = q0.index_add(0, gs, step_)
+        a_done = torch.where(taken >= 0, alpha, alpha * 2.0)
+        alpha_last[idx] = torch.full((A,), 2.0, dtype=q.dtype, device=dev).scatter_reduce(0, gs, a_done, "amin")
+        failed = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken < 0, accumulate=True)
+        # a split scene whose island found no step is not a failure: it keeps q0 (and its evaluation there) and
+        # searches whole from the next iteration
+        retry = failed & (torch.bincount(gs, minlength=A) > 1)
+        split[idx[retry]] = False
+        failed = failed & ~retry
+        q_new[retry] = q0[retry]
+        later = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken > 0, accumulate=True)
+        later = later & ~retry
+        first_try = ~failed & ~later & ~retry
+        q[idx[~failed]] = q_new[~failed]
         if bool(failed.any()):
             reason[idx[failed]] = int(Stop.LINE_SEARCH_FAILED)
             active[idx[failed]] = False
-        first_try = taken == 0
         if bool(first_try.any()):
             _assign(cur, idx[first_try], _rows(full, first_try))
-        later = taken > 0
+        later = later & ~failed
         if bool(later.any()):
             ev = _call(energy, q[idx[later]], idx[later], 2, act[idx[later]] if freeze else None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
-            _assign(cur, idx[later], ev)
+            bad = ~torch.isfinite(ev.value)  # islands accepted at different tries that ended up in contact
+            if bool(bad.any()):
+                lb = torch.nonzero(later)[:, 0][bad]
+                q[idx[lb]] = q0[lb]
+                split[idx[lb]] = False
+                ev = _rows(ev, ~bad)
+                later[lb] = False
+            if bool(later.any()):
+                _assign(cur, idx[later], ev)
         majorized[idx] = later
     return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves))
