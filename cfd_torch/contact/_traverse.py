@@ -27,6 +27,7 @@ Coordinates of a body pair's derivatives: [t_a, omega_a, t_b, omega_b]."""
 from __future__ import annotations
 
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import torch
@@ -143,33 +144,87 @@ def _cat(xs) -> torch.Tensor:
     return xs[0] if len(xs) == 1 else torch.cat(xs)
 
 
+_POOL: ThreadPoolExecutor | None = (
+    None  # threads for the node traversal of many body pairs (numba releases the GIL)
+)
+
+
+def _node_threads(P: int) -> int:
+    """How many threads traverse P body pairs: numba's thread count (at most 4), one per pair at most."""
+    import numba
+
+    return max(1, min(P, numba.get_num_threads(), 4))
+
+
 def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
-    weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2)."""
+    weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2).
+
+    Several body pairs are traversed by up to four threads, each taking every n-th pair (the kernel is serial
+    within a body pair); the results are the same as one thread's, their leaves in another order."""
     from ._traverse_numba import traverse_nodes
 
     Nb = R.shape[0]
     dt = R.dtype
     dRn = (dR if dR is not None else torch.zeros(Nb, 3, 3, 3, dtype=dt)).contiguous().numpy()
     d2Rn = (d2R if d2R is not None else torch.zeros(Nb, 3, 3, 3, 3, dtype=dt)).contiguous().numpy()
-    # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
-    g = grad if grad is not None else torch.zeros(0, 12, dtype=dt)
-    h = hess if hess is not None else torch.zeros(0, 12, 12, dtype=dt)
-    LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs = traverse_nodes(
-        forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pair_body.numpy(),
-        pair_root.contiguous().numpy(), R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu),
-        float(eps), split == "both", int(order), value.numpy(), g.numpy(), h.numpy(),
-    )  # fmt: skip
-    leaves = []
-    n = n_leaf
-    wid = torch.from_numpy(lwid[:n])
-    table = (wid, torch.from_numpy(wv), torch.from_numpy(wd1), torch.from_numpy(wd2))
-    if n_leaf:
-        leaves.append(
-            (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), torch.from_numpy(lp[:n]), table[1][wid],
-             table[2][wid] if order >= 1 else None, None)
+    common = (R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu), float(eps))
+    P = pair_body.shape[0]
+
+    def run(rows: torch.Tensor | None):
+        pb, pr = (pair_body, pair_root) if rows is None else (pair_body[rows], pair_root[rows])
+        n = pb.shape[0]
+        v = value if rows is None else torch.zeros(n, dtype=dt)
+        # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
+        g = grad if rows is None and grad is not None else torch.zeros(n if order >= 1 else 0, 12, dtype=dt)
+        h = (
+            hess
+            if rows is None and hess is not None
+            else torch.zeros(n if order >= 2 else 0, 12, 12, dtype=dt)
+        )
+        out = traverse_nodes(
+            forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pb.numpy(),
+            pr.contiguous().numpy(), *common[:4], *common[4:], split == "both", int(order), v.numpy(), g.numpy(),
+            h.numpy(),
         )  # fmt: skip
-    return leaves, int(n_pairs), -1, table
+        return out, v, g, h
+
+    k = _node_threads(P)
+    if k == 1:
+        parts = [(None, run(None))]
+    else:
+        global _POOL
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(4)
+        chunks = [torch.arange(i, P, k) for i in range(k)]
+        parts = list(zip(chunks, _POOL.map(run, chunks), strict=True))
+    cols: list[list[torch.Tensor]] = [[] for _ in range(7)]  # LI, LJ, lp, lwid, wv, wd1, wd2
+    n_pairs = 0
+    offset = 0
+    for rows, ((LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_p), v, g, h) in parts:
+        if rows is not None:
+            value[rows] = v
+            if grad is not None:
+                grad[rows] = g
+            if hess is not None:
+                hess[rows] = h
+        n = n_leaf
+        lp_t = torch.from_numpy(lp[:n])
+        for c, x in zip(
+            cols,
+            (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), lp_t if rows is None else rows[lp_t],
+             torch.from_numpy(lwid[:n]) + offset, torch.from_numpy(wv), torch.from_numpy(wd1), torch.from_numpy(wd2)),
+            strict=True,
+        ):  # fmt: skip
+            c.append(x)
+        offset += wv.shape[0]
+        n_pairs += int(n_p)
+    LI, LJ, lp, wid, wv, wd1, wd2 = (_cat(c) for c in cols)
+    table = (wid, wv, wd1, wd2)
+    leaves = []
+    if wid.numel():
+        leaves.append((LI, LJ, lp, wv[wid], wd1[wid] if order >= 1 else None, None))
+    return leaves, n_pairs, -1, table
 
 
 def traverse(

@@ -35,7 +35,7 @@ def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
     return si, not si
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, split_both, order,
                    value, grad, hess):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
