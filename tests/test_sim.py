@@ -342,9 +342,6 @@ def test_pair_forces_and_step_info_at_rest(bodies):
     assert abs(float(F[1, 0, 2]) - weight) < 1e-3 * weight  # the ground carries the cube
     torch.testing.assert_close(F[0, 1, :3], -F[1, 0, :3], rtol=1e-12, atol=1e-12)  # action = reaction
     torch.testing.assert_close(info.contact_force[0], F[1, 0], rtol=1e-9, atol=1e-9)  # same read-out
-    legacy: dict = {}
-    step(scene, state, info=legacy)
-    assert set(legacy) == set(StepInfo._fields) and legacy["newton_iters"] >= 1
 
 
 def test_torch_backend_step_matches_numba(bodies):

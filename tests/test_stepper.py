@@ -377,9 +377,8 @@ def _gradcheck_scene(ground, pusher):
 def test_step_gradcheck_with_contact_friction_and_pusher(ground, pusher):
     scene, (q, q_prev, force, torque, target) = _gradcheck_scene(ground, pusher)
     p = scene.params()
-    info = {}
-    step(scene, State(q, q_prev), Action(force, torque, target), info=info)
-    assert info["friction_contacts"] > 0 and info["leaf_pairs"] > 0  # contact and friction are active
+    _, info = step(scene, State(q, q_prev), Action(force, torque, target), return_info=True)
+    assert info.friction_contacts > 0 and info.leaf_pairs > 0  # contact and friction are active
 
     def f(q, q_prev, force, torque, target, mass, S, mu):
         return step(scene, State(q, q_prev), Action(force, torque, target), Params(mass, S, mu)).q
@@ -410,10 +409,9 @@ def test_tight_newton_tol_converges_near_contact(pusher):
     torque = torch.tensor([[0.1, -0.2, 0.3], [0.0] * 3, [0.0] * 3], dtype=F64)
     target = q[2:3].clone()
     target[0, 0] += 5e-4
-    info = {}
     # the line search accepts the full Newton step once the predicted decrease is below L's rounding level
-    step(scene, State(q, q_prev), Action(force, torque, target), info=info)
-    assert info["newton_iters"] <= 20
+    _, info = step(scene, State(q, q_prev), Action(force, torque, target), return_info=True)
+    assert info.newton_iters <= 20
 
 
 def test_step_refuses_double_backward(ground, pusher):
@@ -654,10 +652,9 @@ def test_friction_off_costs_nothing(cube, ground):
     for mu_f in (0.0, 0.5):
         scene = Scene((cube, ground), friction=mu_f)
         state = scene.initial_state(_poses((0.0, 0.0, HALF + 1.5e-3), ()))
-        info = {}
-        step(scene, state, info=info)
-        assert info["leaf_pairs"] > 0  # the box is in contact
-        counts[mu_f] = info["friction_contacts"]
+        _, info = step(scene, state, return_info=True)
+        assert info.leaf_pairs > 0  # the box is in contact
+        counts[mu_f] = int(info.friction_contacts)
     assert counts[0.0] == 0 and counts[0.5] > 0
 
 
@@ -671,10 +668,9 @@ def test_friction_on_the_loaded_leaf_pairs_only(small_sphere, ground):
         state = scene.initial_state(
             _poses((0.0, 0.0, z), ()), torch.tensor([[1.0, 0, 0, 0, 0, 0], [0.0] * 6], dtype=F64)
         )
-        info = {}
         for _ in range(10):
-            state = step(scene, state, info=info)
-        finals[active], counts[active] = state.q[0], info["friction_contacts"]
+            state, info = step(scene, state, return_info=True)
+        finals[active], counts[active] = state.q[0], int(info.friction_contacts)
     assert 0 < counts[1e-6] < counts[0.0]
     moved = float((finals[0.0][:3] - torch.tensor([0.0, 0.0, z], dtype=F64)).norm())
     assert moved > 0.05
@@ -869,16 +865,15 @@ def test_contact_force_read_out_balances_weight_at_rest(cube, ground):
     scene = Scene((cube, ground), friction=0.5)
     state = scene.initial_state(_poses((0.0, 0.0, HALF + 2e-3), ()))
     for _ in range(60):
-        info = {}
-        state = step(scene, state, info=info)
-    f = info["contact_force"]
+        state, info = step(scene, state, return_info=True)
+    f = info.contact_force
     assert f.shape == (2, 6)
     assert (
         abs(float(f[0, 2]) - cube.mass * G) <= 1e-3 * cube.mass * G
     )  # the ground carries the weight at rest
     assert float(f[0, :2].abs().max()) <= 1e-3 * cube.mass * G
     assert abs(float(f[1, 2]) + float(f[0, 2])) <= 1e-9 * cube.mass * G  # action = reaction
-    assert float(info["friction_force"][0].abs().max()) <= 1e-3 * cube.mass * G  # nothing to resist at rest
+    assert float(info.friction_force[0].abs().max()) <= 1e-3 * cube.mass * G  # nothing to resist at rest
 
 
 def test_held_kinematic_body_keeps_its_gradient(ground, pusher):

@@ -286,7 +286,8 @@ def newton(
             if freeze:
                 rows_ev = _rows(ev, pos[gs[sub]])
                 L_try = _restricted(rows_ev, gm[sub], pair_bodies, others[sub])[0]
-                feas = torch.isfinite(_restricted(rows_ev, gm[sub], pair_bodies)[0])  # its pairs with others too
+                # feasible: all its pairs finite, those with the other islands too
+                feas = torch.isfinite(_restricted(rows_ev, gm[sub], pair_bodies)[0])
             else:
                 L_try = ev.value[pos[gs[sub]]]
                 feas = torch.isfinite(L_try)
@@ -311,7 +312,9 @@ def newton(
         step_ = torch.where((taken >= 0)[:, None], alpha[:, None] * gp, torch.zeros_like(gp))
         q_new = q0.index_add(0, gs, step_)
         a_done = torch.where(taken >= 0, alpha, alpha * 2.0)
-        alpha_last[idx] = torch.full((A,), 2.0, dtype=q.dtype, device=dev).scatter_reduce(0, gs, a_done, "amin")
+        alpha_last[idx] = torch.full((A,), 2.0, dtype=q.dtype, device=dev).scatter_reduce(
+            0, gs, a_done, "amin"
+        )
         failed = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken < 0, accumulate=True)
         # a split scene whose island found no step is not a failure: it keeps q0 (and its evaluation there) and
         # searches whole from the next iteration

@@ -2,11 +2,12 @@
 
     step(scene, state, action, params) -> State
 
-reads like a table of contents: check the inputs, batch them, solve the step (:mod:`.feasibility` finds a start,
-:mod:`.newton` minimises the incremental potential of :mod:`.energy`, :mod:`.adjoint` differentiates the solution),
-re-centre rotations. Every tensor may carry a leading batch dimension B of independent scenes that share one
-:class:`Scene` (its bodies and settings); they are solved together (one contact evaluation over all their body
-pairs, a Newton masked per scene) and each scene's result equals stepping it alone.
+reads like a table of contents: check the inputs, batch them, solve the step (:mod:`.solve` finds a feasible start
+under :mod:`.feasibility`'s contract, :mod:`.newton` minimises the incremental potential of :mod:`.energy`,
+:mod:`.adjoint` differentiates the solution), re-centre rotations. Every tensor may carry a leading batch
+dimension B of independent scenes that share one :class:`Scene` (its bodies and settings); they are solved
+together (one contact evaluation over all their body pairs, a Newton masked per scene) and each scene's result
+equals stepping it alone.
 """
 
 from __future__ import annotations
@@ -140,7 +141,6 @@ def step(
     params: Params | None = None,
     *,
     return_info: bool = False,
-    info: dict | None = None,
 ) -> State | tuple[State, StepInfo]:
     """Advance the scene by one time step (differentiable by autograd).
 
@@ -152,7 +152,6 @@ def step(
         params: differentiable mass / second moment / friction coefficient, shared ((Nd,), (Nd, 3, 3), ()) or per
             scene ((B, Nd), ...) (default: ``scene.params()``).
         return_info: also return the :class:`StepInfo` (solver statistics, end-of-step forces).
-        info: a dict that receives the StepInfo's fields (for code written before ``return_info``).
 
     Returns:
         The next State(q_next, q): dynamic rows solved, kinematic rows at their targets, static rows unchanged,
@@ -200,8 +199,6 @@ def step(
     if not batched:
         nxt = State(nxt.q[0], nxt.q_prev[0])
         si = si._replace(**{f: getattr(si, f)[0] for f in _PER_SCENE})
-    if info is not None:
-        info.update(si._asdict())
     return (nxt, si) if return_info else nxt
 
 
