@@ -416,3 +416,28 @@ def test_badly_conditioned_pair_from_a_toppling_stack_converges():
     assert math.isfinite(float(v["numba"].value)) and float(v["numba"].grad.abs().max()) > 0
     torch.testing.assert_close(v["numba"].value, v["torch"].value, rtol=1e-9, atol=0)
     torch.testing.assert_close(v["numba"].grad, v["torch"].grad, rtol=1e-6, atol=0)
+
+
+# ---------------------------------------------------------------- warm-started plane solves
+def test_warm_started_solve_finds_the_same_optimum():
+    """The simulator starts each leaf pair's plane solve from its plane at nearby vertices: the optimum must not
+    depend on the start. Warm planes from slightly moved triangles, an infeasible one (falls back to the cold start)
+    and a feasible but poor one (a scaled-down plane) all give the cold solve's value, plane and gradient."""
+    from cfd_torch.contact.pair import _prepare, _solve
+
+    a, b, _ = random_separated_pairs(200, gap=(2e-3, 0.5), seed=11)
+    kw = {"mu": 1e-8, "margin": MARGIN, "tol": 1e-12, "max_iter": 100}
+    X, _ = _prepare(a, b, **kw)
+    solve = {k: v for k, v in kw.items()}
+    v0, P0, g0, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", **solve)
+    moved = X + 1e-4 * torch.randn(X.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
+    _, P_near, _, _ = _solve(moved, want_grad=False, want_hess=False, backend="numba", **solve)
+    bad = torch.zeros_like(P0)  # n = 0: infeasible, the cold start is used
+    poor = P0 * torch.tensor([0.3, 0.3, 0.3, 0.3], dtype=F64)  # feasible (gaps shrink toward d), far from optimal
+    on = torch.ones(X.shape[0], dtype=torch.bool)
+    for start in (P_near, bad, poor):
+        v, P, g, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", start=(start, on), **solve)
+        assert float(g0.abs().max()) > 0
+        torch.testing.assert_close(v, v0, rtol=1e-13, atol=0)
+        torch.testing.assert_close(P, P0, rtol=1e-8, atol=1e-10)
+        torch.testing.assert_close(g, g0, rtol=1e-8, atol=1e-8 * float(g0.abs().max()))

@@ -303,7 +303,8 @@ def test_a_contact_model_is_a_class_not_a_stepper_change(bodies):
     for _ in range(3):
         a, b = step(ref, a), step(own, b)
     assert model.calls > 0
-    torch.testing.assert_close(a.q, b.q, rtol=0, atol=0)
+    # the same solve, except that CfdContact warm-starts its plane solves (observed 8.8e-15 m apart)
+    torch.testing.assert_close(a.q, b.q, rtol=0, atol=1e-12)
 
 
 def test_configs_hold_the_defaults_and_check_their_fields(bodies):

@@ -28,6 +28,7 @@ _JIT_INLINE = {**_JIT, "inline": "always"}
 _STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when no step can decrease E any more
 _EPS_RES = 16 * 2.220446049250313e-16  # rounding of E, relative to the magnitudes it is computed from
 _GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component, relative to its scale sc
+_WARM_ITER = 30  # iterations a warm-started solve gets before the cold start is tried
 
 
 @numba.njit(**_JIT_INLINE)
@@ -156,7 +157,7 @@ def _chol_solve4(L, Li, b, x):
 
 @numba.njit(parallel=True, **_JIT)
 def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
-                lowrank, WTo, So):  # fmt: skip
+                lowrank, WTo, So, P0, has0):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
     Args:
@@ -170,6 +171,9 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
         lowrank: with ``want_hess``, write the Hessian's factors instead of ``hess``: hess = mu (D - W W^T) with
             W^T = L^-1 E_px into ``WTo`` (K, 4, 18) (E_pp = L L^T) and the vertex gaps s_k into ``So`` (K, 6)
             (D is block diagonal, 2 n n^T / s_k^3, n = P[:, :3]); zeros where infeasible.
+        P0, has0: (K, 4) planes to start from where has0 (K,) is set (a warm start, e.g. the pair's optimum at
+            nearby vertices) and the plane is strictly feasible; the closest-point start otherwise. Empty (0, 4) and
+            (0,) for none. The optimum does not depend on the start (to the tolerance).
     """
     K = X.shape[0]
     half_delta = 0.5 * delta
@@ -192,19 +196,101 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
         hi = (c + 1) * K // nchunks
         for k in range(lo, hi):
             Xk = X[k]
-            # ---- strictly feasible start from the exact closest points (SPEC section 2)
-            dist = math.sqrt(tri_tri_closest_nb(Xk[0:3], Xk[3:6], q))
+            warm_k = has0.shape[0] > 0 and has0[k] != 0
             e = math.inf
             e_res = 0.0
-            if dist > delta:
-                alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
-                d = 0.0
-                for i in range(3):
-                    ni = alpha * (q[i] - q[3 + i])
-                    p[i] = ni
-                    d -= ni * 0.5 * (q[i] + q[3 + i])
-                p[3] = d
-                e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
+            st = NOT_CONVERGED
+            # a warm start (if strictly feasible) with at most _WARM_ITER iterations, else (or if that does not
+            # converge) the cold start
+            for attempt in range(2 if warm_k else 1):
+                cold = attempt == 1 or not warm_k
+                e = math.inf
+                e_res = 0.0
+                if not cold:
+                    for i in range(4):
+                        p[i] = P0[k, i]
+                    e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
+                    if e == math.inf:
+                        continue
+                else:
+                    # ---- strictly feasible start from the exact closest points (SPEC section 2)
+                    dist = math.sqrt(tri_tri_closest_nb(Xk[0:3], Xk[3:6], q))
+                    if dist > delta:
+                        alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
+                        d = 0.0
+                        for i in range(3):
+                            ni = alpha * (q[i] - q[3 + i])
+                            p[i] = ni
+                            d -= ni * 0.5 * (q[i] + q[3 + i])
+                        p[3] = d
+                        e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
+                    if e == math.inf:
+                        break
+                cap = max_iter if cold else min(max_iter, _WARM_ITER)
+                # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
+                #   rel <= tol                    relative gradient (each component against its rounding scale sc);
+                #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
+                #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
+                #                                 nothing representable is left (stiff near-margin pairs).
+                damp = 0.0
+                st = NOT_CONVERGED
+                for _it in range(cap + 1):
+                    if (
+                        abs(g[0]) <= tol * sc[0]
+                        and abs(g[1]) <= tol * sc[1]
+                        and abs(g[2]) <= tol * sc[2]
+                        and abs(g[3]) <= tol * sc[3]
+                    ):
+                        st = CONVERGED
+                        break
+                    if _it == cap:
+                        break
+                    accepted = False
+                    done = False
+                    for _try in range(60):
+                        if _cholesky4(H, L, Li, damp):
+                            for i in range(4):
+                                m[i] = -g[i]
+                            _chol_solve4(L, Li, m, step)
+                            dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
+                            if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
+                                for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
+                                    acc = _GRAD_EPS * sc[i]
+                                    for t in range(i):
+                                        acc -= L[i, t] * m[t]
+                                    m[i] = acc * Li[i]
+                                noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
+                                if dec2 <= tol * tol * e or dec2 <= noise2:
+                                    done = True
+                                    break
+                            for i in range(4):
+                                p2[i] = p[i] + step[i]
+                            e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
+                            # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
+                            # keeps E within that resolution (the quadratic endgame of Newton).
+                            if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
+                                accepted = True
+                                break
+                        damp = 1e-4 if damp == 0.0 else damp * 10.0
+                    if done:
+                        st = CONVERGED
+                        break
+                    if not accepted:
+                        if _rel_grad(g, sc) <= _STALL_TOL:  # no representable decrease is left
+                            st = CONVERGED
+                        break
+                    # the trial's E, derivatives and gaps become current
+                    p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                    e, e_res = e_new, e_res_new
+                    damp = 0.0 if damp <= 1e-3 else damp * 0.1
+                if st == NOT_CONVERGED and not cold:
+                    continue  # the warm start's iterations are spent: solve again from the cold start
+                if st == NOT_CONVERGED and _rel_grad(g, sc) <= _STALL_TOL:
+                    # at the iteration cap: in the endgame, steps that change E by less than its rounding are accepted,
+                    # and a badly conditioned pair can keep taking them without its gradient reaching tol; below
+                    # _STALL_TOL it is as converged as a stalled pair
+                    st = CONVERGED
+                break
             if e == math.inf:
                 status[k] = INFEASIBLE
                 val[k] = math.inf
@@ -225,67 +311,6 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                         for j in range(18):
                             hess[k, i, j] = 0.0
                 continue
-            # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
-            #   rel <= tol                    relative gradient (each component against its rounding scale sc);
-            #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
-            #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
-            #                                 nothing representable is left (stiff near-margin pairs).
-            damp = 0.0
-            st = NOT_CONVERGED
-            for _it in range(max_iter + 1):
-                if (
-                    abs(g[0]) <= tol * sc[0]
-                    and abs(g[1]) <= tol * sc[1]
-                    and abs(g[2]) <= tol * sc[2]
-                    and abs(g[3]) <= tol * sc[3]
-                ):
-                    st = CONVERGED
-                    break
-                if _it == max_iter:
-                    break
-                accepted = False
-                done = False
-                for _try in range(60):
-                    if _cholesky4(H, L, Li, damp):
-                        for i in range(4):
-                            m[i] = -g[i]
-                        _chol_solve4(L, Li, m, step)
-                        dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
-                        if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
-                            for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
-                                acc = _GRAD_EPS * sc[i]
-                                for t in range(i):
-                                    acc -= L[i, t] * m[t]
-                                m[i] = acc * Li[i]
-                            noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
-                            if dec2 <= tol * tol * e or dec2 <= noise2:
-                                done = True
-                                break
-                        for i in range(4):
-                            p2[i] = p[i] + step[i]
-                        e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
-                        # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
-                        # keeps E within that resolution (the quadratic endgame of Newton).
-                        if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
-                            accepted = True
-                            break
-                    damp = 1e-4 if damp == 0.0 else damp * 10.0
-                if done:
-                    st = CONVERGED
-                    break
-                if not accepted:
-                    if _rel_grad(g, sc) <= _STALL_TOL:  # no representable decrease is left
-                        st = CONVERGED
-                    break
-                # the trial's E, derivatives and gaps become current
-                p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
-                e, e_res = e_new, e_res_new
-                damp = 0.0 if damp <= 1e-3 else damp * 0.1
-            if st == NOT_CONVERGED and _rel_grad(g, sc) <= _STALL_TOL:
-                # at the iteration cap: in the endgame, steps that change E by less than its rounding are accepted,
-                # and a badly conditioned pair can keep taking them without its gradient reaching tol; below
-                # _STALL_TOL it is as converged as a stalled pair
-                st = CONVERGED
             status[k] = st
             resid[k] = _rel_grad(g, sc)
             val[k] = mu * e

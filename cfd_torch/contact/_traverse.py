@@ -242,6 +242,7 @@ def traverse(
     max_iter: int,
     backend: str = "auto",
     leaves_only: bool = False,
+    warm: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
 ):
     """BSH potential of P body pairs at once.
 
@@ -254,9 +255,13 @@ def traverse(
         backend: "auto" (numba depth-first kernel on CPU, breadth-first tensors elsewhere) or "torch".
         leaves_only: only traverse the nodes and return the exact leaf pairs instead (with the gradient of their
             inherited weight when order >= 1).
+        warm: warm-start the leaf pairs' plane solves (numba kernels only): (ids (P,) a stable identifier of each
+            body pair across calls, keys (W,) sorted, planes (W, 4)) from an earlier call; a leaf pair is keyed by
+            (id, leaf I, leaf J). The optimum does not depend on the start, to the plane solve's tolerance.
 
     Returns:
-        value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict; with ``leaves_only`` the leaf
+        value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict (with ``warm``, also this call's
+        (keys, planes) of its feasible leaf pairs, for the next); with ``leaves_only`` the leaf
         pairs (LI (L,), LJ (L,) node ids, lp (L,) body-pair index, lw (L,) inherited blend weight, dlw (L, 12) | None
         its gradient over the pair's [q_a, q_b]).
     """
@@ -374,6 +379,7 @@ def traverse(
         return (*(_cat(x) for x in cols[:4]), _cat(cols[4]) if order >= 1 else None)
     n_leaf = 0
     pv = None
+    warm_out = (pair_root.new_zeros(0), value.new_zeros(0, 4))  # (no leaf pairs, or the tensor path)
     if leaves:
         LI, LJ, lp, lw, ldw, ld2w = (_cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True))
         n_leaf = LI.numel()
@@ -381,24 +387,37 @@ def traverse(
         Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
         wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
         wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
-        fused = dev.type == "cpu" and backend != "torch" and order >= 1
+        fused = dev.type == "cpu" and backend != "torch"
         if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
             from ._traverse_numba import accumulate_leaves_lowrank
             from .pair import _prepare, _solve
 
             X, _ = _prepare(wa, wb, mu, margin, tol, max_iter)
+            start = None
+            if warm is not None:  # each leaf pair's plane from an earlier evaluation, where there is one
+                M = forest.centre.shape[0]
+                keys = (warm[0][lp] * M + LI) * M + LJ
+                if warm[1].numel():
+                    at = torch.searchsorted(warm[1], keys).clamp(max=warm[1].numel() - 1)
+                    start = (warm[2][at], warm[1][at] == keys)
             pv, Pl, gx, fac = _solve(
-                X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,
-                want_hess=order >= 2, backend="numba", lowrank=True,
+                X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter),
+                want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True, start=start,
             )  # fmt: skip
+            if warm is not None:
+                fin = torch.isfinite(pv)
+                k_sorted, perm = torch.sort(keys[fin])
+                warm_out = (k_sorted, Pl[fin][perm])
             z = torch.zeros(0, dtype=dt)
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
             lwid, wv, wd1, wd2 = wtable
             accumulate_leaves_lowrank(
-                lp.numpy(), lwid.numpy(), wv.numpy(), wd1.numpy(), wd2.numpy(), pv.numpy(), gx.numpy(), WT.numpy(),
-                gaps.numpy(), Pl.numpy(), Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(), dR.contiguous().numpy(),
+                lp.numpy(), lwid.numpy(), wv.numpy(), wd1.numpy(), wd2.numpy(), pv.numpy(),
+                (gx if gx is not None else z.reshape(0, 18)).numpy(), WT.numpy(), gaps.numpy(), Pl.numpy(),
+                Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(),
+                dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy(),
                 d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
-                int(order), value.numpy(), grad.numpy(),
+                int(order), value.numpy(), grad.numpy() if grad is not None else z.reshape(0, 12).numpy(),
                 hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
             )  # fmt: skip
             pv = None
@@ -445,6 +464,8 @@ def traverse(
         if hess is not None:
             hess = torch.where(infp[:, None, None], torch.zeros((), dtype=dt, device=dev), hess)
     stats = {"node_pairs": int(n_pairs), "leaf_pairs": int(n_leaf), "levels": int(levels)}
+    if warm is not None:
+        return value, grad, hess, stats, warm_out
     return value, grad, hess, stats
 
 

@@ -39,6 +39,8 @@ class CfdContact:
         config: the potential's settings (default ``ContactConfig()``).
     """
 
+    warm_start = True  # evaluate() takes ids / warm: the leaf pairs' plane solves start from earlier planes
+
     def __init__(self, bshes: Sequence[BSH], config: ContactConfig | None = None) -> None:
         if not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a sequence of cfd_torch.BSH")
@@ -65,7 +67,17 @@ class CfdContact:
         rows = pairs[:, :1] * N + pairs[:, 1:]
         return forest, poses.reshape(S * N, 6), rows, roots[pairs[:, 1:]]
 
-    def evaluate(self, poses: torch.Tensor, pairs: torch.Tensor, order: int) -> ContactEval:
+    def evaluate(
+        self,
+        poses: torch.Tensor,
+        pairs: torch.Tensor,
+        order: int,
+        ids: torch.Tensor | None = None,
+        warm: object | None = None,
+    ) -> ContactEval:
+        """The potential of each pair; with ``ids``, the leaf pairs' plane solves start from the planes in ``warm``
+        (an earlier ContactEval's ``warm``: sorted keys (W,) of (id, leaf, leaf) and planes (W, 4)) and the
+        result carries this call's planes (CPU kernels; elsewhere ``warm`` stays None)."""
         c = self.config
         if pairs.shape[0] == 0:
             z = poses.new_zeros(0)
@@ -77,11 +89,16 @@ class CfdContact:
                 0,
             )
         forest, table, rows, roots = self._rows(poses, pairs)
-        v, g, h, st = traverse(
+        use_warm = ids is not None and poses.device.type == "cpu" and c.backend != "torch"
+        if use_warm:
+            keys, planes = warm if warm is not None else (ids.new_zeros(0), poses.new_zeros(0, 4))
+        out = traverse(
             forest, rows, roots, table.detach(), mu=c.stiffness, margin=c.margin, eps=c.eps, split=c.split,
             order=order, tol=c.pair_tol, max_iter=c.pair_max_iter, backend=c.backend,
+            warm=(ids, keys, planes) if use_warm else None,
         )  # fmt: skip
-        return ContactEval(v, g, h, st["node_pairs"], st["leaf_pairs"])
+        v, g, h, st = out[:4]
+        return ContactEval(v, g, h, st["node_pairs"], st["leaf_pairs"], out[4] if use_warm else None)
 
     def infeasible(
         self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None

@@ -24,6 +24,7 @@ class ContactEval(NamedTuple):
         hess: (P, 12, 12), or None.
         node_pairs: work done: node pairs visited (0 for models without a hierarchy).
         leaf_pairs: work done: exact primitive pairs evaluated.
+        warm: the model's warm-start data for a later evaluation at nearby poses (see ``ContactModel``), or None.
     """
 
     value: torch.Tensor
@@ -31,6 +32,7 @@ class ContactEval(NamedTuple):
     hess: torch.Tensor | None
     node_pairs: int
     leaf_pairs: int
+    warm: object | None = None
 
 
 class LaggedContacts(NamedTuple):
@@ -55,8 +57,11 @@ class LaggedContacts(NamedTuple):
 class ContactModel(Protocol):
     """What the stepper needs of a contact model (all batched over pose sets, float64).
 
-    ``evaluate(poses, pairs, order)``: the potential of each pair at order 0 (value), 1 (+ gradient) or 2
-    (+ Hessian), in closed form (not connected to autograd).
+    ``evaluate(poses, pairs, order, ids=None, warm=None)``: the potential of each pair at order 0 (value), 1
+    (+ gradient) or 2 (+ Hessian), in closed form (not connected to autograd). Optional warm start: ``ids`` (P,)
+    identify the pair rows stably across calls, ``warm`` is the ``ContactEval.warm`` of an earlier call; the
+    simulator passes them only to a model whose attribute ``warm_start`` is True (a model with the plain
+    three-argument ``evaluate`` works unchanged), and the result must not depend on them beyond its tolerances.
 
     ``infeasible(poses, pairs, scale=None)``: (P,) bool, the pairs whose potential is +inf; ``scale`` (N,) scales
     each body about its frame origin first (the reachability check shrinks moving bodies). Must agree exactly with
@@ -68,7 +73,14 @@ class ContactModel(Protocol):
     of their pair's largest normal force.
     """
 
-    def evaluate(self, poses: torch.Tensor, pairs: torch.Tensor, order: int) -> ContactEval: ...
+    def evaluate(
+        self,
+        poses: torch.Tensor,
+        pairs: torch.Tensor,
+        order: int,
+        ids: torch.Tensor | None = None,
+        warm: object | None = None,
+    ) -> ContactEval: ...
 
     def infeasible(
         self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
@@ -92,18 +104,34 @@ def sum_pairs(
 
     Returns:
         (S, N, 6) gradients and (S, 6N, 6N) Hessians (None where the input is None).
+
+    Rows often repeat a pair (friction has a row per contact), and scattering small blocks costs per index on the
+    CPU, so when they do, the rows are first summed per distinct pair (s, i, j) (one ``index_add_`` of whole rows);
+    then the U pair rows are scattered, gradients as (2U, 6) rows into (S N, 6) and Hessians as (4U, 36) blocks
+    into the (S N N, 36) blocks (s, a, b) of the result, in the order [all i, all j] and [all (i, i), (i, j),
+    (j, i), (j, j)] (with distinct pairs, the sums of the plain block-by-block scatter, bit for bit).
     """
+    if g is None and h is None:
+        return None, None
+    S, N, P = num_sets, num_bodies, pairs.shape[0]
+    key, inverse = torch.unique((pairs * pairs.new_tensor([N * N, N, 1])).sum(1), return_inverse=True)
+    U = key.shape[0]
+    if U < P:  # sum the rows of each pair first
+        g = None if g is None else g.new_zeros(U, 12).index_add_(0, inverse, g)
+        h = None if h is None else h.new_zeros(U, 144).index_add_(0, inverse, h.reshape(P, 144))
+        pairs = pairs.new_empty(U, 3).index_copy_(
+            0, inverse, pairs
+        )  # the row (s, i, j) of each distinct pair
+    row = (pairs[:, :1] * N + pairs[:, 1:]).T  # (2, U) rows of bodies i and j among the S N poses
     G = H = None
-    s, i, j = pairs[:, 0], pairs[:, 1], pairs[:, 2]
     if g is not None:
-        G = g.new_zeros(num_sets, num_bodies, 6)
-        G.index_put_((s, i), g[:, :6], accumulate=True)
-        G.index_put_((s, j), g[:, 6:], accumulate=True)
+        G = g.new_zeros(S * N, 6).index_add_(
+            0, row.reshape(2 * U), g.view(U, 2, 6).transpose(0, 1).reshape(2 * U, 6)
+        )
+        G = G.view(S, N, 6)
     if h is not None:
-        Hb = h.new_zeros(num_sets, num_bodies, num_bodies, 6, 6)
-        Hb.index_put_((s, i, i), h[:, :6, :6], accumulate=True)
-        Hb.index_put_((s, i, j), h[:, :6, 6:], accumulate=True)
-        Hb.index_put_((s, j, i), h[:, 6:, :6], accumulate=True)
-        Hb.index_put_((s, j, j), h[:, 6:, 6:], accumulate=True)
-        H = Hb.permute(0, 1, 3, 2, 4).reshape(num_sets, 6 * num_bodies, 6 * num_bodies)
+        blocks = h.reshape(U, 2, 6, 2, 6).permute(1, 3, 0, 2, 4).reshape(4 * U, 36)  # (i|j, i|j, U) blocks
+        index = (row[:, None] * N + pairs[:, 1:].T).reshape(4 * U)  # their blocks (s, a, b) of the result
+        H = h.new_zeros(S * N * N, 36).index_add_(0, index, blocks)
+        H = H.view(S, N, N, 6, 6).permute(0, 1, 3, 2, 4).reshape(S, 6 * N, 6 * N)
     return G, H

@@ -117,11 +117,12 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         )
 
 
-def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False):
+def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None):
     """Solve (K, 6, 3) float64 pairs; returns value (K,), plane (K, 4), grad (K, 18) | None, hess | None.
 
     ``lowrank`` (numba backend only): hess is returned as its factors (W^T (K, 4, 18), gaps (K, 6)), see
-    ``_pair_numba.solve_pairs``."""
+    ``_pair_numba.solve_pairs``. ``start`` (numba backend only): (P0 (K, 4), has0 (K,) bool) warm-start planes,
+    used where set and strictly feasible."""
     K = X.shape[0]
     if lowrank and not _use_numba(X, backend):
         raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
@@ -141,16 +142,22 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowra
         hess = _empty_cpu((K, 18, 18) if want_hess and not lowrank else (0, 18, 18), X.dtype)
         WT = torch.empty((K, 4, 18) if lowrank else (0, 4, 18), dtype=X.dtype)
         gaps = torch.empty((K, 6) if lowrank else (0, 6), dtype=X.dtype)
+        if start is None:
+            P0, has0 = torch.empty(0, 4, dtype=X.dtype), torch.empty(0, dtype=torch.int8)
+        else:
+            P0, has0 = start[0].to(X.dtype).contiguous(), start[1].to(torch.int8).contiguous()
         if K:
             solve_pairs(
                 Xc.numpy(), float(mu), float(margin), LAMBDA, float(tol), int(max_iter), bool(want_grad),
                 bool(want_hess), P.numpy(), val.numpy(), grad.numpy(), hess.numpy(), status.numpy(), resid.numpy(),
-                lowrank, WT.numpy(), gaps.numpy(),
+                lowrank, WT.numpy(), gaps.numpy(), P0.numpy(), has0.numpy(),
             )  # fmt: skip
         _raise_unconverged(status, resid, max_iter, tol)
         if lowrank:
             hess = (WT, gaps)
         return val, P, (grad if want_grad else None), (hess if want_hess else None)
+    if start is not None:
+        raise ValueError("warm-start planes need the numba backend (CPU float64)")
     X = X.detach()
     P, E, status, resid = _pair_torch.solve_pairs_torch(X, margin, LAMBDA, tol, max_iter)
     _raise_unconverged(status, resid, max_iter, tol)

@@ -90,6 +90,7 @@ class EnergyEval(NamedTuple):
         body_value: (A, M) each moving body's own terms (inertia, gravity, actuation), or None (an energy
             without the split: the Newton solve then freezes no body).
         pair_value: (A, P) each interacting body pair's contact and friction terms (0 for pairs not evaluated).
+        warm: the contact model's warm-start data of this evaluation (with ``scene_ids``), or None.
 
     With ``active`` (a subset of the moving bodies), L is the sum of the terms that involve an active body (their
     own terms, and the pairs with at least one of them), and grad / hess are exact in the active bodies'
@@ -109,6 +110,7 @@ class EnergyEval(NamedTuple):
     leaf_pairs: int
     body_value: torch.Tensor | None = None
     pair_value: torch.Tensor | None = None
+    warm: object | None = None
 
 
 def scene_pairs(scene, num_scenes: int) -> torch.Tensor:
@@ -172,7 +174,12 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     (E, 6, 6).
 
     Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
+
+    E is a handful of bodies, so the cost is the number of tensor ops: R and its derivatives go through the
+    products they share as one stack of 3 x 3 matrices Rk = [R, dR_k (k = 0..2), d2R_kl (kl = 00..22)] (up to the
+    order), each product summing in the same order as the per-term products would.
     """
+    E = q.shape[0]
     R, dR, d2R = rotation_derivatives(q[:, 3:], order)
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
     b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
@@ -180,31 +187,43 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     AS = A @ S  # (E, 3, 3)
     pull = mass[:, None] * gravity + force  # (E, 3)
     inv = 1.0 / (dt * dt)
+    Rk = R  # (E, 3 K, 3): the K matrices stacked
+    if order >= 1:
+        Rk = [R, dR.permute(0, 3, 1, 2).reshape(E, 9, 3)]
+        Rk = torch.cat(Rk + ([d2R.permute(0, 3, 4, 1, 2).reshape(E, 27, 3)] if order >= 2 else []), 1)
+    K = Rk.shape[1] // 3
+    # tau . axial(Rk R_t^T): the torque's work over the step's rotation increment axial(R R_t^T), its derivatives
+    work = (torque[:, None] * _axial((Rk @ Rt.transpose(1, 2)).view(E, K, 3, 3))).sum(-1)  # (E, K)
     value = 0.5 * inv * (mass * (b * b).sum(1) + (AS * A).sum((1, 2)))
-    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum(1) - (torque * _axial(R @ Rt.transpose(1, 2))).sum(1)
+    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum(1) - work[:, 0]
     if order == 0:
         return value, None, None
-    dRRt = torch.einsum("nijk,nlj->nkil", dR, Rt)  # (E, k, 3, 3): dR_k R_t^T
+    # d/d omega of tr(A S A^T) / 2 and its second derivatives' d2R part: sum_ij (A S)_ij (dR_k, d2R_kl)_ij
+    dAS = (AS.reshape(E, 1, 9) @ Rk[:, 3:].reshape(E, K - 1, 9).transpose(1, 2))[:, 0]  # (E, K - 1)
     g_t = inv * mass[:, None] * b - pull
-    g_w = inv * torch.einsum("nijk,nij->nk", dR, AS) - (torque[:, None, :] * _axial(dRRt)).sum(-1)
+    g_w = inv * dAS[:, :3] - work[:, 1:4]
     grad = torch.cat([g_t, g_w], 1)
     if order == 1:
         return value, grad, None
-    E = q.shape[0]
     H = q.new_zeros(E, 6, 6)
     H[:, :3, :3] = inv * mass[:, None, None] * torch.eye(3, dtype=q.dtype, device=q.device)
-    d2RRt = torch.einsum("nijkl,nmj->nklim", d2R, Rt)  # (E, k, l, 3, 3)
-    H[:, 3:, 3:] = inv * (
-        torch.einsum("nijkl,nij->nkl", d2R, AS) + torch.einsum("nijk,njm,niml->nkl", dR, S, dR)
-    ) - (torque[:, None, None, :] * _axial(d2RRt)).sum(-1)
+    H_ww = dAS[:, 3:].view(E, 3, 3) + torch.einsum("nijk,njm,niml->nkl", dR, S, dR)
+    H[:, 3:, 3:] = inv * H_ww - work[:, 4:].view(E, 3, 3)
     return value, grad, H
 
 
 def incremental_potential(
-    prob: StepProblem, q: torch.Tensor, order: int, active: torch.Tensor | None = None
+    prob: StepProblem,
+    q: torch.Tensor,
+    order: int,
+    active: torch.Tensor | None = None,
+    scene_ids: torch.Tensor | None = None,
+    warm: object | None = None,
 ) -> EnergyEval:
     """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2); with ``active``
-    (B, M) bool over the moving bodies, only the terms that involve an active body (see :class:`EnergyEval`)."""
+    (B, M) bool over the moving bodies, only the terms that involve an active body (see :class:`EnergyEval`).
+    ``scene_ids`` (B,) name the scenes stably across calls (their pairs' ids for the contact model's warm start,
+    ``warm`` from an earlier evaluation of the same step)."""
     scene = prob.scene
     B, N = prob.q_t.shape[:2]
     dyn = scene.kinematics.bodies.to(q.device)  # the moving bodies: inertia, gravity, actuation
@@ -235,11 +254,17 @@ def incremental_potential(
         act = torch.cat([active, active.new_zeros(B, 1)], 1)  # column Nd: "not a moving body"
         pi, pj = pos[pairs[:, 1]], pos[pairs[:, 2]]
         on = act[pairs[:, 0], torch.where(pi >= 0, pi, Nd)] | act[pairs[:, 0], torch.where(pj >= 0, pj, Nd)]
-    G = Hc = None
+    G = Hc = ce = None
     node_pairs = leaf_pairs = 0
     if pairs.shape[0]:
         sel = pairs if on is None else pairs[on]
-        ce = scene.contact_model.evaluate(poses, sel, order)
+        if scene_ids is None or not getattr(scene.contact_model, "warm_start", False):
+            ce = scene.contact_model.evaluate(poses, sel, order)
+        else:
+            rows = torch.arange(pairs.shape[0], device=q.device)
+            rows = rows if on is None else rows[on]
+            ids = scene_ids.to(q.device)[rows // P] * P + rows % P
+            ce = scene.contact_model.evaluate(poses, sel, order, ids=ids, warm=warm)
         node_pairs, leaf_pairs = ce.node_pairs, ce.leaf_pairs
         v = ce.value
         if on is None:
@@ -279,7 +304,7 @@ def incremental_potential(
     if order == 0:
         return EnergyEval(
             value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs, body_value,
-            pair_value.reshape(B, P),
+            pair_value.reshape(B, P), ce.warm if ce is not None else None,
         )  # fmt: skip
     Gp = G if Gf is None else G + Gf
     Hp = None
@@ -298,5 +323,5 @@ def incremental_potential(
         h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
-        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P),
+        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None,
     )  # fmt: skip

@@ -29,8 +29,32 @@ def _work(ev: EnergyEval) -> Work:
     return (1, ev.node_pairs, ev.leaf_pairs)
 
 
-def _energy(prob: StepProblem):
-    """(q (A, Q), scenes (A,), order, active (A, M) | None) -> L of those scenes of ``prob``."""
+class WarmStarts:
+    """The contact model's warm-start data over one step's evaluations: each leaf pair's latest plane (sorted keys
+    (W,), planes (W, 4); see :class:`cfd_torch.contact.ContactModel`). Only the speed of the plane solves depends
+    on it, not their result (to their tolerance)."""
+
+    def __init__(self) -> None:
+        self.data: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def update(self, new) -> None:
+        """Merge ``new`` (keys, planes) of an evaluation: its planes replace those with the same keys."""
+        if new is None or new[0].numel() == 0:
+            return
+        if self.data is None:
+            self.data = new
+            return
+        keys = torch.cat([new[0], self.data[0]])
+        planes = torch.cat([new[1], self.data[1]])
+        keys, order = torch.sort(keys, stable=True)  # the new entry first among equal keys
+        first = torch.ones_like(keys, dtype=torch.bool)
+        first[1:] = keys[1:] != keys[:-1]
+        self.data = (keys[first], planes[order][first])
+
+
+def _energy(prob: StepProblem, warm: WarmStarts | None = None):
+    """(q (A, Q), scenes (A,), order, active (A, M) | None) -> L of those scenes of ``prob`` (the leaf pairs'
+    plane solves warm-started from ``warm``, which each evaluation updates)."""
     B = prob.q_t.shape[0]
 
     def energy(
@@ -39,7 +63,12 @@ def _energy(prob: StepProblem):
         whole = len(scenes) == B and bool((scenes == torch.arange(B, device=scenes.device)).all())
         if active is not None and bool(active.all()):
             active = None
-        return incremental_potential(prob if whole else select_scenes(prob, scenes), q, order, active)
+        sub = prob if whole else select_scenes(prob, scenes)
+        if warm is None:
+            return incremental_potential(sub, q, order, active)
+        ev = incremental_potential(sub, q, order, active, scene_ids=scenes, warm=warm.data)
+        warm.update(ev.warm)
+        return ev
 
     return energy
 
@@ -52,10 +81,10 @@ def _pair_bodies(scene) -> torch.Tensor:
 
 
 def _newton(
-    prob: StepProblem, q: torch.Tensor, first: EnergyEval | None, tol: float
+    prob: StepProblem, q: torch.Tensor, first: EnergyEval | None, tol: float, warm: WarmStarts | None = None
 ) -> tuple[NewtonResult, Work]:
     s = prob.scene.solver
-    energy = _energy(prob)
+    energy = _energy(prob, warm)
     work: Work = (0, 0, 0)
     if first is None:
         first = energy(q, torch.arange(q.shape[0], device=q.device), 2)
@@ -107,9 +136,9 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     return q, work
 
 
-def start(prob: StepProblem) -> tuple[torch.Tensor, EnergyEval | None, Work]:
+def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tensor, EnergyEval | None, Work]:
     """A feasible start (B, Q) for every scene, its order-2 evaluation where already done (None if not), and the
-    work spent."""
+    work spent (``warm``: the step's warm starts, updated by the evaluation of the usual start)."""
     scene = prob.scene
     kin = scene.kinematics
     q_t = kin.coords(prob.q_t)
@@ -120,7 +149,7 @@ def start(prob: StepProblem) -> tuple[torch.Tensor, EnergyEval | None, Work]:
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)
-        ev = _energy(prob)(extrap, all_, 2)  # the usual start: evaluated with derivatives at once
+        ev = _energy(prob, warm)(extrap, all_, 2)  # the usual start: evaluated with derivatives at once
         work = _work(ev)
         good = torch.isfinite(ev.value) & path_clear(prob, q_t, extrap, all_)
         if bool(good.all()):
@@ -161,9 +190,10 @@ def start(prob: StepProblem) -> tuple[torch.Tensor, EnergyEval | None, Work]:
 def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
     """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
     pairs, leaf pairs); raises StepError saying why it failed."""
-    q0, first, work = start(prob)
+    warm = WarmStarts()
+    q0, first, work = start(prob, warm)
     s = prob.scene.solver
-    res, w = _newton(prob, q0, first, s.newton_tol)
+    res, w = _newton(prob, q0, first, s.newton_tol, warm)
     work = _add(work, w)
     B = q0.shape[0]
     for b in range(B):
