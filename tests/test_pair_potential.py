@@ -428,12 +428,12 @@ def test_warm_started_solve_finds_the_same_optimum():
     a, b, _ = random_separated_pairs(200, gap=(2e-3, 0.5), seed=11)
     kw = {"mu": 1e-8, "margin": MARGIN, "tol": 1e-12, "max_iter": 100}
     X, _ = _prepare(a, b, **kw)
-    solve = {k: v for k, v in kw.items()}
+    solve = dict(kw)
     v0, P0, g0, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", **solve)
     moved = X + 1e-4 * torch.randn(X.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
     _, P_near, _, _ = _solve(moved, want_grad=False, want_hess=False, backend="numba", **solve)
     bad = torch.zeros_like(P0)  # n = 0: infeasible, the cold start is used
-    poor = P0 * torch.tensor([0.3, 0.3, 0.3, 0.3], dtype=F64)  # feasible (gaps shrink toward d), far from optimal
+    poor = 0.3 * P0  # a poor start where still feasible (infeasible ones fall back to the cold start)
     on = torch.ones(X.shape[0], dtype=torch.bool)
     for start in (P_near, bad, poor):
         v, P, g, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", start=(start, on), **solve)
