@@ -156,16 +156,22 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     g1 = phi1 * pc + phi * pc1
                     for a in range(12):
                         grad[p, a] += g * W1[a] + W * g1 * dr[a]
-                    if order >= 2:
-                        W2 = wd2[wid]
+                    if order >= 2:  # the upper triangle (mirrored when the body pair is done)
                         g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
-                        for a in range(12):
-                            for c in range(12):
-                                hess[p, a, c] += (
-                                    g * W2[a, c]
-                                    + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                                    + W * (g2 * dr[a] * dr[c] + g1 * d2r[a, c])
-                                )
+                        if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
+                            for a in range(12):
+                                ga = g2 * dr[a]
+                                for c in range(a, 12):
+                                    hess[p, a, c] += ga * dr[c] + g1 * d2r[a, c]
+                        else:
+                            W2 = wd2[wid]
+                            for a in range(12):
+                                for c in range(a, 12):
+                                    hess[p, a, c] += (
+                                        g * W2[a, c]
+                                        + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
+                                        + W * (g2 * dr[a] * dr[c] + g1 * d2r[a, c])
+                                    )
             if s >= 1.0:
                 continue
             # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
@@ -221,6 +227,10 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     cj = child[J, b] if sj else J
                     sI[top], sJ[top], sP[top], sK[top] = ci, cj, p, wid
                     top += 1
+        if order >= 2:  # central terms were accumulated into the upper triangle
+            for a in range(12):
+                for c in range(a + 1, 12):
+                    hess[p, c, a] = hess[p, a, c]
     return LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs
 
 
