@@ -149,6 +149,13 @@ _POOL: ThreadPoolExecutor | None = (
 )
 
 
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(4)
+    return _POOL
+
+
 def _node_threads(P: int) -> int:
     """How many threads traverse P body pairs: numba's thread count (at most 4), one per pair at most."""
     import numba
@@ -193,12 +200,10 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
     if k == 1:
         parts = [(None, run(None))]
     else:
-        global _POOL
-        if _POOL is None:
-            _POOL = ThreadPoolExecutor(4)
         chunks = [torch.arange(i, P, k) for i in range(k)]
-        parts = list(zip(chunks, _POOL.map(run, chunks), strict=True))
+        parts = list(zip(chunks, _pool().map(run, chunks), strict=True))
     cols: list[list[torch.Tensor]] = [[] for _ in range(7)]  # LI, LJ, lp, lwid, wv, wd1, wd2
+    bounds = [0]  # each part's leaves: [bounds[i], bounds[i + 1]) (their body pairs are the part's only)
     n_pairs = 0
     offset = 0
     for rows, ((LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_p), v, g, h) in parts:
@@ -219,8 +224,9 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
             c.append(x)
         offset += wv.shape[0]
         n_pairs += int(n_p)
+        bounds.append(bounds[-1] + n)
     LI, LJ, lp, wid, wv, wd1, wd2 = (_cat(c) for c in cols)
-    table = (wid, wv, wd1, wd2)
+    table = (wid, wv, wd1, wd2, bounds)
     leaves = []
     if wid.numel():
         leaves.append((LI, LJ, lp, wv[wid], wd1[wid] if order >= 1 else None, None))
@@ -410,16 +416,28 @@ def traverse(
                 warm_out = (k_sorted, Pl[fin][perm])
             z = torch.zeros(0, dtype=dt)
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
-            lwid, wv, wd1, wd2 = wtable
-            accumulate_leaves_lowrank(
-                lp.numpy(), lwid.numpy(), wv.numpy(), wd1.numpy(), wd2.numpy(), pv.numpy(),
-                (gx if gx is not None else z.reshape(0, 18)).numpy(), WT.numpy(), gaps.numpy(), Pl.numpy(),
-                Xa.numpy(), Xb.numpy(), ba.numpy(), bb.numpy(),
+            lwid, wv, wd1, wd2, bounds = wtable
+            gx = gx if gx is not None else z.reshape(0, 18)
+            per_leaf = [lp, lwid, pv, gx, WT, gaps, Pl, Xa, Xb, ba, bb]
+            shared = (
                 dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy(),
                 d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
                 int(order), value.numpy(), grad.numpy() if grad is not None else z.reshape(0, 12).numpy(),
                 hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
             )  # fmt: skip
+
+            def accumulate(part: tuple[int, int]) -> None:
+                a, b = part
+                x = [t[a:b].numpy() if t.shape[0] else t.numpy() for t in per_leaf]
+                accumulate_leaves_lowrank(
+                    x[0], x[1], wv.numpy(), wd1.numpy(), wd2.numpy(), *x[2:], *shared
+                )  # fmt: skip
+
+            parts = [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+            if len(parts) > 1:  # the parts' body pairs are disjoint: their rows of value/grad/hess too
+                list(_pool().map(accumulate, parts))
+            elif parts:
+                accumulate(parts[0])
             pv = None
         elif order == 0:
             from .pair import pair_potential

@@ -346,7 +346,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                     top += 1
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)  # (called from several threads at once, on the leaves of disjoint body pairs)
 def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb, ba, bb, dR, d2R, mu, order, value,
                               grad, hess):  # fmt: skip
     """Add the leaf terms w * P_exact to value/grad/hess of their body pairs, from the leaf Hessians' factors.
