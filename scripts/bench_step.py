@@ -743,7 +743,8 @@ CUE_LEAD_STEPS = 4
 CASES = ("billiards", "cubes", "push", "boxes", "ball")
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, with the per-case step counts derived from it."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("results/bench_step"))
     ap.add_argument("--quick", action="store_true", help="fewer warm-up and timed steps (a smoke test)")
@@ -808,7 +809,21 @@ def main() -> None:
         "--replot", action="store_true", help="rewrite table.md and the plot from <out>/bench_step.json"
     )
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    steps = args.steps or (3 if args.quick else 20)
+    args.steps_ball = args.steps_boxes = args.steps_push = steps
+    args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps
+    args.steps_billiards = args.billiards_steps or (3 if args.quick else 12)
+    args.warmup_ball = 10 if args.quick else 30  # the ball lands and settles
+    args.warmup_boxes = 10 if args.quick else 20  # the stack lands (2 Newton iterations per step after ~10)
+    args.warmup_billiards = 2  # the balls land on the table; the cue ball then approaches and hits the rack
+    args.warmup_cubes = 3  # compilation; the cubes land in the first timed steps, then slide
+    args.warmup_push = 4  # the box lands (~3 steps); the pole reaches it in the first timed step
+    return args
+
+
+def main() -> None:
+    args = parse_args()
     if args.worker:
         worker(args.worker)
         return
@@ -823,15 +838,6 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     if args.numba_threads:
         numba.set_num_threads(args.numba_threads)
-    steps = args.steps or (3 if args.quick else 20)
-    args.steps_ball = args.steps_boxes = args.steps_push = steps
-    args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps
-    args.steps_billiards = args.billiards_steps or (3 if args.quick else 12)
-    args.warmup_ball = 10 if args.quick else 30  # the ball lands and settles
-    args.warmup_boxes = 10 if args.quick else 20  # the stack lands (2 Newton iterations per step after ~10)
-    args.warmup_billiards = 2  # the balls land on the table; the cue ball then approaches and hits the rack
-    args.warmup_cubes = 3  # compilation; the cubes land in the first timed steps, then slide
-    args.warmup_push = 4  # the box lands (~3 steps); the pole reaches it in the first timed step
     args.out.mkdir(parents=True, exist_ok=True)
 
     out: dict = {
