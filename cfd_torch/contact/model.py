@@ -106,32 +106,32 @@ def sum_pairs(
         (S, N, 6) gradients and (S, 6N, 6N) Hessians (None where the input is None).
 
     Rows often repeat a pair (friction has a row per contact), and scattering small blocks costs per index on the
-    CPU, so when they do, the rows are first summed per distinct pair (s, i, j) (one ``index_add_`` of whole rows);
-    then the U pair rows are scattered, gradients as (2U, 6) rows into (S N, 6) and Hessians as (4U, 36) blocks
-    into the (S N N, 36) blocks (s, a, b) of the result, in the order [all i, all j] and [all (i, i), (i, j),
-    (j, i), (j, j)] (with distinct pairs, the sums of the plain block-by-block scatter, bit for bit).
+    CPU, so repeated rows are first summed per distinct pair (s, i, j), by one ``index_add_`` of whole rows (which
+    sums them in another order than a row-by-row scatter: the same up to rounding). The U distinct rows are then
+    scattered: gradients as rows of 6, Hessians as (4U, 36) blocks by one ``index_add_`` into the (S N N, 36)
+    blocks (s, a, b) of the result, all (i, i) blocks first, then (i, j), (j, i), (j, j) (with distinct pairs,
+    the sums of a block-by-block scatter, bit for bit).
     """
     if g is None and h is None:
         return None, None
     S, N, P = num_sets, num_bodies, pairs.shape[0]
-    key, inverse = torch.unique((pairs * pairs.new_tensor([N * N, N, 1])).sum(1), return_inverse=True)
+    row = pairs[:, :1] * N + pairs[:, 1:]  # (P, 2) rows of bodies i and j among the S N poses
+    key, inverse = torch.unique(row[:, 0] * N + pairs[:, 2], return_inverse=True)  # block (s, i, j) of each
     U = key.shape[0]
     if U < P:  # sum the rows of each pair first
         g = None if g is None else g.new_zeros(U, 12).index_add_(0, inverse, g)
         h = None if h is None else h.new_zeros(U, 144).index_add_(0, inverse, h.reshape(P, 144))
-        pairs = pairs.new_empty(U, 3).index_copy_(
-            0, inverse, pairs
-        )  # the row (s, i, j) of each distinct pair
-    row = (pairs[:, :1] * N + pairs[:, 1:]).T  # (2, U) rows of bodies i and j among the S N poses
+        pairs = pairs.new_empty(U, 3).index_copy_(0, inverse, pairs)  # the distinct pairs
+        row = pairs[:, :1] * N + pairs[:, 1:]
     G = H = None
     if g is not None:
-        G = g.new_zeros(S * N, 6).index_add_(
-            0, row.reshape(2 * U), g.view(U, 2, 6).transpose(0, 1).reshape(2 * U, 6)
-        )
+        G = g.new_zeros(S * N, 6)
+        G.index_put_((row[:, 0],), g[:, :6], accumulate=True)
+        G.index_put_((row[:, 1],), g[:, 6:], accumulate=True)
         G = G.view(S, N, 6)
     if h is not None:
         blocks = h.reshape(U, 2, 6, 2, 6).permute(1, 3, 0, 2, 4).reshape(4 * U, 36)  # (i|j, i|j, U) blocks
-        index = (row[:, None] * N + pairs[:, 1:].T).reshape(4 * U)  # their blocks (s, a, b) of the result
-        H = h.new_zeros(S * N * N, 36).index_add_(0, index, blocks)
+        block = row.T[:, None] * N + pairs[:, 1:].T  # (2, 2, U): their blocks (s, i|j, i|j) among the S N N
+        H = h.new_zeros(S * N * N, 36).index_add_(0, block.reshape(4 * U), blocks)
         H = H.view(S, N, N, 6, 6).permute(0, 1, 3, 2, 4).reshape(S, 6 * N, 6 * N)
     return G, H
