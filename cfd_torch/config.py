@@ -40,10 +40,11 @@ class ContactConfig:
             everywhere: the GPU route, which this exercises on the CPU). The collision query of the simulator's
             feasibility checks runs on the CPU either way.
         refine_obstacles: a :class:`cfd_torch.Scene` refines each static or kinematic body whose triangles have
-            edges longer than this times the longest edge of the finest dynamic body it interacts with (midpoint
-            splits, the same surface; see :func:`cfd_torch.sim.bodies.refine_obstacles`); None keeps every mesh
-            as given. A leaf sphere much larger than its partner's makes every partner triangle inside it an exact
-            leaf pair, so a coarse floor costs several times a fine one.
+            edges longer than twice this times the longest edge of the finest dynamic body it interacts with, to
+            edges of at most this times it (midpoint splits, the same surface; see
+            :func:`cfd_torch.sim.bodies.refine_obstacles`); None keeps every mesh as given. A leaf sphere much
+            larger than its partner's makes every partner triangle inside it an exact leaf pair, so a coarse floor
+            costs several times a fine one.
     """
 
     stiffness: float = 1e-8

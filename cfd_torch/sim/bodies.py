@@ -122,13 +122,13 @@ def refine_obstacles(
 ) -> tuple[RigidBody, ...]:
     """The bodies with each static or kinematic one refined to the scale of the dynamic bodies it touches.
 
-    An obstacle whose longest edge exceeds ``factor`` times the longest edge of its finest dynamic partner (the
-    other bodies of its rows in ``pairs`` (P, 2); the finest has the smallest longest edge) gets a hierarchy of the
-    same surface split at midpoints until no edge exceeds that length (``BSH.build(max_edge=...)``); if that would
-    give more than ``MAX_REFINED_FACES`` triangles, the length grows by factors of sqrt(2) until it does not (with
-    a warning). The potential of an obstacle therefore depends on the finest body it interacts with in the scene,
-    a scale set once when the scene is built. Bodies shared by several slots stay shared; dynamic bodies are never
-    changed.
+    An obstacle whose longest edge exceeds twice ``factor`` times the longest edge of its finest dynamic partner
+    (the other bodies of its rows in ``pairs`` (P, 2); the finest has the smallest longest edge) gets a hierarchy of
+    the same surface split at midpoints until no edge exceeds ``factor`` times that edge
+    (``BSH.build(max_edge=...)``); if that would give more than ``MAX_REFINED_FACES`` triangles, the length grows
+    by factors of sqrt(2) until it does not (with a warning). The potential of an obstacle therefore depends on the
+    finest body it interacts with in the scene, a scale set once when the scene is built. Bodies shared by several
+    slots stay shared; dynamic bodies are never changed.
     """
     bodies = tuple(bodies)
     longest_edge = {id(b): float(_edges(b.bsh).max()) for b in bodies if b.kind == "dynamic"}
@@ -143,7 +143,7 @@ def refine_obstacles(
             continue
         edge = factor * min(scales)
         longest = _edges(b.bsh).max(1)
-        if not longest.max() > edge:
+        if not longest.max() > 2.0 * edge:  # not much coarser: one split would give no real saving
             continue
         if _refined_faces(longest, edge) > MAX_REFINED_FACES:
             wanted = edge
