@@ -156,11 +156,15 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL
 
 
+# fewer body pairs are traversed by one thread (handing them to threads costs more than it saves)
+_THREAD_MIN_PAIRS = 8
+
+
 def _node_threads(P: int) -> int:
-    """How many threads traverse P body pairs: numba's thread count (at most 4), one per pair at most."""
+    """How many threads traverse P body pairs: numba's thread count (at most 4), from _THREAD_MIN_PAIRS pairs."""
     import numba
 
-    return max(1, min(P, numba.get_num_threads(), 4))
+    return 1 if P < _THREAD_MIN_PAIRS else min(numba.get_num_threads(), 4)
 
 
 def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):

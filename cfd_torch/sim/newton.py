@@ -167,8 +167,9 @@ def newton(
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
     active = torch.isfinite(cur.value)
     reason[~active] = int(Stop.INFEASIBLE_START)
-    freeze = block is not None and pair_bodies is not None and first.body_value is not None
-    M = int(block.max()) + 1 if freeze and block.numel() else 0
+    M = int(block.max()) + 1 if block is not None and block.numel() else 0
+    # (one moving body: nothing to freeze or split, and the bookkeeping would only cost)
+    freeze = M > 1 and pair_bodies is not None and first.body_value is not None
     act = torch.ones(B, M, dtype=torch.bool, device=dev)  # the bodies iterating
     whole = torch.ones(B, dtype=torch.bool, device=dev)  # cur evaluated every body of the scene
     # a scene whose whole evaluation did not confirm its frozen bodies' convergence iterates whole from then on
