@@ -415,3 +415,25 @@ def test_refinement_beyond_the_face_cap_warns_and_coarsens(monkeypatch):
     with pytest.warns(UserWarning, match="more than 100 triangles"):
         scene = Scene((ball, box))
     assert 12 < scene.bodies[1].bsh.num_faces <= 100
+
+
+# ======================================================================================== islands, frozen bodies
+def test_bodies_far_apart_step_as_if_alone(bodies):
+    """A cube resting at one end of the ground and a ball dropped with a spin at the other: the Newton solve takes
+    them as two islands (own line searches) and freezes the one that converged first, yet every step ends where
+    each body's own scene ends it, up to the far field between them (about 1e-12 m here) and newton_tol."""
+    cube, ground, _, ball = bodies
+    both = Scene((cube, ground, ball), friction=0.3)
+    q = torch.tensor([_pose(-0.5, 0.0, 0.1 + 1.2e-3), _pose(), _pose(0.5, 0.0, 0.1 + 0.02, 0.3)], dtype=F64)
+    v = torch.zeros(3, 6, dtype=F64)
+    v[2, 3:] = torch.tensor([0.0, 5.0, 2.0], dtype=F64)  # the ball spins: it lands rocking on a vertex
+    s_both = both.initial_state(q, v)
+    alone = [Scene((cube, ground), friction=0.3), Scene((ground, ball), friction=0.3)]
+    s_alone = [alone[0].initial_state(q[:2], v[:2]), alone[1].initial_state(q[1:], v[1:])]
+    for _ in range(12):
+        s_both = step(both, s_both)
+        s_alone[0] = step(alone[0], s_alone[0])
+        s_alone[1] = step(alone[1], s_alone[1])
+        torch.testing.assert_close(s_both.q[0], s_alone[0].q[0], rtol=0, atol=1e-8)
+        torch.testing.assert_close(s_both.q[2], s_alone[1].q[1], rtol=0, atol=1e-8)
+    assert float((s_both.q[2, 2] - q[2, 2]).abs()) > 1e-3  # the ball fell and landed: the test saw contact
