@@ -225,6 +225,7 @@ def newton(
             coupled = C > 1e-6 * torch.minimum(dC[:, :, None], dC[:, None, :])
             moving = act[idx[k]] & (pb > tol)
             frz = act[idx[k]] & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[idx[k], None]
+            frz = frz & (act[idx[k]] & ~frz).any(1, keepdim=True)  # never the last body still iterating
             if bool(frz.any()):
                 sc = idx[k]
                 act[sc] = act[sc] & ~frz
@@ -319,7 +320,17 @@ def newton(
         failed = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken < 0, accumulate=True)
         # a split scene whose island found no step is not a failure: it keeps q0 (and its evaluation there) and
         # searches whole from the next iteration
-        retry = failed & (torch.bincount(gs, minlength=A) > 1)
+        several = torch.bincount(gs, minlength=A) > 1
+        retry = failed & several
+        # each island's path was checked with the others at q0: the islands' moves together must be clear too
+        joint = several & ~failed
+        if bool(joint.any()):
+            jt = torch.nonzero(joint)[:, 0]
+            far = displacement(q0[jt], q_new[jt], idx[jt]) > free_move
+            if bool(far.any()):
+                jf = jt[far]
+                clear = move_ok(q0[jf], q_new[jf], idx[jf])
+                retry[jf[~clear]] = True
         split[idx[retry]] = False
         failed = failed & ~retry
         q_new[retry] = q0[retry]
