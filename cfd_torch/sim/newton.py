@@ -77,19 +77,27 @@ def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
     return EnergyEval(*(x[sel] if isinstance(x, torch.Tensor) else x for x in ev))
 
 
-def _islands(C: torch.Tensor, act: torch.Tensor, split: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The islands of the bodies ``act`` (A, M) of A scenes under the coupling C (A, M, M) (bodies coupled when
-    |C_ij| > 1e-6 min(C_ii, C_jj), transitively; all one island in the scenes not ``split`` (A,)): (G,) each
-    island's scene and (G, M) its bodies."""
-    A, M = act.shape
+def _coupling(H: torch.Tensor, onehot: torch.Tensor) -> torch.Tensor:
+    """(A, M, M) bool: the bodies the Hessians H (A, Q, Q) couple (their block's magnitude above 1e-6 of the
+    smaller of their own curvatures); ``onehot`` (Q, M) maps coordinates to bodies."""
+    C = onehot.T @ H.abs() @ onehot
     d = torch.diagonal(C, dim1=1, dim2=2)
-    R = (C > 1e-6 * torch.minimum(d[:, :, None], d[:, None, :])) | ~split[:, None, None]
-    R = R & act[:, :, None] & act[:, None, :]
+    return C > 1e-6 * torch.minimum(d[:, :, None], d[:, None, :])
+
+
+def _islands(
+    coupled: torch.Tensor, act: torch.Tensor, split: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The islands of the bodies ``act`` (A, M) of A scenes under the coupling ``coupled`` (A, M, M), taken
+    transitively (all one island in the scenes not ``split`` (A,)): (G,) each island's scene and (G, M) its
+    bodies."""
+    A, M = act.shape
+    R = (coupled | ~split[:, None, None]) & act[:, :, None] & act[:, None, :]
     R = R | torch.diag_embed(act)
     for _ in range(max(1, (M - 1).bit_length())):  # transitive closure by squaring
-        R = (R.to(C.dtype) @ R.to(C.dtype)) > 0
-    first = torch.where(R, torch.arange(M, device=C.device), M).amin(2)  # (A, M) smallest body of each island
-    lead = act & (first == torch.arange(M, device=C.device))  # (A, M): the bodies that name an island
+        R = (R.double() @ R.double()) > 0
+    first = torch.where(R, torch.arange(M, device=R.device), M).amin(2)  # (A, M) smallest body of each island
+    lead = act & (first == torch.arange(M, device=R.device))  # (A, M): the bodies that name an island
     gs, gb = torch.nonzero(lead, as_tuple=True)
     return gs, R[gs, gb]
 
@@ -220,9 +228,7 @@ def newton(
             # freeze the bodies within tol whose coupled bodies are all within tol
             k = torch.nonzero(keep)[:, 0]
             pb = (p[k].abs()[:, :, None] * onehot).amax(1)  # (A, M) largest step per body
-            C = onehot.T @ H[k].abs() @ onehot  # (A, M, M) coupling
-            dC = torch.diagonal(C, dim1=1, dim2=2)
-            coupled = C > 1e-6 * torch.minimum(dC[:, :, None], dC[:, None, :])
+            coupled = _coupling(H[k], onehot)  # (A, M, M), also the line search's islands below
             moving = act[idx[k]] & (pb > tol)
             frz = act[idx[k]] & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[idx[k], None]
             frz = frz & (act[idx[k]] & ~frz).any(1, keepdim=True)  # never the last body still iterating
@@ -243,8 +249,7 @@ def newton(
         A = idx.numel()
         q0 = q[idx]
         if freeze:
-            C = onehot.T @ H[keep].abs() @ onehot if bool(small.any()) else onehot.T @ H.abs() @ onehot
-            gs, gm = _islands(C, act[idx], split[idx])
+            gs, gm = _islands(coupled, act[idx], split[idx])
             gp = p[gs] * gm[:, block].to(p.dtype)  # (G, Q) each island's part of the step
         else:
             gs = torch.arange(A, device=dev)
