@@ -121,18 +121,18 @@ def test_known_grad_potential_gradcheck_gradgradcheck_and_refused_third_order(kn
 
 
 def test_pair_grad_fn_gradcheck_and_refused_second_backward():
-    # _PairGradFn(X, P, feasible) is grad_x P at the optimal plane P = p*(X); its backward is the implicit Hessian,
+    # _PairGradFn(X, P, C, feasible) is grad_x P at the optimal plane P = p*(X); its backward is the implicit Hessian,
     # the derivative of the whole map X -> grad_x P(X, p*(X)), so the check re-solves the plane at every X
     a, b = _pairs()
     X0 = torch.cat([a, b], -2)  # (K, 6, 3)
 
     def f(X):
         with torch.no_grad():
-            val, P, _, _ = pair_module._solve(
+            sol = pair_module._solve(
                 X.detach(), mu=1.0, margin=1e-3, tol=1e-14, max_iter=100, want_grad=False, want_hess=False,
                 backend="numba",
             )  # fmt: skip
-        return pair_module._PairGradFn.apply(X, P, torch.isfinite(val), 1.0, 1e-3)
+        return pair_module._PairGradFn.apply(X, sol.plane, sol.centre, torch.isfinite(sol.value), 1.0, 1e-3)
 
     X = X0.clone().requires_grad_(True)
     assert f(X).abs().max() > 0

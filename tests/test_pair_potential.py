@@ -429,14 +429,16 @@ def test_warm_started_solve_finds_the_same_optimum():
     kw = {"mu": 1e-8, "margin": MARGIN, "tol": 1e-12, "max_iter": 100}
     X, _ = _prepare(a, b, **kw)
     solve = dict(kw)
-    v0, P0, g0, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", **solve)
+    sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **solve)
+    v0, P0, g0 = sol.value, sol.world_plane(), sol.grad
     moved = X + 1e-4 * torch.randn(X.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
-    _, P_near, _, _ = _solve(moved, want_grad=False, want_hess=False, backend="numba", **solve)
+    P_near = _solve(moved, want_grad=False, want_hess=False, backend="numba", **solve).world_plane()
     bad = torch.zeros_like(P0)  # n = 0: infeasible, the cold start is used
     poor = 0.3 * P0  # a poor start where still feasible (infeasible ones fall back to the cold start)
     on = torch.ones(X.shape[0], dtype=torch.bool)
     for start in (P_near, bad, poor):
-        v, P, g, _ = _solve(X, want_grad=True, want_hess=False, backend="numba", start=(start, on), **solve)
+        sol = _solve(X, want_grad=True, want_hess=False, backend="numba", start=(start, on), **solve)
+        v, P, g = sol.value, sol.world_plane(), sol.grad
         assert float(g0.abs().max()) > 0
         torch.testing.assert_close(v, v0, rtol=1e-13, atol=0)
         torch.testing.assert_close(P, P0, rtol=1e-8, atol=1e-10)

@@ -156,24 +156,29 @@ def _chol_solve4(L, Li, b, x):
 
 
 @numba.njit(parallel=True, **_JIT)
-def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
+def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
                 lowrank, WTo, So, P0, has0):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
+    Each pair is solved in the frame centred at its C[k] (``pair.frame_origin``: x - C[k] is exact), so the gaps
+    n.x + d carry no cancellation against a large offset and the result does not depend on where the pair is.
+    Planes (in and out) are in that frame; the derivatives in x do not depend on the frame.
+
     Args:
         X: (K, 6, 3) float64 vertices a0, a1, a2, b0, b1, b2.
+        C: (K, 3) the frame origin of each pair.
         mu, delta, lam: contact coefficient, margin, normal-regulariser weight.
         tol: relative gradient tolerance: max_i |dE/dp_i| / (sum of |terms| of dE/dp_i) <= tol.
         max_iter: Newton iteration cap.
         want_grad, want_hess: whether to fill ``grad`` (K, 18) and ``hess`` (K, 18, 18).
-        P: (K, 4) out: optimal plane (n, d); val: (K,) out: mu E(p*) or +inf;
+        P: (K, 4) out: optimal plane (n, d) in the pair's frame; val: (K,) out: mu E(p*) or +inf;
         status: (K,) int8 out; resid: (K,) out: final relative gradient.
         lowrank: with ``want_hess``, write the Hessian's factors instead of ``hess``: hess = mu (D - W W^T) with
             W^T = L^-1 E_px into ``WTo`` (K, 4, 18) (E_pp = L L^T) and the vertex gaps s_k into ``So`` (K, 6)
             (D is block diagonal, 2 n n^T / s_k^3, n = P[:, :3]); zeros where infeasible.
-        P0, has0: (K, 4) planes to start from where has0 (K,) is set (a warm start, e.g. the pair's optimum at
-            nearby vertices) and the plane is strictly feasible; the closest-point start otherwise. Empty (0, 4) and
-            (0,) for none. The optimum does not depend on the start (to the tolerance).
+        P0, has0: (K, 4) planes (in the pair's frame) to start from where has0 (K,) is set (a warm start, e.g.
+            the pair's optimum at nearby vertices) and the plane is strictly feasible; the closest-point start
+            otherwise. Empty (0, 4) and (0,) for none. The optimum does not depend on the start (to the tolerance).
     """
     K = X.shape[0]
     half_delta = 0.5 * delta
@@ -192,10 +197,13 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
         q = np.empty(6)
         WT = np.empty((4, 18))
         m = np.empty(4)
+        Xk = np.empty((6, 3))
         lo = c * K // nchunks
         hi = (c + 1) * K // nchunks
         for k in range(lo, hi):
-            Xk = X[k]
+            for v in range(6):
+                for j in range(3):
+                    Xk[v, j] = X[k, v, j] - C[k, j]
             warm_k = has0.shape[0] > 0 and has0[k] != 0
             e = math.inf
             e_res = 0.0
@@ -283,6 +291,19 @@ def solve_pairs(X, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, 
                     p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
                     e, e_res = e_new, e_res_new
                     damp = 0.0 if damp <= 1e-3 else damp * 0.1
+                if st == CONVERGED and _cholesky4(H, L, Li, 0.0):
+                    # the Newton step from the converged plane is taken too (if E stays within its resolution):
+                    # the tests above bound E's error, and this makes the plane's, which the derivatives depend on,
+                    # quadratically small (a nearly flat E leaves the plane loose at the tests' tolerance)
+                    for i in range(4):
+                        m[i] = -g[i]
+                    _chol_solve4(L, Li, m, step)
+                    for i in range(4):
+                        p2[i] = p[i] + step[i]
+                    e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
+                    if e_new <= e + e_res:
+                        p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                        e, e_res = e_new, e_res_new
                 if st == NOT_CONVERGED and not cold:
                     continue  # the warm start's iterations are spent: solve again from the cold start
                 if st == NOT_CONVERGED and _rel_grad(g, sc) <= _STALL_TOL:

@@ -149,6 +149,20 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
             torch.where(damp <= 1e-3, torch.zeros_like(damp), damp * 0.1),
             torch.where(damp == 0, torch.full_like(damp, 1e-4), damp * 10.0),
         )
+    # the Newton step from each converged plane is taken too, where E stays within its resolution (as in
+    # _pair_numba.solve_pairs: it makes the plane's error, which the derivatives depend on, quadratically small)
+    conv = torch.nonzero(status == CONVERGED).squeeze(-1)
+    if conv.numel():
+        Xc, Pc, Ec = X[conv], P[conv], E[conv]
+        g, H, _, _, e_res = plane_grad_hess(Xc, Pc, half_delta, lam)
+        L, info = torch.linalg.cholesky_ex(H)
+        spd = info == 0
+        step = torch.cholesky_solve(-g[..., None], torch.where(spd[:, None, None], L, eye4)).squeeze(-1)
+        trial = Pc + step
+        Et = energy(Xc, trial, half_delta, lam)
+        take = spd & (Et <= Ec + e_res)
+        P[conv] = torch.where(take[:, None], trial, Pc)
+        E[conv] = torch.where(take, Et, Ec)
     return P, E, status, resid
 
 

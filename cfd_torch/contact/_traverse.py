@@ -278,7 +278,16 @@ def traverse(
     dt, dev = pose.dtype, pose.device
     P = pair_body.shape[0]
     R, dR, d2R = rotation_derivatives(pose[:, 3:], order)
-    t = pose[:, :3]
+    # Each body pair is evaluated in the frame of its body a's translation: (a, b) at (0, t_b - t_a), exact for
+    # nearby bodies far from the origin, so neither the node pairs' distances and blend weights nor the leaf pairs
+    # lose digits to the position of the pair (the derivatives in the translations are the same in every frame).
+    side = pair_body.reshape(-1)
+    R = R[side]
+    dR = dR[side] if dR is not None else None
+    d2R = d2R[side] if d2R is not None else None
+    t = pose[pair_body, :3]  # (P, 2, 3)
+    t = torch.stack([torch.zeros_like(t[:, 0]), t[:, 1] - t[:, 0]], 1).reshape(-1, 3)
+    pair_body = torch.arange(2 * P, device=dev).reshape(P, 2)
     value = torch.zeros(P, dtype=dt, device=dev)
     grad = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
@@ -400,7 +409,7 @@ def traverse(
         fused = dev.type == "cpu" and backend != "torch"
         if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
             from ._traverse_numba import accumulate_leaves_lowrank
-            from .pair import _prepare, _solve
+            from .pair import _prepare, _solve, to_world
 
             X, _ = _prepare(wa, wb, mu, margin, tol, max_iter)
             start = None
@@ -410,14 +419,15 @@ def traverse(
                 if warm[1].numel():
                     at = torch.searchsorted(warm[1], keys).clamp(max=warm[1].numel() - 1)
                     start = (warm[2][at], warm[1][at] == keys)
-            pv, Pl, gx, fac = _solve(
+            sol = _solve(
                 X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter),
                 want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True, start=start,
             )  # fmt: skip
+            pv, Pl, gx, fac = sol.value, sol.plane, sol.grad, sol.hess
             if warm is not None:
                 fin = torch.isfinite(pv)
                 k_sorted, perm = torch.sort(keys[fin])
-                warm_out = (k_sorted, Pl[fin][perm])
+                warm_out = (k_sorted, to_world(Pl[fin][perm], sol.centre[fin][perm]))
             z = torch.zeros(0, dtype=dt)
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
             lwid, wv, wd1, wd2, bounds = wtable

@@ -117,13 +117,57 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         )
 
 
-def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None):
-    """Solve (K, 6, 3) float64 pairs; returns value (K,), plane (K, 4), grad (K, 18) | None, hess | None.
+class _Solved(NamedTuple):
+    """The solve of K pairs: value (K,), optimal planes (K, 4) in the frame centred at ``centre`` (K, 3) (near the
+    pair, see :func:`frame_origin`), grad (K, 18) | None, hess (K, 18, 18) | None (or its low-rank factors)."""
+
+    value: torch.Tensor
+    plane: torch.Tensor
+    centre: torch.Tensor
+    grad: torch.Tensor | None
+    hess: object
+
+    def world_plane(self) -> torch.Tensor:
+        """The planes in the input's frame: d - n.c (rounded there, like any plane of a pair far from the origin)."""
+        return to_world(self.plane, self.centre)
+
+
+def frame_origin(X: torch.Tensor) -> torch.Tensor:
+    """(K, 3) the origin each pair of X (K, 6, 3) is solved about: its centroid rounded to a multiple of g, the
+    power of two at least its extent about the centroid. Then X - origin is exact wherever the pair is (its bits are
+    those of X, its magnitude at most 1.5 g), so the solve sees the same digits of the geometry at any offset,
+    and a pair near the origin (|centroid| < g / 2) is solved where it is."""
+    mean = X.mean(1)
+    extent = (X - mean[:, None, :]).abs().amax((1, 2))
+    _, e = torch.frexp(extent)
+    g = torch.ldexp(torch.ones_like(extent), e)[:, None]  # 2^e > extent
+    return torch.round(mean / g) * g
+
+
+def to_world(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """Planes (K, 4) given in frames centred at ``centre`` (K, 3), in the frame of the origin."""
+    d = plane[:, 3] - (plane[:, :3] * centre).sum(-1)
+    return torch.cat([plane[:, :3], d[:, None]], -1)
+
+
+def to_centred(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """Planes (K, 4) given in the frame of the origin, in frames centred at ``centre`` (K, 3)."""
+    d = plane[:, 3] + (plane[:, :3] * centre).sum(-1)
+    return torch.cat([plane[:, :3], d[:, None]], -1)
+
+
+def _solve(
+    X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None
+) -> _Solved:
+    """Solve (K, 6, 3) float64 pairs, each in a frame centred near it (:func:`frame_origin`; translation-invariant:
+    far from the origin, a gap n.x + d computed in the input's frame would cancel its digits away).
 
     ``lowrank`` (numba backend only): hess is returned as its factors (W^T (K, 4, 18), gaps (K, 6)), see
-    ``_pair_numba.solve_pairs``. ``start`` (numba backend only): (P0 (K, 4), has0 (K,) bool) warm-start planes,
-    used where set and strictly feasible."""
+    ``_pair_numba.solve_pairs``. ``start`` (numba backend only): (P0 (K, 4), has0 (K,) bool) warm-start planes in
+    the input's frame, used where set and strictly feasible."""
     K = X.shape[0]
+    X = X.detach()
+    C = frame_origin(X)
     if lowrank and not _use_numba(X, backend):
         raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
     if _use_numba(X, backend):
@@ -132,7 +176,7 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowra
         if K < PARALLEL_MIN_PAIRS:
             solve_pairs = solve_pairs_serial  # noqa: F811
 
-        Xc = X.detach().contiguous()
+        Xc = X.contiguous()
         P = torch.empty(K, 4, dtype=X.dtype)
         val = torch.empty(K, dtype=X.dtype)
         status = torch.empty(K, dtype=torch.int8)
@@ -145,35 +189,36 @@ def _solve(X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowra
         if start is None:
             P0, has0 = torch.empty(0, 4, dtype=X.dtype), torch.empty(0, dtype=torch.int8)
         else:
-            P0, has0 = start[0].to(X.dtype).contiguous(), start[1].to(torch.int8).contiguous()
+            P0 = to_centred(start[0].to(X.dtype), C).contiguous()
+            has0 = start[1].to(torch.int8).contiguous()
         if K:
             solve_pairs(
-                Xc.numpy(), float(mu), float(margin), LAMBDA, float(tol), int(max_iter), bool(want_grad),
+                Xc.numpy(), C.numpy(), float(mu), float(margin), LAMBDA, float(tol), int(max_iter), bool(want_grad),
                 bool(want_hess), P.numpy(), val.numpy(), grad.numpy(), hess.numpy(), status.numpy(), resid.numpy(),
                 lowrank, WT.numpy(), gaps.numpy(), P0.numpy(), has0.numpy(),
             )  # fmt: skip
         _raise_unconverged(status, resid, max_iter, tol)
         if lowrank:
             hess = (WT, gaps)
-        return val, P, (grad if want_grad else None), (hess if want_hess else None)
+        return _Solved(val, P, C, (grad if want_grad else None), (hess if want_hess else None))
     if start is not None:
         raise ValueError("warm-start planes need the numba backend (CPU float64)")
-    X = X.detach()
-    P, E, status, resid = _pair_torch.solve_pairs_torch(X, margin, LAMBDA, tol, max_iter)
+    Xc = X - C[:, None, :]
+    P, E, status, resid = _pair_torch.solve_pairs_torch(Xc, margin, LAMBDA, tol, max_iter)
     _raise_unconverged(status, resid, max_iter, tol)
     feasible = status == _pair_torch.CONVERGED
     P = torch.where(feasible[:, None], P, torch.zeros_like(P))
     grad = hess = None
     zero = torch.zeros((), dtype=X.dtype, device=X.device)
     if want_grad or want_hess:
-        Xs, Ps = _safe_rows(X, P, feasible)
+        Xs, Ps = _safe_rows(Xc, P, feasible)
         if want_grad:
             Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
             grad = torch.where(feasible[:, None], mu * Ex.reshape(-1, 18), zero)
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
             hess = torch.where(feasible[:, None, None], hess, zero)
-    return mu * E, P, grad, hess
+    return _Solved(mu * E, P, C, grad, hess)
 
 
 def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -188,33 +233,36 @@ def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tupl
 
 
 class _PairGradFn(torch.autograd.Function):
-    """grad_x P at the optimal plane; its backward is the IFT Hessian-vector product (second order)."""
+    """grad_x P at the optimal plane; its backward is the IFT Hessian-vector product (second order).
+
+    X (K, 6, 3), P (K, 4) the optimal planes in the frames centred at C (K, 3) (as ``_solve`` returns them), feasible
+    (K,) bool; the formulas are evaluated at X - C (exact near C), so they keep their digits far from the origin."""
 
     @staticmethod
-    def forward(X, P, feasible, mu, margin):  # X (K, 6, 3), P (K, 4), feasible (K,) bool
-        Xs, Ps = _safe_rows(X, P, feasible)
+    def forward(X, P, C, feasible, mu, margin):
+        Xs, Ps = _safe_rows(X - C[:, None, :], P, feasible)
         Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        X, P, feasible, mu, margin = inputs
-        ctx.save_for_backward(X, P, feasible)
+        X, P, C, feasible, mu, margin = inputs
+        ctx.save_for_backward(X, P, C, feasible)
         ctx.params = (mu, margin)
 
     @staticmethod
     def backward(ctx, v):
         # d/dx (v . grad_x P) = v^T hess_x P; with p*(x) implicit: hess = mu (E_xx - E_xp E_pp^-1 E_px).
-        X, P, feasible = ctx.saved_tensors
+        X, P, C, feasible = ctx.saved_tensors
         mu, margin = ctx.params
         with torch.no_grad():
-            Xs, Ps = _safe_rows(X, P, feasible)
+            Xs, Ps = _safe_rows(X - C[:, None, :], P, feasible)
             hv = _pair_torch.pair_hessian_vjp(Xs, Ps, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
             hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
         hv = hv.reshape(-1, 6, 3)
         if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
             hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
-        return hv, None, None, None, None
+        return hv, None, None, None, None, None
 
     @staticmethod
     def vmap(info, in_dims, *args):
@@ -226,38 +274,30 @@ class _PairGradFn(torch.autograd.Function):
 
 
 class _PairPotentialFn(torch.autograd.Function):
-    """(P(X) (K,), optimal planes (K, 4), feasible (K,) bool) for X (K, 6, 3) float64; only P is differentiable.
-    Backward via the envelope theorem, double backward via _PairGradFn."""
+    """(P(X) (K,), optimal planes (K, 4) in the frames centred at C (K, 3), C, feasible (K,) bool) for X (K, 6, 3)
+    float64; only P is differentiable. Backward via the envelope theorem, double backward via _PairGradFn."""
 
     @staticmethod
     def forward(X, mu, margin, tol, max_iter, backend):
-        val, P, _, _ = _solve(
-            X,
-            mu=mu,
-            margin=margin,
-            tol=tol,
-            max_iter=max_iter,
-            want_grad=False,
-            want_hess=False,
-            backend=backend,
-        )
-        return val, P, torch.isfinite(val)
+        sol = _solve(X, mu=mu, margin=margin, tol=tol, max_iter=max_iter, want_grad=False, want_hess=False,
+                     backend=backend)  # fmt: skip
+        return sol.value, sol.plane, sol.centre, torch.isfinite(sol.value)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
         X, mu, margin = inputs[:3]
-        _, P, feasible = output
-        ctx.mark_non_differentiable(P, feasible)
-        ctx.save_for_backward(X, P, feasible)
+        _, P, C, feasible = output
+        ctx.mark_non_differentiable(P, C, feasible)
+        ctx.save_for_backward(X, P, C, feasible)
         ctx.params = (mu, margin)
 
     @staticmethod
-    def backward(ctx, gout, _gP, _gfeasible):
+    def backward(ctx, gout, _gP, _gC, _gfeasible):
         # dP/dx = mu dE/dx at p* (envelope theorem: dE/dp = 0 there). Computed by a differentiable Function so
         # that create_graph=True gives the exact implicit Hessian on the second pass.
-        X, P, feasible = ctx.saved_tensors
+        X, P, C, feasible = ctx.saved_tensors
         mu, margin = ctx.params
-        g = _PairGradFn.apply(X, P, feasible, mu, margin)
+        g = _PairGradFn.apply(X, P, C, feasible, mu, margin)
         return gout[:, None, None] * g, None, None, None, None, None
 
     @staticmethod
@@ -327,7 +367,7 @@ def pair_potential(
     """
     refuse_vmap("pair_potential", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
-    val, _, _ = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)
+    val = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)[0]
     return val.reshape(batch).to(tri_a.dtype)
 
 
@@ -356,10 +396,11 @@ def pair_potential_derivatives(
     refuse_vmap("pair_potential_derivatives", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
     with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
-        val, P, grad, hess = _solve(
+        sol = _solve(
             plain(X), mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,
             want_hess=hessian, backend=backend,
         )  # fmt: skip
+    val, P, grad, hess = sol.value, sol.world_plane(), sol.grad, sol.hess
     dt = tri_a.dtype
     return PairDerivatives(
         value=val.reshape(batch).to(dt),

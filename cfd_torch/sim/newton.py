@@ -10,7 +10,10 @@ majorizer in every iteration converges only linearly at the end. The returned He
 Step: one iteration moves no vertex more than ``max_move``; then a backtracking (Armijo) line search in which a
 trial is accepted only if its energy is finite, decreases enough (up to the energy's rounding scale) and the move
 to it passes ``move_ok`` (no tunnelling). Converged when the undamped Newton step is at most ``tol`` in every
-coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's).
+coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's); that
+last step is then taken too (unchecked, when it moves no vertex more than ``final_move``), so a force too weak to
+move a body by ``tol`` in one step still moves it: near the solution Newton's step is the remaining correction,
+however small, and dropping it would stop every body whose acceleration times dt^2 is below ``tol``.
 
 Scenes that converged or failed stop costing: each evaluation covers only the scenes still iterating. Within a
 scene, bodies stop costing too (with ``pair_bodies``): a body whose Newton step is within ``tol`` while every
@@ -141,6 +144,7 @@ def newton(
     majorize: torch.Tensor | None = None,
     block: torch.Tensor | None = None,
     pair_bodies: torch.Tensor | None = None,
+    final_move: float = 0.0,
 ) -> NewtonResult:
     """Minimise B independent energies from feasible starts.
 
@@ -159,6 +163,11 @@ def newton(
         block: (Q,) the moving body (0..M-1) each coordinate belongs to; with ``pair_bodies`` (P, 2), each
             interacting pair's two bodies (moving-body index, -1 for a body that does not move), converged bodies
             are frozen (module docstring). None: every body iterates until the scene converges.
+        final_move: the converged step (at most ``tol`` per coordinate) is taken when it moves no vertex more than
+            this [m] (its path is not checked: keep it far below the contact margin); 0 never takes it.
+
+    Returns ``at``, the evaluation before that final step: its derivatives differ from those at ``q`` by the
+    step's O(tol) change.
     """
     B = q.shape[0]
     dev = q.device
@@ -212,8 +221,13 @@ def newton(
         small = pd & ~maj & (p.abs().amax(1) <= tol)
         done = small & whole[idx]
         if bool(done.any()):
-            reason[idx[done]] = int(Stop.CONVERGED)
-            active[idx[done]] = False
+            dn = idx[done]
+            reason[dn] = int(Stop.CONVERGED)
+            active[dn] = False
+            if final_move > 0:
+                q_fin = q[dn] + p[done]
+                take = displacement(q[dn], q_fin, dn) <= final_move
+                q[dn[take]] = q_fin[take]
         check = small & ~whole[idx]  # the bodies iterating converged: evaluate the whole scene
         if bool(check.any()):
             sc = idx[check]

@@ -20,6 +20,10 @@ __all__ = ["solve_step", "start"]
 
 Work = tuple[int, int, int]  # energy evaluations, node pairs, leaf pairs
 
+# Newton's converged step (at most newton_tol per coordinate) is taken when it moves no vertex more than this
+# fraction of the contact margin: far from where the barrier could be crossed unchecked
+_FINAL_MOVE = 1e-2
+
 
 def _add(a: Work, b: Work) -> Work:
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
@@ -97,6 +101,7 @@ def _newton(
         free_move=s.ccd_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
         displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize,
         block=prob.scene.kinematics.coord_body.to(q.device), pair_bodies=_pair_bodies(prob.scene).to(q.device),
+        final_move=_FINAL_MOVE * prob.scene.contact.margin,
     )  # fmt: skip
     return res, _add(work, res.work)
 
