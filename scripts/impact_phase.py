@@ -117,7 +117,9 @@ def main(argv: list[str] | None = None) -> dict:
         for i in range(args.phases):
             phase = i / args.phases
             try:
-                r = run(pairs[scene], phase=phase, v=v, dt=dt, duration=args.duration, substeps=k, gap0=args.gap0)
+                r = run(
+                    pairs[scene], phase=phase, v=v, dt=dt, duration=args.duration, substeps=k, gap0=args.gap0
+                )
                 r["error"] = None
             except Exception as err:  # a failed step is a result here, not a crash
                 r = {"restitution": None, "gradient": None, "bias": None, "spin": None, "error": repr(err)}

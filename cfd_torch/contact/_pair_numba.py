@@ -107,6 +107,26 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
 
 
 @numba.njit(**_JIT_INLINE)
+def _frame(X, c, Xc):
+    """c (3) = ``pair.frame_origin`` of the pair X (6, 3) (its centroid rounded to a multiple of the power of two
+    above its extent) and Xc = X - c, exact."""
+    extent = 0.0
+    for j in range(3):
+        m = 0.0
+        for v in range(6):
+            m += X[v, j]
+        m /= 6.0
+        for v in range(6):
+            extent = max(extent, abs(X[v, j] - m))
+        c[j] = m
+    g = math.ldexp(1.0, math.frexp(extent)[1])
+    for j in range(3):
+        c[j] = math.floor(c[j] / g + 0.5) * g
+        for v in range(6):
+            Xc[v, j] = X[v, j] - c[j]
+
+
+@numba.njit(**_JIT_INLINE)
 def _rel_grad(g, sc):
     """max_i |g_i| / sc_i, the relative gradient (an exactly zero component with zero scale counts as 0)."""
     rel = 0.0
@@ -160,13 +180,13 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 lowrank, WTo, So, P0, has0):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
-    Each pair is solved in the frame centred at its C[k] (``pair.frame_origin``: x - C[k] is exact), so the gaps
-    n.x + d carry no cancellation against a large offset and the result does not depend on where the pair is.
-    Planes (in and out) are in that frame; the derivatives in x do not depend on the frame.
+    Each pair is solved in the frame centred at its C[k] (``pair.frame_origin``, computed here: x - C[k] is
+    exact), so the gaps n.x + d carry no cancellation against a large offset and the result does not depend on
+    where the pair is. Output planes are in that frame; the derivatives in x do not depend on the frame.
 
     Args:
         X: (K, 6, 3) float64 vertices a0, a1, a2, b0, b1, b2.
-        C: (K, 3) the frame origin of each pair.
+        C: (K, 3) out: the frame origin of each pair.
         mu, delta, lam: contact coefficient, margin, normal-regulariser weight.
         tol: relative gradient tolerance: max_i |dE/dp_i| / (sum of |terms| of dE/dp_i) <= tol.
         max_iter: Newton iteration cap.
@@ -176,7 +196,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         lowrank: with ``want_hess``, write the Hessian's factors instead of ``hess``: hess = mu (D - W W^T) with
             W^T = L^-1 E_px into ``WTo`` (K, 4, 18) (E_pp = L L^T) and the vertex gaps s_k into ``So`` (K, 6)
             (D is block diagonal, 2 n n^T / s_k^3, n = P[:, :3]); zeros where infeasible.
-        P0, has0: (K, 4) planes (in the pair's frame) to start from where has0 (K,) is set (a warm start, e.g.
+        P0, has0: (K, 4) planes (in the input's frame) to start from where has0 (K,) is set (a warm start, e.g.
             the pair's optimum at nearby vertices) and the plane is strictly feasible; the closest-point start
             otherwise. Empty (0, 4) and (0,) for none. The optimum does not depend on the start (to the tolerance).
     """
@@ -201,9 +221,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         lo = c * K // nchunks
         hi = (c + 1) * K // nchunks
         for k in range(lo, hi):
-            for v in range(6):
-                for j in range(3):
-                    Xk[v, j] = X[k, v, j] - C[k, j]
+            _frame(X[k], C[k], Xk)
             warm_k = has0.shape[0] > 0 and has0[k] != 0
             e = math.inf
             e_res = 0.0
@@ -217,6 +235,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 if not cold:
                     for i in range(4):
                         p[i] = P0[k, i]
+                    p[3] += P0[k, 0] * C[k, 0] + P0[k, 1] * C[k, 1] + P0[k, 2] * C[k, 2]
                     e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
                     if e == math.inf:
                         continue
@@ -302,7 +321,12 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                         p2[i] = p[i] + step[i]
                     e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
                     if e_new <= e + e_res:
-                        p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                        for i in range(4):
+                            p[i], g[i], sc[i] = p2[i], g2[i], sc2[i]
+                            for j in range(4):
+                                H[i, j] = H2[i, j]
+                        for i in range(6):
+                            s[i] = s2[i]
                         e, e_res = e_new, e_res_new
                 if st == NOT_CONVERGED and not cold:
                     continue  # the warm start's iterations are spent: solve again from the cold start

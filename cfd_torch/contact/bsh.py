@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_triangles
+from .._validate import check_mesh
 
 __all__ = ["BSH"]
 
@@ -62,6 +62,8 @@ class BSH:
     @classmethod
     def from_trimesh(cls, mesh, *, max_edge: float | None = None) -> BSH:
         """Build from a ``trimesh.Trimesh`` (its vertices and faces)."""
+        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+            raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
         return cls.build(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_edge=max_edge)
 
     @classmethod
@@ -86,13 +88,8 @@ class BSH:
             raise ValueError(f"faces must have shape (F, 3) with F >= 1, got {Fc.shape}")
         if not np.issubdtype(Fc.dtype, np.integer):
             raise ValueError(f"faces must hold integer vertex indices, got dtype {Fc.dtype}")
-        bad = ~np.isfinite(V).all(1)
-        if bad.any():
-            raise ValueError(f"vertices contain NaN or inf (first at vertex {int(np.argmax(bad))})")
-        if Fc.min() < 0 or Fc.max() >= V.shape[0]:
-            raise ValueError(f"faces index vertices out of range [0, {V.shape[0]}) ")
         Fc = Fc.astype(np.int64)
-        check_triangles(torch.from_numpy(V[Fc]), "faces")
+        check_mesh(V, Fc, "vertices", "faces")
         if max_edge is not None:
             if not max_edge > 0:
                 raise ValueError(f"max_edge must be > 0, got {max_edge}")

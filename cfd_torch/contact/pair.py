@@ -141,18 +141,12 @@ def frame_origin(X: torch.Tensor) -> torch.Tensor:
     extent = (X - mean[:, None, :]).abs().amax((1, 2))
     _, e = torch.frexp(extent)
     g = torch.ldexp(torch.ones_like(extent), e)[:, None]  # 2^e > extent
-    return torch.round(mean / g) * g
+    return torch.floor(mean / g + 0.5) * g  # (the numba kernel computes the same in _pair_numba._frame)
 
 
 def to_world(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     """Planes (K, 4) given in frames centred at ``centre`` (K, 3), in the frame of the origin."""
     d = plane[:, 3] - (plane[:, :3] * centre).sum(-1)
-    return torch.cat([plane[:, :3], d[:, None]], -1)
-
-
-def to_centred(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
-    """Planes (K, 4) given in the frame of the origin, in frames centred at ``centre`` (K, 3)."""
-    d = plane[:, 3] + (plane[:, :3] * centre).sum(-1)
     return torch.cat([plane[:, :3], d[:, None]], -1)
 
 
@@ -167,7 +161,6 @@ def _solve(
     the input's frame, used where set and strictly feasible."""
     K = X.shape[0]
     X = X.detach()
-    C = frame_origin(X)
     if lowrank and not _use_numba(X, backend):
         raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
     if _use_numba(X, backend):
@@ -177,6 +170,7 @@ def _solve(
             solve_pairs = solve_pairs_serial  # noqa: F811
 
         Xc = X.contiguous()
+        C = torch.empty(K, 3, dtype=X.dtype)  # frame origins, computed by the kernel
         P = torch.empty(K, 4, dtype=X.dtype)
         val = torch.empty(K, dtype=X.dtype)
         status = torch.empty(K, dtype=torch.int8)
@@ -189,7 +183,7 @@ def _solve(
         if start is None:
             P0, has0 = torch.empty(0, 4, dtype=X.dtype), torch.empty(0, dtype=torch.int8)
         else:
-            P0 = to_centred(start[0].to(X.dtype), C).contiguous()
+            P0 = start[0].to(X.dtype).contiguous()
             has0 = start[1].to(torch.int8).contiguous()
         if K:
             solve_pairs(
@@ -203,6 +197,7 @@ def _solve(
         return _Solved(val, P, C, (grad if want_grad else None), (hess if want_hess else None))
     if start is not None:
         raise ValueError("warm-start planes need the numba backend (CPU float64)")
+    C = frame_origin(X)
     Xc = X - C[:, None, :]
     P, E, status, resid = _pair_torch.solve_pairs_torch(Xc, margin, LAMBDA, tol, max_iter)
     _raise_unconverged(status, resid, max_iter, tol)

@@ -1,4 +1,8 @@
-"""Input checks of the simulator's public functions: ValueErrors naming the argument."""
+"""Input checks of the simulator's public functions: ValueErrors (TypeErrors for wrong types) naming the argument.
+
+All of them but :func:`check_targets_clear` (one collision query, only when a target is given) are checks of types,
+shapes, dtypes and devices plus one finiteness reduction per tensor, cheap next to a step.
+"""
 
 from __future__ import annotations
 
@@ -6,11 +10,24 @@ import torch
 
 from .types import Params
 
-__all__ = ["check_state_tensor", "check_params"]
+__all__ = ["check_state_tensor", "check_params", "check_targets_clear"]
+
+_FLOATS = (torch.float32, torch.float64)
 
 
-def check_state_tensor(x: object, name: str, n: int, cols: int = 6, batch: int | None = None) -> None:
-    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given)."""
+def check_state_tensor(
+    x: object,
+    name: str,
+    n: int,
+    cols: int = 6,
+    batch: int | None = None,
+    *,
+    like: torch.Tensor | None = None,
+    like_name: str = "state.q",
+) -> None:
+    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given), with the dtype
+    and device of ``like`` (named ``like_name``) when given. Devices and dtypes are compared before any value is
+    read, so a tensor on another device fails here, not inside a kernel."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     ok = (
@@ -21,8 +38,13 @@ def check_state_tensor(x: object, name: str, n: int, cols: int = 6, batch: int |
     if not ok:
         want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
-    if x.dtype not in (torch.float32, torch.float64):
+    if x.dtype not in _FLOATS:
         raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
+    if like is not None:
+        if x.device != like.device:
+            raise ValueError(f"{name} is on {x.device} but {like_name} is on {like.device}: they must match")
+        if x.dtype != like.dtype:
+            raise ValueError(f"{name} is {x.dtype} but {like_name} is {like.dtype}: they must match")
     bad = ~torch.isfinite(x).all(-1)
     if bool(bad.any()):
         at = tuple(int(i) for i in torch.nonzero(bad)[0])
@@ -35,13 +57,17 @@ def check_params(params: Params, B: int, Nd: int, device: torch.device, batched:
     """Finite, physical, on the state's device, each field shared or per scene; returned with a batch dimension B:
     mass > 0, friction >= 0, the symmetric part of S positive semi-definite with a positive definite inertia
     tr(S) I - S."""
+    if not isinstance(params, Params):
+        raise TypeError(f"params must be a cfd_torch.Params, got {type(params).__name__}")
     for name, x in (
         ("mass", params.mass),
         ("second_moment", params.second_moment),
         ("friction", params.friction),
     ):
-        if not isinstance(x, torch.Tensor) or not x.is_floating_point():
-            raise ValueError(f"params.{name} must be a floating-point tensor")
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"params.{name} must be a torch.Tensor, got {type(x).__name__}")
+        if x.dtype not in _FLOATS:
+            raise ValueError(f"params.{name} must be float32 or float64, got {x.dtype}")
         if x.device != device:
             raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
         if not bool(torch.isfinite(x).all()):
@@ -71,3 +97,30 @@ def check_params(params: Params, B: int, Nd: int, device: torch.device, batched:
             "params.second_moment must be positive semi-definite with a positive definite inertia"
         )
     return params
+
+
+def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
+    """Raise a ValueError naming ``action.target`` if a kinematic body at its target is within the contact margin
+    of (or intersects) a static body, the static bodies where ``q`` (B, N, 6) has them: neither ever moves, so no
+    step can resolve it. ``target`` (B, K, 6). One collision query over the kinematic-static pairs not excluded."""
+    kin = scene.kinematic.tolist()
+    static = torch.nonzero(scene.static_mask)[:, 0].tolist()
+    excluded = {(min(a, b), max(a, b)) for a, b in scene.exclude}
+    pairs = [(min(k, s), max(k, s)) for k in kin for s in static if (min(k, s), max(k, s)) not in excluded]
+    if not pairs:
+        return
+    B = q.shape[0]
+    poses = q.detach().to(torch.float64).clone()
+    poses[:, scene.kinematic.to(q.device)] = target.detach().to(torch.float64)
+    base = torch.tensor(pairs, dtype=torch.long)
+    rows = torch.cat([torch.arange(B).repeat_interleave(len(pairs))[:, None], base.repeat(B, 1)], 1)
+    bad = scene.contact_model.infeasible(poses, rows.to(q.device)).cpu()
+    if bool(bad.any()):
+        first = int(torch.nonzero(bad)[0, 0])
+        s, i, j = rows[first].tolist()
+        k, st = (i, j) if scene.bodies[i].kind == "kinematic" else (j, i)
+        raise ValueError(
+            f"action.target: kinematic body {k} at its target penetrates static body {st} (is within the contact "
+            f"margin {scene.contact.margin} of it){f' in scene {s}' if B > 1 else ''}; neither moves, so no step can "
+            "resolve it"
+        )

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .._validate import check_mesh, self_intersection
 from ..contact.bsh import BSH
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -71,10 +72,21 @@ def rigid_body(
         max_edge: refine triangles longer than this when building the contact hierarchy (see :class:`BSH`).
 
     Raises:
-        ValueError: unknown kind, non-positive density, or a dynamic mesh that is not a watertight closed volume.
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
+        ValueError: unknown kind, non-positive density, a mesh with NaN/inf vertices or degenerate (zero-area)
+            faces, or a dynamic mesh that is not a watertight closed volume or that intersects itself.
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    import trimesh
+
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    Fc = np.asarray(mesh.faces, dtype=np.int64)
+    if Fc.shape[0] == 0:
+        raise ValueError("mesh has no faces")
+    check_mesh(V, Fc, "mesh.vertices", "mesh.faces")
     if kind != "dynamic":
         bsh = BSH.from_trimesh(mesh, max_edge=max_edge)
         z = torch.zeros(3, 3, dtype=torch.float64)
@@ -89,6 +101,12 @@ def rigid_body(
     if not volume > 0:
         raise ValueError(
             f"mesh of a dynamic body must enclose a positive volume (outward normals), got {volume}"
+        )
+    hit = self_intersection(V, Fc)
+    if hit is not None:
+        raise ValueError(
+            f"mesh of a dynamic body intersects itself: faces {hit[0]} and {hit[1]} (which share no vertex) "
+            "intersect or touch; its volume and mass properties would be wrong"
         )
     m = mesh.copy()
     m.density = float(density)

@@ -169,7 +169,7 @@ class Scene:
         check_state_tensor(poses, "poses", self.num_bodies)
         if velocities is None:
             return State(poses, poses.clone())
-        check_state_tensor(velocities, "velocities", self.num_bodies)
+        check_state_tensor(velocities, "velocities", self.num_bodies, like=poses, like_name="poses")
         if velocities.shape != poses.shape:
             raise ValueError(f"velocities must have the shape of poses {tuple(poses.shape)}")
         v = velocities.clone()

@@ -13,11 +13,11 @@ equals stepping it alone.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import torch
 
-from ._checks import check_params, check_state_tensor
+from ._checks import check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
 from .scene import Scene
@@ -158,7 +158,9 @@ def step(
         rotation vectors re-centred when |omega| > pi; with ``return_info``, (State, StepInfo).
 
     Raises:
-        ValueError: bad shapes, dtypes or NaN/inf inputs (naming the argument), or a start state that penetrates.
+        ValueError: bad shapes, dtypes, devices or NaN/inf inputs (naming the argument), a start state that
+            penetrates, or a kinematic target that penetrates a static body.
+        TypeError: an argument of the wrong type.
         StepError: the Newton solve stopped without converging (the message says why), also after the
             ``scene.solver.substeps`` retries.
     """
@@ -168,7 +170,7 @@ def step(
         raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
     N = scene.num_bodies
     check_state_tensor(state.q, "state.q", N)
-    check_state_tensor(state.q_prev, "state.q_prev", N)
+    check_state_tensor(state.q_prev, "state.q_prev", N, like=state.q)
     if state.q.shape != state.q_prev.shape:
         raise ValueError(
             f"state.q {tuple(state.q.shape)} and state.q_prev {tuple(state.q_prev.shape)} differ"
@@ -176,20 +178,24 @@ def step(
     batched = state.q.dim() == 3
     B = state.q.shape[0] if batched else 1
     dtype, dev = state.q.dtype, state.q.device
+    if action is not None and not isinstance(action, Action):
+        raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
     action = Action() if action is None else action
     f64 = torch.float64
-    force = action.force if action.force is not None else torch.zeros(N, 3, dtype=f64, device=dev)
-    torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=f64, device=dev)
-    check_state_tensor(force, "action.force", N, 3, B if batched else 1)
-    check_state_tensor(torque, "action.torque", N, 3, B if batched else 1)
+    force = action.force if action.force is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
+    torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
+    check_state_tensor(force, "action.force", N, 3, B if batched else 1, like=state.q)
+    check_state_tensor(torque, "action.torque", N, 3, B if batched else 1, like=state.q)
     K = len(scene.kinematic)
     kin = scene.kinematic.to(dev)
     target = action.target if action.target is not None else state.q[..., kin, :]
-    check_state_tensor(target, "action.target", K, 6, B if batched else 1)
+    check_state_tensor(target, "action.target", K, 6, B if batched else 1, like=state.q)
     if not batched and any(x.dim() == 3 for x in (force, torque, target)):
         raise ValueError("action fields have a batch dimension but state.q does not")
     params = scene.params(f64, dev) if params is None else params
     params = check_params(params, B, len(scene.kinematics.bodies), dev, batched)
+    if action.target is not None:
+        check_targets_clear(scene, _batch(state.q, B), _batch(target, B))
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
     q_next, q_prev_next, si = _advance(scene, st, force, torque, target, params)
@@ -219,6 +225,12 @@ def rollout(
         The :class:`Trajectory` of the T + 1 states, the first included: fields (T + 1, [B,] N, 6); ``traj[t]`` is
         a State.
     """
+    if isinstance(actions, bool) or not isinstance(actions, (int, Iterable)):
+        raise TypeError(
+            f"actions must be a sequence of Action (or None) or a number of steps, got {actions!r}"
+        )
+    if isinstance(actions, int) and actions < 0:
+        raise ValueError(f"actions must be a number of steps >= 0, got {actions}")
     seq = [None] * actions if isinstance(actions, int) else list(actions)
     it = seq
     if progress:
