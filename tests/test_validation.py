@@ -1,0 +1,246 @@
+"""Bad inputs to the public entry points raise a ValueError (TypeError for a wrong type) whose message names the
+argument: meshes (open, self-intersecting, degenerate, NaN), and the step's state, action and params (dtypes,
+devices, a kinematic target inside a static body).
+
+Devices: there may be no GPU, so a tensor on the "meta" device stands in for "another device"; the checks compare
+devices before reading any value, so they fire before a meta tensor could reach a kernel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from cfd_torch import BSH, Action, Scene, State, rigid_body, rollout, step
+from cfd_torch._validate import self_intersection
+
+F64, F32 = torch.float64, torch.float32
+META = torch.device("meta")
+
+
+# ------------------------------------------------------------------------------------------------ meshes
+def _overlapping_boxes() -> trimesh.Trimesh:
+    """Two unit boxes, the second shifted by less than its size: one closed, watertight mesh that crosses itself."""
+    other = trimesh.creation.box((1.0, 1.0, 1.0))
+    other.apply_translation([0.5, 0.3, 0.2])
+    return trimesh.util.concatenate([trimesh.creation.box((1.0, 1.0, 1.0)), other])
+
+
+def _with_degenerate_face(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` plus one collinear face (index len(mesh.faces)) over three new vertices on a line."""
+    extra = np.array([[5.0, 0.0, 0.0], [6.0, 0.0, 0.0], [7.0, 0.0, 0.0]])
+    V = np.vstack([mesh.vertices, extra])
+    n = len(mesh.vertices)
+    F = np.vstack([mesh.faces, [[n, n + 1, n + 2]]])
+    return trimesh.Trimesh(V, F, process=False)
+
+
+def _with_nan_vertex(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    V = np.array(mesh.vertices)
+    V[3, 1] = np.nan
+    return trimesh.Trimesh(V, mesh.faces, process=False)
+
+
+def test_open_dynamic_mesh_names_mesh():
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.update_faces(np.arange(len(box.faces)) != 0)  # one triangle missing
+    with pytest.raises(ValueError, match="mesh of a dynamic body must be watertight"):
+        rigid_body(box)
+
+
+def test_self_intersecting_dynamic_mesh_names_mesh_and_faces():
+    mesh = _overlapping_boxes()
+    assert mesh.is_watertight and mesh.is_winding_consistent  # only the new check can refuse it
+    with pytest.raises(ValueError, match=r"mesh of a dynamic body intersects itself: faces \d+ and \d+"):
+        rigid_body(mesh)
+    rigid_body(mesh, kind="static")  # an obstacle may be any surface
+
+
+def test_vertex_pushed_through_the_mesh_is_a_self_intersection():
+    """One vertex of a sphere pulled through to beyond the other side: its fan pierces the far faces."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    V = np.array(mesh.vertices)
+    V[0] *= -1.5
+    assert self_intersection(V, np.asarray(mesh.faces)) is not None
+
+
+def test_valid_closed_meshes_are_not_self_intersecting():
+    c = trimesh.creation
+    far = c.box((1.0, 1.0, 1.0))
+    far.apply_translation([1.5, 0.0, 0.0])
+    rot = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, 3.0])
+    tilted = c.box((1.0, 2.0, 0.5)).subdivide().subdivide()  # coplanar faces sharing no vertex
+    tilted.apply_transform(rot)
+    tilted.apply_translation([1e3, -2e3, 5e2])
+    meshes = {
+        "icosphere": c.icosphere(subdivisions=3),
+        "tiny icosphere": c.icosphere(subdivisions=2, radius=1e-4),
+        "box": c.box((1.0, 2.0, 3.0)),
+        "capsule": c.capsule(height=1.0, radius=0.3, count=[32, 32]),
+        "cylinder": c.cylinder(radius=0.3, height=2.0, sections=64),
+        "cone": c.cone(radius=0.3, height=2.0, sections=64),
+        "torus": c.torus(1.0, 0.2, 32, 16),
+        "two separate boxes": trimesh.util.concatenate([c.box((1.0, 1.0, 1.0)), far]),
+        "box in a box": trimesh.util.concatenate([c.box((1.0, 1.0, 1.0)), c.box((0.5, 0.5, 0.5))]),
+        "tilted subdivided box far away": tilted,
+    }
+    for name, mesh in meshes.items():
+        assert self_intersection(np.asarray(mesh.vertices), np.asarray(mesh.faces)) is None, name
+
+
+@pytest.mark.parametrize("kind", ["static", "kinematic", "dynamic"])
+def test_degenerate_face_names_mesh_and_face(kind):
+    mesh = _with_degenerate_face(trimesh.creation.box((1.0, 1.0, 1.0)))
+    with pytest.raises(ValueError, match=r"mesh\.faces has degenerate triangles.*first face 12"):
+        rigid_body(mesh, kind=kind)
+
+
+def test_bsh_build_names_the_degenerate_face():
+    mesh = _with_degenerate_face(trimesh.creation.box((1.0, 1.0, 1.0)))
+    with pytest.raises(ValueError, match=r"faces has degenerate triangles.*first face 12"):
+        BSH.build(mesh.vertices, mesh.faces)
+    with pytest.raises(ValueError, match=r"faces has degenerate triangles.*first face 12"):
+        BSH.from_trimesh(mesh)
+
+
+@pytest.mark.parametrize("kind", ["static", "dynamic"])
+def test_nan_vertex_names_mesh(kind):
+    mesh = _with_nan_vertex(trimesh.creation.box((1.0, 1.0, 1.0)))
+    with pytest.raises(ValueError, match=r"mesh\.vertices contain NaN or inf \(first at vertex 3"):
+        rigid_body(mesh, kind=kind)
+
+
+def test_bsh_build_names_nan_vertices():
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    V = np.array(box.vertices)
+    V[5, 0] = np.inf
+    with pytest.raises(ValueError, match=r"vertices contain NaN or inf \(first at vertex 5"):
+        BSH.build(V, box.faces)
+
+
+def test_non_mesh_is_a_type_error():
+    with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
+        rigid_body(np.zeros((4, 3)))
+    with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
+        BSH.from_trimesh(np.zeros((4, 3)))
+
+
+# ------------------------------------------------------------------------------------------------ the step
+@pytest.fixture(scope="module")
+def scene():
+    """A 0.2 m cube (dynamic), a ground slab with its top at z = 0 (static) and a paddle (kinematic)."""
+    ground = trimesh.creation.box((1.0, 1.0, 0.05))
+    ground.apply_translation([0.0, 0.0, -0.025])
+    bodies = [
+        rigid_body(trimesh.creation.box((0.2, 0.2, 0.2))),
+        rigid_body(ground, kind="static"),
+        rigid_body(trimesh.creation.box((0.05, 0.2, 0.1)), kind="kinematic"),
+    ]
+    return Scene(bodies, refine_obstacles=None)
+
+
+@pytest.fixture(scope="module")
+def state(scene):
+    q = torch.tensor([[0.0, 0.0, 0.105, 0, 0, 0], [0.0] * 6, [-0.3, 0.0, 0.06, 0, 0, 0]], dtype=F64)
+    return scene.initial_state(q)
+
+
+def _raises(name: str, err=ValueError):
+    return pytest.raises(err, match=name.replace(".", r"\."))
+
+
+def test_state_dtypes_must_match(scene, state):
+    with _raises("state.q_prev is torch.float32 but state.q is torch.float64"):
+        step(scene, State(state.q, state.q_prev.to(F32)))
+
+
+def test_state_devices_must_match(scene, state):
+    with _raises("state.q_prev is on meta but state.q is on cpu"):
+        step(scene, State(state.q, state.q_prev.to(META)))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.int64, torch.complex128])
+def test_state_dtype_must_be_float32_or_float64(scene, state, dtype):
+    with _raises("state.q must be float32 or float64"):
+        step(scene, State(state.q.to(dtype), state.q_prev.to(dtype)))
+
+
+@pytest.mark.parametrize("field, cols", [("force", 3), ("torque", 3), ("target", 6)])
+def test_action_on_another_device(scene, state, field, cols):
+    n = 1 if field == "target" else 3
+    with _raises(f"action.{field} is on meta but state.q is on cpu"):
+        step(scene, state, Action(**{field: torch.zeros(n, cols, dtype=F64, device=META)}))
+
+
+@pytest.mark.parametrize("field, cols", [("force", 3), ("torque", 3), ("target", 6)])
+def test_action_dtype_must_match_the_state(scene, state, field, cols):
+    n = 1 if field == "target" else 3
+    with _raises(f"action.{field} is torch.float32 but state.q is torch.float64"):
+        step(scene, state, Action(**{field: torch.zeros(n, cols, dtype=F32)}))
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.float16, torch.complex128])
+@pytest.mark.parametrize("field", ["force", "torque"])
+def test_non_float_action_names_the_field(scene, state, field, dtype):
+    """Non-float actions (integers, booleans; float16 and complex, which could carry requires_grad) are refused."""
+    x = torch.zeros(3, 3, dtype=dtype)
+    if dtype.is_floating_point or dtype.is_complex:
+        x.requires_grad_()
+    with _raises(f"action.{field} must be float32 or float64"):
+        step(scene, state, Action(**{field: x}))
+
+
+def test_action_must_be_an_action(scene, state):
+    with _raises("action must be a cfd_torch.Action", err=TypeError):
+        step(scene, state, {"force": torch.zeros(3, 3, dtype=F64)})
+
+
+def test_params_on_another_device(scene, state):
+    p = scene.params()
+    with _raises("params.mass is on meta"):
+        step(scene, state, params=p._replace(mass=p.mass.to(META)))
+    with _raises("params.friction is on meta"):
+        step(scene, state, params=p._replace(friction=p.friction.to(META)))
+
+
+def test_params_dtype_and_type(scene, state):
+    p = scene.params()
+    with _raises("params.second_moment must be float32 or float64"):
+        step(scene, state, params=p._replace(second_moment=p.second_moment.half()))
+    with _raises("params.mass must be a torch.Tensor", err=TypeError):
+        step(scene, state, params=p._replace(mass=[8.0]))
+    with _raises("params must be a cfd_torch.Params", err=TypeError):
+        step(scene, state, params=tuple(p))
+
+
+@pytest.mark.parametrize("z", [0.04, 0.0505])  # the paddle's bottom 1 cm inside the ground, 0.5 mm above it
+def test_kinematic_target_into_a_static_body(scene, state, z):
+    target = torch.tensor([[-0.3, 0.0, z, 0.0, 0.0, 0.0]], dtype=F64)
+    with _raises("action.target: kinematic body 2 at its target penetrates static body 1"):
+        step(scene, state, Action(target=target))
+    batch = State(state.q.expand(2, -1, -1), state.q_prev.expand(2, -1, -1))
+    targets = torch.stack([state.q[2:3], target])
+    with pytest.raises(ValueError, match=r"action\.target: .* in scene 1"):
+        step(scene, batch, Action(target=targets))
+
+
+def test_kinematic_target_clear_of_static_bodies_steps(scene, state):
+    target = torch.tensor([[-0.3, 0.0, 0.06 - 1e-3, 0.0, 0.0, 0.0]], dtype=F64)  # 9 mm above the ground
+    nxt = step(scene, state, Action(target=target))
+    torch.testing.assert_close(nxt.q[2], target[0])
+
+
+def test_rollout_actions(scene, state):
+    with _raises("actions must be a number of steps >= 0"):
+        rollout(scene, state, -1)
+    with _raises("actions must be a sequence", err=TypeError):
+        rollout(scene, state, 2.5)
+
+
+def test_initial_state_velocities_must_match_poses(scene, state):
+    with _raises("velocities is torch.float32 but poses is torch.float64"):
+        scene.initial_state(state.q, torch.zeros(3, 6, dtype=F32))
+    with _raises("velocities is on meta but poses is on cpu"):
+        scene.initial_state(state.q, torch.zeros(3, 6, dtype=F64, device=META))
