@@ -34,6 +34,7 @@ stacked-books: $(BIN)/.installed
 
 stress: $(BIN)/.installed
 	$(BIN)/python scripts/stress_step.py --out results/stress_step
+	$(BIN)/python scripts/stress.py --out results/stress
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check cfd_torch tests scripts

@@ -61,6 +61,25 @@ so their delta must be smaller; the gap beyond delta hardly depends on delta (th
 gap minus delta), so the measured margin minus delta is what delta = 1e-3 would add to 1e-3. Friction 0.5 (wood on
 wood). mu in {1e-5, 1e-6, 1e-7, 1e-8, 1e-10} as in the paper.
 
+Stability margin (``--bisect-retract``). The criterion above gives a yes/no per mu at one retraction; this mode
+measures, per mu, how far the stack must be pulled back from the harmonic limit to stand. **stability margin** [m]:
+the smallest retraction in metres, r L / 2 (how far inside its supporting edge the centre of mass of every sub-stack
+lies in the rigid placement), at which the run is stable, each probe a full settle-and-watch run (``run``, the
+criterion above, nothing else changed). Search in r: the first probe at ``--retract``; while unstable, r grows by
+``--bisect-grow`` = 4 up to r = 1 (no overhang at all); while stable, it shrinks by 4 down to ``--bisect-min``; then
+bisection at the geometric mean until the bracket (largest unstable r, smallest stable r) is within
+``--bisect-rel-width`` = 25 % (hi <= 1.25 lo). Reported: the smallest stable retraction (the bracket's top) with its
+bracket, the rest margin (gap) of that stable run, and the paper's margin column beside it. The table also gives,
+from the probes, the largest retraction at which the stack toppled (tilt, support or a failed step) and the smallest
+at which it stood (at rest, or still creeping above the rest speed at t_max): below the stability margin the verdict
+is often 'not at rest', a stack that stands but creeps. The search assumes the verdict is monotone in r; every
+probe's verdict is in the JSON. The scaling exponent is the least-squares slope of log(stability margin) against
+log(mu), the margin taken as the bracket's geometric mean, over the mus with a closed bracket. Outputs:
+``stability_margin_n<boards>.json`` (settings, per mu the bracket, every probe and the full record of the smallest
+stable run; a later run with the same settings and other mus adds to it), and ``stability_margin.md`` /
+``stability_margin.png`` (log-log, with a sqrt(mu) guide) built from every ``stability_margin_n*.json`` in
+``--out``, so runs with different ``--boards`` into one directory share one table and plot.
+
 Outputs under ``--out`` (default results/stacked_books): ``stacked_books.json`` (settings, definitions, and per mu:
 stable and why, margin, force error, steps, wall time, solver statistics, per-interface data, the speed / tilt /
 support-margin history), ``stacked_books.md`` (our figures beside the paper's) and ``stacked_books.png`` (margin and
@@ -68,6 +87,8 @@ force error vs mu, log-log, ours and the paper's).
 
     python scripts/stacked_books.py                                             # full run
     python scripts/stacked_books.py --quick --out results/stacked_books_quick   # 5 boards (~30 s)
+    python scripts/stacked_books.py --bisect-retract --quick --out results/stacked_books_margin  # stability margin
+    python scripts/stacked_books.py --bisect-retract --mu 1e-6 1e-8 1e-10 --out results/stacked_books_margin
 """
 
 from __future__ import annotations
@@ -141,6 +162,20 @@ def parse_args() -> argparse.Namespace:
         "(SolverConfig.substeps; 0 or 1: no retry)",
     )  # fmt: skip
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument(
+        "--bisect-retract", action="store_true",
+        help="per mu, bisect the smallest --retract at which the stack is stable (the stability margin); "
+        "each probe a full run, starting at --retract",
+    )  # fmt: skip
+    p.add_argument(
+        "--bisect-grow", type=float, default=4.0,
+        help="factor by which the retraction grows (or shrinks) until the first probe's verdict flips",
+    )  # fmt: skip
+    p.add_argument(
+        "--bisect-rel-width", type=float, default=0.25,
+        help="bisect (in log r) until the bracket's upper end is within this fraction of its lower end",
+    )  # fmt: skip
+    p.add_argument("--bisect-min", type=float, default=1e-6, help="smallest retraction probed when shrinking")
     a = p.parse_args()
     if a.quick:
         a.boards = 5
@@ -423,11 +458,233 @@ def plot(results: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+# ------------------------------------------------------------------------------------------------ stability margin
+def probe_summary(r: float, res: dict, length: float) -> dict:
+    return {
+        "retract": r,
+        "retraction_m": r * length / 2,
+        "stable": res["stable"],
+        "reason": res["reason"],
+        "margin": res["margin"],
+        "measured_at_rest": res["measured_at_rest"],
+        "force_error": res["force_error"],
+        "steps": res["steps"],
+        "wall_s": res["wall_s"],
+        "largest_tilt_rad": res["largest_tilt_rad"],
+        "smallest_support_margin_m": res["smallest_support_margin_m"],
+        "final_largest_speed": res["history_t_speed_reltilt_supportmargin"][-1][1]
+        if res["history_t_speed_reltilt_supportmargin"]
+        else None,
+    }
+
+
+def bisect_retract(args, mu: float) -> dict:
+    """Smallest stable retraction at ``mu``: grow or shrink r from ``args.retract`` until the verdict flips, then
+    bisect in log r (see the module docstring)."""
+    t0 = time.perf_counter()
+    probes: list[dict] = []
+    runs: dict[float, dict] = {}
+
+    def stable_at(r: float) -> bool:
+        res = run(argparse.Namespace(**{**vars(args), "retract": r}), mu)
+        runs[r] = res
+        probes.append(probe_summary(r, res, args.length))
+        tqdm.write(
+            f"  mu={mu:.0e} r={r:.3e} ({r * args.length / 2:.2e} m): {'stable' if res['stable'] else 'unstable'} "
+            f"({res['reason']}), {res['steps']} steps, {res['wall_s']:.0f} s"
+        )
+        return res["stable"]
+
+    lo: float | None = None  # largest unstable r
+    hi: float | None = None  # smallest stable r
+    r = args.retract
+    if stable_at(r):
+        hi = r
+        while lo is None and r / args.bisect_grow >= args.bisect_min:
+            r /= args.bisect_grow
+            if stable_at(r):
+                hi = r
+            else:
+                lo = r
+    else:
+        lo = r
+        while hi is None and r < 1.0:
+            r = min(1.0, r * args.bisect_grow)
+            if stable_at(r):
+                hi = r
+            else:
+                lo = r
+    while lo is not None and hi is not None and hi > (1.0 + args.bisect_rel_width) * lo:
+        r = math.sqrt(lo * hi)
+        if stable_at(r):
+            hi = r
+        else:
+            lo = r
+    half = args.length / 2
+    return {
+        "mu": mu,
+        "retract_lo_unstable": lo,
+        "retract_hi_stable": hi,
+        "stability_margin_m": None if hi is None else hi * half,
+        "bracket_m": [None if lo is None else lo * half, None if hi is None else hi * half],
+        "estimate_m": None if lo is None or hi is None else math.sqrt(lo * hi) * half,
+        "rest_margin_at_stable": None if hi is None else runs[hi]["margin"],
+        "force_error_at_stable": None if hi is None else runs[hi]["force_error"],
+        "probes": probes,
+        "stable_run": None if hi is None else runs[hi],
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def loglog_slope(rows: list[dict]) -> float | None:
+    pts = [(r["mu"], r["estimate_m"]) for r in rows if r["estimate_m"] is not None]
+    if len(pts) < 2:
+        return None
+    x, y = np.log10([p[0] for p in pts]), np.log10([p[1] for p in pts])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def margin_md(sets: list[dict]) -> str:
+    lines = [
+        "Stacked books, stability margin: per mu, the smallest retraction from the harmonic limit (r L / 2 [m], "
+        "how far inside its supporting edge every sub-stack's centre of mass lies) at which the stack is stable, "
+        "each probe a full settle-and-watch run; bracket = (largest unstable, smallest stable), bisected in log r "
+        "to hi <= (1 + w) lo. Rest margin = mean rest gap of that stable run. Topples / stands: the largest probed "
+        "retraction at which the stack toppled (tilt, support or failed step) and the smallest at which it stood "
+        "(at rest, or still creeping above the rest speed at t_max). See scripts/stacked_books.py.",
+        "",
+    ]
+    for d in sets:
+        a, rows = d["settings"], d["results"]
+        lines += [
+            f"{a['boards']} boards {a['length']} x {a['width']} x {a['thickness']} m, friction {a['friction']}, "
+            f"delta {a['margin']}, dt {a['dt']} s, w = {a['bisect_rel_width']}:",
+            "",
+            "| mu | stability margin (m) | bracket (m) | r | paper margin (m) | rest margin ours (m) "
+            "| topples / stands (m) | probes | wall (s) |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            pm = PAPER.get(r["mu"], (None,))[0]
+            lo, hi = r["bracket_m"]
+            sm = fmt(hi) if hi is not None else "none up to r = 1"
+            br = f"({fmt(lo) if lo is not None else '< ' + fmt(hi)}, {fmt(hi)}]" if hi is not None else "-"
+            # toppling (tilt, support or StepError) versus standing (at rest, or still creeping at t_max)
+            stands = [p["retraction_m"] for p in r["probes"] if "at rest" in p["reason"]]
+            topples = [p["retraction_m"] for p in r["probes"] if "at rest" not in p["reason"]]
+            ts = f"{fmt(max(topples) if topples else None)} / {fmt(min(stands) if stands else None)}"
+            lines.append(
+                f"| {r['mu']:.0e} | {sm} | {br} | {fmt(r['retract_hi_stable'])} | {fmt(pm)} "
+                f"| {fmt(r['rest_margin_at_stable'])} | {ts} | {len(r['probes'])} | {r['wall_s']:.0f} |"
+            )
+        k = loglog_slope(rows)
+        lines += [
+            "",
+            f"log-log slope of the stability margin (bracket mid) vs mu: {'-' if k is None else f'{k:.2f}'} "
+            "(paper's margin column: 0.55).",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def margin_plot(sets: list[dict], path: Path) -> None:
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    pm = sorted(PAPER)
+    ax.loglog(pm, [PAPER[m][0] for m in pm], "s--", color="gray", label="paper: margin column (rest gap)")
+    allmu = []
+    for i, d in enumerate(sets):
+        rows = [r for r in d["results"] if r["stability_margin_m"] is not None]
+        mus = [r["mu"] for r in rows]
+        allmu += mus
+        hi = np.array([r["stability_margin_m"] for r in rows])
+        lo = np.array([r["bracket_m"][0] if r["bracket_m"][0] is not None else np.nan for r in rows])
+        err = np.vstack([np.nan_to_num(hi - lo, nan=0.0), np.zeros_like(hi)])
+        ax.errorbar(
+            mus, hi, yerr=err, fmt="o-", color=f"C{i}", capsize=3,
+            label=f"ours, {d['settings']['boards']} boards: smallest stable retraction",
+        )  # fmt: skip
+    if allmu:  # through the smallest mu's smallest stable retraction
+        m = np.array(sorted(set(allmu + pm)))
+        ref = min((r for d in sets for r in d["results"] if r["stability_margin_m"]), key=lambda r: r["mu"])
+        ax.loglog(
+            m, ref["stability_margin_m"] * np.sqrt(m / ref["mu"]), ":", color="k", label="sqrt(mu) guide"
+        )
+    ax.set_xlabel("mu")
+    ax.set_ylabel("[m]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Stacked books: stability margin vs mu")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_margin(args, rows: list[dict], t0: float) -> str:
+    """Write ``stability_margin_n<boards>.json`` (merged with an earlier run's other mus at the same settings) and
+    the table and plot over every ``stability_margin_n*.json`` in ``args.out``; returns the table."""
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    path = args.out / f"stability_margin_n{args.boards}.json"
+    rows = list(rows)
+    if path.exists():  # keep the other mus of an earlier run with the same settings
+        old = json.loads(path.read_text())
+        same = ("mu", "out", "threads")
+        if {k: v for k, v in old["settings"].items() if k not in same} == {
+            k: v for k, v in settings.items() if k not in same
+        }:
+            done = {r["mu"] for r in rows}
+            rows += [r for r in old["results"] if r["mu"] not in done]
+    rows.sort(key=lambda r: -r["mu"])
+    settings["mu"] = [r["mu"] for r in rows]
+    out = {
+        "settings": settings,
+        "definitions": {
+            "stability_margin_m": "smallest retraction r L / 2 [m] at which the run is stable (bracket top)",
+            "bracket_m": "(largest unstable, smallest stable) retraction [m]",
+            "estimate_m": "geometric mean of the bracket; used for the log-log slope",
+            "rest_margin_at_stable": "mean rest surface gap over the interfaces in the smallest stable run",
+        },
+        "paper_margin": {f"{m:.0e}": v[0] for m, v in PAPER.items()},
+        "results": rows,
+        "loglog_slope": loglog_slope(rows),
+        "total_wall_s": time.perf_counter() - t0,
+        "machine": {
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+        },
+    }
+    path.write_text(json.dumps(out, indent=1))
+    sets = [json.loads(f.read_text()) for f in args.out.glob("stability_margin_n*.json")]
+    sets.sort(key=lambda d: d["settings"]["boards"])
+    md = margin_md(sets)
+    (args.out / "stability_margin.md").write_text(md)
+    margin_plot(sets, args.out / "stability_margin.png")
+    return md
+
+
+def main_bisect(args) -> None:
+    t0 = time.perf_counter()
+    rows = []
+    md = ""
+    for mu in tqdm(args.mu, desc="mu (bisect retract)"):
+        rows.append(bisect_retract(args, mu))
+        r = rows[-1]
+        tqdm.write(
+            f"mu={mu:.0e}: stability margin {fmt(r['stability_margin_m'])} m, bracket {r['bracket_m']}, "
+            f"{len(r['probes'])} probes, {r['wall_s']:.0f} s"
+        )
+        md = write_margin(args, rows, t0)  # after every mu, so that a cut-short run keeps what it has
+    print(md)
+
+
 def main() -> None:
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.bisect_retract:
+        main_bisect(args)
+        return
     t0 = time.perf_counter()
     results = []
     for mu in tqdm(args.mu, desc="mu"):
