@@ -113,6 +113,9 @@ class SolverConfig:
             support it rests or lands on is not tunnelling).
         substeps: on a :class:`cfd_torch.StepError`, retry the step as 2, 4, ... up to this many equal sub-steps
             (kinematic targets interpolated); 1 raises at once.
+        fast: False takes the plain reference path, for tests and debugging: every body iterates until its scene
+            converges, with one line search per scene (no frozen bodies, no islands), and every plane solve
+            starts cold (no warm starts). The result is the same to the solver's tolerances.
     """
 
     newton_tol: float = 1e-9
@@ -120,8 +123,11 @@ class SolverConfig:
     ccd_spacing: float = 0.01
     reach_shrink: float = 0.1
     substeps: int = 1
+    fast: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fast, bool):
+            raise ValueError(f"SolverConfig.fast must be a bool, got {self.fast!r}")
         _positive("SolverConfig", "newton_tol", self.newton_tol)
         _positive("SolverConfig", "ccd_spacing", self.ccd_spacing)
         _count("SolverConfig", "max_newton_iter", self.max_newton_iter)

@@ -33,7 +33,12 @@ _WARM_ITER = 30  # iterations a warm-started solve gets before the cold start is
 
 @numba.njit(**_JIT_INLINE)
 def _eval(X, p, half_delta, lam, g, H, sc, s):
-    """E at p with its gradient g (4), Hessian H (4, 4), per-component rounding scale sc (4) and gaps s (6).
+    """E at p with its gradient g (4), Hessian H (4, 4), per-component scales sc (8) and gaps s (6).
+
+    sc[:4] is each gradient component's rounding-noise scale (the magnitudes it is summed from, amplified by the
+    cancellation in the gaps), sc[4:] the plain sum of those magnitudes, what the convergence test measures the
+    gradient against (near the margin the amplification reaches 2 (|n.x| + |d|) / s, and a test against it would
+    stop with the plane, and the derivatives, off by that factor times the tolerance).
 
     Returns (E, e_res): E = +inf outside the feasible set (g, H, sc then undefined), and the rounding resolution
     of E, sum_k eps (|n.x_k| + |d| + delta/2) / s_k^2 (each gap is a difference of terms of that size) plus the
@@ -55,6 +60,7 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
     gl = lam * inv_om * inv_om
     g0, g1, g2, g3 = gl * u0, gl * u1, gl * u2, 0.0
     sc0, sc1, sc2, sc3 = abs(g0), abs(g1), abs(g2), 0.0
+    sp0, sp1, sp2, sp3 = sc0, sc1, sc2, 0.0
     # lambda Hn = lambda [2/(1-r)^3 u u^T + (I - u u^T) / ((1-r)^2 r)]
     c2 = gl * inv_r
     c12 = 2.0 * gl * inv_om - c2
@@ -86,6 +92,10 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
         sc1 += aw * abs(x1)
         sc2 += aw * abs(x2)
         sc3 += aw
+        sp0 += w1 * abs(x0)
+        sp1 += w1 * abs(x1)
+        sp2 += w1 * abs(x2)
+        sp3 += w1
         wx0, wx1, wx2 = w2 * x0, w2 * x1, w2 * x2
         h00 += wx0 * x0
         h01 += wx0 * x1
@@ -99,6 +109,7 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
         h33 += w2
     g[0], g[1], g[2], g[3] = g0, g1, g2, g3
     sc[0], sc[1], sc[2], sc[3] = sc0, sc1, sc2, sc3
+    sc[4], sc[5], sc[6], sc[7] = sp0, sp1, sp2, sp3
     H[0, 0], H[0, 1], H[0, 2], H[0, 3] = h00, h01, h02, h03
     H[1, 0], H[1, 1], H[1, 2], H[1, 3] = h01, h11, h12, h13
     H[2, 0], H[2, 1], H[2, 2], H[2, 3] = h02, h12, h22, h23
@@ -124,6 +135,52 @@ def _frame(X, c, Xc):
         c[j] = math.floor(c[j] / g + 0.5) * g
         for v in range(6):
             Xc[v, j] = X[v, j] - c[j]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sat_start(X, delta, p):
+    """The mid-gap plane along the separating axis (of the 11 of two triangles: their normals and the 9 cross
+    products of their edges) with the largest separation, scaled like the closest-point start; returns that
+    separation. Computed from projections of the vertices, it keeps its digits where the closest points' difference
+    does not (large triangles a few margins apart: the closest-point direction, a difference of two nearly equal
+    points, tilts the plane by more than the gap)."""
+    best = -math.inf
+    for c in range(11):
+        if c < 2:  # face normals
+            o = 3 * c
+            ax, ay, az = X[o + 1, 0] - X[o, 0], X[o + 1, 1] - X[o, 1], X[o + 1, 2] - X[o, 2]
+            bx, by, bz = X[o + 2, 0] - X[o, 0], X[o + 2, 1] - X[o, 1], X[o + 2, 2] - X[o, 2]
+        else:  # edge i of a x edge j of b
+            i, j = (c - 2) // 3, (c - 2) % 3
+            ax, ay, az = (
+                X[(i + 1) % 3, 0] - X[i, 0],
+                X[(i + 1) % 3, 1] - X[i, 1],
+                X[(i + 1) % 3, 2] - X[i, 2],
+            )
+            bx = X[3 + (j + 1) % 3, 0] - X[3 + j, 0]
+            by = X[3 + (j + 1) % 3, 1] - X[3 + j, 1]
+            bz = X[3 + (j + 1) % 3, 2] - X[3 + j, 2]
+        ux, uy, uz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+        if not norm > 0.0:
+            continue
+        ux, uy, uz = ux / norm, uy / norm, uz / norm
+        amin, amax, bmin, bmax = math.inf, -math.inf, math.inf, -math.inf
+        for k in range(6):
+            t = ux * X[k, 0] + uy * X[k, 1] + uz * X[k, 2]
+            if k < 3:
+                amin, amax = min(amin, t), max(amax, t)
+            else:
+                bmin, bmax = min(bmin, t), max(bmax, t)
+        sep, sgn, mid = amin - bmax, 1.0, 0.5 * (amin + bmax)  # a on the positive side
+        if bmin - amax > sep:
+            sep, sgn, mid = bmin - amax, -1.0, 0.5 * (bmin + amax)
+        if sep > best:
+            best = sep
+            alpha = sgn * (0.5 * delta + 1.0) / (0.5 * sep + 1.0)
+            p[0], p[1], p[2] = alpha * ux, alpha * uy, alpha * uz
+            p[3] = -alpha * mid
+    return best
 
 
 @numba.njit(**_JIT_INLINE)
@@ -205,7 +262,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
     nchunks = min(K, 256)
     for c in numba.prange(nchunks):
         g, g2 = np.empty(4), np.empty(4)
-        sc, sc2 = np.empty(4), np.empty(4)
+        sc, sc2 = np.empty(8), np.empty(8)
         H, H2 = np.empty((4, 4)), np.empty((4, 4))
         p2 = np.empty(4)
         s2 = np.empty(6)
@@ -251,11 +308,13 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                             d -= ni * 0.5 * (q[i] + q[3 + i])
                         p[3] = d
                         e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
+                        if e == math.inf and _sat_start(Xk, delta, p) > delta:
+                            e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
                     if e == math.inf:
                         break
                 cap = max_iter if cold else min(max_iter, _WARM_ITER)
                 # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
-                #   rel <= tol                    relative gradient (each component against its rounding scale sc);
+                #   rel <= tol                    relative gradient (each component against its scale sc[4:]);
                 #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
                 #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
                 #                                 nothing representable is left (stiff near-margin pairs).
@@ -263,10 +322,10 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 st = NOT_CONVERGED
                 for _it in range(cap + 1):
                     if (
-                        abs(g[0]) <= tol * sc[0]
-                        and abs(g[1]) <= tol * sc[1]
-                        and abs(g[2]) <= tol * sc[2]
-                        and abs(g[3]) <= tol * sc[3]
+                        abs(g[0]) <= tol * sc[4]
+                        and abs(g[1]) <= tol * sc[5]
+                        and abs(g[2]) <= tol * sc[6]
+                        and abs(g[3]) <= tol * sc[7]
                     ):
                         st = CONVERGED
                         break
@@ -322,7 +381,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                     e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
                     if e_new <= e + e_res:
                         for i in range(4):
-                            p[i], g[i], sc[i] = p2[i], g2[i], sc2[i]
+                            p[i], g[i], sc[i], sc[4 + i] = p2[i], g2[i], sc2[i], sc2[4 + i]
                             for j in range(4):
                                 H[i, j] = H2[i, j]
                         for i in range(6):

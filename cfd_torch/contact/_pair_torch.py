@@ -37,8 +37,9 @@ def energy(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float) -> t
 
 
 def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
-    """dE/dp (K, 4), d2E/dp2 (K, 4, 4), rounding scale of each gradient component (K, 4), gaps (K, 6) and the
-    rounding resolution of E (K,).
+    """dE/dp (K, 4), d2E/dp2 (K, 4, 4), rounding scale of each gradient component (K, 4), gaps (K, 6), the
+    rounding resolution of E (K,) and the plain scale of each gradient component (K, 4) (the sum of the magnitudes
+    it is computed from, which the convergence test measures it against; see ``_pair_numba._eval``).
 
     grad_p E = lam/(1-r)^2 [u; 0] - sum_k abar_k / s_k^2,  abar_k = sg_k [x_k; 1]
     hess_pp E = sum_k 2 abar_k abar_k^T / s_k^3 + lam [[Hn, 0], [0, 0]],
@@ -58,6 +59,7 @@ def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: fl
     mag = (X.abs() * n.abs()[:, None, :]).sum(-1) + P[:, 3:].abs() + half_delta  # (K, 6)
     amp = 1.0 + 2.0 * mag / s
     scale = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + (terms.abs() * amp[..., None]).sum(1)
+    plain = torch.cat([gn.abs(), torch.zeros_like(r)], -1) + terms.abs().sum(1)
     e_res = _EPS_RES * (
         lam / om.squeeze(-1) + (mag * w1).sum(-1)
     )  # rounding resolution of E (see _pair_numba)
@@ -66,21 +68,59 @@ def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: fl
     uu = u[:, :, None] * u[:, None, :]
     Hn = (2.0 / om**3)[..., None] * uu + (eye - uu) / (om * om * r)[..., None]
     H[:, :3, :3] += lam * Hn
-    return g, H, scale, s, e_res
+    return g, H, scale, s, e_res, plain
 
 
 def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Strictly feasible start from the exact closest points (SPEC section 2); returns planes (K, 4) and dist (K,).
 
     With the mid-gap plane along n0 = (qa - qb)/|qa - qb| scaled by alpha = (delta/2 + 1)/(dist/2 + 1), every gap is
-    >= (dist - delta)/2 / (dist/2 + 1) > 0 and |n| = alpha < 1 whenever dist > delta.
+    >= (dist - delta)/2 / (dist/2 + 1) > 0 and |n| = alpha < 1 whenever dist > delta. Where rounding makes that
+    plane infeasible (large triangles a few margins apart: the direction of qa - qb tilts it by more than the gap),
+    the same construction along the best separating axis instead (:func:`sat_planes`).
     """
     dist, qa, qb = triangle_closest_points(X[:, :3], X[:, 3:])
     safe = torch.where(dist > 0, dist, torch.ones_like(dist))
     alpha = (0.5 * delta + 1.0) / (0.5 * safe + 1.0) / safe
     n = alpha[:, None] * (qa - qb)
     d = -(n * 0.5 * (qa + qb)).sum(-1, keepdim=True)
-    return torch.cat([n, d], -1), dist
+    P = torch.cat([n, d], -1)
+    s = gaps(X, P, 0.5 * delta)
+    bad = (dist > delta) & ~((s > 0).all(-1) & (n.norm(dim=-1) < 1))
+    if bool(bad.any()):
+        P[bad] = sat_planes(X[bad], delta)
+    return P, dist
+
+
+def sat_planes(X: torch.Tensor, delta: float) -> torch.Tensor:
+    """(K, 4) the mid-gap plane along the separating axis with the largest separation (of the 11 of two
+    triangles: their normals and the 9 cross products of their edges), scaled like the closest-point start
+    (``_pair_numba._sat_start``)."""
+    ea = X[:, [1, 2, 0]] - X[:, :3]  # (K, 3, 3) edges of a
+    eb = X[:, [4, 5, 3]] - X[:, 3:]
+    axes = torch.cat(
+        [
+            torch.linalg.cross(ea[:, 0], -ea[:, 2])[:, None],  # normal of a
+            torch.linalg.cross(eb[:, 0], -eb[:, 2])[:, None],
+            torch.linalg.cross(
+                ea[:, :, None, :].expand(-1, 3, 3, 3), eb[:, None].expand(-1, 3, 3, 3)
+            ).flatten(1, 2),
+        ],
+        1,
+    )  # (K, 11, 3)
+    norm = axes.norm(dim=-1, keepdim=True)
+    u = axes / torch.where(norm > 0, norm, torch.ones_like(norm))
+    t = torch.einsum("kcj,kvj->kcv", u, X)  # (K, 11, 6) projections
+    amin, amax = t[..., :3].amin(-1), t[..., :3].amax(-1)
+    bmin, bmax = t[..., 3:].amin(-1), t[..., 3:].amax(-1)
+    up, down = amin - bmax, bmin - amax  # a above, a below
+    sep = torch.where(norm[..., 0] > 0, torch.maximum(up, down), torch.full_like(up, -torch.inf))
+    best = sep.argmax(1)
+    k = torch.arange(X.shape[0], device=X.device)
+    sgn = torch.where(up[k, best] >= down[k, best], 1.0, -1.0).to(X.dtype)
+    mid = torch.where(sgn > 0, 0.5 * (amin + bmax)[k, best], 0.5 * (bmin + amax)[k, best])
+    alpha = sgn * (0.5 * delta + 1.0) / (0.5 * sep[k, best] + 1.0)
+    return torch.cat([alpha[:, None] * u[k, best], (-alpha * mid)[:, None]], -1)
 
 
 def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max_iter: int):
@@ -108,8 +148,9 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         if act.numel() == 0:
             break
         Xa, Pa, Ea = X[act], P[act], E[act]
-        g, H, scale, _, e_res = plane_grad_hess(Xa, Pa, half_delta, lam)
+        g, H, scale, _, e_res, plain = plane_grad_hess(Xa, Pa, half_delta, lam)
         rel = torch.where(scale > 0, g.abs() / scale, torch.zeros_like(g)).amax(-1)  # 0/0: an exact zero
+        rel_plain = torch.where(plain > 0, g.abs() / plain, torch.zeros_like(g)).amax(-1)
         resid[act] = rel
         Hd = H + torch.diag_embed(torch.diagonal(H, dim1=-2, dim2=-1) * damp[:, None])
         L, info = torch.linalg.cholesky_ex(Hd)
@@ -120,7 +161,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         y = torch.linalg.solve_triangular(L, (_GRAD_EPS * scale)[..., None], upper=False).squeeze(-1)
         noise2 = (y * y).sum(-1)
         # the stopping rules of _pair_numba.solve_pairs
-        done = (rel <= tol) | (spd & (damp == 0) & ((dec2 <= tol * tol * Ea) | (dec2 <= noise2)))
+        done = (rel_plain <= tol) | (spd & (damp == 0) & ((dec2 <= tol * tol * Ea) | (dec2 <= noise2)))
         stalled = damp > _MAX_DAMP
         finished = done | stalled | (n_accepted >= max_iter)
         # a stalled pair, or one at the iteration cap, whose relative gradient is below _STALL_TOL: in the Newton
@@ -154,7 +195,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
     conv = torch.nonzero(status == CONVERGED).squeeze(-1)
     if conv.numel():
         Xc, Pc, Ec = X[conv], P[conv], E[conv]
-        g, H, _, _, e_res = plane_grad_hess(Xc, Pc, half_delta, lam)
+        g, H, _, _, e_res, _ = plane_grad_hess(Xc, Pc, half_delta, lam)
         L, info = torch.linalg.cholesky_ex(H)
         spd = info == 0
         step = torch.cholesky_solve(-g[..., None], torch.where(spd[:, None, None], L, eye4)).squeeze(-1)
@@ -179,7 +220,7 @@ def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, l
     d2E/dx_k2  = 2 n n^T / s_k^3            (block diagonal)
     d2E/dx_k dp = -sg_k [I3 | 0] / s_k^2 + 2 n [x_k^T | 1] / s_k^3
     """
-    _, Epp, _, s, _ = plane_grad_hess(X, P, half_delta, lam)
+    _, Epp, _, s, _, _ = plane_grad_hess(X, P, half_delta, lam)
     n = P[:, :3]
     sg = _sign(X)
     w1 = 1.0 / (s * s)
@@ -191,13 +232,29 @@ def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, l
     return s, Ex, Exp.reshape(-1, 18, 4), Epp  # Exp: (K, 18, 4)
 
 
+def _cholesky(A: torch.Tensor) -> torch.Tensor:
+    """Cholesky factors of the (K, 4, 4) E_pp; where rounding leaves one not positive definite (pairs within
+    about 1e-14 of the margin: condition numbers beyond 1e30), with a diagonal shift growing from 16 eps of its
+    largest diagonal entry until it is (the numba kernel's factorisation gets the same matrices)."""
+    L, info = torch.linalg.cholesky_ex(A)
+    shift = 16 * torch.finfo(A.dtype).eps
+    while bool((info != 0).any()) and shift < 1.0:
+        bad = info != 0
+        scale = torch.diagonal(A[bad], dim1=-2, dim2=-1).amax(-1)
+        eye = torch.eye(4, dtype=A.dtype, device=A.device)
+        Lb, ib = torch.linalg.cholesky_ex(A[bad] + (shift * scale)[:, None, None] * eye)
+        L[bad], info[bad] = Lb, ib
+        shift *= 16.0
+    return L
+
+
 def pair_hessian_torch(
     X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: float, lam: float
 ) -> torch.Tensor:
     """(K, 18, 18) hess_x P = mu (E_xx - E_xp E_pp^-1 E_px) (implicit function theorem)."""
     s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
     n = P[:, :3]
-    L = torch.linalg.cholesky(Epp)
+    L = _cholesky(Epp)
     W = torch.linalg.solve_triangular(L, Exp.transpose(1, 2), upper=False)  # (K, 4, 18) = L^-1 E_px
     Hs = -W.transpose(1, 2) @ W
     blocks = (2.0 / s**3)[..., None, None] * n[:, None, :, None] * n[:, None, None, :]  # (K, 6, 3, 3)
@@ -214,5 +271,5 @@ def pair_hessian_vjp(
     v6 = v.reshape(-1, 6, 3)
     direct = (2.0 / s**3 * (v6 * n[:, None, :]).sum(-1))[..., None] * n[:, None, :]  # (K, 6, 3)
     y = torch.einsum("ki,kij->kj", v, Exp)  # (K, 4)
-    z = torch.cholesky_solve(y[..., None], torch.linalg.cholesky(Epp)).squeeze(-1)
+    z = torch.cholesky_solve(y[..., None], _cholesky(Epp)).squeeze(-1)
     return mu * (direct.reshape(-1, 18) - torch.einsum("kij,kj->ki", Exp, z))

@@ -194,6 +194,7 @@ def newton(
     may_freeze = torch.ones(B, dtype=torch.bool, device=dev)
     # scenes whose islands' separate steps ended infeasible together search whole from then on
     split = torch.ones(B, dtype=torch.bool, device=dev)
+    checked = torch.zeros(B, dtype=torch.bool, device=dev)  # cur is the whole evaluation that ended a freeze
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
     for it in range(1, max_iter + 1):
@@ -219,6 +220,12 @@ def newton(
             mag = torch.maximum(ev.abs(), floor[:, None])
             p[bad] = -(V @ ((V.transpose(1, 2) @ g[bad][:, :, None])[:, :, 0] / mag)[:, :, None])[:, :, 0]
         small = pd & ~maj & (p.abs().amax(1) <= tol)
+        # the first whole evaluation after freezing: the frozen bodies' steps, up to tol each, are taken by one
+        # more iteration instead of as an unchecked final step, so that the solve ends at (nearly) the point of
+        # its last evaluation, whose Hessian the adjoint uses
+        again = small & checked[idx]
+        checked[idx] = False
+        small = small & ~again
         done = small & whole[idx]
         if bool(done.any()):
             dn = idx[done]
@@ -233,6 +240,7 @@ def newton(
             sc = idx[check]
             act[sc] = True
             whole[sc] = True
+            checked[sc] = True
             may_freeze[sc] = False
             ev = _call(energy, q[sc], sc, 2, None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs

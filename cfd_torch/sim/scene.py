@@ -37,6 +37,7 @@ _SHORTHAND = {
     "ccd_spacing": ("solver", "ccd_spacing"),
     "reach_shrink": ("solver", "reach_shrink"),
     "substeps": ("solver", "substeps"),
+    "fast": ("solver", "fast"),
 }
 
 
@@ -56,7 +57,7 @@ class Scene:
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
             ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``friction_eps_v``
             (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
-            ``reach_shrink``, ``substeps``.
+            ``reach_shrink``, ``substeps``, ``fast``.
 
     Attributes (computed once): ``bodies`` as simulated (static and kinematic bodies coarser than the dynamic
     bodies they touch are refined, ``ContactConfig.refine_obstacles``, unless a ``contact_model`` is given),

@@ -96,12 +96,15 @@ def _newton(
     majorize = None
     if prob.lagged is not None:  # the scenes with friction (their coefficient, or its gradient, asked for it)
         majorize = prob.friction_on
+    block = pair_bodies = None
+    if s.fast:  # converged bodies freeze, islands search apart
+        block = prob.scene.kinematics.coord_body.to(q.device)
+        pair_bodies = _pair_bodies(prob.scene).to(q.device)
     res = newton(
         energy, q, first, tol=tol, max_iter=s.max_newton_iter, max_move=20.0 * s.ccd_spacing,
         free_move=s.ccd_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
-        displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize,
-        block=prob.scene.kinematics.coord_body.to(q.device), pair_bodies=_pair_bodies(prob.scene).to(q.device),
-        final_move=_FINAL_MOVE * prob.scene.contact.margin,
+        displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize, block=block,
+        pair_bodies=pair_bodies, final_move=_FINAL_MOVE * prob.scene.contact.margin,
     )  # fmt: skip
     return res, _add(work, res.work)
 
@@ -195,7 +198,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
 def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
     """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
     pairs, leaf pairs); raises StepError saying why it failed."""
-    warm = WarmStarts()
+    warm = WarmStarts() if prob.scene.solver.fast else None
     q0, first, work = start(prob, warm)
     s = prob.scene.solver
     res, w = _newton(prob, q0, first, s.newton_tol, warm)
