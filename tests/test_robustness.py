@@ -222,3 +222,36 @@ def test_step_is_translation_invariant():
     assert float((a[-1, 1, :3] - q0[1, :3]).norm()) > 0.05 * s  # it slid
     assert float((b[..., :3] - T[:3] - a[..., :3]).abs().max()) < 1e-6 * s
     assert float((b[..., 3:] - a[..., 3:]).abs().max()) < 1e-6
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_large_triangles_a_few_margins_apart_are_feasible(backend):
+    """100 m faces 1.1 um apart at a 1 um margin, rotated: the closest-point start plane rounds infeasible (the
+    direction of a 1e-6 m difference of 100 m coordinates), which returned +inf; the separating-axis start finds
+    the pair, and its value matches the unrotated one to the problem's conditioning (eps x size / (gap - margin),
+    about 2e-7)."""
+    a, b = feature_pairs(0.0)["face-face"]
+    c, s = math.cos(0.3), math.sin(0.3)
+    Q = torch.tensor([[1.0, 0, 0], [0, c, -s], [0, s, c]], dtype=F64)
+    up = torch.tensor([0.0, 0.0, 1.1e-6], dtype=F64)
+    kw = {"mu": 1e-8, "margin": 1e-6, "backend": backend}
+    plain = pair_potential(100 * a, 100 * b + up, **kw)
+    turned = pair_potential((100 * a) @ Q.T, (100 * b + up) @ Q.T, **kw)
+    assert math.isfinite(float(plain)) and math.isfinite(float(turned))
+    assert abs(float(turned) / float(plain) - 1.0) < 1e-6
+
+
+def test_coplanar_large_triangles_a_few_margins_apart_are_feasible():
+    """Coplanar triangles of 30-80 m side by side, 1.01 um apart at a 1 um margin (found by scripts/stress.py): no
+    face normal or edge cross product separates them, an in-plane edge normal does; the value matches a 50-digit
+    solve (8.01728826e-4) to 1e-6."""
+    X = torch.tensor(
+        [[-13.640411502093938, 9.380305821417007, -5.14192436491191],
+         [13.640411502093938, -9.380305821417007, 5.14192436491191],
+         [-21.667761974034153, -55.39796095781739, -38.28028058285931],
+         [-26.243066116309727, 18.046962844160298, -9.89265281231567],
+         [29.28278921571988, -20.137332690489835, 11.03851545709529],
+         [17.579314855335323, 79.36162733535367, 45.7995802052834]], dtype=F64,
+    )  # fmt: skip
+    v = float(pair_potential(X[:3], X[3:], mu=1e-12, margin=1e-6, backend="numba"))
+    assert abs(v / 8.017288258655264e-4 - 1.0) < 1e-6

@@ -139,17 +139,25 @@ def _frame(X, c, Xc):
 
 @numba.njit(cache=True, error_model="numpy")
 def _sat_start(X, delta, p):
-    """The mid-gap plane along the separating axis (of the 11 of two triangles: their normals and the 9 cross
-    products of their edges) with the largest separation, scaled like the closest-point start; returns that
+    """The mid-gap plane along the separating axis (of the 17 of two triangles: their normals, the 9 cross
+    products of their edges and the 6 in-plane edge normals, which separate coplanar triangles) with the largest
+    separation, scaled like the closest-point start; returns that
     separation. Computed from projections of the vertices, it keeps its digits where the closest points' difference
     does not (large triangles a few margins apart: the closest-point direction, a difference of two nearly equal
     points, tilts the plane by more than the gap)."""
     best = -math.inf
-    for c in range(11):
+    for c in range(17):
         if c < 2:  # face normals
             o = 3 * c
             ax, ay, az = X[o + 1, 0] - X[o, 0], X[o + 1, 1] - X[o, 1], X[o + 1, 2] - X[o, 2]
             bx, by, bz = X[o + 2, 0] - X[o, 0], X[o + 2, 1] - X[o, 1], X[o + 2, 2] - X[o, 2]
+        elif c >= 11:  # a face normal x one of its edges: the in-plane axes that separate coplanar triangles
+            o, i = 3 * ((c - 11) // 3), (c - 11) % 3
+            px, py, pz = X[o + 1, 0] - X[o, 0], X[o + 1, 1] - X[o, 1], X[o + 1, 2] - X[o, 2]
+            qx, qy, qz = X[o + 2, 0] - X[o, 0], X[o + 2, 1] - X[o, 1], X[o + 2, 2] - X[o, 2]
+            ax, ay, az = py * qz - pz * qy, pz * qx - px * qz, px * qy - py * qx  # the face's normal
+            j = o + (i + 1) % 3
+            bx, by, bz = X[j, 0] - X[o + i, 0], X[j, 1] - X[o + i, 1], X[j, 2] - X[o + i, 2]
         else:  # edge i of a x edge j of b
             i, j = (c - 2) // 3, (c - 2) % 3
             ax, ay, az = (

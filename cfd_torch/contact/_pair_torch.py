@@ -93,24 +93,28 @@ def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Ten
 
 
 def sat_planes(X: torch.Tensor, delta: float) -> torch.Tensor:
-    """(K, 4) the mid-gap plane along the separating axis with the largest separation (of the 11 of two
-    triangles: their normals and the 9 cross products of their edges), scaled like the closest-point start
-    (``_pair_numba._sat_start``)."""
+    """(K, 4) the mid-gap plane along the separating axis with the largest separation (of the 17 of two
+    triangles: their normals, the 9 cross products of their edges and the 6 in-plane edge normals), scaled like
+    the closest-point start (``_pair_numba._sat_start``)."""
     ea = X[:, [1, 2, 0]] - X[:, :3]  # (K, 3, 3) edges of a
     eb = X[:, [4, 5, 3]] - X[:, 3:]
+    na = torch.linalg.cross(ea[:, 0], -ea[:, 2])  # normal of a
+    nb = torch.linalg.cross(eb[:, 0], -eb[:, 2])
     axes = torch.cat(
         [
-            torch.linalg.cross(ea[:, 0], -ea[:, 2])[:, None],  # normal of a
-            torch.linalg.cross(eb[:, 0], -eb[:, 2])[:, None],
+            na[:, None],
+            nb[:, None],
             torch.linalg.cross(
                 ea[:, :, None, :].expand(-1, 3, 3, 3), eb[:, None].expand(-1, 3, 3, 3)
             ).flatten(1, 2),
+            torch.linalg.cross(na[:, None].expand(-1, 3, 3), ea),  # in-plane edge normals: coplanar triangles
+            torch.linalg.cross(nb[:, None].expand(-1, 3, 3), eb),
         ],
         1,
-    )  # (K, 11, 3)
+    )  # (K, 17, 3)
     norm = axes.norm(dim=-1, keepdim=True)
     u = axes / torch.where(norm > 0, norm, torch.ones_like(norm))
-    t = torch.einsum("kcj,kvj->kcv", u, X)  # (K, 11, 6) projections
+    t = torch.einsum("kcj,kvj->kcv", u, X)  # (K, 17, 6) projections
     amin, amax = t[..., :3].amin(-1), t[..., :3].amax(-1)
     bmin, bmax = t[..., 3:].amin(-1), t[..., 3:].amax(-1)
     up, down = amin - bmax, bmin - amax  # a above, a below
