@@ -38,6 +38,7 @@ Non-finite input gives unspecified output.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numba
@@ -257,11 +258,25 @@ def triangle_closest_points(tri_a: Tensor, tri_b: Tensor) -> TriangleClosestPoin
     return TriangleClosestPoints(dist, qa, qb)
 
 
+def frame_origin(X: Tensor, min_extent: float = 0.0) -> Tensor:
+    """(K, 3) an origin near each point set X (K, V, 3): its centroid rounded to a multiple of g, the power of two
+    above its extent about the centroid (at least ``min_extent``). Then X - origin is exact wherever the set is (its
+    bits are those of X, its magnitude at most 1.5 g), so whatever is computed from it sees the same digits of the
+    geometry at any offset, and a set near the world origin (|centroid| < g / 2) keeps its coordinates. Used for
+    each pair of the pair solve (``contact._pair_numba._frame`` computes the same in the kernel) and for each step's
+    moving bodies."""
+    mean = X.mean(1)
+    extent = (X - mean[:, None, :]).abs().amax((1, 2)).clamp_min(min_extent)
+    _, e = torch.frexp(extent)
+    g = torch.ldexp(torch.ones_like(extent), e)[:, None]  # 2^e > extent
+    return torch.floor(mean / g + 0.5) * g
+
+
 def segment_hits_triangle(p: Tensor, q: Tensor, tri: Tensor) -> Tensor:
     """Whether the segments p -> q cross the triangles (Moller-Trumbore), batched and branch-free.
 
     The convention and the arithmetic of the collision query's numba kernel
-    (``contact._traverse_numba._segment_hits_triangle``), operation for operation, so the two agree exactly: with
+    (:func:`segment_hits_triangle_nb`), operation for operation, so the two agree exactly: with
     ``d = q - p``, ``det = e1 . (d x e2)`` (e1, e2 the edges from vertex 0), the barycentric ``u``, ``v`` and the
     segment parameter ``t`` (each a dot product times ``1 / det``), a hit is ``det != 0``, ``0 <= u <= 1``,
     ``v >= 0``, ``u + v <= 1`` and ``0 <= t <= 1`` (the bounds included: an endpoint on the triangle, a segment
@@ -485,3 +500,33 @@ def tri_tri_closest_nb(A, B, out):
     out[4] = sby + oy
     out[5] = sbz + oz
     return best
+
+
+@numba.njit(**_JIT)
+def segment_hits_triangle_nb(P, Q, T, sin_min) -> bool:
+    """Whether the segment PQ crosses the triangle T (3, 3) (Moller-Trumbore; :func:`segment_hits_triangle`'s
+    convention and arithmetic, operation for operation). A segment whose sine of angle with the triangle's plane
+    is at most ``sin_min`` never counts: 0 refuses only an exactly parallel one (det = 0); a positive value also
+    refuses nearly parallel ones, whose crossing rounding can fake."""
+    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
+    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
+    dx, dy, dz = Q[0] - P[0], Q[1] - P[1], Q[2] - P[2]
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz  # = -d . (e1 x e2) = -|d| (2 area) sin(angle)
+    if det == 0.0:
+        return False
+    if sin_min > 0.0:
+        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        if not abs(det) > sin_min * math.sqrt((dx * dx + dy * dy + dz * dz) * (nx * nx + ny * ny + nz * nz)):
+            return False
+    inv = 1.0 / det
+    tx, ty, tz = P[0] - T[0, 0], P[1] - T[0, 1], P[2] - T[0, 2]
+    u = (tx * px + ty * py + tz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return False
+    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return False
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    return 0.0 <= t <= 1.0

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ._autograd import outside_transforms, plain
-from ._geometry import tri_tri_closest_nb
+from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 
 # A triangle is degenerate when twice its area is below this many machine epsilons of its longest edge squared
 # (scale-free: a tiny well-shaped triangle is valid, a needle or a collinear triple is not).
@@ -181,30 +181,6 @@ def self_intersection(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, int
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _pierces(P, Q, T, sin_min) -> bool:
-    """Whether the segment PQ crosses the triangle T (3, 3) at a sine of angle above ``sin_min`` (Moller-Trumbore)."""
-    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
-    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
-    dx, dy, dz = Q[0] - P[0], Q[1] - P[1], Q[2] - P[2]
-    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-    det = e1x * px + e1y * py + e1z * pz  # = -d . (e1 x e2) = -|d| (2 area) sin(angle)
-    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
-    if not abs(det) > sin_min * math.sqrt((dx * dx + dy * dy + dz * dz) * (nx * nx + ny * ny + nz * nz)):
-        return False
-    inv = 1.0 / det
-    tx, ty, tz = P[0] - T[0, 0], P[1] - T[0, 1], P[2] - T[0, 2]
-    u = (tx * px + ty * py + tz * pz) * inv
-    if u < 0.0 or u > 1.0:
-        return False
-    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
-    if v < 0.0 or u + v > 1.0:
-        return False
-    t = (e2x * qx + e2y * qy + e2z * qz) * inv
-    return 0.0 <= t <= 1.0
-
-
-@numba.njit(cache=True, error_model="numpy")
 def _self_intersection_nb(tri, faces, edge, lo, hi, order, axis, rel):
     """Sweep over the faces' boxes sorted by their low end along ``axis``: the first vertex-disjoint pair that
     meets (see :func:`self_intersection`), or (-1, -1)."""
@@ -237,6 +213,8 @@ def _self_intersection_nb(tri, faces, edge, lo, hi, order, axis, rel):
                 return i, j
             for k in range(3):
                 k1 = k + 1 if k < 2 else 0
-                if _pierces(A[k], A[k1], B, rel) or _pierces(B[k], B[k1], A, rel):
+                if segment_hits_triangle_nb(A[k], A[k1], B, rel) or segment_hits_triangle_nb(
+                    B[k], B[k1], A, rel
+                ):
                     return i, j
     return -1, -1

@@ -553,8 +553,10 @@ def _segment_cases(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np
 
 
 def test_segment_hits_triangle_matches_the_numba_kernel():
-    from cfd_torch._geometry import segment_hits_triangle
-    from cfd_torch.contact._traverse_numba import _segment_hits_triangle
+    from cfd_torch._geometry import segment_hits_triangle, segment_hits_triangle_nb
+
+    def _segment_hits_triangle(p, q, t):  # the collision query's form: only exactly parallel segments refused
+        return segment_hits_triangle_nb(p, q, t, 0.0)
 
     P, Q, T = _segment_cases(np.random.default_rng(11))
     expected = np.array([_segment_hits_triangle(P[i], Q[i], T[i]) for i in range(len(P))])

@@ -119,8 +119,8 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
 
 @numba.njit(**_JIT_INLINE)
 def _frame(X, c, Xc):
-    """c (3) = ``pair.frame_origin`` of the pair X (6, 3) (its centroid rounded to a multiple of the power of two
-    above its extent) and Xc = X - c, exact."""
+    """c (3) = ``_geometry.frame_origin`` of the pair X (6, 3) (its centroid rounded to a multiple of the power of
+    two above its extent) and Xc = X - c, exact."""
     extent = 0.0
     for j in range(3):
         m = 0.0
@@ -245,7 +245,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 lowrank, WTo, So, P0, has0):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
-    Each pair is solved in the frame centred at its C[k] (``pair.frame_origin``, computed here: x - C[k] is
+    Each pair is solved in the frame centred at its C[k] (``_geometry.frame_origin``, computed here: x - C[k] is
     exact), so the gaps n.x + d carry no cancellation against a large offset and the result does not depend on
     where the pair is. Output planes are in that frame; the derivatives in x do not depend on the frame.
 

@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from .._geometry import tri_tri_closest_nb
+from .._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 
 _JIT = {"cache": True, "error_model": "numpy"}
 
@@ -235,36 +235,12 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
 
 
 @numba.njit(**_JIT)
-def _segment_hits_triangle(P, Q, T) -> bool:
-    """Whether the segment PQ meets the triangle T (3, 3) (Moller-Trumbore; parallel segments never count: a
-    segment lying in the triangle's plane and touching it is at distance 0, which the distance test catches)."""
-    e1x, e1y, e1z = T[1, 0] - T[0, 0], T[1, 1] - T[0, 1], T[1, 2] - T[0, 2]
-    e2x, e2y, e2z = T[2, 0] - T[0, 0], T[2, 1] - T[0, 1], T[2, 2] - T[0, 2]
-    dx, dy, dz = Q[0] - P[0], Q[1] - P[1], Q[2] - P[2]
-    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-    det = e1x * px + e1y * py + e1z * pz
-    if det == 0.0:
-        return False
-    inv = 1.0 / det
-    tx, ty, tz = P[0] - T[0, 0], P[1] - T[0, 1], P[2] - T[0, 2]
-    u = (tx * px + ty * py + tz * pz) * inv
-    if u < 0.0 or u > 1.0:
-        return False
-    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
-    if v < 0.0 or u + v > 1.0:
-        return False
-    t = (e2x * qx + e2y * qy + e2z * qz) * inv
-    return 0.0 <= t <= 1.0
-
-
-@numba.njit(**_JIT)
 def _triangles_intersect(A, B) -> bool:
     """Whether an edge of one triangle pierces the other (two intersecting triangles always have one that does,
     unless they are coplanar, when their distance is 0)."""
     for i in range(3):
         j = i + 1 if i < 2 else 0
-        if _segment_hits_triangle(A[i], A[j], B) or _segment_hits_triangle(B[i], B[j], A):
+        if segment_hits_triangle_nb(A[i], A[j], B, 0.0) or segment_hits_triangle_nb(B[i], B[j], A, 0.0):
             return True
     return False
 

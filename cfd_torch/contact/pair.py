@@ -33,6 +33,7 @@ from .._autograd import (
     refuse_vmap,
     vmap_error,
 )
+from .._geometry import frame_origin
 from .._validate import check_positive, check_triangles
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
@@ -119,7 +120,8 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
 
 class _Solved(NamedTuple):
     """The solve of K pairs: value (K,), optimal planes (K, 4) in the frame centred at ``centre`` (K, 3) (near the
-    pair, see :func:`frame_origin`), grad (K, 18) | None, hess (K, 18, 18) | None (or its low-rank factors)."""
+    pair, see ``_geometry.frame_origin``), grad (K, 18) | None, hess (K, 18, 18) | None (or its low-rank
+    factors)."""
 
     value: torch.Tensor
     plane: torch.Tensor
@@ -132,18 +134,6 @@ class _Solved(NamedTuple):
         return to_world(self.plane, self.centre)
 
 
-def frame_origin(X: torch.Tensor) -> torch.Tensor:
-    """(K, 3) the origin each pair of X (K, 6, 3) is solved about: its centroid rounded to a multiple of g, the
-    power of two at least its extent about the centroid. Then X - origin is exact wherever the pair is (its bits are
-    those of X, its magnitude at most 1.5 g), so the solve sees the same digits of the geometry at any offset,
-    and a pair near the origin (|centroid| < g / 2) is solved where it is."""
-    mean = X.mean(1)
-    extent = (X - mean[:, None, :]).abs().amax((1, 2))
-    _, e = torch.frexp(extent)
-    g = torch.ldexp(torch.ones_like(extent), e)[:, None]  # 2^e > extent
-    return torch.floor(mean / g + 0.5) * g  # (the numba kernel computes the same in _pair_numba._frame)
-
-
 def to_world(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     """Planes (K, 4) given in frames centred at ``centre`` (K, 3), in the frame of the origin."""
     d = plane[:, 3] - (plane[:, :3] * centre).sum(-1)
@@ -153,8 +143,8 @@ def to_world(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
 def _solve(
     X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None
 ) -> _Solved:
-    """Solve (K, 6, 3) float64 pairs, each in a frame centred near it (:func:`frame_origin`; translation-invariant:
-    far from the origin, a gap n.x + d computed in the input's frame would cancel its digits away).
+    """Solve (K, 6, 3) float64 pairs, each in a frame centred near it (``_geometry.frame_origin``; translation-
+    invariant: far from the origin, a gap n.x + d computed in the input's frame would cancel its digits away).
 
     ``lowrank`` (numba backend only): hess is returned as its factors (W^T (K, 4, 18), gaps (K, 6)), see
     ``_pair_numba.solve_pairs``. ``start`` (numba backend only): (P0 (K, 4), has0 (K,) bool) warm-start planes in

@@ -17,6 +17,7 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
+from .._geometry import frame_origin
 from ._checks import check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
@@ -50,18 +51,6 @@ def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     return torch.cat([q_prev[..., :3], w], -1)
 
 
-def _origin(t: torch.Tensor) -> torch.Tensor:
-    """(B, 1, 3) a frame origin for translations t (B, M, 3): their mean rounded to a multiple of g, the power of
-    two above their spread (at least 1 m), so that t - origin is exact for every body near the others; zero for a
-    scene near the world origin."""
-    t = t.detach()
-    mean = t.mean(1, keepdim=True)
-    spread = (t - mean).abs().amax((1, 2), keepdim=True).clamp_min(1.0)
-    _, e = torch.frexp(spread)
-    g = torch.ldexp(torch.ones_like(spread), e)
-    return torch.floor(mean / g + 0.5) * g
-
-
 def _shift(q: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """Poses q (B, N, 6) with their translations moved by c (B, 1, 3)."""
     return torch.cat([q[..., :3] + c, q[..., 3:]], -1)
@@ -78,10 +67,10 @@ def _solve(
     f64 = torch.float64
     S = params.second_moment.to(f64)
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
-    # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see _origin),
-    # so that the incremental potential, whose terms are differences of positions, keeps its digits far from the
-    # world origin; every term is translation-invariant, and the shift back is exact too.
-    c = _origin(q_t[:, scene.kinematics.bodies.to(q_t.device), :3])
+    # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
+    # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
+    # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
+    c = frame_origin(q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach(), min_extent=1.0)[:, None]
     q_t, q_p, target = _shift(q_t, -c), _shift(q_p, -c), _shift(target.to(f64), -c)
     q, iters, fc, ff, nfc, work, seconds = StepFn.apply(
         scene, q_t, q_p, force.to(f64), torque.to(f64), target, params.mass.to(f64),
