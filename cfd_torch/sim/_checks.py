@@ -124,3 +124,21 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
             f"margin {scene.contact.margin} of it){f' in scene {s}' if B > 1 else ''}; neither moves, so no step can "
             "resolve it"
         )
+
+
+def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor) -> None:
+    """action.ctrl: a float tensor (U,) or (B, U) of finite values, on the state's device and dtype."""
+    if not isinstance(ctrl, torch.Tensor):
+        raise TypeError(f"action.ctrl must be a torch.Tensor, got {type(ctrl).__name__}")
+    if not ctrl.is_floating_point():
+        raise ValueError(f"action.ctrl must be a float tensor, got {ctrl.dtype}")
+    if ctrl.device != like.device or ctrl.dtype != like.dtype:
+        raise ValueError(
+            f"action.ctrl is {ctrl.dtype} on {ctrl.device}, state.q {like.dtype} on {like.device}: they must match"
+        )
+    if ctrl.shape not in ((U,), (B, U)):
+        raise ValueError(
+            f"action.ctrl must have shape ({U},) or ({B}, {U}) (the scene's motors), got {tuple(ctrl.shape)}"
+        )
+    if not bool(torch.isfinite(ctrl).all()):
+        raise ValueError("action.ctrl contains NaN or inf")

@@ -16,7 +16,7 @@ import torch
 
 from ..contact.model import LaggedContacts, sum_pairs
 from ..contact.pair import PairSolveError
-from .energy import StepProblem, body_terms, end_poses, scene_pairs
+from .energy import JointInputs, StepProblem, body_terms, end_poses, scene_pairs
 from .friction import friction_terms
 from .solve import solve_step
 from .types import StepError
@@ -52,13 +52,22 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
     return lag
 
 
+def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl: torch.Tensor) -> JointInputs | None:
+    """The joint-space inputs of a scene with articulations (coordinates of the two earlier states, the motors'
+    joint torques of ``ctrl``), None without."""
+    if not scene.articulations:
+        return None
+    kin = scene.kinematics
+    return JointInputs(kin.coords(q_t), kin.coords(q_p), kin.motor_torque(ctrl))
+
+
 class StepFn(torch.autograd.Function):
-    """(scene, q_t, q_p, force, torque, target, mass, S, mu_f) -> q* (B, Q) and, not differentiable, the solver's
+    """(scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl) -> q* (B, Q) and, not differentiable, the solver's
     statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,), work (3,)
     (energy evaluations, node pairs, leaf pairs) and the forward's wall time (1,)."""
 
     @staticmethod
-    def forward(ctx, scene, q_t, q_p, force, torque, target, mass, S, mu_f):
+    def forward(ctx, scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl):
         t0 = time.perf_counter()
         B = q_t.shape[0]
         with _serial_torch():
@@ -68,7 +77,10 @@ class StepFn(torch.autograd.Function):
             on = (mu_f > 0) | ctx.needs_input_grad[8]
             lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
-            prob = StepProblem(scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity)
+            joint = _joint_inputs(scene, q_t, q_p, ctrl)
+            prob = StepProblem(
+                scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint
+            )
             try:
                 res, work = solve_step(prob)
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
@@ -81,7 +93,7 @@ class StepFn(torch.autograd.Function):
         cross = res.at.contact_hess[:, rows6]  # (B, 6 F, 6 N)
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
-            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f
+            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl
         )
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
@@ -109,7 +121,7 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f = ctx.saved_tensors
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl = ctx.saved_tensors
         B, N = q_t.shape[:2]
         kin = scene.kinematics
         dyn = kin.bodies.to(q.device)
@@ -118,10 +130,11 @@ class StepFn(torch.autograd.Function):
         if bool((info != 0).any()):  # cannot happen: Newton converges only at a positive definite Hessian
             raise RuntimeError("cfd_torch.step backward: the step's Hessian is not positive definite")
         lam = torch.cholesky_solve(gout.to(H.dtype)[:, :, None], chol)[:, :, 0]
-        Jlam = kin.push(q, lam)  # (B, N, 6)
+        Jlam = kin.push(q, lam, end_poses(scene, q_t, target))  # (B, N, 6)
+        inputs = (q_t, q_p, force, torque, target, mass, S, mu_f, ctrl)
         with torch.enable_grad():
-            th = [x.detach().requires_grad_(True) for x in (q_t, q_p, force, torque, target, mass, S, mu_f)]
-            tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu = th
+            th = [x.detach().requires_grad_(True) for x in inputs]
+            tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl = th
             poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
@@ -130,6 +143,10 @@ class StepFn(torch.autograd.Function):
                 rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
+            joint = _joint_inputs(scene, tq_t, tq_p, tctrl)
+            if joint is not None:
+                _, g_j, _ = kin.joint_terms(q, joint.q_t, joint.q_p, joint.torque, scene.dt, 1)
+                s = s + (g_j * lam).sum()
             if ctx.friction_on is not None:
                 lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True)
                 cp = scene_pairs(scene, B).to(q.device)[lagged.pair]
@@ -148,8 +165,5 @@ class StepFn(torch.autograd.Function):
             c = (cross @ Jlam.reshape(B, 6 * N, 1))[:, :, 0]  # (B, 6 F)
             s = s + (c * poses_next.reshape(B, 6 * N)[:, rows6]).sum()
             grads = torch.autograd.grad(-s, th, allow_unused=True)
-        out = [
-            None if gth is None else gth.to(x.dtype)
-            for gth, x in zip(grads, (q_t, q_p, force, torque, target, mass, S, mu_f), strict=True)
-        ]
+        out = [None if gth is None else gth.to(x.dtype) for gth, x in zip(grads, inputs, strict=True)]
         return (None, *out)

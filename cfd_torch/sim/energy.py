@@ -31,6 +31,7 @@ from .friction import friction_terms
 
 __all__ = [
     "StepProblem",
+    "JointInputs",
     "EnergyEval",
     "incremental_potential",
     "select_scenes",
@@ -54,6 +55,7 @@ class StepProblem(NamedTuple):
         lagged: the lagged friction contacts of the batch's pairs (``scene_pairs(scene, B)``) in the scenes with
             friction, or None when none has.
         gravity: (3,).
+        joint: the joint-space inputs of scenes with articulations (:class:`JointInputs`), else None.
     """
 
     scene: object
@@ -68,6 +70,15 @@ class StepProblem(NamedTuple):
     friction_on: torch.Tensor
     lagged: LaggedContacts | None
     gravity: torch.Tensor
+    joint: JointInputs | None = None
+
+
+class JointInputs(NamedTuple):
+    """The coordinates one and two steps earlier (B, Q) and the joint torques (B, J) of the motors."""
+
+    q_t: torch.Tensor
+    q_p: torch.Tensor
+    torque: torch.Tensor
 
 
 class EnergyEval(NamedTuple):
@@ -159,7 +170,8 @@ def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
         prob.friction,
         prob.friction_on,
     )
-    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity)
+    joint = None if prob.joint is None else JointInputs(*(x[idx] for x in prob.joint))
+    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity, joint)
 
 
 def _axial(M: torch.Tensor) -> torch.Tensor:
@@ -300,7 +312,12 @@ def incremental_potential(
             Gf, Hf = sum_pairs(B, N, cp, gf, hf)
             if order >= 2:
                 gap = sum_pairs(B, N, cp, None, gap_c[0])[1]
-    scale = value.abs() + local.abs().sum(1)
+    jv = jg = jh = None
+    if prob.joint is not None:
+        jq = prob.joint
+        jv, jg, jh = kin.joint_terms(q, jq.q_t, jq.q_p, jq.torque, scene.dt, order)
+        value = value + jv
+    scale = value.abs() + local.abs().sum(1) + (0.0 if jv is None else jv.abs())
     if order == 0:
         return EnergyEval(
             value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs, body_value,
@@ -315,12 +332,21 @@ def incremental_potential(
         Hp = Hp + Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N)
     Gb = q.new_zeros(B, N, 6)
     Gb[:, dyn] = g_b.reshape(B, Nd, 6)
-    grad, hess = kin.pullback(q, Gb + Gp, Hp)
+    grad, hess = kin.pullback(q, Gb + Gp, Hp, prob.fixed)
+    if jg is not None:
+        grad = grad + jg
+        hess = None if hess is None else hess + jh
     h_floor = gap_q = None
     if order >= 2:
         if gap is not None:
-            gap_q = kin.pullback(q, torch.zeros_like(Gb), gap)[1]
-        h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
+            gap_q = kin.pullback(q, torch.zeros_like(Gb), gap, prob.fixed)[1]
+        if prob.joint is None:
+            h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
+        else:  # the inertia of the coordinates themselves (links chained through the forward kinematics)
+            Hb_q = kin.pullback(
+                q, torch.zeros_like(Gb), Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N), prob.fixed
+            )[1]
+            h_floor = 0.1 * torch.linalg.eigvalsh(Hb_q).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
         node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None,

@@ -28,6 +28,8 @@ class Kinematics(Protocol):
     bodies: torch.Tensor
     #: (Q,) the moving body (0..M-1) each coordinate belongs to (the Newton solve freezes converged bodies)
     coord_body: torch.Tensor
+    #: whether converged bodies may be frozen one by one (False when a coordinate moves several bodies)
+    freezable: bool
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
@@ -38,13 +40,13 @@ class Kinematics(Protocol):
         ...
 
     def pullback(
-        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None
+        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None, fixed: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """J^T grad (A, Q) and J^T hess J + sum_k grad_k d2pose_k/dq2 (A, Q, Q) for pose-space grad (A, N, 6) and
-        hess (A, 6N, 6N)."""
+        hess (A, 6N, 6N), with the other bodies at ``fixed`` (A, N, 6)."""
         ...
 
-    def push(self, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    def push(self, q: torch.Tensor, v: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) J v for coordinate vectors v (A, Q) (zero rows for bodies the map does not move)."""
         ...
 
@@ -82,14 +84,21 @@ class FreeBodies:
     def coords(self, poses: torch.Tensor) -> torch.Tensor:
         return poses[:, self.dynamic.to(poses.device)].reshape(poses.shape[0], -1)
 
+    #: converged bodies may be frozen one by one (each coordinate moves one body)
+    freezable = True
+
     def pullback(
-        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None
+        self,
+        q: torch.Tensor,
+        grad: torch.Tensor,
+        hess: torch.Tensor | None,
+        fixed: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         d6 = self._d6.to(q.device)
         g = grad.reshape(grad.shape[0], -1)[:, d6]
         return g, (None if hess is None else hess[:, d6][:, :, d6])
 
-    def push(self, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    def push(self, q: torch.Tensor, v: torch.Tensor, fixed: torch.Tensor | None = None) -> torch.Tensor:
         out = v.new_zeros(v.shape[0], self.num_bodies, 6)
         out[:, self.dynamic.to(v.device)] = v.reshape(v.shape[0], -1, 6)
         return out

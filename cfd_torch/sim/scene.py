@@ -14,6 +14,7 @@ from ..contact.cfd import CfdContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
 from ._checks import check_state_tensor
+from .articulation import ArticulatedKinematics, Articulation
 from .bodies import RigidBody, refine_obstacles
 from .kinematics import FreeBodies
 from .types import Params, State
@@ -52,6 +53,9 @@ class Scene:
         friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off).
         solver: the Newton solve's settings (default ``SolverConfig()``).
         exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
+        articulations: robots (:func:`cfd_torch.sim.articulation.articulation`); their links are the state rows
+            after ``bodies``, each robot's consecutive (``articulation_rows``), with no contact between two links
+            of one robot.
         contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the paper's
             potential, ``CfdContact`` with ``contact``).
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
@@ -77,11 +81,29 @@ class Scene:
         solver: SolverConfig | None = None,
         exclude: Sequence[tuple[int, int]] = (),
         contact_model: ContactModel | None = None,
+        articulations: Sequence[Articulation] = (),
         **shorthand: float | int | str,
     ) -> None:
         bodies = tuple(bodies)
-        if not bodies or not all(isinstance(b, RigidBody) for b in bodies):
+        arts = tuple(articulations)
+        if not all(isinstance(a, Articulation) for a in arts):
+            raise TypeError(
+                "articulations must be a sequence of Articulation (see cfd_torch.sim.articulation)"
+            )
+        if not (bodies or arts) or not all(isinstance(b, RigidBody) for b in bodies):
             raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
+        self.articulations = arts
+        rows, first = len(bodies), []
+        robot_pairs = []
+        for a in arts:
+            first.append(rows)
+            robot_pairs += [
+                (rows + i, rows + j) for i in range(a.num_links) for j in range(i + 1, a.num_links)
+            ]
+            bodies = bodies + a.bodies
+            rows += a.num_links
+        #: the first state row of each articulation
+        self.articulation_rows = tuple(first)
         if not any(b.kind == "dynamic" for b in bodies):
             raise ValueError("a scene needs at least one dynamic body")
         if not (isinstance(dt, (int, float)) and 0 < dt < math.inf):
@@ -112,7 +134,9 @@ class Scene:
         self.solver: SolverConfig = cfg["solver"]
         self.exclude = tuple((int(a), int(b)) for a, b in exclude)
         N = len(bodies)
-        pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude)
+        pairs = body_pairs(
+            N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude + tuple(robot_pairs)
+        )
         if self.contact.refine_obstacles is not None and contact_model is None:
             bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
         self.bodies = bodies
@@ -124,7 +148,12 @@ class Scene:
         )
         self.static_mask = torch.tensor([b.kind == "static" for b in bodies])
         self.pairs = pairs
-        self.kinematics = FreeBodies(self.dynamic, N)
+        if arts:
+            links = {r + k for a, r in zip(arts, first, strict=True) for k in range(a.num_links)}
+            free = torch.tensor([int(i) for i in self.dynamic if int(i) not in links], dtype=torch.long)
+            self.kinematics = ArticulatedKinematics(free, arts, first, N)
+        else:
+            self.kinematics = FreeBodies(self.dynamic, N)
         self._given_contact_model = contact_model
         self.contact_model = (
             CfdContact([b.bsh for b in bodies], self.contact) if contact_model is None else contact_model
@@ -151,9 +180,11 @@ class Scene:
         kw = {
             "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
             "solver": self.solver, "exclude": self.exclude, "contact_model": self._given_contact_model,
+            "articulations": self.articulations,
         }  # fmt: skip
         kw.update(changes)
-        return Scene(self.bodies, **kw)
+        n = len(self.bodies) - sum(a.num_links for a in self.articulations)
+        return Scene(self.bodies[:n], **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
         """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one

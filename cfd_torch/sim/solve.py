@@ -97,7 +97,7 @@ def _newton(
     if prob.lagged is not None:  # the scenes with friction (their coefficient, or its gradient, asked for it)
         majorize = prob.friction_on
     block = pair_bodies = None
-    if s.fast:  # converged bodies freeze, islands search apart
+    if s.fast and prob.scene.kinematics.freezable:  # converged bodies freeze, islands search apart
         block = prob.scene.kinematics.coord_body.to(q.device)
         pair_bodies = _pair_bodies(prob.scene).to(q.device)
     res = newton(

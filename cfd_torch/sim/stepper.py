@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 import torch
 
 from .._geometry import frame_origin
-from ._checks import check_params, check_state_tensor, check_targets_clear
+from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
 from .scene import Scene
@@ -61,7 +61,7 @@ def _batch(x: torch.Tensor, B: int) -> torch.Tensor:
 
 
 def _solve(
-    scene: Scene, state: State, force, torque, target, params: Params
+    scene: Scene, state: State, force, torque, target, ctrl, params: Params
 ) -> tuple[torch.Tensor, StepInfo]:
     """One step of the batch at once (float64, batched): the next poses and the (batched) StepInfo."""
     f64 = torch.float64
@@ -74,7 +74,7 @@ def _solve(
     q_t, q_p, target = _shift(q_t, -c), _shift(q_p, -c), _shift(target.to(f64), -c)
     q, iters, fc, ff, nfc, work, seconds = StepFn.apply(
         scene, q_t, q_p, force.to(f64), torque.to(f64), target, params.mass.to(f64),
-        0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64),
+        0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64), ctrl.to(f64),
     )  # fmt: skip
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     moved[scene.kinematics.bodies] = True
@@ -86,7 +86,7 @@ def _solve(
     )
 
 
-def _substeps(scene: Scene, state: State, force, torque, target, params: Params, k: int):
+def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: Params, k: int):
     """The step as k equal sub-steps of dt / k (kinematic targets interpolated, the velocity carried over): the
     next poses, the previous poses that keep the velocity at the coarse step, and the StepInfo."""
     fine = scene.replace(dt=scene.dt / k)
@@ -96,7 +96,7 @@ def _substeps(scene: Scene, state: State, force, torque, target, params: Params,
     infos = []
     for i in range(1, k + 1):
         tgt = start + (i / k) * (target - start)
-        q_next, info = _solve(fine, State(q, q_prev), force, torque, tgt, params)
+        q_next, info = _solve(fine, State(q, q_prev), force, torque, tgt, ctrl, params)
         q, q_prev = q_next, _unwrap_previous(q, q_next)
         infos.append(info)
     info = infos[-1]._replace(
@@ -107,12 +107,12 @@ def _substeps(scene: Scene, state: State, force, torque, target, params: Params,
     return q, q - k * (q - q_prev), info
 
 
-def _advance(scene: Scene, state: State, force, torque, target, params: Params):
+def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Params):
     """The step of a batch: next poses, previous poses (None: from the step itself) and StepInfo. A step that
     fails is retried in sub-steps (``scene.solver.substeps``); in a batch, each scene on its own, so that every
     scene's result is the one it gets alone."""
     try:
-        q, info = _solve(scene, state, force, torque, target, params)
+        q, info = _solve(scene, state, force, torque, target, ctrl, params)
         return q, None, info
     except StepError:
         if scene.solver.substeps == 1:
@@ -123,7 +123,7 @@ def _advance(scene: Scene, state: State, force, torque, target, params: Params):
         for b in range(B):
             one = slice(b, b + 1)
             q, q_prev, info = _advance(
-                scene, State(state.q[one], state.q_prev[one]), force[one], torque[one], target[one],
+                scene, State(state.q[one], state.q_prev[one]), force[one], torque[one], target[one], ctrl[one],
                 Params(*(x[one] for x in params)),
             )  # fmt: skip
             outs.append((q, _unwrap_previous(state.q[one], q) if q_prev is None else q_prev, info))
@@ -138,7 +138,7 @@ def _advance(scene: Scene, state: State, force, torque, target, params: Params):
     k = 2
     while True:
         try:
-            return _substeps(scene, state, force, torque, target, params, k)
+            return _substeps(scene, state, force, torque, target, ctrl, params, k)
         except StepError:
             if 2 * k > scene.solver.substeps:
                 raise
@@ -203,13 +203,17 @@ def step(
     check_state_tensor(target, "action.target", K, 6, B if batched else 1, like=state.q)
     if not batched and any(x.dim() == 3 for x in (force, torque, target)):
         raise ValueError("action fields have a batch dimension but state.q does not")
+    U = scene.kinematics.num_actuators if scene.articulations else 0
+    ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
+    check_ctrl(ctrl, U, B if batched else 1, state.q)
     params = scene.params(f64, dev) if params is None else params
     params = check_params(params, B, len(scene.kinematics.bodies), dev, batched)
     if action.target is not None:
         check_targets_clear(scene, _batch(state.q, B), _batch(target, B))
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
-    q_next, q_prev_next, si = _advance(scene, st, force, torque, target, params)
+    ctrl = ctrl.expand(B, U) if ctrl.dim() == 1 else ctrl
+    q_next, q_prev_next, si = _advance(scene, st, force, torque, target, ctrl, params)
     q_next = q_next.to(dtype)
     q_prev_next = _unwrap_previous(st.q, q_next) if q_prev_next is None else q_prev_next.to(dtype)
     nxt = State(q_next, q_prev_next)

@@ -62,11 +62,14 @@ class Action(NamedTuple):
         torque: ([B,] N, 3) world-frame torques [N m] (rows of non-dynamic bodies ignored).
         target: ([B,] K, 6) end-of-step poses of the K kinematic bodies (``Scene.kinematic`` order); None keeps
             them where they are.
+        ctrl: ([B,] U) controls of the articulations' motors, in the scene's articulation order then MJCF order
+            (joint torque = gear * ctrl clipped to ctrlrange); None: zero.
     """
 
     force: torch.Tensor | None = None
     torque: torch.Tensor | None = None
     target: torch.Tensor | None = None
+    ctrl: torch.Tensor | None = None
 
 
 class Params(NamedTuple):

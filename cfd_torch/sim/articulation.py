@@ -1,0 +1,514 @@
+"""Articulated bodies: a tree of links joined by hinge and slide joints, on a floating or fixed base.
+
+Every link is a body of the scene (a state row: the pose of its centre-of-mass frame, one contact hierarchy, exact
+mass properties), so contact, inertia and friction see links exactly as they see free rigid bodies. What differs is
+the step's unknowns: the base pose (translation and rotation vector of the root link's frame, floating bases only)
+and one value per joint. :class:`ArticulatedKinematics` maps them to the link poses by forward kinematics, with its
+first and second derivatives (``torch.func`` over the closed-form chain below), and adds the joint-space terms of
+the incremental potential: armature, damping, springs, limits and actuation.
+
+Forward kinematics (MuJoCo's convention, one joint per link): the frame of link i is
+
+    T_i = T_parent(i) [R(quat_i), pos_i] J_i(theta_i),
+    J = translate(c) rotate(a, theta) translate(-c)     (hinge through anchor c along unit axis a, link frame)
+    J = translate(a theta)                              (slide)
+
+and its state row is the pose of its centre of mass, (p_i + R_i com_i, log R_i). The joint values of a state are
+recovered from the relative rotation (hinge: atan2, so hinge values live in (-pi, pi]) or translation (slide) of
+each link's frame in its parent's.
+
+Joint-space terms, for each joint with value theta (theta_t, theta_p: one and two steps earlier)::
+
+    armature a (theta - 2 theta_t + theta_p)^2 / (2 dt^2)  +  damping d (theta - theta_t)^2 / (2 dt)
+    + stiffness k (theta - ref)^2 / 2  +  limit barrier  -  tau (theta - theta_t)
+
+The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) = -(s - 1)^2 ln s for 0 < s < 1
+(zero beyond, C2 at s = 1, +inf at s <= 0): a joint never reaches its limit, whatever the torque.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from ..contact.bsh import BSH
+from ..rotation import rotation_matrix, rotation_vector
+from .bodies import RigidBody
+
+__all__ = ["Articulation", "articulation", "ArticulatedKinematics"]
+
+#: the limit barrier's activation width (rad for hinges, m for slides) and stiffness [N m or N]
+LIMIT_WIDTH = 0.02
+LIMIT_STIFFNESS = 1.0
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+class Articulation:
+    """A robot: links (bodies of the scene) in a tree of hinge and slide joints, one joint per link but the root.
+
+    Build it with :func:`articulation` from MJCF. Attributes (numpy, float64, link frames): ``names``,
+    ``parent`` (L,), ``offset_R`` (L, 3, 3) and ``offset_p`` (L, 3) (link frame in its parent's at zero joint
+    values), ``kind`` (L,) "root", "hinge" or "slide", ``axis`` and ``anchor`` (L, 3), ``com`` (L, 3),
+    ``bodies`` (the L RigidBody links, centre-of-mass frames; a fixed base's root is a static body in its link
+    frame), ``floating``, per joint (J = L - 1, link order) ``joint_names``, ``lower``/``upper`` (J,) limits
+    (+-inf: none), ``damping``, ``armature``, ``stiffness``, ``springref``, and per actuator ``actuator_joint``,
+    ``gear``, ``ctrl_lower``, ``ctrl_upper`` (motors: torque = gear * clip(ctrl)).
+    """
+
+    def __init__(self, model, *, max_edge: float | None = None) -> None:
+        links = model.links
+        L = len(links)
+        for k, link in enumerate(links):
+            if k == 0 and link.joints:
+                raise ValueError(
+                    f"articulation: the root link {link.name!r} has joints; root joints other than a free joint "
+                    "(a floating base) are not supported"
+                )
+            if k > 0 and len(link.joints) != 1:
+                raise ValueError(
+                    f"articulation: link {link.name!r} has {len(link.joints)} joints; one joint per moving link is "
+                    "supported (a body welded to its parent has none and is merged into it)"
+                )
+        self.name = model.name
+        self.floating = bool(model.floating)
+        self.names = tuple(link.name for link in links)
+        self.parent = np.array([link.parent for link in links], dtype=np.int64)
+        self.offset_R = np.stack([_quat_matrix(np.asarray(link.quat, float)) for link in links])
+        self.offset_p = np.stack([np.asarray(link.pos, float) for link in links])
+        joints = [None] + [link.joints[0] for link in links[1:]]
+        self.kind = ("root",) + tuple(j.kind for j in joints[1:])
+        z = np.zeros(3)
+        self.axis = np.stack([z] + [np.asarray(j.axis, float) / np.linalg.norm(j.axis) for j in joints[1:]])
+        self.anchor = np.stack([z] + [np.asarray(j.pos, float) for j in joints[1:]])
+        self.com = np.stack([np.asarray(link.com, float) for link in links])
+        self.joint_names = tuple(j.name for j in joints[1:])
+        rng = [j.range if j.range is not None else (-math.inf, math.inf) for j in joints[1:]]
+        self.lower = np.array([r[0] for r in rng], dtype=float)
+        self.upper = np.array([r[1] for r in rng], dtype=float)
+        self.damping = np.array([j.damping for j in joints[1:]], dtype=float)
+        self.armature = np.array([j.armature for j in joints[1:]], dtype=float)
+        self.stiffness = np.array([j.stiffness for j in joints[1:]], dtype=float)
+        self.springref = np.array([j.springref for j in joints[1:]], dtype=float)
+        ours = {name: i for i, name in enumerate(self.joint_names)}
+        act_joint, gear, lo, hi = [], [], [], []
+        for a in model.actuators:
+            if a.kind != "motor":
+                raise ValueError(
+                    f"articulation: actuator {a.name!r} is a {a.kind!r} actuator; motors are supported"
+                )
+            act_joint.append(ours[model.joints[a.joint].name] if model.joints[a.joint].name in ours else -1)
+            gear.append(a.gear)
+            r = a.ctrlrange if a.ctrlrange is not None else (-math.inf, math.inf)
+            lo.append(r[0])
+            hi.append(r[1])
+        self.actuator_joint = np.array(act_joint, dtype=np.int64)
+        self.gear = np.array(gear, dtype=float)
+        self.ctrl_lower = np.array(lo, dtype=float)
+        self.ctrl_upper = np.array(hi, dtype=float)
+        bodies = []
+        for k, link in enumerate(links):
+            V = np.asarray(link.mesh.vertices, dtype=np.float64)
+            F = np.asarray(link.mesh.faces, dtype=np.int64)
+            if k == 0 and not self.floating:
+                bodies.append(
+                    RigidBody(BSH.build(V, F, max_edge=max_edge), "static", 0.0, torch.zeros(3, 3, dtype=torch.float64),
+                              torch.zeros(3, dtype=torch.float64))
+                )  # fmt: skip
+                self.com[0] = 0.0  # a static body keeps its mesh's (the link's) frame
+                continue
+            S = np.asarray(link.second_moment, dtype=np.float64)
+            bodies.append(
+                RigidBody(
+                    BSH.build(V - self.com[k], F, max_edge=max_edge), "dynamic", float(link.mass),
+                    torch.from_numpy(0.5 * (S + S.T)).clone(), torch.from_numpy(self.com[k].copy()),
+                )
+            )  # fmt: skip
+        self.bodies = tuple(bodies)
+        self.num_links = L
+        self.num_joints = L - 1
+        self.num_actuators = len(self.gear)
+        #: coordinates of the step: the base pose (6, floating only), then the joints
+        self.num_coords = (6 if self.floating else 0) + self.num_joints
+
+    def poses(self, joints: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
+        """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
+        ([B,] 6) of the root link's frame (translation, rotation vector; fixed bases: where the root stands,
+        default the origin)."""
+        single = joints.dim() == 1
+        th = joints[None] if single else joints
+        if base is None:
+            base = th.new_zeros(th.shape[0], 6)
+        b = base[None] if base.dim() == 1 else base
+        b = b.expand(th.shape[0], 6)
+        if self.floating:
+            rows = _fk_rows(self, torch.cat([b, th], 1), None)
+        else:
+            rows = _fk_rows(self, th, b)
+            rows = torch.cat([b[:, None], rows[:, 1:]], 1)
+        return rows[0] if single else rows
+
+
+def articulation(source, *, max_edge: float | None = None, **mjcf_options) -> Articulation:
+    """An :class:`Articulation` from an MJCF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its options
+    pass through). A free joint on the root body makes a floating base; without one the root is fixed where the
+    state puts it."""
+    from .mjcf import load_mjcf
+
+    return Articulation(load_mjcf(source, **mjcf_options), max_edge=max_edge)
+
+
+# ------------------------------------------------------------------------------------------- forward kinematics
+def _rot_axis(a: torch.Tensor, th: torch.Tensor) -> torch.Tensor:
+    """(A, 3, 3) rotations by th (A,) about the unit axis a (3,)."""
+    K = torch.zeros(3, 3, dtype=th.dtype, device=th.device)
+    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -a[2], a[1], a[2], -a[0], -a[1], a[0]
+    eye = torch.eye(3, dtype=th.dtype, device=th.device)
+    s, c = torch.sin(th)[:, None, None], torch.cos(th)[:, None, None]
+    return eye + s * K + (1.0 - c) * (K @ K)
+
+
+def _exp(w: torch.Tensor) -> torch.Tensor:
+    """(A, 3, 3) rotation matrices of rotation vectors w (A, 3), in tensor ops only (``torch.func`` transforms
+    them; the library's :func:`cfd_torch.rotation.rotation_matrix` may run a numba kernel)."""
+    t2 = (w * w).sum(-1)
+    small = t2 < 1e-8
+    t2s = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(t2s)
+    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / t2s)
+    z = torch.zeros_like(w[:, 0])
+    K = torch.stack(
+        [torch.stack([z, -w[:, 2], w[:, 1]], -1), torch.stack([w[:, 2], z, -w[:, 0]], -1),
+         torch.stack([-w[:, 1], w[:, 0], z], -1)], -2,
+    )  # fmt: skip
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def _quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
+    """(A, 4) unit quaternions [w, x, y, z] (w >= 0) of rotation matrices (A, 3, 3) (Shepperd's method; every
+    branch finite, so autograd through the unused ones is harmless)."""
+    r00, r11, r22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = r00 + r11 + r22
+    d = torch.stack([tr, r00, r11, r22], 1)
+    k = d.argmax(1)
+    s0 = torch.sqrt((1.0 + tr).clamp_min(1e-20)) * 2.0
+    s1 = torch.sqrt((1.0 + r00 - r11 - r22).clamp_min(1e-20)) * 2.0
+    s2 = torch.sqrt((1.0 - r00 + r11 - r22).clamp_min(1e-20)) * 2.0
+    s3 = torch.sqrt((1.0 - r00 - r11 + r22).clamp_min(1e-20)) * 2.0
+    a21, a12, a02, a20, a10, a01 = R[:, 2, 1], R[:, 1, 2], R[:, 0, 2], R[:, 2, 0], R[:, 1, 0], R[:, 0, 1]
+    q0 = torch.stack([0.25 * s0, (a21 - a12) / s0, (a02 - a20) / s0, (a10 - a01) / s0], 1)
+    q1 = torch.stack([(a21 - a12) / s1, 0.25 * s1, (a01 + a10) / s1, (a02 + a20) / s1], 1)
+    q2 = torch.stack([(a02 - a20) / s2, (a01 + a10) / s2, 0.25 * s2, (a12 + a21) / s2], 1)
+    q3 = torch.stack([(a10 - a01) / s3, (a02 + a20) / s3, (a12 + a21) / s3, 0.25 * s3], 1)
+    q = torch.where(
+        (k == 0)[:, None], q0, torch.where((k == 1)[:, None], q1, torch.where((k == 2)[:, None], q2, q3))
+    )
+    return torch.where(q[:, :1] < 0, -q, q)
+
+
+def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
+    """Link frames (R (A, L, 3, 3), p (A, L, 3)) for coordinates q (A, Qa) (base pose first if floating) and, for a
+    fixed base, the root link frame's pose root (A, 6)."""
+    dt = q.dtype
+    base = q[:, :6] if art.floating else root
+    th = q[:, 6:] if art.floating else q
+    Rs = [_exp(base[:, 3:])]
+    ps = [base[:, :3]]
+    for i in range(1, art.num_links):
+        j = int(art.parent[i])
+        Rp, pp = Rs[j], ps[j]
+        Ro = torch.as_tensor(art.offset_R[i], dtype=dt, device=q.device)
+        po = torch.as_tensor(art.offset_p[i], dtype=dt, device=q.device)
+        R = Rp @ Ro
+        p = pp + Rp @ po
+        a = torch.as_tensor(art.axis[i], dtype=dt, device=q.device)
+        t = th[:, i - 1]
+        if art.kind[i] == "hinge":
+            c = torch.as_tensor(art.anchor[i], dtype=dt, device=q.device)
+            Rj = _rot_axis(a, t)
+            p = p + (R @ (c - Rj @ c)[..., None])[..., 0]
+            R = R @ Rj
+        else:
+            p = p + (R @ (a[None] * t[:, None])[..., None])[..., 0]
+        Rs.append(R)
+        ps.append(p)
+    return torch.stack(Rs, 1), torch.stack(ps, 1)
+
+
+def _fk_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor | None) -> torch.Tensor:
+    """(A, L, 6) the links' centre-of-mass poses (translation, rotation vector)."""
+    R, p = _fk_frames(art, q, root)
+    A, L = R.shape[:2]
+    com = torch.as_tensor(art.com, dtype=q.dtype, device=q.device)
+    t = p + (R @ com[None, :, :, None])[..., 0]
+    w = rotation_vector(_quat_from_matrix(R.reshape(A * L, 3, 3))).reshape(A, L, 3)
+    return torch.cat([t, w], -1)
+
+
+def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
+    """(A, Qa) the coordinates whose forward kinematics gives the link rows (A, L, 6) (base pose if floating, then
+    the joints)."""
+    dt, dev = rows.dtype, rows.device
+    R = rotation_matrix(rows[..., 3:])
+    com = torch.as_tensor(art.com, dtype=dt, device=dev)
+    p = rows[..., :3] - (R @ com[None, :, :, None])[..., 0]
+    out = []
+    for i in range(1, art.num_links):
+        j = int(art.parent[i])
+        Ro = torch.as_tensor(art.offset_R[i], dtype=dt, device=dev)
+        po = torch.as_tensor(art.offset_p[i], dtype=dt, device=dev)
+        F = R[:, j] @ Ro  # the joint's frame at zero
+        rel = F.transpose(-1, -2) @ R[:, i]  # rotate(a, theta) for a hinge, identity for a slide
+        a = torch.as_tensor(art.axis[i], dtype=dt, device=dev)
+        if art.kind[i] == "hinge":
+            sin = (
+                0.5
+                * torch.stack(
+                    [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]],
+                    -1,
+                )
+                @ a
+            )
+            cos = 0.5 * (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+            out.append(torch.atan2(sin, cos))
+        else:
+            d = F.transpose(-1, -2) @ (p[:, i] - p[:, j] - R[:, j] @ po)[..., None]
+            out.append((d[..., 0] * a).sum(-1))
+    th = torch.stack(out, 1) if out else rows.new_zeros(rows.shape[0], 0)
+    if not art.floating:
+        return th
+    base_w = rows[:, 0, 3:]
+    return torch.cat([p[:, 0], base_w, th], 1)
+
+
+# ------------------------------------------------------------------------------------------- joint-space terms
+def _limit_barrier(x: torch.Tensor, order: int):
+    """kappa b(x / w) and its first two derivatives in x (+inf for x <= 0; 0 for x >= w)."""
+    w, k = LIMIT_WIDTH, LIMIT_STIFFNESS
+    s = x / w
+    inside = (s > 0) & (s < 1)
+    ss = torch.where(inside, s, torch.full_like(s, 0.5))
+    ln = torch.log(ss)
+    v = torch.where(inside, -k * (ss - 1) ** 2 * ln, torch.zeros_like(s))
+    v = torch.where(s <= 0, torch.full_like(s, math.inf), v)
+    g = torch.where(inside, -k * (2 * (ss - 1) * ln + (ss - 1) ** 2 / ss) / w, torch.zeros_like(s))
+    h = torch.where(
+        inside, -k * (2 * ln + 4 * (ss - 1) / ss - (ss - 1) ** 2 / ss**2) / (w * w), torch.zeros_like(s)
+    )
+    return v, g, h
+
+
+class ArticulatedKinematics:
+    """The kinematics map of a scene with articulations (:class:`cfd_torch.sim.kinematics.Kinematics`): q = the
+    free dynamic bodies' poses (6 each), then per articulation its base pose (floating) and joint values.
+
+    Args:
+        free: (Nf,) rows of the free dynamic bodies.
+        arts: the articulations, with ``rows`` (the first row of each, links consecutive).
+        num_bodies: N.
+    """
+
+    #: converged bodies are not frozen one by one (an articulation's coordinates move all its links)
+    freezable = False
+
+    def __init__(
+        self, free: torch.Tensor, arts: Sequence[Articulation], first_rows: Sequence[int], num_bodies: int
+    ):
+        self.free = free
+        self.arts = tuple(arts)
+        self.first = tuple(int(r) for r in first_rows)
+        self.num_bodies = num_bodies
+        moving, coord_body, start = [int(i) for i in free], [], 6 * len(free)
+        coord_body = [k // 6 for k in range(6 * len(free))]
+        self.coord_slices = []
+        for art, r in zip(self.arts, self.first, strict=True):
+            lo = 0 if art.floating else 1
+            owner = len(moving)
+            moving += list(range(r + lo, r + art.num_links))
+            self.coord_slices.append(slice(start, start + art.num_coords))
+            coord_body += [owner] * art.num_coords
+            start += art.num_coords
+        self.bodies = torch.tensor(moving, dtype=torch.long)
+        self.coord_body = torch.tensor(coord_body, dtype=torch.long)
+        self.num_coords = start
+        self._f6 = (free[:, None] * 6 + torch.arange(6)).reshape(-1)
+        # joint coordinates of all articulations (indices into q) and their per-joint data
+        jidx, hinge, data = (
+            [],
+            [],
+            {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref")},
+        )
+        for art, sl in zip(self.arts, self.coord_slices, strict=True):
+            j0 = sl.start + (6 if art.floating else 0)
+            jidx += list(range(j0, j0 + art.num_joints))
+            hinge += [k == "hinge" for k in art.kind[1:]]
+            for key, vals in data.items():
+                vals += list(getattr(art, key))
+        self.joint_index = torch.tensor(jidx, dtype=torch.long)
+        self.hinge = torch.tensor(hinge, dtype=torch.bool)
+        self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
+
+    # -- the map
+    def _rows(self, art: Articulation, qa: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        rows = _fk_rows(art, qa, None if art.floating else root)
+        return rows if art.floating else rows[:, 1:]
+
+    def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        out = fixed.clone()
+        A = q.shape[0]
+        out[:, self.free.to(q.device)] = q[:, : 6 * len(self.free)].reshape(A, -1, 6)
+        for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
+            lo = 0 if art.floating else 1
+            out[:, r + lo : r + art.num_links] = self._rows(art, q[:, sl], fixed[:, r])
+        return out
+
+    def coords(self, poses: torch.Tensor) -> torch.Tensor:
+        parts = [poses[:, self.free.to(poses.device)].reshape(poses.shape[0], -1)]
+        for art, r in zip(self.arts, self.first, strict=True):
+            parts.append(_joint_values(art, poses[:, r : r + art.num_links]))
+        return torch.cat(parts, 1)
+
+    def _derivatives(self, q: torch.Tensor, fixed: torch.Tensor, second: bool):
+        """Per articulation: its moving rows [r0, r1), its coordinates' slice, the Jacobian (A, 6 La, Qa) of those
+        rows and, with ``second``, their second derivatives (A, 6 La, Qa, Qa) (one nested forward-mode pass)."""
+        out = []
+        for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
+            lo = 0 if art.floating else 1
+
+            def f(qa, rt, art=art):
+                return self._rows(art, qa[None], rt[None])[0].reshape(-1)
+
+            if second:
+
+                def jac(qa, rt, f=f):
+                    J = torch.func.jacfwd(f)(qa, rt)
+                    return J, J
+
+                D2, J = torch.func.vmap(torch.func.jacfwd(jac, has_aux=True))(q[:, sl], fixed[:, r])
+            else:
+                J, D2 = torch.func.vmap(torch.func.jacfwd(f))(q[:, sl], fixed[:, r]), None
+            out.append((r + lo, r + art.num_links, sl, J, D2))
+        return out
+
+    def pullback(self, q, grad, hess, fixed):
+        A, N = grad.shape[:2]
+        J = grad.new_zeros(A, 6 * N, self.num_coords)
+        nf = 6 * len(self.free)
+        if nf:
+            J[:, self._f6.to(q.device), torch.arange(nf, device=q.device)] = 1.0
+        second = grad.new_zeros(A, self.num_coords, self.num_coords)
+        g6 = grad.reshape(A, 6 * N)
+        want = hess is not None and bool((grad != 0).any())  # a pure Hessian pull-back needs no d2pose/dq2
+        for r0, r1, sl, Ja, D2 in self._derivatives(q, fixed, want):
+            J[:, 6 * r0 : 6 * r1, sl] = Ja
+            if D2 is not None:
+                second[:, sl, sl] = torch.einsum("ak,akij->aij", g6[:, 6 * r0 : 6 * r1], D2)
+        gq = (J.transpose(1, 2) @ g6[..., None])[..., 0]
+        if hess is None:
+            return gq, None
+        return gq, J.transpose(1, 2) @ hess @ J + second
+
+    def push(self, q, v, fixed):
+        A = q.shape[0]
+        out = v.new_zeros(A, self.num_bodies, 6)
+        out[:, self.free.to(v.device)] = v[:, : 6 * len(self.free)].reshape(A, -1, 6)
+        for r0, r1, sl, Ja, _ in self._derivatives(q, fixed, False):
+            out[:, r0:r1] = (Ja @ v[:, sl, None])[..., 0].reshape(A, r1 - r0, 6)
+        return out
+
+    def extrapolate(self, q_t: torch.Tensor, q_p: torch.Tensor) -> torch.Tensor:
+        v = q_t - q_p
+        hinge = self.joint_index[self.hinge].to(q_t.device)
+        v[:, hinge] = torch.remainder(v[:, hinge] + math.pi, 2 * math.pi) - math.pi
+        for sl, art in zip(self.coord_slices, self.arts, strict=True):  # bases: like free bodies
+            if art.floating:
+                w = v[:, sl.start + 3 : sl.start + 6]
+                v[:, sl.start : sl.start + 6] *= (w.abs() < 1.0).all(-1, keepdim=True).to(v.dtype)
+        nf = 6 * len(self.free)
+        vf = v[:, :nf].reshape(v.shape[0], -1, 6)
+        v[:, :nf] = (vf * (vf[..., 3:].abs() < 1.0).all(-1, keepdim=True).to(v.dtype)).reshape(v.shape[0], -1)
+        return q_t + v
+
+    def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        out = q.clone()
+        nf = 6 * len(self.free)
+        f = out[:, :nf].reshape(q.shape[0], -1, 6)
+        f[..., :3] += shift[:, None, :]
+        out[:, :nf] = f.reshape(q.shape[0], -1)
+        for sl, art in zip(self.coord_slices, self.arts, strict=True):
+            if art.floating:
+                out[:, sl.start : sl.start + 3] += shift
+        return out
+
+    # -- joint-space terms
+    def joint_terms(self, q, q_t, q_p, torque, dt: float, order: int):
+        """Armature, damping, springs, limits and joint torques (A, J) of all joints at q (A, Q), with q_t and q_p
+        the coordinates one and two steps earlier: value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``)."""
+        idx = self.joint_index.to(q.device)
+        d = {k: v.to(dtype=q.dtype, device=q.device) for k, v in self.joint_data.items()}
+        th, tt, tp = q[:, idx], q_t[:, idx], q_p[:, idx]
+        hinge = self.hinge.to(q.device)
+        # hinge values are angles: differences taken mod 2 pi (the state's values live in (-pi, pi])
+        wrap = lambda x: torch.where(hinge, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
+        acc = wrap(th - tt) - wrap(tt - tp)
+        vel = wrap(th - tt)
+        spring = th - d["springref"]
+        vl, gl, hl = _limit_barrier(th - d["lower"], order)
+        vu, gu, hu = _limit_barrier(d["upper"] - th, order)
+        inv = 1.0 / (dt * dt)
+        value = (
+            0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2
+            + 0.5 * d["stiffness"] * spring**2 + vl + vu - torque * vel
+        ).sum(1)  # fmt: skip
+        if order == 0:
+            return value, None, None
+        g = inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + gl - gu - torque
+        grad = q.new_zeros(q.shape).index_add(1, idx, g)
+        if order == 1:
+            return value, grad, None
+        h = inv * d["armature"] + d["damping"] / dt + d["stiffness"] + hl + hu
+        hess = q.new_zeros(q.shape[0], q.shape[1], q.shape[1])
+        hess[:, idx, idx] = h
+        return value, grad, hess
+
+    def motor_torque(self, ctrl: torch.Tensor) -> torch.Tensor:
+        """(A, J) joint torques of the motors' controls ctrl (A, U) (clipped to their ctrlrange, times gear)."""
+        out = ctrl.new_zeros(ctrl.shape[0], len(self.joint_index))
+        j0, u0 = 0, 0
+        for art in self.arts:
+            U = art.num_actuators
+            if U:
+                c = ctrl[:, u0 : u0 + U]
+                lo = torch.as_tensor(art.ctrl_lower, dtype=c.dtype, device=c.device)
+                hi = torch.as_tensor(art.ctrl_upper, dtype=c.dtype, device=c.device)
+                tau = torch.as_tensor(art.gear, dtype=c.dtype, device=c.device) * torch.maximum(
+                    torch.minimum(c, hi), lo
+                )
+                jj = torch.as_tensor(art.actuator_joint, device=c.device)
+                keep = jj >= 0
+                out[:, j0 + jj[keep]] += tau[:, keep]
+            j0 += art.num_joints
+            u0 += U
+        return out
+
+    @property
+    def num_actuators(self) -> int:
+        return sum(a.num_actuators for a in self.arts)
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_index)

@@ -1,0 +1,134 @@
+"""Articulated bodies in the step: a hinged physical pendulum built from link data (no MJCF), against implicit
+Euler's closed form, with joint terms, a motor, limits and the rollout gradient."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace as NS
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from cfd_torch import Action, Scene, State
+from cfd_torch.sim.articulation import Articulation
+from cfd_torch.sim.stepper import rollout, step
+
+F64 = torch.float64
+L, W, RHO = 0.5, 0.05, 1000.0
+
+
+def _pendulum(*, damping=0.0, armature=0.0, limits=None, gear=None, floating=False) -> Articulation:
+    """A 0.05 x 0.05 x 0.5 m bar hanging from a hinge about y at the root's origin."""
+    bar = trimesh.creation.box((W, W, L))
+    bar.apply_translation((0.0, 0.0, -L / 2))
+    m = RHO * W * W * L
+    Ic = m / 12.0 * np.diag([W * W + L * L, W * W + L * L, 2 * W * W])
+    S = 0.5 * np.trace(Ic) * np.eye(3) - Ic
+    root = trimesh.creation.box((0.04, 0.04, 0.04))
+    root.apply_translation((0.0, 0.0, 0.1))
+    joint = NS(
+        name="hinge", kind="hinge", axis=np.array([0.0, 1.0, 0.0]), pos=np.zeros(3), range=limits,
+        damping=damping, armature=armature, stiffness=0.0, springref=0.0,
+    )  # fmt: skip
+    m_root = RHO * 0.04**3
+    links = (
+        NS(name="root", parent=-1, pos=np.zeros(3), quat=np.array([1.0, 0, 0, 0]), joints=(), mesh=root,
+           mass=m_root, com=np.array([0.0, 0.0, 0.1]), second_moment=m_root * 0.04**2 / 12 * np.eye(3)),
+        NS(name="bar", parent=0, pos=np.zeros(3), quat=np.array([1.0, 0, 0, 0]), joints=(joint,), mesh=bar,
+           mass=m, com=np.array([0.0, 0.0, -L / 2]), second_moment=S),
+    )  # fmt: skip
+    acts = (
+        () if gear is None else (NS(name="motor", joint=0, kind="motor", gear=gear, ctrlrange=(-1.0, 1.0)),)
+    )
+    return Articulation(NS(name="pendulum", links=links, joints=(joint,), actuators=acts, floating=floating))
+
+
+def _omega(art: Articulation) -> tuple[float, float]:
+    b = art.bodies[1]
+    m = b.mass
+    I_c = float(b.inertia[1, 1])
+    I_p = I_c + m * (L / 2) ** 2
+    return math.sqrt(m * 9.81 * (L / 2) / I_p), I_p
+
+
+def _angles(scene: Scene, traj) -> np.ndarray:
+    return scene.kinematics.coords(traj.q.reshape(-1, *traj.q.shape[-2:]))[:, 0].detach().numpy()
+
+
+def test_pendulum_period_and_decay_match_implicit_euler():
+    art = _pendulum()
+    dt = 0.02
+    scene = Scene([], articulations=[art], dt=dt)
+    q0 = art.poses(torch.tensor([0.01], dtype=F64), torch.zeros(6, dtype=F64))
+    th = _angles(scene, rollout(scene, State(q0, q0.clone()), 80))
+    om, _ = _omega(art)
+    z = [i + th[i] / (th[i] - th[i + 1]) for i in range(len(th) - 1) if th[i] > 0 >= th[i + 1]]
+    assert len(z) == 2
+    # implicit Euler on theta'' = -om^2 theta: roots (1 +- i om dt) / (1 + om^2 dt^2), argument atan(om dt),
+    # modulus (1 + om^2 dt^2)^-1/2
+    assert z[1] - z[0] == pytest.approx(2 * math.pi / math.atan(om * dt), rel=1e-4)
+    env = lambda k: math.hypot(th[k], (th[k] - th[k - 1]) / math.tan(math.atan(om * dt)))  # noqa: E731
+    n = int(z[1] - z[0])
+    assert env(1 + n) / env(1) == pytest.approx((1.0 + (om * dt) ** 2) ** (-n / 2), rel=2e-2)
+
+
+def test_damping_and_armature_match_the_linear_recursion():
+    """Small swings with joint damping d and armature a follow implicit Euler's scalar recursion
+    (I_p + a)(th' - 2 th + th_) / dt^2 + d (th' - th) / dt + m g l_c th' = 0 (sin th ~ th)."""
+    d, a, dt = 0.05, 0.01, 0.01
+    art = _pendulum(damping=d, armature=a)
+    scene = Scene([], articulations=[art], dt=dt)
+    q0 = art.poses(torch.tensor([0.01], dtype=F64), torch.zeros(6, dtype=F64))
+    th = _angles(scene, rollout(scene, State(q0, q0.clone()), 60))
+    om, I_p = _omega(art)
+    k = om * om * I_p
+    ref = [0.01, 0.01]
+    for _ in range(60):
+        t, tp = ref[-1], ref[-2]
+        ref.append(((I_p + a) / dt**2 * (2 * t - tp) + d / dt * t) / ((I_p + a) / dt**2 + d / dt + k))
+    ref = np.array(ref[1:])
+    assert np.abs(th - ref).max() < 1e-3 * 0.01
+    assert np.abs(th[-20:]).max() < 0.9 * np.abs(ref[:20]).max()  # it did decay
+
+
+def test_limits_are_never_crossed_under_a_large_torque():
+    art = _pendulum(limits=(-0.2, 0.2), gear=200.0)
+    scene = Scene([], articulations=[art], dt=0.01)
+    q0 = art.poses(torch.tensor([0.0], dtype=F64), torch.zeros(6, dtype=F64))
+    traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=torch.tensor([1.0], dtype=F64))] * 25)
+    th = _angles(scene, traj)
+    assert th.max() > 0.19  # pushed against the limit
+    assert th.max() < 0.2  # and never through it
+
+
+def test_rollout_gradient_matches_finite_differences():
+    art = _pendulum(damping=0.1, armature=0.01, gear=1.0)
+    scene = Scene([], articulations=[art], dt=0.01)
+
+    def final(th0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        q0 = art.poses(th0[None], torch.zeros(6, dtype=F64))
+        traj = rollout(scene, State(q0, q0), [Action(ctrl=u[None])] * 8)
+        return scene.kinematics.coords(traj.q[-1][None])[0, 0]
+
+    th0 = torch.tensor(0.2, dtype=F64, requires_grad=True)
+    u = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    g_th, g_u = torch.autograd.grad(final(th0, u), (th0, u))
+    assert abs(float(g_th)) > 1e-3 and abs(float(g_u)) > 1e-4
+    h = 1e-6
+    with torch.no_grad():
+        fd_th = (final(th0 + h, u) - final(th0 - h, u)) / (2 * h)
+        fd_u = (final(th0, u + h) - final(th0, u - h)) / (2 * h)
+    assert float(g_th) == pytest.approx(float(fd_th), rel=1e-5)
+    assert float(g_u) == pytest.approx(float(fd_u), rel=1e-5)
+
+
+def test_bad_ctrl_is_refused():
+    art = _pendulum(gear=1.0)
+    scene = Scene([], articulations=[art], dt=0.01)
+    q0 = art.poses(torch.tensor([0.0], dtype=F64), torch.zeros(6, dtype=F64))
+    with pytest.raises(ValueError, match="action.ctrl must have shape"):
+        step(scene, State(q0, q0), Action(ctrl=torch.zeros(2, dtype=F64)))
+    with pytest.raises(ValueError, match="action.ctrl must be a float tensor"):
+        step(scene, State(q0, q0), Action(ctrl=torch.zeros(1, dtype=torch.long)))
