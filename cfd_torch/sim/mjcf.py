@@ -1,0 +1,659 @@
+"""MJCF front end of articulated bodies: MuJoCo XML -> links, joints, collision meshes, mass properties, actuators.
+
+`load_mjcf` parses an MJCF file or string with MuJoCo itself (an `MjSpec` for what the compiled model does not keep:
+a geom's density or explicit mass, whether a body has an `<inertial>` element; the compiled `MjModel` for
+everything else), so that default classes, `fromto`, `angle`, `euler`/`axisangle`/`xyaxes`/`zaxis` orientations,
+`limited`/`autolimits` are resolved exactly as MuJoCo resolves them.
+
+Links are the bodies that carry at least one joint, plus the root body; a body without joints is welded into its
+parent's link (its geoms, mass and pose composed into that link's frame). A link's pose at joint values q is
+
+    T_link = T_parent @ [quat, pos] @ J_1(q_1) @ J_2(q_2) @ ...     (joints in MJCF order)
+    J(q) = translate(pos) @ rotate(axis, q) @ translate(-pos)       (hinge: about the line through pos along axis)
+    J(q) = translate(axis * q)                                      (slide)
+
+with each joint's pos and axis in the link frame, which is MuJoCo's `mj_kinematics` (it right-multiplies the body
+orientation by each joint's local rotation, in order, keeping the joint anchor fixed). A free joint on the root
+makes the model floating: the root pose is then a separate floating base, not a joint.
+
+Mass properties are analytic (density x volume of the ideal shape, not of the triangulated mesh) and reproduce
+MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding; MuJoCo's principal
+axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
+relative where principal moments nearly coincide). Refused with a `ValueError`
+naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
+joints with a nonzero `ref`, unnamed bodies and joints, actuators other than joint-driven motors and position
+servos, compiler options that rescale masses (`settotalmass`, `boundmass`, `boundinertia`, `balanceinertia`).
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import math
+import os
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+import trimesh
+
+__all__ = [
+    "ActuatorSpec",
+    "GeomSpec",
+    "JointSpec",
+    "LinkSpec",
+    "MJCFModel",
+    "gymnasium_ant_xml",
+    "load_mjcf",
+]
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """A hinge or slide joint; q is MuJoCo's qpos of the joint (a nonzero MJCF `ref` is refused, so q = 0 is the
+    pose written in the MJCF).
+
+    Attributes:
+        name: joint name.
+        kind: "hinge" or "slide".
+        axis: (3,) unit axis in the link frame.
+        pos: (3,) anchor in the link frame; a hinge turns about the line through pos along axis.
+        range: (lower, upper) in radians (hinge) or metres (slide) when MuJoCo limits the joint, else None.
+        damping: viscous damping [N m s/rad or N s/m].
+        armature: rotor inertia added to the joint's diagonal of the mass matrix.
+        stiffness: joint spring stiffness toward `springref`, 0 if absent.
+        springref: spring rest value of q.
+    """
+
+    name: str
+    kind: str
+    axis: np.ndarray
+    pos: np.ndarray
+    range: tuple[float, float] | None
+    damping: float
+    armature: float
+    stiffness: float
+    springref: float
+
+
+@dataclass(frozen=True)
+class GeomSpec:
+    """One MJCF geom, expressed in the frame of the link it belongs to.
+
+    Attributes:
+        name: geom name ("" when the MJCF leaves it unnamed).
+        body: name of the MuJoCo body it belongs to (the link's body or one welded to it).
+        kind: "sphere", "capsule", "box", "cylinder" or "ellipsoid".
+        size: (3,) MuJoCo's compiled size: radius; radius, half-length; half-sizes; radius, half-height; radii.
+        pos: (3,) geom centre in the link frame.
+        quat: (4,) w, x, y, z: geom frame orientation in the link frame (capsule/cylinder axis = geom z).
+        mass: analytic mass [kg] (0 for geoms outside `inertiagrouprange` or in a body with an `<inertial>` used).
+        contype: MuJoCo contact type bits.
+        conaffinity: MuJoCo contact affinity bits.
+        mesh: closed, outward-wound triangulation in the link frame (inscribed in the ideal shape).
+    """
+
+    name: str
+    body: str
+    kind: str
+    size: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    mass: float
+    contype: int
+    conaffinity: int
+    mesh: trimesh.Trimesh
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """A rigid link: a body with joints (or the root) plus the joint-less bodies welded to it.
+
+    Attributes:
+        name: body name.
+        parent: index into `MJCFModel.links` of the parent link, -1 for the root link.
+        pos: (3,) link frame origin in the parent link frame at zero joint values (root: in the world frame).
+        quat: (4,) w, x, y, z: link frame orientation in the parent link frame (root: in the world frame).
+        joints: the link's joints, applied in MJCF order.
+        mesh: all the link's geoms (welded bodies included) in the link frame, concatenated; each geom's mesh is
+            closed, the union need not be.
+        mass: link mass [kg].
+        com: (3,) centre of mass in the link frame.
+        second_moment: (3, 3) S = int rho X X^T dV about the COM, link frame axes (inertia = tr(S) I - S).
+        geoms: the geoms making up `mesh`, in MuJoCo order.
+        bodies: names of the MuJoCo bodies of the link (the link's own body first, then those welded to it).
+    """
+
+    name: str
+    parent: int
+    pos: np.ndarray
+    quat: np.ndarray
+    joints: tuple[JointSpec, ...]
+    mesh: trimesh.Trimesh
+    mass: float
+    com: np.ndarray
+    second_moment: np.ndarray
+    geoms: tuple[GeomSpec, ...]
+    bodies: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ActuatorSpec:
+    """A joint actuator, with MuJoCo's semantics: the actuator length is l = gear q, its force is
+    f = gain ctrl + bias, and the joint receives the generalised force gear f. Hence
+
+        motor:    tau = gear * ctrl
+        position: tau = gear * (kp (ctrl - gear q) - kv gear qdot)      (= kp (ctrl - q) - kv qdot for gear 1)
+
+    with ctrl clipped to ctrlrange and f clipped to forcerange where given.
+
+    Attributes:
+        name: actuator name ("" when unnamed).
+        joint: index into `MJCFModel.joints`.
+        kind: "motor" or "position".
+        gear: gear[0] of the MJCF.
+        ctrlrange: (lower, upper) when MuJoCo limits the control, else None.
+        kp: position gain (0 for motors).
+        kv: velocity gain (0 for motors).
+        forcerange: (lower, upper) clip of f when MuJoCo limits the force, else None.
+    """
+
+    name: str
+    joint: int
+    kind: str
+    gear: float
+    ctrlrange: tuple[float, float] | None
+    kp: float
+    kv: float
+    forcerange: tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class MJCFModel:
+    """An articulated model read from MJCF.
+
+    Attributes:
+        name: MJCF model name.
+        links: parents before children; links[0] is the root.
+        joints: all joints, in link order then MJCF order.
+        link_joint: per link, indices into `joints`.
+        actuators: joint actuators in MJCF order.
+        floating: the root body had a free joint (kept outside `joints`: a floating base).
+        chain: float64 `pytorch_kinematics.Chain` built from `xml` with the root's free joint removed, or None where
+            pytorch-kinematics cannot reproduce MuJoCo's kinematics (several joints on one body, or a joint
+            anchor pos != 0, which it mis-handles: it translates by pos without translating back).
+        xml: the MJCF text actually used (after any patching; the free joint kept).
+    """
+
+    name: str
+    links: tuple[LinkSpec, ...]
+    joints: tuple[JointSpec, ...]
+    link_joint: tuple[tuple[int, ...], ...]
+    actuators: tuple[ActuatorSpec, ...]
+    floating: bool
+    chain: object
+    xml: str
+
+
+_GEOM_KINDS = {
+    int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
+    int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
+    int(mujoco.mjtGeom.mjGEOM_BOX): "box",
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
+}
+_JOINT_KINDS = {int(mujoco.mjtJoint.mjJNT_HINGE): "hinge", int(mujoco.mjtJoint.mjJNT_SLIDE): "slide"}
+_FREE = int(mujoco.mjtJoint.mjJNT_FREE)
+# Prefix of the private names given to unnamed geoms, to match the spec's geoms with the compiled ones.
+_GEOM_TAG = "__cfd_torch_geom_"
+
+
+def gymnasium_ant_xml() -> str:
+    """Gymnasium's bundled ant.xml with its four unnamed shin bodies named "ankle_1_link" .. "ankle_4_link"
+    (pytorch-kinematics keys frames by body name); everything else unchanged."""
+    text = (importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / "ant.xml").read_text()
+    count = iter(range(1, 5))
+    patched, n = re.subn(r"<body pos=", lambda _: f'<body name="ankle_{next(count)}_link" pos=', text)
+    if n != 4:
+        raise ValueError(f"gymnasium's ant.xml changed: expected 4 unnamed bodies, found {n}")
+    return patched
+
+
+def load_mjcf(
+    source: str | os.PathLike,
+    *,
+    root: str | None = None,
+    sphere_subdivisions: int = 2,
+    capsule_count: tuple[int, int] = (12, 6),
+    cylinder_sections: int = 16,
+) -> MJCFModel:
+    """Read an articulated model from MJCF.
+
+    Args:
+        source: path of an MJCF file, or the MJCF text itself (anything starting with "<").
+        root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
+            model; the worldbody's own geoms (floors) and other top-level bodies are ignored.
+        sphere_subdivisions: icosphere subdivisions of sphere and ellipsoid meshes.
+        capsule_count: (longitude, latitude) counts of capsule meshes (trimesh.creation.capsule).
+        cylinder_sections: sections of cylinder meshes.
+
+    Returns:
+        The model; see `MJCFModel`.
+
+    Raises:
+        ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it.
+    """
+    if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
+        with open(source) as f:
+            xml = f.read()
+    else:
+        xml = str(source)
+    spec = mujoco.MjSpec.from_string(xml)
+    root = _root_name(spec, root)
+    _check_spec(spec)
+    geom_source = _tag_geoms(spec)
+    explicit_inertial = {b.name: bool(b.explicitinertial) for b in spec.bodies}
+    inertiafromgeom = mujoco.mjtInertiaFromGeom(spec.compiler.inertiafromgeom)
+    group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
+    m = spec.compile()
+
+    root_id = m.body(root).id
+    floating, root_pos, root_quat = _root_pose(m, root_id)
+
+    # Bodies of the root's subtree; MuJoCo numbers bodies depth-first, so parents come before children.
+    in_tree = {root_id}
+    for b in range(root_id + 1, m.nbody):
+        if int(m.body_parentid[b]) in in_tree:
+            in_tree.add(b)
+    bodies = sorted(in_tree)
+
+    link_of: dict[int, int] = {}  # body id -> link index
+    T_in_link: dict[int, np.ndarray] = {}  # body id -> (4, 4) body frame in its link frame
+    link_bodies: list[list[int]] = []
+    link_parent: list[int] = []
+    link_pose: list[np.ndarray] = []
+    joints: list[JointSpec] = []
+    joint_index: dict[int, int] = {}  # MuJoCo joint id -> index into joints
+    link_joint: list[tuple[int, ...]] = []
+    for b in bodies:
+        parent = int(m.body_parentid[b])
+        if not m.body(b).name:
+            raise ValueError(
+                f"body at pos {m.body_pos[b].tolist()} in body '{m.body(parent).name or 'world'}' has no name"
+            )
+        jids = list(range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]))
+        if b == root_id:
+            jids = [j for j in jids if m.jnt_type[j] != _FREE]
+            pose = _transform(root_pos, root_quat)
+        else:
+            pose = T_in_link[parent] @ _transform(m.body_pos[b], m.body_quat[b])
+        if b == root_id or jids:
+            link_of[b] = len(link_bodies)
+            T_in_link[b] = np.eye(4)
+            link_bodies.append([b])
+            link_parent.append(-1 if b == root_id else link_of[parent])
+            link_pose.append(pose)
+            link_joint.append(tuple(range(len(joints), len(joints) + len(jids))))
+            for j in jids:
+                joint_index[j] = len(joints)
+                joints.append(_joint_spec(m, j))
+        else:
+            link_of[b] = link_of[parent]
+            T_in_link[b] = pose
+            link_bodies[link_of[b]].append(b)
+
+    links = []
+    for k, group in enumerate(link_bodies):
+        geoms: list[GeomSpec] = []
+        # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
+        parts: list[tuple[float, np.ndarray, np.ndarray]] = []
+        for b in group:
+            T = T_in_link[b]
+            # MuJoCo's rule: inertiafromgeom "false" takes every body's <inertial> (none: massless), "auto" the
+            # <inertial> where there is one, "true" always the geoms.
+            inertial = inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE or (
+                inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
+                and explicit_inertial[m.body(b).name]
+            )
+            if inertial:
+                R = T[:3, :3] @ _quat_to_matrix(m.body_iquat[b])
+                inertia = R @ np.diag(m.body_inertia[b]) @ R.T
+                parts.append(
+                    (float(m.body_mass[b]), T[:3, :3] @ m.body_ipos[b] + T[:3, 3], _inertia_to_S(inertia))
+                )
+            for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
+                # MuJoCo infers masses from the geoms in inertiagrouprange only.
+                counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
+                geom = _geom_spec(
+                    m, g, T, geom_source, sphere_subdivisions, capsule_count, cylinder_sections, counts
+                )
+                if counts:
+                    R = _quat_to_matrix(geom.quat)
+                    parts.append((geom.mass, geom.pos, R @ _geom_second_moment(geom) @ R.T))
+                geoms.append(geom)
+        mass, com, S = _combine(parts)
+        pose = link_pose[k]
+        links.append(
+            LinkSpec(
+                name=m.body(group[0]).name,
+                parent=link_parent[k],
+                pos=pose[:3, 3].copy(),
+                quat=_matrix_to_quat(pose[:3, :3]),
+                joints=tuple(joints[i] for i in link_joint[k]),
+                mesh=trimesh.util.concatenate([g.mesh for g in geoms]) if geoms else trimesh.Trimesh(),
+                mass=mass,
+                com=com,
+                second_moment=S,
+                geoms=tuple(geoms),
+                bodies=tuple(m.body(b).name for b in group),
+            )
+        )
+
+    actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu))
+    pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) for j in joints)
+    return MJCFModel(
+        name=spec.modelname,
+        links=tuple(links),
+        joints=tuple(joints),
+        link_joint=tuple(link_joint),
+        actuators=actuators,
+        floating=floating,
+        chain=_build_chain(xml, root) if pk_ok else None,
+        xml=xml,
+    )
+
+
+def _root_name(spec: mujoco.MjSpec, root: str | None) -> str:
+    top = [b.name for b in spec.worldbody.bodies]
+    if root is None:
+        if len(top) != 1:
+            raise ValueError(f"the worldbody has {len(top)} top-level bodies {top}: pass root=")
+        root = top[0]
+    if spec.find_body(root) is None:
+        raise ValueError(f"no body named '{root}'")
+    return root
+
+
+def _check_spec(spec: mujoco.MjSpec) -> None:
+    """Refusals that MuJoCo's compiler would report less precisely, or that would change the masses."""
+    top = {b.name for b in spec.worldbody.bodies}
+    for body in spec.bodies:
+        for joint in body.joints:
+            if joint.type == mujoco.mjtJoint.mjJNT_FREE and body.name not in top:
+                raise ValueError(
+                    f"free joint '{joint.name}' in body '{body.name}': only the root body may have a free joint"
+                )
+    c = spec.compiler
+    if c.settotalmass > 0 or c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
+        raise ValueError("compiler settotalmass/boundmass/boundinertia/balanceinertia are not supported")
+
+
+def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:
+    """Name the unnamed geoms privately; return compiled name -> (MJCF name, density, explicit mass or nan,
+    shell inertia)."""
+    source = {}
+    for k, geom in enumerate(spec.geoms):
+        name = geom.name
+        if not name:
+            geom.name = f"{_GEOM_TAG}{k}"
+        shell = geom.typeinertia == mujoco.mjtGeomInertia.mjINERTIA_SHELL
+        source[geom.name] = (name, float(geom.density), float(geom.mass), shell)
+    return source
+
+
+def _root_pose(m: mujoco.MjModel, root_id: int) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Whether the root is floating, and its world pose at qpos0 (its ancestors must be joint-less)."""
+    jids = range(m.body_jntadr[root_id], m.body_jntadr[root_id] + m.body_jntnum[root_id])
+    free = [j for j in jids if m.jnt_type[j] == _FREE]
+    if free and m.body_jntnum[root_id] > 1:
+        raise ValueError(f"body '{m.body(root_id).name}' has a free joint and other joints")
+    T = _transform(m.body_pos[root_id], m.body_quat[root_id])
+    b = int(m.body_parentid[root_id])
+    while b != 0:
+        if m.body_jntnum[b]:
+            raise ValueError(
+                f"root body '{m.body(root_id).name}' has an ancestor with joints, '{m.body(b).name}'"
+            )
+        T = _transform(m.body_pos[b], m.body_quat[b]) @ T
+        b = int(m.body_parentid[b])
+    return bool(free), T[:3, 3].copy(), _matrix_to_quat(T[:3, :3])
+
+
+def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
+    joint = m.joint(j)
+    kind = _JOINT_KINDS.get(int(m.jnt_type[j]))
+    where = f"joint '{joint.name}' of body '{m.body(m.jnt_bodyid[j]).name}'"
+    if kind is None:
+        type_name = mujoco.mjtJoint(int(m.jnt_type[j])).name.removeprefix("mjJNT_").lower()
+        raise ValueError(f"{where}: {type_name} joints are not supported (hinge and slide only)")
+    if not joint.name:
+        raise ValueError(f"unnamed {kind} joint of body '{m.body(m.jnt_bodyid[j]).name}'")
+    qadr, dadr = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])
+    if m.qpos0[qadr] != 0:
+        raise ValueError(f"{where}: a nonzero ref ({m.qpos0[qadr]}) is not supported")
+    return JointSpec(
+        name=joint.name,
+        kind=kind,
+        axis=m.jnt_axis[j].copy(),
+        pos=m.jnt_pos[j].copy(),
+        range=(float(m.jnt_range[j, 0]), float(m.jnt_range[j, 1])) if m.jnt_limited[j] else None,
+        damping=float(m.dof_damping[dadr]),
+        armature=float(m.dof_armature[dadr]),
+        stiffness=float(m.jnt_stiffness[j]),
+        springref=float(m.qpos_spring[qadr]),
+    )
+
+
+def _geom_spec(
+    m: mujoco.MjModel,
+    g: int,
+    T_link_body: np.ndarray,
+    source: dict[str, tuple[str, float, float, bool]],
+    sphere_subdivisions: int,
+    capsule_count: tuple[int, int],
+    cylinder_sections: int,
+    counts: bool,
+) -> GeomSpec:
+    compiled_name = m.geom(g).name
+    name, density, explicit_mass, shell = source[compiled_name]
+    kind = _GEOM_KINDS.get(int(m.geom_type[g]))
+    label = f"'{name}'" if name else f"#{g - m.body_geomadr[m.geom_bodyid[g]]} (unnamed)"
+    if shell and counts:
+        raise ValueError(
+            f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}': shell inertia is not supported"
+        )
+    if kind is None:
+        type_name = mujoco.mjtGeom(int(m.geom_type[g])).name.removeprefix("mjGEOM_").lower()
+        raise ValueError(
+            f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}' has unsupported type {type_name}"
+        )
+    size = m.geom_size[g].copy()
+    volume = _volume(kind, size)
+    mass = explicit_mass if not math.isnan(explicit_mass) else density * volume
+    T = T_link_body @ _transform(m.geom_pos[g], m.geom_quat[g])
+    mesh = _primitive_mesh(kind, size, sphere_subdivisions, capsule_count, cylinder_sections)
+    mesh.apply_transform(T)
+    return GeomSpec(
+        name=name,
+        body=m.body(m.geom_bodyid[g]).name,
+        kind=kind,
+        size=size,
+        pos=T[:3, 3].copy(),
+        quat=_matrix_to_quat(T[:3, :3]),
+        mass=float(mass) if counts else 0.0,
+        contype=int(m.geom_contype[g]),
+        conaffinity=int(m.geom_conaffinity[g]),
+        mesh=mesh,
+    )
+
+
+def _volume(kind: str, size: np.ndarray) -> float:
+    r = float(size[0])
+    if kind == "sphere":
+        return 4.0 / 3.0 * math.pi * r**3
+    if kind == "capsule":
+        return math.pi * r * r * (4.0 / 3.0 * r + 2.0 * float(size[1]))
+    if kind == "cylinder":
+        return math.pi * r * r * 2.0 * float(size[1])
+    if kind == "box":
+        return 8.0 * float(np.prod(size))
+    return 4.0 / 3.0 * math.pi * float(np.prod(size))  # ellipsoid
+
+
+def _geom_second_moment(geom: GeomSpec) -> np.ndarray:
+    """(3, 3) S = int rho X X^T dV about the geom centre, geom frame (diagonal for these shapes)."""
+    m, s = geom.mass, geom.size
+    if geom.kind == "sphere":
+        return np.eye(3) * m * s[0] ** 2 / 5.0
+    if geom.kind == "ellipsoid":
+        return np.diag(m * s**2 / 5.0)
+    if geom.kind == "box":
+        return np.diag(m * s**2 / 3.0)
+    r, h = float(s[0]), float(s[1])  # radius, half-length
+    if geom.kind == "cylinder":
+        return np.diag([m * r * r / 4.0, m * r * r / 4.0, m * h * h / 3.0])
+    # capsule: a cylinder of length 2h plus two hemispheres of mass m_sph / 2 each (mass split by volume). About
+    # its flat face a hemisphere has int z dm = (3 r / 8) m_sph / 2 and int z^2 dm = (r^2 / 5) m_sph / 2, so about
+    # the centre: S_zz = m_cyl h^2 / 3 + m_sph (r^2 / 5 + 3 h r / 4 + h^2), S_xx = S_yy = m_cyl r^2/4 + m_sph r^2/5.
+    v_cyl, v_sph = math.pi * r * r * 2.0 * h, 4.0 / 3.0 * math.pi * r**3
+    m_cyl, m_sph = m * v_cyl / (v_cyl + v_sph), m * v_sph / (v_cyl + v_sph)
+    sxx = m_cyl * r * r / 4.0 + m_sph * r * r / 5.0
+    szz = m_cyl * h * h / 3.0 + m_sph * (r * r / 5.0 + 0.75 * h * r + h * h)
+    return np.diag([sxx, sxx, szz])
+
+
+def _primitive_mesh(
+    kind: str,
+    size: np.ndarray,
+    sphere_subdivisions: int,
+    capsule_count: tuple[int, int],
+    cylinder_sections: int,
+) -> trimesh.Trimesh:
+    """Closed, outward-wound triangulation centred at the origin, axis z for capsules and cylinders."""
+    if kind == "sphere":
+        return trimesh.creation.icosphere(subdivisions=sphere_subdivisions, radius=float(size[0]))
+    if kind == "ellipsoid":
+        mesh = trimesh.creation.icosphere(subdivisions=sphere_subdivisions, radius=1.0)
+        mesh.apply_scale(size)
+        return mesh
+    if kind == "capsule":
+        return trimesh.creation.capsule(
+            height=2.0 * float(size[1]), radius=float(size[0]), count=list(capsule_count)
+        )
+    if kind == "cylinder":
+        return trimesh.creation.cylinder(
+            radius=float(size[0]), height=2.0 * float(size[1]), sections=cylinder_sections
+        )
+    return trimesh.creation.box(extents=2.0 * size)
+
+
+def _combine(parts: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[float, np.ndarray, np.ndarray]:
+    """Total mass, COM and second moment about the COM (parallel-axis theorem) of (mass, com, S) parts."""
+    mass = float(sum(p[0] for p in parts))
+    if mass <= 0.0:
+        return mass, np.zeros(3), np.zeros((3, 3))
+    com = sum(p[0] * p[1] for p in parts) / mass
+    S = sum(p[2] + p[0] * np.outer(p[1] - com, p[1] - com) for p in parts)
+    return mass, com, 0.5 * (S + S.T)
+
+
+def _inertia_to_S(inertia: np.ndarray) -> np.ndarray:
+    """S = tr(I)/2 Id - I, the inverse of I = tr(S) Id - S."""
+    return 0.5 * np.trace(inertia) * np.eye(3) - inertia
+
+
+def _actuator_spec(m: mujoco.MjModel, a: int, joint_index: dict[int, int]) -> ActuatorSpec:
+    name = m.actuator(a).name
+    label = f"actuator '{name}'" if name else f"actuator #{a} (unnamed)"
+    if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
+        raise ValueError(f"{label}: only joint transmissions are supported")
+    j = int(m.actuator_trnid[a, 0])
+    if j not in joint_index:
+        raise ValueError(f"{label}: joint '{m.joint(j).name}' is not a hinge or slide joint of the model")
+    gain, bias = m.actuator_gainprm[a], m.actuator_biasprm[a]
+    fixed = (
+        m.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE
+        and m.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
+    )
+    if fixed and m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE and gain[0] == 1.0:
+        kind, kp, kv = "motor", 0.0, 0.0
+    elif (
+        fixed
+        and m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE
+        and bias[0] == 0
+        and bias[1] == -gain[0]
+    ):
+        kind, kp, kv = "position", float(gain[0]), float(-bias[2])
+    else:
+        raise ValueError(
+            f"{label}: only motor and position actuators (without activation dynamics) are supported"
+        )
+    return ActuatorSpec(
+        name=name,
+        joint=joint_index[j],
+        kind=kind,
+        gear=float(m.actuator_gear[a, 0]),
+        ctrlrange=tuple(float(c) for c in m.actuator_ctrlrange[a]) if m.actuator_ctrllimited[a] else None,
+        kp=kp,
+        kv=kv,
+        forcerange=tuple(float(c) for c in m.actuator_forcerange[a]) if m.actuator_forcelimited[a] else None,
+    )
+
+
+def _build_chain(xml: str, root: str) -> object:
+    """float64 pytorch-kinematics chain of the root's subtree, built by `pk.build_chain_from_mjcf`.
+
+    The root's free joint is removed first: pytorch-kinematics maps hinge and slide joints only (no free joints),
+    so the floating base is kept outside the chain. pk builds every offset and axis as a float32 Transform3d /
+    tensor (its default dtype), which rounds them to ~1e-8; they are reset here from the same compiled model in
+    float64 and the Chain is rebuilt over the same frame tree, so that it reproduces MuJoCo to rounding.
+    """
+    import pytorch_kinematics as pk
+    from pytorch_kinematics.transforms import Transform3d
+
+    tree = ET.fromstring(xml)
+    for body in tree.iter("body"):
+        if body.get("name") == root:
+            for child in list(body):
+                if child.tag == "freejoint" or (child.tag == "joint" and child.get("type") == "free"):
+                    body.remove(child)
+    stripped = ET.tostring(tree, encoding="unicode")
+    chain = pk.build_chain_from_mjcf(stripped, body=root)
+    m = mujoco.MjModel.from_xml_string(stripped)
+    f64 = torch.float64
+    for name in chain.get_frame_names(exclude_fixed=False):
+        frame = chain.find_frame(name)
+        b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
+        if b >= 0:
+            frame.link.offset = Transform3d(rot=m.body_quat[b], pos=m.body_pos[b], dtype=f64)
+            if frame.joint.joint_type != "fixed":
+                j = int(m.body_jntadr[b])
+                frame.joint.offset = Transform3d(pos=m.jnt_pos[j], dtype=f64)
+                frame.joint.axis = torch.tensor(m.jnt_axis[j], dtype=f64)
+        elif (site := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, name)) >= 0:
+            frame.link.offset = Transform3d(rot=m.site_quat[site], pos=m.site_pos[site], dtype=f64)
+        frame.joint.axis = frame.joint.axis.to(f64)
+    return pk.Chain(chain.find_frame(root), dtype=f64)
+
+
+def _transform(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = _quat_to_matrix(quat)
+    T[:3, 3] = pos
+    return T
+
+
+def _quat_to_matrix(quat: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a unit quaternion (w, x, y, z), MuJoCo's convention."""
+    out = np.empty(9)
+    mujoco.mju_quat2Mat(out, np.asarray(quat, dtype=np.float64))
+    return out.reshape(3, 3)
+
+
+def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(4,) unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix."""
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).reshape(9))
+    return q if q[0] >= 0 else -q

@@ -1,0 +1,361 @@
+"""MJCF front end: links, joints, actuators and mass properties against MuJoCo's compiled model; link frame
+conventions against mujoco.mj_kinematics (through a numpy reference FK of the spec and through pytorch-kinematics);
+refusals."""
+
+import importlib.resources
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from cfd_torch.sim.mjcf import MJCFModel, gymnasium_ant_xml, load_mjcf
+
+# Boxes, cylinders, ellipsoids, a capsule, an explicit-mass geom, an unnamed geom, a geom outside
+# inertiagrouprange, defaults classes, fromto, euler/axisangle/xyaxes/zaxis in degrees, two hinges (with
+# anchors) on one body, a slide joint, an <inertial> with fullinertia (inertiafromgeom auto), a welded body in
+# the middle of the tree, a fixed root and a floor plane that must be ignored.
+ZOO_XML = """
+<mujoco model="zoo">
+  <compiler autolimits="true" inertiagrouprange="0 3"/>
+  <default>
+    <geom density="700"/>
+    <joint damping="0.3" armature="0.01"/>
+    <default class="heavy"><geom density="2500"/></default>
+  </default>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="base" pos="0.1 -0.2 0.5" euler="10 20 30">
+      <geom name="base_box" type="box" size="0.2 0.15 0.05" pos="0 0 0.01" quat="0.9 0.1 0.2 0.3"/>
+      <body name="column" pos="0 0 0.1" axisangle="0 0 1 25">
+        <geom name="column_cyl" class="heavy" type="cylinder" fromto="0 0 0 0 0.05 0.3" size="0.04"/>
+        <body name="arm" pos="0 0.05 0.3" xyaxes="0 1 0 -1 0 0">
+          <joint name="yaw" axis="0 0 1" pos="0.01 0.02 0" range="-60 60"/>
+          <joint name="pitch" axis="1 1 0" pos="0 0 0.03" stiffness="2" springref="0.1"/>
+          <geom name="arm_capsule" type="capsule" fromto="0 0 0 0.3 0 0.1" size="0.03"/>
+          <geom name="arm_ellipsoid" type="ellipsoid" size="0.05 0.03 0.02" pos="0.3 0 0.1" euler="30 20 10"
+                mass="0.25"/>
+          <body name="slider" pos="0.3 0 0.1" zaxis="0 1 1">
+            <joint name="extend" type="slide" axis="1 0 0.5" range="0 0.2" damping="2"/>
+            <geom type="sphere" size="0.04" pos="0.05 0 0"/>
+            <geom name="slider_box" type="box" size="0.02 0.03 0.04"/>
+            <geom name="decor" type="box" size="0.5 0.5 0.5" group="4"/>
+            <body name="tip" pos="0.1 0 0">
+              <inertial pos="0.01 0.02 0.03" mass="0.3" fullinertia="0.002 0.003 0.004 0.0001 -0.0002 0.0003"/>
+              <joint name="wrist" axis="0 1 0"/>
+              <geom name="tip_sphere" type="sphere" size="0.02"/>
+            </body>
+          </body>
+        </body>
+      </body>
+      <body name="side" pos="0.2 0 0">
+        <joint name="side_hinge" axis="0 1 0" range="-30 30" limited="true"/>
+        <geom name="side_cyl" class="heavy" type="cylinder" size="0.03 0.1"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="m_yaw" joint="yaw" gear="2" ctrlrange="-1 1"/>
+    <position name="p_extend" joint="extend" kp="50" kv="3" ctrlrange="0 0.2"/>
+    <motor name="m_wrist" joint="wrist" forcerange="-5 5"/>
+  </actuator>
+</mujoco>
+"""
+
+# inertiafromgeom="false": every body's mass comes from its <inertial>, the geoms only shape it; "bare" (welded)
+# has none, so it is massless.
+INERTIAL_XML = """
+<mujoco model="inertial">
+  <compiler inertiafromgeom="false"/>
+  <worldbody>
+    <body name="root" pos="0 0 1">
+      <freejoint name="float"/>
+      <inertial pos="0 0 0.1" mass="2" diaginertia="0.1 0.2 0.3"/>
+      <geom name="root_box" type="box" size="0.1 0.1 0.1"/>
+      <body name="welded" pos="0.2 0 0" euler="0 0 90">
+        <inertial pos="0.05 0 0" quat="0.8 0.6 0 0" mass="0.5" diaginertia="0.01 0.02 0.025"/>
+        <geom name="welded_sphere" type="sphere" size="0.05"/>
+      </body>
+      <body name="bare" pos="0 0.2 0">
+        <geom name="bare_sphere" type="sphere" size="0.05"/>
+      </body>
+      <body name="leg" pos="0 0 -0.2">
+        <joint name="knee" axis="1 0 0"/>
+        <inertial pos="0 0 -0.1" mass="1" diaginertia="0.03 0.03 0.001"/>
+        <geom name="leg_capsule" type="capsule" fromto="0 0 0 0 0 -0.2" size="0.02"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture(scope="module")
+def ant() -> MJCFModel:
+    return load_mjcf(gymnasium_ant_xml())
+
+
+@pytest.fixture(scope="module")
+def zoo() -> MJCFModel:
+    return load_mjcf(ZOO_XML)
+
+
+def _quat_matrix(quat: np.ndarray) -> np.ndarray:
+    """Rotation of a unit quaternion (w, x, y, z), written out."""
+    w, x, y, z = np.asarray(quat) / np.linalg.norm(quat)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _pose(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, p
+    return T
+
+
+def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula."""
+    k = axis / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _reference_fk(model: MJCFModel, q: np.ndarray, base: np.ndarray | None = None) -> list[np.ndarray]:
+    """World (4, 4) link frames: T_link = T_parent @ [quat, pos] @ prod_j J_j(q_j), J = translate(pos) @
+    rotate(axis, q) @ translate(-pos) for a hinge, translate(axis q) for a slide; base = the free joint's
+    (7,) pos + quat for a floating root, replacing the root's [quat, pos]."""
+    frames = []
+    for k, link in enumerate(model.links):
+        if k == 0 and base is not None:
+            T = _pose(_quat_matrix(base[3:]), base[:3])
+        else:
+            T = _pose(_quat_matrix(link.quat), link.pos)
+            if link.parent >= 0:
+                T = frames[link.parent] @ T
+        for j in model.link_joint[k]:
+            joint = model.joints[j]
+            if joint.kind == "hinge":
+                R = _axis_rotation(joint.axis, q[j])
+                T = T @ _pose(R, joint.pos - R @ joint.pos)
+            else:
+                T = T @ _pose(np.eye(3), joint.axis * q[j])
+        frames.append(T)
+    return frames
+
+
+def _mujoco_state(model: MJCFModel, q: np.ndarray, base: np.ndarray | None = None):
+    m = mujoco.MjModel.from_xml_string(model.xml)
+    d = mujoco.MjData(m)
+    d.qpos[:] = m.qpos0
+    for joint, value in zip(model.joints, q, strict=True):
+        d.qpos[m.joint(joint.name).qposadr[0]] = value
+    if base is not None:
+        d.qpos[:7] = base
+    mujoco.mj_kinematics(m, d)
+    return m, d
+
+
+def _check_fk(model: MJCFModel, q: np.ndarray, base: np.ndarray | None = None) -> None:
+    m, d = _mujoco_state(model, q, base)
+    for link, T in zip(model.links, _reference_fk(model, q, base), strict=True):
+        b = m.body(link.name).id
+        np.testing.assert_allclose(T[:3, 3], d.xpos[b], rtol=0, atol=1e-10, err_msg=link.name)
+        np.testing.assert_allclose(T[:3, :3], d.xmat[b].reshape(3, 3), rtol=0, atol=1e-10, err_msg=link.name)
+
+
+def _check_mass_properties(model: MJCFModel) -> None:
+    """Each link against MuJoCo's compiled body_mass, body_ipos, body_inertia, body_iquat.
+
+    A single-body link: mass, COM and principal moments to 1e-10 relative. Every link, welded groups included,
+    against the combination of MuJoCo's bodies (world frame at qpos0, mapped into the link frame by MuJoCo's own
+    kinematics): 1e-10 relative when each body's principal axes are exact (at most one mass-carrying geom, or an
+    <inertial>). MuJoCo finds the principal axes of a summed inertia (body_iquat) with mju_eig3, a Jacobi solver
+    that stops at a tolerance, leaving off-diagonal residuals up to ~1e-7 relative where principal moments nearly
+    coincide; passing our inertia through mju_eig3 gives its body_inertia and body_iquat to 1e-18, but the
+    axes it returns are not a stable function of the input, so those links are compared within 1e-5.
+    """
+    m, d = _mujoco_state(model, np.zeros(len(model.joints)))
+    for link in model.links:
+        ids = [m.body(name).id for name in link.bodies]
+        if len(ids) == 1:
+            b = ids[0]
+            assert link.mass == pytest.approx(m.body_mass[b], rel=1e-10), link.name
+            np.testing.assert_allclose(link.com, m.body_ipos[b], rtol=0, atol=1e-10 * np.abs(link.com).max())
+            inertia = np.trace(link.second_moment) * np.eye(3) - link.second_moment
+            np.testing.assert_allclose(
+                np.linalg.eigvalsh(inertia), np.sort(m.body_inertia[b]), rtol=1e-10, err_msg=link.name
+            )
+        mass = sum(m.body_mass[b] for b in ids)
+        com = sum(m.body_mass[b] * d.xipos[b] for b in ids) / mass
+        S = np.zeros((3, 3))
+        for b in ids:
+            R = d.ximat[b].reshape(3, 3)
+            inertia = R @ np.diag(m.body_inertia[b]) @ R.T
+            r = d.xipos[b] - com
+            S += 0.5 * np.trace(inertia) * np.eye(3) - inertia + m.body_mass[b] * np.outer(r, r)
+        R_link, p_link = d.xmat[ids[0]].reshape(3, 3), d.xpos[ids[0]]
+        com_link, S_link = R_link.T @ (com - p_link), R_link.T @ S @ R_link
+        scale = max(np.linalg.norm(com_link), math.sqrt(np.trace(S_link) / mass))
+        assert link.mass == pytest.approx(mass, rel=1e-10), link.name
+        np.testing.assert_allclose(link.com, com_link, rtol=0, atol=1e-10 * scale, err_msg=link.name)
+        exact = all(sum(g.mass > 0 for g in link.geoms if g.body == m.body(b).name) <= 1 for b in ids)
+        tol = 1e-10 if exact else 1e-5
+        np.testing.assert_allclose(
+            link.second_moment, S_link, rtol=0, atol=tol * np.abs(S_link).max(), err_msg=link.name
+        )
+
+
+def _check_meshes(model: MJCFModel) -> None:
+    for link in model.links:
+        assert link.geoms, link.name
+        for geom in link.geoms:
+            assert geom.mesh.is_watertight and geom.mesh.is_winding_consistent, (link.name, geom.name)
+            assert geom.mesh.volume > 0, (link.name, geom.name)  # outward normals
+        assert len(link.mesh.faces) == sum(len(g.mesh.faces) for g in link.geoms)
+
+
+def test_ant_structure(ant: MJCFModel) -> None:
+    names = ["torso"] + [n for k in range(1, 5) for n in (f"aux_{k}", f"ankle_{k}_link")]
+    assert [link.name for link in ant.links] == names
+    assert [link.parent for link in ant.links] == [-1, 0, 1, 0, 3, 0, 5, 0, 7]
+    assert ant.links[0].bodies == ("torso", "front_left_leg", "front_right_leg", "back_leg", "right_back_leg")
+    assert ant.floating
+    assert [j.name for j in ant.joints] == [n for k in range(1, 5) for n in (f"hip_{k}", f"ankle_{k}")]
+    assert ant.link_joint == ((),) + tuple((k,) for k in range(8))
+    ankle = {1: (30, 70), 2: (-70, -30), 3: (-70, -30), 4: (30, 70)}
+    for j in ant.joints:
+        lo, hi = (-30, 30) if j.name.startswith("hip") else ankle[int(j.name[-1])]
+        assert j.kind == "hinge"
+        assert j.range == pytest.approx((math.radians(lo), math.radians(hi)), rel=1e-15)
+        assert (j.damping, j.armature, j.stiffness) == (1.0, 1.0, 0.0)
+        assert np.linalg.norm(j.axis) == pytest.approx(1.0)
+    joint_order = ["hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3"]
+    assert [ant.joints[a.joint].name for a in ant.actuators] == joint_order
+    for a in ant.actuators:
+        assert (a.kind, a.gear, a.ctrlrange, a.kp, a.kv, a.forcerange) == (
+            "motor",
+            150.0,
+            (-1.0, 1.0),
+            0,
+            0,
+            None,
+        )
+    assert ant.links[0].geoms[0].kind == "sphere" and {g.kind for g in ant.links[1].geoms} == {"capsule"}
+    assert all(g.conaffinity == 0 for link in ant.links for g in link.geoms)
+
+
+def test_ant_mass_properties_and_meshes(ant: MJCFModel) -> None:
+    _check_mass_properties(ant)
+    _check_meshes(ant)
+
+
+def test_ant_reference_fk_matches_mujoco(ant: MJCFModel) -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        base = np.concatenate([rng.normal(size=3), rng.normal(size=4)])
+        base[3:] /= np.linalg.norm(base[3:])
+        _check_fk(ant, rng.uniform(-1.5, 1.5, size=8), base)
+
+
+def test_ant_pytorch_kinematics_matches_mujoco(ant: MJCFModel) -> None:
+    chain = ant.chain
+    assert chain.dtype == torch.float64
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-1.5, 1.5, size=8)
+    by_name = dict(zip([j.name for j in ant.joints], q, strict=True))
+    th = torch.tensor([[by_name[n] for n in chain.get_joint_parameter_names()]], dtype=torch.float64)
+    frames = chain.forward_kinematics(th)
+    m, d = _mujoco_state(ant, q)  # free joint at qpos0: the torso at its MJCF pose, as pk's root frame
+    assert len(frames) == m.nbody - 1
+    for name, transform in frames.items():
+        b = m.body(name).id
+        T = transform.get_matrix()[0].numpy()
+        np.testing.assert_allclose(T[:3, 3], d.xpos[b], rtol=0, atol=1e-10, err_msg=name)
+        np.testing.assert_allclose(T[:3, :3], d.xmat[b].reshape(3, 3), rtol=0, atol=1e-10, err_msg=name)
+
+
+def test_zoo_structure(zoo: MJCFModel) -> None:
+    assert [link.name for link in zoo.links] == ["base", "arm", "slider", "tip", "side"]
+    assert [link.parent for link in zoo.links] == [-1, 0, 1, 2, 0]
+    assert zoo.links[0].bodies == ("base", "column")
+    assert not zoo.floating
+    assert zoo.chain is None  # two joints on "arm": pytorch-kinematics cannot build it
+    assert [j.name for j in zoo.joints] == ["yaw", "pitch", "extend", "wrist", "side_hinge"]
+    assert zoo.link_joint == ((), (0, 1), (2,), (3,), (4,))
+    yaw, pitch, extend, wrist, side = zoo.joints
+    assert yaw.range == pytest.approx((-math.pi / 3, math.pi / 3), rel=1e-15)
+    assert pitch.range is None and wrist.range is None
+    assert extend.kind == "slide" and extend.range == (0.0, 0.2) and extend.damping == 2.0
+    np.testing.assert_allclose(extend.axis, np.array([1, 0, 0.5]) / math.sqrt(1.25), rtol=1e-15)
+    np.testing.assert_allclose(pitch.axis, np.array([1, 1, 0]) / math.sqrt(2), rtol=1e-15)
+    np.testing.assert_array_equal(yaw.pos, [0.01, 0.02, 0])
+    assert (pitch.stiffness, pitch.damping, pitch.armature) == (2.0, 0.3, 0.01)
+    assert pitch.springref == pytest.approx(math.radians(0.1), rel=1e-15)  # angle="degree" converts springref
+    assert side.range == pytest.approx((-math.pi / 6, math.pi / 6), rel=1e-15)
+    m_yaw, p_extend, m_wrist = zoo.actuators
+    assert (m_yaw.kind, m_yaw.joint, m_yaw.gear, m_yaw.ctrlrange) == ("motor", 0, 2.0, (-1.0, 1.0))
+    assert (p_extend.kind, p_extend.joint, p_extend.kp, p_extend.kv) == ("position", 2, 50.0, 3.0)
+    assert (m_wrist.ctrlrange, m_wrist.forcerange) == (None, (-5.0, 5.0))
+    base_geoms = [g.name for g in zoo.links[0].geoms]
+    assert base_geoms == ["base_box", "column_cyl"]  # the floor is not part of the model
+    slider = zoo.links[2].geoms
+    assert [g.name for g in slider] == ["", "slider_box", "decor"] and slider[2].mass == 0.0
+    assert zoo.links[1].geoms[1].mass == 0.25 and zoo.links[3].geoms[0].mass == 0.0
+
+
+def test_zoo_mass_properties_and_meshes(zoo: MJCFModel) -> None:
+    _check_mass_properties(zoo)
+    _check_meshes(zoo)
+    kinds = {g.kind for link in zoo.links for g in link.geoms}
+    assert kinds == {"sphere", "capsule", "box", "cylinder", "ellipsoid"}
+
+
+def test_zoo_reference_fk_matches_mujoco(zoo: MJCFModel) -> None:
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        _check_fk(zoo, rng.uniform(-1.5, 1.5, size=5))
+
+
+def test_inertial_elements_with_inertiafromgeom_false() -> None:
+    model = load_mjcf(INERTIAL_XML)
+    assert [link.name for link in model.links] == ["root", "leg"] and model.floating
+    assert model.links[0].mass == pytest.approx(2.5, rel=1e-15)
+    assert all(g.mass == 0.0 for link in model.links for g in link.geoms)
+    _check_mass_properties(model)
+    _check_meshes(model)
+    _check_fk(model, np.array([0.7]), np.array([0.1, 0.2, 0.3, 0.5, 0.5, -0.5, 0.5]))
+
+
+def _one_body(inner: str, name: str = 'name="b"') -> str:
+    return f"""<mujoco><worldbody><body name="a"><geom size="0.1"/>
+      <body {name} pos="1 0 0"><geom size="0.1"/>{inner}</body></body></worldbody></mujoco>"""
+
+
+def test_refusals() -> None:
+    raw_ant = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / "ant.xml"
+    with pytest.raises(ValueError, match=r"body at pos \[0.2, 0.2, 0.0\] in body 'aux_1' has no name"):
+        load_mjcf(str(raw_ant))  # a path; gymnasium_ant_xml() names these bodies
+    with pytest.raises(ValueError, match="free joint 'fj' in body 'b'"):
+        load_mjcf(_one_body('<freejoint name="fj"/>'))
+    with pytest.raises(ValueError, match=r"body at pos \[1.0, 0.0, 0.0\] in body 'a' has no name"):
+        load_mjcf(_one_body('<joint name="h"/>', name=""))
+    with pytest.raises(ValueError, match="joint 'bj' of body 'b': ball joints"):
+        load_mjcf(_one_body('<joint name="bj" type="ball"/>'))
+    mesh = '<asset><mesh name="tet" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset>'
+    with pytest.raises(ValueError, match="geom 'blob' of body 'b' has unsupported type mesh"):
+        load_mjcf(
+            _one_body('<geom name="blob" type="mesh" mesh="tet"/>').replace(
+                "<worldbody>", mesh + "<worldbody>"
+            )
+        )
+    with pytest.raises(ValueError, match="geom 'hull' of body 'b': shell inertia"):
+        load_mjcf(_one_body('<joint name="h"/><geom name="hull" size="0.1" shellinertia="true"/>'))
+    two_roots = '<mujoco><worldbody><body name="a"/><body name="c"/></worldbody></mujoco>'
+    with pytest.raises(ValueError, match="2 top-level bodies"):
+        load_mjcf(two_roots)
