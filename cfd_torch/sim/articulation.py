@@ -37,23 +37,13 @@ import torch
 from ..contact.bsh import BSH
 from ..rotation import rotation_matrix, rotation_vector
 from .bodies import RigidBody
+from .mjcf import load_mjcf, quat_to_matrix
 
 __all__ = ["Articulation", "articulation", "ArticulatedKinematics"]
 
 #: the limit barrier's activation width (rad for hinges, m for slides) and stiffness [N m or N]
 LIMIT_WIDTH = 0.02
 LIMIT_STIFFNESS = 1.0
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class Articulation:
@@ -86,7 +76,7 @@ class Articulation:
         self.floating = bool(model.floating)
         self.names = tuple(link.name for link in links)
         self.parent = np.array([link.parent for link in links], dtype=np.int64)
-        self.offset_R = np.stack([_quat_matrix(np.asarray(link.quat, float)) for link in links])
+        self.offset_R = np.stack([quat_to_matrix(link.quat) for link in links])
         self.offset_p = np.stack([np.asarray(link.pos, float) for link in links])
         joints = [None] + [link.joints[0] for link in links[1:]]
         self.kind = ("root",) + tuple(j.kind for j in joints[1:])
@@ -109,7 +99,7 @@ class Articulation:
                 raise ValueError(
                     f"articulation: actuator {a.name!r} is a {a.kind!r} actuator; motors are supported"
                 )
-            act_joint.append(ours[model.joints[a.joint].name] if model.joints[a.joint].name in ours else -1)
+            act_joint.append(ours[model.joints[a.joint].name])
             gear.append(a.gear)
             r = a.ctrlrange if a.ctrlrange is not None else (-math.inf, math.inf)
             lo.append(r[0])
@@ -165,8 +155,6 @@ def articulation(source, *, max_edge: float | None = None, **mjcf_options) -> Ar
     """An :class:`Articulation` from an MJCF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its options
     pass through). A free joint on the root body makes a floating base; without one the root is fixed where the
     state puts it."""
-    from .mjcf import load_mjcf
-
     return Articulation(load_mjcf(source, **mjcf_options), max_edge=max_edge)
 
 
@@ -332,7 +320,7 @@ class ArticulatedKinematics:
         self.arts = tuple(arts)
         self.first = tuple(int(r) for r in first_rows)
         self.num_bodies = num_bodies
-        moving, coord_body, start = [int(i) for i in free], [], 6 * len(free)
+        moving, start = [int(i) for i in free], 6 * len(free)
         coord_body = [k // 6 for k in range(6 * len(free))]
         self.coord_slices = []
         for art, r in zip(self.arts, self.first, strict=True):
@@ -498,9 +486,7 @@ class ArticulatedKinematics:
                 tau = torch.as_tensor(art.gear, dtype=c.dtype, device=c.device) * torch.maximum(
                     torch.minimum(c, hi), lo
                 )
-                jj = torch.as_tensor(art.actuator_joint, device=c.device)
-                keep = jj >= 0
-                out[:, j0 + jj[keep]] += tau[:, keep]
+                out = out.index_add(1, j0 + torch.as_tensor(art.actuator_joint, device=c.device), tau)
             j0 += art.num_joints
             u0 += U
         return out

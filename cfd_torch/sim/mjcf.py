@@ -318,7 +318,7 @@ def load_mjcf(
                 and explicit_inertial[m.body(b).name]
             )
             if inertial:
-                R = T[:3, :3] @ _quat_to_matrix(m.body_iquat[b])
+                R = T[:3, :3] @ quat_to_matrix(m.body_iquat[b])
                 inertia = R @ np.diag(m.body_inertia[b]) @ R.T
                 parts.append(
                     (float(m.body_mass[b]), T[:3, :3] @ m.body_ipos[b] + T[:3, 3], _inertia_to_S(inertia))
@@ -330,7 +330,7 @@ def load_mjcf(
                     m, g, T, geom_source, sphere_subdivisions, capsule_count, cylinder_sections, counts
                 )
                 if counts:
-                    R = _quat_to_matrix(geom.quat)
+                    R = quat_to_matrix(geom.quat)
                     parts.append((geom.mass, geom.pos, R @ _geom_second_moment(geom) @ R.T))
                 geoms.append(geom)
         mass, com, S = _combine(parts)
@@ -640,12 +640,12 @@ def _build_chain(xml: str, root: str) -> object:
 
 def _transform(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
     T = np.eye(4)
-    T[:3, :3] = _quat_to_matrix(quat)
+    T[:3, :3] = quat_to_matrix(quat)
     T[:3, 3] = pos
     return T
 
 
-def _quat_to_matrix(quat: np.ndarray) -> np.ndarray:
+def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
     """(3, 3) rotation of a unit quaternion (w, x, y, z), MuJoCo's convention."""
     out = np.empty(9)
     mujoco.mju_quat2Mat(out, np.asarray(quat, dtype=np.float64))
