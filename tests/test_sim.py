@@ -451,3 +451,21 @@ def test_islands_moving_through_each_other_are_caught():
     v[0, 0], v[1, 0] = 18.0, -18.0
     nxt = step(scene, scene.initial_state(q, v))
     assert float(nxt.q[1, 0] - nxt.q[0, 0]) > 0.01  # still in order, at least a plate thickness apart
+
+
+def test_a_body_pulled_only_by_the_far_field_of_another_island_steps_at_once():
+    """Two balls 0.5 m apart in zero gravity, one pushed: the other moves only by the pushed ball's far field, a
+    force its island's own energy (inertia) cannot show. Its line search must accept the full Newton step, not
+    halve it 20 times before handing the scene to a whole search (it did: 23 evaluations for this step)."""
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.03), density=1000.0)
+    scene = Scene((ball, ball), gravity=(0.0, 0.0, 0.0))
+    q = torch.zeros(2, 6, dtype=F64)
+    q[1, 0] = 0.5
+    force = torch.zeros(2, 3, dtype=F64)
+    force[0, 1] = 1.0
+    nxt, info = step(scene, scene.initial_state(q), Action(force=force), return_info=True)
+    assert info.contact_evals <= 4
+    plain, _ = step(scene.replace(fast=False), scene.initial_state(q), Action(force=force), return_info=True)
+    moved = nxt.q[1] - q[1]
+    assert float(moved.abs().max()) > 0  # the far field moved the free ball
+    torch.testing.assert_close(nxt.q, plain.q, rtol=0, atol=1e-12)
