@@ -37,8 +37,8 @@ stress: $(BIN)/.installed
 	$(BIN)/python scripts/stress.py --out results/stress
 
 lint: $(BIN)/.installed
-	$(BIN)/ruff check cfd_torch tests scripts
-	$(BIN)/ruff format --check cfd_torch tests scripts
+	$(BIN)/ruff check cfd_torch envs tests scripts
+	$(BIN)/ruff format --check cfd_torch envs tests scripts
 
 clean:
 	rm -rf $(VENV) results

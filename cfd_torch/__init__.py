@@ -31,20 +31,28 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
-from .config import ContactConfig, FrictionConfig, SolverConfig
-from .contact.bsh import BSH
-from .contact.central import blend_weight, central_potential, smoothstep
-from .contact.cfd import CfdContact
-from .contact.mesh import MeshDerivatives, mesh_potential, mesh_potential_derivatives
-from .contact.model import ContactEval, ContactModel, LaggedContacts
-from .contact.pair import LAMBDA, PairDerivatives, PairSolveError, pair_potential, pair_potential_derivatives
-from .contact.reference import mesh_potential_reference
-from .contact.scene import ContactPotential, contact_potential
-from .sim.bodies import RigidBody, rigid_body
-from .sim.kinematics import FreeBodies, Kinematics
-from .sim.scene import Scene
-from .sim.stepper import pair_forces, recentre_rotation, rollout, step
-from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory
+import os
+
+# Headless rendering (cfd_torch.envs) needs MuJoCo's EGL backend, chosen when mujoco is first imported; this
+# package's MJCF loader and pytorch_kinematics import mujoco, so the choice is made here (an explicit MUJOCO_GL or a
+# display wins).
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "egl"
+
+from .config import ContactConfig, FrictionConfig, SolverConfig  # noqa: E402
+from .contact.bsh import BSH  # noqa: E402
+from .contact.central import blend_weight, central_potential, smoothstep  # noqa: E402
+from .contact.cfd import CfdContact  # noqa: E402
+from .contact.mesh import MeshDerivatives, mesh_potential, mesh_potential_derivatives  # noqa: E402
+from .contact.model import ContactEval, ContactModel, LaggedContacts  # noqa: E402
+from .contact.pair import LAMBDA, PairDerivatives, PairSolveError, pair_potential, pair_potential_derivatives  # noqa: E402
+from .contact.reference import mesh_potential_reference  # noqa: E402
+from .contact.scene import ContactPotential, contact_potential  # noqa: E402
+from .sim.bodies import RigidBody, rigid_body  # noqa: E402
+from .sim.kinematics import FreeBodies, Kinematics  # noqa: E402
+from .sim.scene import Scene  # noqa: E402
+from .sim.stepper import pair_forces, recentre_rotation, rollout, step  # noqa: E402
+from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory  # noqa: E402
 
 __all__ = [
     "BSH",

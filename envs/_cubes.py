@@ -1,0 +1,105 @@
+"""The scene Sort and Gather share: ten cubes scattered on a floor and one actuated pusher."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import trimesh
+
+from cfd_torch import Action, Scene, rigid_body
+
+from ._pusher import GAP, Pusher, floor_body
+from .core import EnvState, TaskCore
+
+__all__ = ["CubesCore"]
+
+
+class CubesCore(TaskCore):
+    """Ten cubes and a pusher on a floor (the manual is in :class:`SortCore` and :class:`GatherCore`).
+
+    Bodies: 0-9 the cubes, 10 the pusher, 11 the floor. Subclasses define the reward's target regions.
+    """
+
+    action_dim = 2
+    horizon = 300
+    num_cubes = 10
+
+    def __init__(
+        self,
+        *,
+        cube_size: float = 0.1,
+        cube_density: float = 500.0,
+        spread: float = 0.8,
+        max_speed: float = 1.0,
+        friction: float = 0.5,
+        action_cost: float = 1e-3,
+        dt: float = 0.01,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        cube = rigid_body(trimesh.creation.box((cube_size,) * 3), density=cube_density)
+        self.pusher = Pusher((0.1, 0.1, 0.3), density=500.0, max_speed=max_speed)
+        self.cube_size = cube_size
+        self.spread = spread
+        self.action_cost = action_cost
+        bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(6.0)]
+        super().__init__(Scene(bodies, dt=dt, friction=friction, substeps=8), device=device, dtype=dtype)
+
+    def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:
+        """(n, 2) centres uniform in [-spread, spread]^2 whose footprints (circles of the cube's half diagonal)
+        are ``clearance`` apart (rejection sampling)."""
+        r = self.cube_size / math.sqrt(2) + clearance / 2
+        pts: list[torch.Tensor] = []
+        while len(pts) < n:
+            p = self.spread * (2 * torch.rand(2, generator=gen, dtype=torch.float64) - 1)
+            if all(float((p - o).norm()) > 2 * r for o in pts):
+                pts.append(p)
+        return torch.stack(pts)
+
+    def _initial(self, gen: torch.Generator):
+        n = self.num_cubes
+        xy = self._scatter(gen, n + 1, 0.05)  # the last point is the pusher's
+        q = torch.zeros(n + 2, 6, dtype=torch.float64)
+        q[:n, :2] = xy[:n]
+        q[:n, 2] = self.cube_size / 2 + GAP
+        q[:n, 5] = math.pi * (2 * torch.rand(n, generator=gen, dtype=torch.float64) - 1)  # yaw
+        q[n, :2] = xy[n]
+        q[n, 2] = self.pusher.height
+        return q, q.clone(), self._task(gen, q)
+
+    def _task(self, gen: torch.Generator, q: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {}
+
+    def _action(self, state: EnvState, action: torch.Tensor) -> Action:
+        g = -float(self.scene.gravity[2])
+        return self.pusher.action(state, self.num_cubes, action, self.scene.dt, g, self.num_cubes + 2)
+
+    def _region_distance(self, xy: torch.Tensor, centre: torch.Tensor, radius: float) -> torch.Tensor:
+        """(B, n) how far each cube's centre is outside its region (0 inside) [m]."""
+        return ((xy - centre).norm(dim=-1) - radius).clamp_min(0.0)
+
+    def _planar(self, state: EnvState) -> torch.Tensor:
+        """(B, 10, 4) cube xy and planar velocity."""
+        v = self.velocity(state)
+        n = self.num_cubes
+        return torch.cat([state.q[:, :n, :2], v[:, :n, :2]], 2)
+
+    def observe(self, state: EnvState) -> torch.Tensor:
+        B, n = state.batch_size, self.num_cubes
+        v = self.velocity(state)
+        pusher = torch.cat([state.q[:, n, :2], v[:, n, :2]], 1)
+        return torch.cat([self._planar(state).reshape(B, 4 * n), pusher, self._goal_obs(state)], 1)
+
+    def _goal_obs(self, state: EnvState) -> torch.Tensor:
+        """(B, obs_dim - 44) the task's part of the observation."""
+        raise NotImplementedError(f"{type(self).__name__} must define _goal_obs")
+
+    def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        body = [3.0, 3.0, 20.0, 20.0]  # xy within the 6 x 6 m floor, planar velocities [m/s]
+        extra = self.obs_dim - 4 * (self.num_cubes + 1)
+        high = torch.tensor(body * (self.num_cubes + 1) + [3.0] * extra, dtype=torch.float64)
+        return -high, high
+
+    def render_camera(self) -> dict:
+        return {"lookat": (0.0, 0.0, 0.0), "distance": 4.5, "azimuth": 270.0, "elevation": -60.0}

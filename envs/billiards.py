@@ -1,0 +1,166 @@
+"""Billiards-v0: strike a 15-ball rack with the cue ball so that one object ball reaches a pocket."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import trimesh
+
+from cfd_torch import Action, Scene, rigid_body
+
+from .core import EnvState, TaskCore
+from .shell import CoreEnv, CoreVectorEnv
+
+__all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
+
+# pocket centres of a 1.27 x 2.54 m playing area whose rack apex is at the origin [m]: far corners, sides, near corners
+POCKETS = ((-0.635, 0.94), (0.635, 0.94), (-0.635, -0.33), (0.635, -0.33), (-0.635, -1.6), (0.635, -1.6))
+
+
+def rack_positions(radius: float) -> torch.Tensor:
+    """(15, 2) rack centres: the authors' layout, ball j of row i (i + 1 balls, j = 0..i) at
+    x = 1.1 u (4 - i) + 2.2 u j, y = 1.6 u i in the unit u = radius / 0.9, shifted so that the apex (row 0) is at the
+    origin and the rack opens toward +y. (With u = radius, balls of adjacent rows would overlap: their centres are
+    1.94 u apart; with u = radius / 0.9 they are 4.4 mm apart at the default radius, neighbours in a row 11.4 mm.)"""
+    u = radius / 0.9
+    xy = [[1.1 * u * (4 - i) + 2.2 * u * j - 4.4 * u, 1.6 * u * i] for i in range(5) for j in range(i + 1)]
+    return torch.tensor(xy, dtype=torch.float64)
+
+
+class BilliardsCore(TaskCore):
+    """Billiards: push the cue ball so that a chosen object ball of a 15-ball rack reaches a target pocket.
+
+    Scene: 16 balls (icosphere meshes, ``subdivisions`` 2: 320 faces) of radius ``ball_radius`` (0.0286 m) and mass
+    ``ball_mass`` (0.17 kg) on the plane z = 0, gravity off and no table mesh: a frictionless table top (the balls
+    slide, they do not roll). Bodies 0-14 are the rack (``rack_positions``: apex at the origin, rows toward +y),
+    body 15 the cue ball. dt = 0.01 s; a step the Newton solve cannot converge is retried as up to 8 sub-steps.
+
+    Action: (2,) in [-1, 1], the planar force on the cue ball's centre, ``max_force`` (5 N) per unit.
+
+    Observation (66,): the 16 balls' xy positions [m] (32), their xy velocities [m/s] (32), the pocket's xy (2).
+
+    Reward: ``distance`` = -|xy of the object ball - pocket| [m] after the step, plus ``action`` =
+    -``action_cost`` |a|^2 (1e-3). Terminated when the object ball's centre is within ``pocket_radius``
+    (0.08 m) of the pocket. Horizon 100 steps (1 s).
+
+    Initial state: rack at rest; cue ball at rest at x ~ U(-0.1, 0.1), y ~ U(-0.6, -0.4) m (the trivial start:
+    30-50 cm from the apex, nothing touching, every contact force tiny but non-zero); the object ball
+    (``target_ball``, default drawn uniformly from the 15) and the pocket (``pocket``: an index of ``POCKETS``,
+    default drawn from the far corners and the sides, 0-3) are drawn per reset unless fixed. Task variables:
+    ``state.task["target"]`` (int64 index), ``state.task["pocket"]`` (xy).
+    """
+
+    action_dim = 2
+    obs_dim = 66
+    horizon = 100
+
+    def __init__(
+        self,
+        *,
+        ball_radius: float = 0.0286,
+        ball_mass: float = 0.17,
+        subdivisions: int = 2,
+        max_force: float = 5.0,
+        action_cost: float = 1e-3,
+        pocket_radius: float = 0.08,
+        target_ball: int | None = None,
+        pocket: int | None = None,
+        dt: float = 0.01,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        if target_ball is not None and not 0 <= target_ball < 15:
+            raise ValueError(f"target_ball must be a rack ball index in 0..14 or None, got {target_ball}")
+        if pocket is not None and not 0 <= pocket < len(POCKETS):
+            raise ValueError(
+                f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket}"
+            )
+        for name, v in (("ball_radius", ball_radius), ("ball_mass", ball_mass), ("max_force", max_force)):
+            if not v > 0:
+                raise ValueError(f"{name} must be positive, got {v}")
+        mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=ball_radius)
+        ball = rigid_body(mesh, density=ball_mass / mesh.volume)
+        scene = Scene([ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8)
+        super().__init__(scene, device=device, dtype=dtype)
+        self.ball_radius = ball_radius
+        self.max_force = max_force
+        self.action_cost = action_cost
+        self.pocket_radius = pocket_radius
+        self.target_ball = target_ball
+        self.pocket = pocket
+        self.rack = rack_positions(ball_radius)
+
+    def _initial(self, gen: torch.Generator):
+        u = torch.rand(4, generator=gen, dtype=torch.float64)
+        q = torch.zeros(16, 6, dtype=torch.float64)
+        q[:15, :2] = self.rack
+        q[15, 0] = -0.1 + 0.2 * u[0]
+        q[15, 1] = -0.6 + 0.2 * u[1]
+        target = int(u[2] * 15) if self.target_ball is None else self.target_ball
+        pocket = int(u[3] * 4) if self.pocket is None else self.pocket
+        task = {
+            "target": torch.tensor(min(target, 14), dtype=torch.long),
+            "pocket": torch.tensor(POCKETS[min(pocket, len(POCKETS) - 1)], dtype=torch.float64),
+        }
+        return q, q.clone(), task
+
+    def _action(self, state: EnvState, action: torch.Tensor) -> Action:
+        B = state.batch_size
+        f = torch.cat([self.max_force * action, action.new_zeros(B, 1)], 1)  # (B, 3) on the cue ball
+        return Action(force=torch.cat([action.new_zeros(B, 15, 3), f[:, None, :]], 1))
+
+    def object_ball(self, state: EnvState) -> torch.Tensor:
+        """(B, 2) xy of each environment's object ball."""
+        B = state.batch_size
+        return state.q[torch.arange(B, device=state.q.device), state.task["target"], :2]
+
+    def observe(self, state: EnvState) -> torch.Tensor:
+        B = state.batch_size
+        v = self.velocity(state)[..., :2]
+        return torch.cat([state.q[..., :2].reshape(B, 32), v.reshape(B, 32), state.task["pocket"]], 1)
+
+    def reward_terms(
+        self, state: EnvState, action: torch.Tensor, next_state: EnvState
+    ) -> dict[str, torch.Tensor]:
+        d = (self.object_ball(next_state) - next_state.task["pocket"]).norm(dim=1)
+        return {"distance": -d, "action": -self.action_cost * (action * action).sum(1)}
+
+    def terminated(self, state: EnvState) -> torch.Tensor:
+        return (self.object_ball(state) - state.task["pocket"]).norm(dim=1) < self.pocket_radius
+
+    def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        # a ball pushed by the largest force for the whole horizon moves ~ F T^2 / (2 m) (15 m by default)
+        T = self.horizon * self.scene.dt
+        reach = 1.0 + self.max_force * T * T / (2 * self.scene.bodies[15].mass)
+        speed = 1.0 + self.max_force * T / self.scene.bodies[15].mass
+        high = torch.cat(
+            [torch.full((32,), 4 * reach), torch.full((32,), 4 * speed), torch.full((2,), 4 * reach)]
+        )
+        return -high, high
+
+    def render_camera(self) -> dict:
+        return {"lookat": (0.0, -0.2, 0.0), "distance": 2.2, "azimuth": 90.0, "elevation": -70.0}
+
+    def _colour(self, i: int, body) -> tuple[float, float, float, float]:
+        if i == 15:
+            return (0.95, 0.95, 0.9, 1.0)
+        hue = (i * 0.618) % 1.0
+        return (*_hsv(hue, 0.75, 0.85), 1.0)
+
+
+def _hsv(h: float, s: float, v: float) -> tuple[float, float, float]:
+    i = math.floor(h * 6)
+    f = h * 6 - i
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i % 6]
+
+
+class BilliardsEnv(CoreEnv):
+    __doc__ = "Gymnasium face of :class:`BilliardsCore` (its docstring is the manual).\n\n" + CoreEnv.__doc__
+    core_class = BilliardsCore
+
+
+class BilliardsVectorEnv(CoreVectorEnv):
+    __doc__ = "Native vector face of :class:`BilliardsCore`.\n\n" + CoreVectorEnv.__doc__
+    core_class = BilliardsCore

@@ -1,0 +1,252 @@
+"""The pure, batched, differentiable torch core every task is built on.
+
+A task is a :class:`TaskCore`: a :class:`cfd_torch.Scene` plus an initial-state distribution, an action map, an
+observation and a reward. The core is always batched (a leading dimension B of independent scenes, B = 1 for a
+single environment), never writes into its inputs and never resets by itself:
+
+    state = core.reset(seed=0, batch_size=4)            # EnvState, B = 4: scene i drawn with seed 0 + i
+    out = core.step(state, action)                      # action (B, A) in [-1, 1]
+    out.state, out.obs, out.reward, out.terminated, out.info
+
+Everything is a function of its arguments, so autograd flows from the rewards to the actions, to the initial
+state's tensors and to the physical parameters (``core.step(state, action, params=...)``). The Gymnasium shells
+(:mod:`cfd_torch.envs.shell`) and :func:`cfd_torch.envs.rollout` drive the same core.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+import torch.utils._pytree as pytree
+
+from cfd_torch import Action, Params, Scene, State, step
+from cfd_torch.sim.bodies import RigidBody
+
+__all__ = ["EnvState", "StepOut", "TaskCore"]
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """The full state of B environments.
+
+    Attributes:
+        q: (B, N, 6) body poses (translation [m], rotation vector [rad]) now.
+        q_prev: (B, N, 6) body poses one step earlier (velocities are (q - q_prev) / dt).
+        t: (B,) int64 steps taken since reset.
+        task: per-environment task variables (goal positions, classes, ...), each (B, ...).
+    """
+
+    q: torch.Tensor
+    q_prev: torch.Tensor
+    t: torch.Tensor
+    task: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.q.shape[0])
+
+    @property
+    def sim(self) -> State:
+        """The simulator's :class:`cfd_torch.State` of the B scenes."""
+        return State(self.q, self.q_prev)
+
+    def select(self, index: torch.Tensor | slice | int) -> EnvState:
+        """The environments ``index`` (a slice or index tensor keeps the batch dimension; an int keeps it too)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1)
+        return EnvState(
+            self.q[index], self.q_prev[index], self.t[index], {k: v[index] for k, v in self.task.items()}
+        )
+
+    def detach(self) -> EnvState:
+        """The same state cut from the autograd graph (truncated backpropagation starts here)."""
+        return pytree.tree_map(lambda x: x.detach(), self)
+
+
+def _flatten(s: EnvState):
+    keys = tuple(sorted(s.task))
+    return [s.q, s.q_prev, s.t, *(s.task[k] for k in keys)], keys
+
+
+def _unflatten(values, keys) -> EnvState:
+    q, q_prev, t, *rest = values
+    return EnvState(q, q_prev, t, dict(zip(keys, rest, strict=True)))
+
+
+pytree.register_pytree_node(
+    EnvState, _flatten, _unflatten, flatten_with_keys_fn=None, serialized_type_name="cfd_torch.envs.EnvState"
+)
+
+
+def where_state(mask: torch.Tensor, a: EnvState, b: EnvState) -> EnvState:
+    """Per environment (mask (B,) bool): ``a``'s rows where mask, else ``b``'s (differentiable in both)."""
+
+    def pick(x, y):
+        m = mask.reshape(-1, *([1] * (x.dim() - 1)))
+        return torch.where(m, x, y)
+
+    return pytree.tree_map(pick, a, b)
+
+
+class StepOut(NamedTuple):
+    """What :meth:`TaskCore.step` returns.
+
+    Attributes:
+        state: the next :class:`EnvState`.
+        obs: (B, O) observation of the next state.
+        reward: (B,) reward of the step (the sum of ``info``'s reward terms).
+        terminated: (B,) bool, the task reached a terminal state (success or failure) at the next state.
+        info: per-environment (B,) tensors: ``reward_<term>`` for every reward term, ``newton_iters`` and
+            ``substeps`` of the step's solve (a solve that does not converge raises :class:`cfd_torch.StepError`).
+    """
+
+    state: EnvState
+    obs: torch.Tensor
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    info: dict[str, torch.Tensor]
+
+
+class TaskCore(abc.ABC):
+    """A task over the differentiable simulator: subclasses build ``self.scene`` and define the abstract methods.
+
+    Attributes:
+        scene: the :class:`cfd_torch.Scene` (bodies, dt, contact and friction settings).
+        action_dim: A, the size of an action (every component in [-1, 1], scaled inside).
+        obs_dim: O, the size of an observation.
+        horizon: the episode length the task is designed for (the Gymnasium id's ``max_episode_steps``).
+        device, dtype: of every tensor the core makes (float64 by default: the simulator's reference path).
+    """
+
+    action_dim: int
+    obs_dim: int
+    horizon: int
+
+    def __init__(
+        self, scene: Scene, *, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64
+    ):
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.scene = scene
+        self.device = torch.device(device)
+        self.dtype = dtype
+
+    # ---- what a task defines -------------------------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _initial(self, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """One environment's initial (q (N, 6), q_prev (N, 6), task variables) drawn with ``gen`` (CPU, float64)."""
+
+    @abc.abstractmethod
+    def _action(self, state: EnvState, action: torch.Tensor) -> Action:
+        """The simulator's batched :class:`cfd_torch.Action` for actions (B, A) in [-1, 1] at ``state``."""
+
+    @abc.abstractmethod
+    def observe(self, state: EnvState) -> torch.Tensor:
+        """(B, O) observation of ``state``."""
+
+    @abc.abstractmethod
+    def reward_terms(
+        self, state: EnvState, action: torch.Tensor, next_state: EnvState
+    ) -> dict[str, torch.Tensor]:
+        """The reward's terms, each (B,); the reward is their sum."""
+
+    @abc.abstractmethod
+    def terminated(self, state: EnvState) -> torch.Tensor:
+        """(B,) bool: ``state`` is terminal."""
+
+    @abc.abstractmethod
+    def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(O,) lower and upper physical bounds of an observation (the Gymnasium Box)."""
+
+    def render_meshes(self) -> list[tuple[torch.Tensor, torch.Tensor, tuple[float, float, float, float]]]:
+        """(vertices (V, 3) body frame, faces (F, 3), RGBA colour) of every body, in scene order."""
+        return [(b.bsh.vertices, b.bsh.faces, self._colour(i, b)) for i, b in enumerate(self.scene.bodies)]
+
+    def render_camera(self) -> dict | None:
+        """A free camera (lookat, distance, azimuth, elevation) framing the task, or None for the default."""
+        return None
+
+    def _colour(self, i: int, body: RigidBody) -> tuple[float, float, float, float]:
+        if body.kind == "static":
+            return (0.55, 0.6, 0.55, 1.0)
+        return (0.85, 0.45, 0.2, 1.0)
+
+    # ---- the pure functions --------------------------------------------------------------------------------------
+
+    def reset(self, seed: int | Sequence[int], batch_size: int | None = None) -> EnvState:
+        """Initial states of B environments: environment i drawn with seed ``seed + i`` (an int; ``batch_size``
+        environments, default 1) or ``seed[i]`` (a sequence of B ints), as Gymnasium's SyncVectorEnv seeds its
+        copies."""
+        if isinstance(seed, bool) or not isinstance(seed, (int, Sequence)):
+            raise TypeError(f"seed must be an int or a sequence of ints, got {seed!r}")
+        if isinstance(seed, int):
+            B = 1 if batch_size is None else batch_size
+            if not isinstance(B, int) or B < 1:
+                raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+            seeds = [seed + i for i in range(B)]
+        else:
+            seeds = [int(s) for s in seed]
+            if not seeds or (batch_size is not None and batch_size != len(seeds)):
+                raise ValueError(f"seed has {len(seeds)} entries but batch_size is {batch_size}")
+        parts = []
+        for s in seeds:
+            gen = torch.Generator().manual_seed(s)
+            parts.append(self._initial(gen))
+        q = torch.stack([p[0] for p in parts])
+        q_prev = torch.stack([p[1] for p in parts])
+        task = {k: torch.stack([p[2][k] for p in parts]) for k in parts[0][2]}
+        return self._to(EnvState(q, q_prev, torch.zeros(len(seeds), dtype=torch.long), task))
+
+    def step(self, state: EnvState, action: torch.Tensor, params: Params | None = None) -> StepOut:
+        """One step of B environments.
+
+        Args:
+            state: the current :class:`EnvState` (B environments).
+            action: (B, A) actions, each component in [-1, 1] (values outside are clipped).
+            params: the simulator's differentiable physical parameters (``core.scene.params()``), or None.
+
+        Raises:
+            ValueError: an action of the wrong shape or with NaN/inf.
+            cfd_torch.StepError: the simulator's solve did not converge.
+        """
+        if not isinstance(state, EnvState):
+            raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
+        action = self.check_action(action, state.batch_size)
+        sim_action = self._action(state, action.clamp(-1.0, 1.0))
+        nxt, info = step(self.scene, state.sim, sim_action, params, return_info=True)
+        next_state = EnvState(nxt.q, nxt.q_prev, state.t + 1, state.task)
+        terms = self.reward_terms(state, action, next_state)
+        reward = torch.stack(list(terms.values())).sum(0)
+        out_info = {f"reward_{k}": v for k, v in terms.items()}
+        out_info["newton_iters"] = info.newton_iters.reshape(-1)
+        out_info["substeps"] = info.substeps.reshape(-1)
+        return StepOut(next_state, self.observe(next_state), reward, self.terminated(next_state), out_info)
+
+    def check_action(self, action: torch.Tensor, batch_size: int) -> torch.Tensor:
+        """``action`` as a (B, A) tensor of the core's dtype and device; a clear ValueError otherwise."""
+        if not isinstance(action, torch.Tensor):
+            action = torch.as_tensor(action, dtype=self.dtype, device=self.device)
+        if action.shape != (batch_size, self.action_dim):
+            raise ValueError(
+                f"action must have shape ({batch_size}, {self.action_dim}), got {tuple(action.shape)}"
+            )
+        if not bool(torch.isfinite(action).all()):
+            raise ValueError("action contains NaN or inf")
+        return action.to(dtype=self.dtype, device=self.device)
+
+    def _to(self, state: EnvState) -> EnvState:
+        def cast(x: torch.Tensor) -> torch.Tensor:
+            if x.is_floating_point():
+                return x.to(dtype=self.dtype, device=self.device)
+            return x.to(device=self.device)
+
+        return pytree.tree_map(cast, state)
+
+    def velocity(self, state: EnvState) -> torch.Tensor:
+        """(B, N, 6) backward-difference generalised velocities."""
+        return (state.q - state.q_prev) / self.scene.dt

@@ -1,0 +1,76 @@
+"""Gather-v0: push ten cubes into one region."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ._cubes import CubesCore
+from .core import EnvState
+from .shell import CoreEnv, CoreVectorEnv
+
+__all__ = ["GatherCore", "GatherEnv", "GatherVectorEnv"]
+
+
+class GatherCore(CubesCore):
+    """Gather: push ten cubes into one region.
+
+    Scene: as :class:`~cfd_torch.envs.sort.SortCore` (ten 0.1 m cubes, a PD-driven 0.1 x 0.1 x 0.3 m pusher
+    hovering 2 mm above a 6 x 6 m floor, friction 0.5, dt = 0.01 s). Bodies: 0-9 cubes, 10 pusher, 11 floor.
+
+    Action: (2,) in [-1, 1], the pusher's planar velocity target, ``max_speed`` (1 m/s) per unit.
+
+    Observation (46,): per cube xy and planar velocity (40), the pusher's xy and planar velocity (4), the region's
+    centre (2).
+
+    Reward: ``distance`` = -mean over cubes of how far each centre is outside the region (a disc of radius
+    ``region_radius``, 0.35 m) [m], plus ``action`` = -``action_cost`` |a|^2 (1e-3). Terminated when every cube is
+    inside. Horizon 300 steps (3 s).
+
+    Initial state: cubes and pusher at rest as in Sort (centres uniform in [-0.8, 0.8]^2, footprints 5 cm apart,
+    cubes 2 mm above the floor); the region's centre at distance ``region_distance`` (1.5 m) from the origin at a
+    uniform angle. Task variable: ``state.task["centre"]`` (2,).
+    """
+
+    obs_dim = 46
+
+    def __init__(self, *, region_radius: float = 0.35, region_distance: float = 1.5, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.region_radius = region_radius
+        self.region_distance = region_distance
+
+    def _task(self, gen: torch.Generator, q: torch.Tensor) -> dict[str, torch.Tensor]:
+        a = 2 * math.pi * float(torch.rand(1, generator=gen, dtype=torch.float64))
+        return {
+            "centre": self.region_distance * torch.tensor([math.cos(a), math.sin(a)], dtype=torch.float64)
+        }
+
+    def outside(self, state: EnvState) -> torch.Tensor:
+        """(B, 10) how far each cube's centre is outside the region [m]."""
+        xy = state.q[:, : self.num_cubes, :2]
+        return self._region_distance(xy, state.task["centre"][:, None, :], self.region_radius)
+
+    def _goal_obs(self, state: EnvState) -> torch.Tensor:
+        return state.task["centre"]
+
+    def reward_terms(
+        self, state: EnvState, action: torch.Tensor, next_state: EnvState
+    ) -> dict[str, torch.Tensor]:
+        return {
+            "distance": -self.outside(next_state).mean(1),
+            "action": -self.action_cost * (action * action).sum(1),
+        }
+
+    def terminated(self, state: EnvState) -> torch.Tensor:
+        return (self.outside(state) == 0).all(1)
+
+
+class GatherEnv(CoreEnv):
+    __doc__ = "Gymnasium face of :class:`GatherCore` (its docstring is the manual).\n\n" + CoreEnv.__doc__
+    core_class = GatherCore
+
+
+class GatherVectorEnv(CoreVectorEnv):
+    __doc__ = "Native vector face of :class:`GatherCore`.\n\n" + CoreVectorEnv.__doc__
+    core_class = GatherCore

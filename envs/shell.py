@@ -1,0 +1,230 @@
+"""Gymnasium faces of a :class:`~cfd_torch.envs.core.TaskCore`: a NumPy ``gym.Env`` and a native ``VectorEnv``.
+
+Both hold one core and run it under ``torch.no_grad()``; physics, rewards and initial states are the core's. Actions
+are float32 in [-1, 1]; observations float64 within the task's physical bounds. Seeding follows Gymnasium: an
+environment reset with seed s draws its core seed from ``np_random`` seeded with s, and the vector environment seeds
+its copy i with s + i, as ``gym.make_vec(..., vectorization_mode="sync")`` does, so the two give identical rollouts.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from .core import EnvState, TaskCore
+
+__all__ = ["CoreEnv", "CoreVectorEnv"]
+
+_SEED_HIGH = 2**62
+
+
+def _spaces(core: TaskCore) -> tuple[gym.spaces.Box, gym.spaces.Box]:
+    low, high = core.observation_bounds()
+    obs = gym.spaces.Box(low.double().cpu().numpy(), high.double().cpu().numpy(), dtype=np.float64)
+    act = gym.spaces.Box(-1.0, 1.0, (core.action_dim,), dtype=np.float32)
+    return act, obs
+
+
+class _Frames:
+    """The renderer of a core, made on the first frame."""
+
+    def __init__(self, core: TaskCore, width: int, height: int) -> None:
+        self.core, self.width, self.height = core, width, height
+        self.renderer = None
+
+    def frame(self, q: torch.Tensor) -> np.ndarray:
+        if self.renderer is None:
+            from .render import MeshRenderer
+
+            meshes = self.core.render_meshes()
+            self.renderer = MeshRenderer(
+                [(v, f) for v, f, _ in meshes], [c for _, _, c in meshes], width=self.width, height=self.height,
+                camera=self.core.render_camera(),
+            )  # fmt: skip
+        return self.renderer.render(q.detach().cpu())
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+
+class CoreEnv(gym.Env):
+    """One environment of a task (subclasses set ``core_class``): NumPy in, NumPy out.
+
+    Args:
+        render_mode: None or "rgb_array" (headless frames of the simulator's meshes).
+        device, dtype: of the core's tensors (float64 by default).
+        width, height: of rendered frames [pixels].
+        **task: the task core's own arguments (see its class).
+
+    ``info`` of a step holds the reward terms (``reward_<term>``), the solver's Newton iterations and sub-steps.
+    The torch core is ``env.unwrapped.core``; the current :class:`EnvState` is ``env.unwrapped.state``.
+    """
+
+    core_class: type[TaskCore]
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+        width: int = 480,
+        height: int = 480,
+        **task: Any,
+    ) -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.core = self.core_class(device=device, dtype=dtype, **task)
+        self.render_mode = render_mode
+        self.action_space, self.observation_space = _spaces(self.core)
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.core.scene.dt)}
+        self.state: EnvState | None = None
+        self._frames = _Frames(self.core, width, height)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        with torch.no_grad():
+            self.state = self.core.reset(int(self.np_random.integers(_SEED_HIGH)))
+            obs = self.core.observe(self.state)
+        return obs[0].cpu().numpy().astype(np.float64), {}
+
+    def step(self, action):
+        if self.state is None:
+            raise RuntimeError("call reset() before step()")
+        a = torch.as_tensor(
+            np.asarray(action, dtype=np.float64), dtype=self.core.dtype, device=self.core.device
+        )
+        with torch.no_grad():
+            out = self.core.step(self.state, a.reshape(1, -1))
+        self.state = out.state
+        info = {k: v[0].item() for k, v in out.info.items()}
+        obs = out.obs[0].cpu().numpy().astype(np.float64)
+        return obs, float(out.reward[0]), bool(out.terminated[0]), False, info
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self.state is None:
+            return None
+        return self._frames.frame(self.state.q[0])
+
+    def close(self) -> None:
+        self._frames.close()
+
+
+class CoreVectorEnv(VectorEnv):
+    """``num_envs`` environments of a task in one object (subclasses set ``core_class``), NEXT_STEP autoreset.
+
+    Args:
+        num_envs: the number of environments.
+        max_episode_steps: truncation (None: the task's horizon; ``gym.make_vec`` passes the registered one).
+        render_mode, device, dtype, width, height, **task: as :class:`CoreEnv`.
+
+    The environments are stepped one by one through the core (B = 1 each), which makes a rollout identical to
+    ``gym.make_vec(id, n, vectorization_mode="sync")``'s bit for bit; batching them into one solve agrees only to
+    rounding (the solve's iteration counts and line searches are shared).
+    """
+
+    core_class: type[TaskCore]
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25, "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        max_episode_steps: int | None = None,
+        render_mode: str | None = None,
+        *,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+        width: int = 480,
+        height: int = 480,
+        **task: Any,
+    ) -> None:
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.core = self.core_class(device=device, dtype=dtype, **task)
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.max_episode_steps = self.core.horizon if max_episode_steps is None else int(max_episode_steps)
+        self.single_action_space, self.single_observation_space = _spaces(self.core)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.core.scene.dt)}
+        self._rngs = [seeding.np_random()[0] for _ in range(num_envs)]
+        self.states: list[EnvState | None] = [None] * num_envs
+        self._obs = np.zeros((num_envs, self.core.obs_dim), dtype=np.float64)
+        self._autoreset = np.zeros(num_envs, dtype=np.bool_)
+        self._frames = _Frames(self.core, width, height)
+
+    def _reset_one(self, i: int) -> None:
+        with torch.no_grad():
+            self.states[i] = self.core.reset(int(self._rngs[i].integers(_SEED_HIGH)))
+            self._obs[i] = self.core.observe(self.states[i])[0].cpu().numpy()
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, int):
+            seeds = [seed + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed has {len(seeds)} entries for {self.num_envs} environments")
+        mask = np.ones(self.num_envs, dtype=np.bool_)
+        if options is not None and "reset_mask" in options:
+            mask = np.asarray(options["reset_mask"], dtype=np.bool_)
+            if mask.shape != (self.num_envs,):
+                raise ValueError(
+                    f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}"
+                )
+        for i in np.flatnonzero(mask):
+            if seeds[i] is not None:
+                self._rngs[i] = seeding.np_random(seeds[i])[0]
+            self._reset_one(int(i))
+            self._autoreset[i] = False
+        return self._obs.copy(), {}
+
+    def step(self, actions):
+        if any(s is None for s in self.states):
+            raise RuntimeError("call reset() before step()")
+        actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, self.core.action_dim)
+        rewards = np.zeros(self.num_envs, dtype=np.float64)
+        terminated = np.zeros(self.num_envs, dtype=np.bool_)
+        truncated = np.zeros(self.num_envs, dtype=np.bool_)
+        infos: dict[str, Any] = {}
+        for i in range(self.num_envs):
+            if self._autoreset[i]:
+                self._reset_one(i)
+                continue
+            a = torch.as_tensor(actions[i : i + 1], dtype=self.core.dtype, device=self.core.device)
+            with torch.no_grad():
+                out = self.core.step(self.states[i], a)
+            self.states[i] = out.state
+            self._obs[i] = out.obs[0].cpu().numpy()
+            rewards[i] = float(out.reward[0])
+            terminated[i] = bool(out.terminated[0])
+            truncated[i] = int(out.state.t[0]) >= self.max_episode_steps
+            for k, v in out.info.items():
+                if k not in infos:
+                    infos[k] = np.zeros(self.num_envs, dtype=np.float64)
+                    infos[f"_{k}"] = np.zeros(self.num_envs, dtype=np.bool_)
+                infos[k][i] = v[0].item()
+                infos[f"_{k}"][i] = True
+        self._autoreset = terminated | truncated
+        return self._obs.copy(), rewards, terminated, truncated, infos
+
+    def render(self):
+        if self.render_mode != "rgb_array" or any(s is None for s in self.states):
+            return None
+        return tuple(self._frames.frame(s.q[0]) for s in self.states)
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._frames.close()

@@ -1,0 +1,184 @@
+"""The Gymnasium environments (cfd_torch.envs): registration, Gymnasium's checker, seeding, the native vector env
+against make_vec's sync one, reward terms, gradients from the trivial starts against finite differences, and the
+rollout helper's truncated and checkpointed gradients."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import cfd_torch.envs as envs
+from cfd_torch.envs import EnvState, make_core, rollout
+
+F64 = torch.float64
+AVAILABLE = ["cfd_torch/Billiards-v0", "cfd_torch/Push-v0", "cfd_torch/Sort-v0", "cfd_torch/Gather-v0"]
+
+
+def test_every_task_is_registered_with_both_entry_points():
+    for env_id in envs.IDS:
+        spec = gym.spec(env_id)
+        assert spec.entry_point.startswith("cfd_torch.envs.")
+        assert spec.vector_entry_point.startswith("cfd_torch.envs.")
+        assert spec.max_episode_steps > 0
+    assert set(AVAILABLE) < set(envs.IDS) and "cfd_torch/AntPush-v0" in envs.IDS
+
+
+def test_ant_push_says_it_is_not_available_yet():
+    with pytest.raises(NotImplementedError, match="AntPush-v0 is registered but not available yet"):
+        gym.make("cfd_torch/AntPush-v0")
+    with pytest.raises(ValueError, match="unknown environment id"):
+        make_core("cfd_torch/Nope-v0")
+
+
+@pytest.mark.parametrize("env_id", AVAILABLE)
+def test_gymnasium_check_env(env_id):
+    env = gym.make(env_id).unwrapped
+    check_env(env)
+    obs, _ = env.reset(seed=0)
+    assert obs.dtype == np.float64 and env.observation_space.contains(obs)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert env.observation_space.contains(obs) and isinstance(reward, float)
+    terms = [v for k, v in info.items() if k.startswith("reward_")]
+    assert len(terms) >= 2 and reward == pytest.approx(sum(terms), rel=1e-12, abs=1e-15)
+    assert info["newton_iters"] >= 1 and info["substeps"] >= 1
+    env.close()
+
+
+def test_seeding_is_deterministic_and_seeds_differ():
+    a, b = gym.make("cfd_torch/Push-v0"), gym.make("cfd_torch/Push-v0")
+    oa, _ = a.reset(seed=7)
+    ob, _ = b.reset(seed=7)
+    oc, _ = b.reset(seed=8)
+    np.testing.assert_array_equal(oa, ob)
+    assert np.abs(oa - oc).max() > 1e-3
+    b.reset(seed=7)
+    for u in ([1.0, 0.0], [0.3, -1.0]):
+        sa, ra, *_ = a.step(np.array(u, dtype=np.float32))
+        sb, rb, *_ = b.step(np.array(u, dtype=np.float32))
+        np.testing.assert_array_equal(sa, sb)
+        assert ra == rb
+
+
+def test_native_vector_env_equals_make_vec_sync_bit_for_bit():
+    """Two Push environments truncated after 3 steps, stepped 5 times (one NEXT_STEP autoreset): observations,
+    rewards, terminations and truncations identical."""
+    sync = gym.make_vec("cfd_torch/Push-v0", 2, vectorization_mode="sync", max_episode_steps=3)
+    native = gym.make_vec(
+        "cfd_torch/Push-v0", 2, vectorization_mode="vector_entry_point", max_episode_steps=3
+    )
+    assert type(native).__name__ == "PushVectorEnv"
+    o1, _ = sync.reset(seed=3)
+    o2, _ = native.reset(seed=3)
+    np.testing.assert_array_equal(o1, o2)
+    rng = np.random.default_rng(0)
+    truncations = 0
+    for _ in range(5):
+        act = rng.uniform(-1, 1, (2, 2)).astype(np.float32)
+        r1 = sync.step(act)
+        r2 = native.step(act)
+        for x, y in zip(r1[:4], r2[:4], strict=True):
+            np.testing.assert_array_equal(x, y)
+        truncations += int(r1[3].sum())
+    assert truncations == 2  # both environments truncated once and were reset
+    sync.close()
+    native.close()
+
+
+def _loss(core, s0: EnvState, U: torch.Tensor) -> torch.Tensor:
+    """The task loss of an open-loop rollout: minus the last step's distance reward term, summed over the batch."""
+    out = rollout(core, s0, U)
+    return -out.info["reward_distance"][-1].sum()
+
+
+@pytest.mark.parametrize(
+    ("env_id", "kwargs", "h"),
+    [
+        ("cfd_torch/Billiards-v0", {"target_ball": 0, "pocket": 0}, 1e-2),
+        ("cfd_torch/Push-v0", {}, 1e-3),
+        # (the cubes' loss moves by ~1e-14 at h = 1e-3: rounding; at h = 0.1 it is still linear to 1 %)
+        ("cfd_torch/Sort-v0", {}, 0.1),
+        ("cfd_torch/Gather-v0", {}, 0.1),
+    ],
+)
+def test_gradient_from_the_trivial_start_is_nonzero_and_matches_finite_differences(env_id, kwargs, h):
+    """Zero actions from the initial state: nothing touches, yet the task loss after 3 steps depends on the first
+    action through the contact model's far field (a locally supported model gives exactly zero here)."""
+    core = make_core(env_id, **kwargs)
+    s0 = core.reset(3, 1)
+    U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
+    _loss(core, s0, U).backward()
+    g = U.grad[0, 0]
+    assert bool((g.abs() > 0).all())
+    fd = torch.zeros_like(g)
+    with torch.no_grad():
+        for a in range(core.action_dim):
+            dU = torch.zeros_like(U)
+            dU[0, 0, a] = h
+            fd[a] = (_loss(core, s0, U + dU) - _loss(core, s0, U - dU)) / (2 * h)
+    torch.testing.assert_close(g, fd, rtol=2e-2, atol=0)
+
+
+def test_rollout_checkpointed_and_truncated_gradients():
+    """Push, 4 steps of a closed-loop linear policy: checkpointing chunks of 2 steps gives the plain gradients; cutting
+    the graph every 2 steps keeps a window's own gradients and zeroes those across the cut."""
+    core = make_core("cfd_torch/Push-v0")
+    s0 = core.reset(1, 2)
+    W = torch.zeros(core.action_dim, core.obs_dim, dtype=F64, requires_grad=True)
+    b = torch.tensor([0.2, 0.9], dtype=F64, requires_grad=True)
+
+    def policy(obs, t):
+        return torch.tanh(obs @ W.T * 1e-2 + b)
+
+    def grads(**kw):
+        out = rollout(core, s0, policy, 4, **kw)
+        (gW, gb) = torch.autograd.grad(-out.rewards.sum(), (W, b))
+        return out, gW, gb
+
+    plain, gW, gb = grads()
+    ckpt, cW, cb = grads(checkpoint_every=2)
+    assert float(gb.abs().max()) > 0
+    torch.testing.assert_close(ckpt.obs, plain.obs, rtol=0, atol=0)
+    torch.testing.assert_close(cW, gW, rtol=1e-10, atol=1e-14)
+    torch.testing.assert_close(cb, gb, rtol=1e-10, atol=1e-14)
+
+    U = torch.zeros(4, 2, core.action_dim, dtype=F64)
+    U[:, :, 1] = 0.5
+    U.requires_grad_(True)
+    full = rollout(core, s0, U)
+    cut = rollout(core, s0, U, truncate_every=2)
+    torch.testing.assert_close(cut.obs, full.obs, rtol=0, atol=0)
+    g_full = torch.autograd.grad(cut.rewards[3].sum(), U)[0]  # within the window [2, 4): U[2], U[3] only
+    g_ref = torch.autograd.grad(full.rewards[3].sum(), U)[0]
+    assert float(g_full[:2].abs().max()) == 0.0 and float(g_ref[:2].abs().max()) > 0
+    torch.testing.assert_close(g_full[2:], g_ref[2:], rtol=1e-6, atol=1e-15)
+
+
+def test_core_checks_its_inputs():
+    core = make_core("cfd_torch/Push-v0")
+    s = core.reset(0, 2)
+    with pytest.raises(ValueError, match=r"action must have shape \(2, 2\)"):
+        core.step(s, torch.zeros(1, 2, dtype=F64))
+    with pytest.raises(ValueError, match="action contains NaN"):
+        core.step(s, torch.full((2, 2), float("nan"), dtype=F64))
+    with pytest.raises(TypeError, match="state must be an EnvState"):
+        core.step(s.sim, torch.zeros(2, 2, dtype=F64))
+    with pytest.raises(ValueError, match="horizon 5 exceeds the 3 actions"):
+        rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 5)
+    s32 = make_core("cfd_torch/Push-v0", dtype=torch.float32).reset([4, 5])
+    assert s32.q.dtype == torch.float32 and s32.batch_size == 2
+
+
+def test_rendered_frames_show_the_scene_and_change_when_it_moves():
+    env = gym.make("cfd_torch/Push-v0", render_mode="rgb_array", width=160, height=120)
+    env.reset(seed=0)
+    first = env.render()
+    assert first.shape == (120, 160, 3) and first.dtype == np.uint8
+    assert len(np.unique(first.reshape(-1, 3), axis=0)) > 10
+    for _ in range(10):
+        env.step(np.array([1.0, 0.0], dtype=np.float32))
+    later = env.render()
+    assert np.abs(later.astype(int) - first.astype(int)).sum(2).astype(bool).sum() > 20
+    env.close()
