@@ -1,0 +1,102 @@
+"""Environment steps per second: each task's torch core, its Gymnasium env and its native vector env.
+
+For every task: a Gymnasium env (``gym.make(id)``) is reset with seed 0 and stepped ``--steps`` times with seeded
+uniform random actions of magnitude up to ``--action-scale``, timing each ``env.step``; then the core's step is
+timed on exactly the same (state, action) pairs, replayed (same work: the shell's overhead is the ratio); then a
+native vector env of ``--num-envs`` environments (``gym.make_vec(id, n)``) is stepped ``--steps`` times. Medians of
+per-step wall times; float64, CPU. Writes ``bench_envs.json`` and ``bench_envs.md`` under ``--out``.
+
+    python scripts/bench_envs.py --out results/bench_envs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+from _provenance import git_revision
+from tqdm import tqdm
+
+import cfd_torch.envs  # noqa: F401  (registers the ids)
+
+TASKS = ["Billiards", "Push", "Sort", "Gather"]
+
+
+def bench(task: str, steps: int, num_envs: int, scale: float) -> dict:
+    env_id = f"cfd_torch/{task}-v0"
+    env = gym.make(env_id)
+    core = env.unwrapped.core
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    env.step(np.zeros(core.action_dim, dtype=np.float32))  # warm-up: compilation, landing
+    pairs, t_env, iters = [], [], []
+    for _ in range(steps):
+        a = (scale * rng.uniform(-1, 1, core.action_dim)).astype(np.float32)
+        pairs.append((env.unwrapped.state, a))
+        t0 = time.perf_counter()
+        _, _, _, _, info = env.step(a)
+        t_env.append(time.perf_counter() - t0)
+        iters.append(info["newton_iters"])
+    t_core = []
+    with torch.no_grad():
+        for s, a in pairs:
+            at = torch.as_tensor(a, dtype=core.dtype).reshape(1, -1)
+            t0 = time.perf_counter()
+            core.step(s, at)
+            t_core.append(time.perf_counter() - t0)
+    env.close()
+    venv = gym.make_vec(env_id, num_envs)
+    venv.reset(seed=0)
+    t_vec = []
+    for _ in range(steps):
+        a = (scale * rng.uniform(-1, 1, (num_envs, core.action_dim))).astype(np.float32)
+        t0 = time.perf_counter()
+        venv.step(a)
+        t_vec.append(time.perf_counter() - t0)
+    venv.close()
+    med = statistics.median
+    return {
+        "task": task, "core_ms": 1e3 * med(t_core), "env_ms": 1e3 * med(t_env),
+        "shell_overhead": med(t_env) / med(t_core) - 1.0, "env_steps_per_s": 1.0 / med(t_env),
+        "vector_envs": num_envs, "vector_ms": 1e3 * med(t_vec),
+        "vector_env_steps_per_s": num_envs / med(t_vec), "newton_iters_median": med(iters),
+    }  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--num-envs", type=int, default=4)
+    ap.add_argument("--action-scale", type=float, default=0.5)
+    ap.add_argument("--out", type=Path, default=Path("results/bench_envs"))
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = [bench(t, args.steps, args.num_envs, args.action_scale) for t in tqdm(args.tasks, desc="tasks")]
+    meta = {"commit": git_revision(), "machine": platform.processor() or platform.machine(),
+            "threads": torch.get_num_threads(), "steps": args.steps, "rows": rows}  # fmt: skip
+    (args.out / "bench_envs.json").write_text(json.dumps(meta, indent=1))
+    lines = [
+        "| task | core step ms | env step ms | shell overhead | env steps/s | vector env (n) steps/s | Newton it |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['task']} | {r['core_ms']:.1f} | {r['env_ms']:.1f} | {100 * r['shell_overhead']:+.1f} % | "
+            f"{r['env_steps_per_s']:.1f} | {r['vector_env_steps_per_s']:.1f} ({r['vector_envs']}) | "
+            f"{r['newton_iters_median']:g} |"
+        )
+    table = "\n".join(lines)
+    (args.out / "bench_envs.md").write_text(table + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
