@@ -26,7 +26,7 @@ import torch.utils._pytree as pytree
 from cfd_torch import Action, Params, Scene, State, step
 from cfd_torch.sim.bodies import RigidBody
 
-__all__ = ["EnvState", "StepOut", "TaskCore"]
+__all__ = ["EnvState", "StepOut", "TaskCore", "stack_states"]
 
 
 @dataclass(frozen=True)
@@ -82,14 +82,9 @@ pytree.register_pytree_node(
 )
 
 
-def where_state(mask: torch.Tensor, a: EnvState, b: EnvState) -> EnvState:
-    """Per environment (mask (B,) bool): ``a``'s rows where mask, else ``b``'s (differentiable in both)."""
-
-    def pick(x, y):
-        m = mask.reshape(-1, *([1] * (x.dim() - 1)))
-        return torch.where(m, x, y)
-
-    return pytree.tree_map(pick, a, b)
+def stack_states(states: list[EnvState]) -> EnvState:
+    """The environments of several states (each (B_k, ...)) as one state, concatenated along the batch."""
+    return pytree.tree_map(lambda *xs: torch.cat(xs), *states)
 
 
 class StepOut(NamedTuple):

@@ -87,6 +87,22 @@ def test_native_vector_env_equals_make_vec_sync_bit_for_bit():
     native.close()
 
 
+def test_batched_vector_env_agrees_with_the_one_by_one_steps():
+    one = gym.make_vec("cfd_torch/Sort-v0", 3, max_episode_steps=4)
+    batch = gym.make_vec("cfd_torch/Sort-v0", 3, max_episode_steps=4, batched=True)
+    o1, _ = one.reset(seed=11)
+    o2, _ = batch.reset(seed=11)
+    np.testing.assert_array_equal(o1, o2)
+    rng = np.random.default_rng(1)
+    for _ in range(5):  # crosses one truncation and autoreset
+        act = rng.uniform(-1, 1, (3, 2)).astype(np.float32)
+        r1, r2 = one.step(act), batch.step(act)
+        np.testing.assert_allclose(r2[0], r1[0], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(r2[1], r1[1], rtol=0, atol=1e-10)
+        for x, y in zip(r1[2:4], r2[2:4], strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
 def _loss(core, s0: EnvState, U: torch.Tensor) -> torch.Tensor:
     """The task loss of an open-loop rollout: minus the last step's distance reward term, summed over the batch."""
     out = rollout(core, s0, U)
