@@ -23,6 +23,7 @@ class CubesCore(TaskCore):
 
     action_dim = 2
     horizon = 300
+    action_body = 10
     num_cubes = 10
 
     def __init__(

@@ -53,6 +53,7 @@ class BilliardsCore(TaskCore):
 
     action_dim = 2
     obs_dim = 66
+    action_body = 15
     horizon = 100
 
     def __init__(
@@ -140,7 +141,10 @@ class BilliardsCore(TaskCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (0.0, -0.2, 0.0), "distance": 2.2, "azimuth": 90.0, "elevation": -70.0}
+        return {"lookat": (0.0, -0.1, 0.0), "distance": 1.4, "azimuth": 90.0, "elevation": -60.0}
+
+    def render_floor(self) -> float:
+        return -self.ball_radius
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i == 15:

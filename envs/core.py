@@ -112,12 +112,14 @@ class TaskCore(abc.ABC):
     Attributes:
         scene: the :class:`cfd_torch.Scene` (bodies, dt, contact and friction settings).
         action_dim: A, the size of an action (every component in [-1, 1], scaled inside).
+        action_body: the body the action drives (the cue ball, the pole, the pusher).
         obs_dim: O, the size of an observation.
         horizon: the episode length the task is designed for (the Gymnasium id's ``max_episode_steps``).
         device, dtype: of every tensor the core makes (float64 by default: the simulator's reference path).
     """
 
     action_dim: int
+    action_body: int
     obs_dim: int
     horizon: int
 
@@ -165,6 +167,20 @@ class TaskCore(abc.ABC):
     def render_camera(self) -> dict | None:
         """A free camera (lookat, distance, azimuth, elevation) framing the task, or None for the default."""
         return None
+
+    def render_floor(self) -> float | None:
+        """Height [m] of a drawn-only ground plane under the scene, or None."""
+        return None
+
+    def renderer(self, width: int = 480, height: int = 480):
+        """A :class:`~cfd_torch.envs.render.MeshRenderer` of this task's bodies, camera and floor (close it)."""
+        from .render import MeshRenderer
+
+        meshes = self.render_meshes()
+        return MeshRenderer(
+            [(v, f) for v, f, _ in meshes], [c for _, _, c in meshes], width=width, height=height,
+            camera=self.render_camera(), floor=self.render_floor(),
+        )  # fmt: skip
 
     def _colour(self, i: int, body: RigidBody) -> tuple[float, float, float, float]:
         if body.kind == "static":

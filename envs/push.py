@@ -41,6 +41,7 @@ class PushCore(TaskCore):
 
     action_dim = 2
     obs_dim = 26
+    action_body = 1
     horizon = 300
 
     def __init__(
@@ -104,7 +105,7 @@ class PushCore(TaskCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (1.5, 0.0, 0.0), "distance": 6.0, "azimuth": 270.0, "elevation": -45.0}
+        return {"lookat": (1.5, 0.0, 0.0), "distance": 6.5, "azimuth": 90.0, "elevation": -50.0}
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         return [(0.8, 0.55, 0.25, 1.0), (0.25, 0.45, 0.85, 1.0), (0.6, 0.62, 0.6, 1.0)][i]

@@ -39,13 +39,7 @@ class _Frames:
 
     def frame(self, q: torch.Tensor) -> np.ndarray:
         if self.renderer is None:
-            from .render import MeshRenderer
-
-            meshes = self.core.render_meshes()
-            self.renderer = MeshRenderer(
-                [(v, f) for v, f, _ in meshes], [c for _, _, c in meshes], width=self.width, height=self.height,
-                camera=self.core.render_camera(),
-            )  # fmt: skip
+            self.renderer = self.core.renderer(self.width, self.height)
         return self.renderer.render(q.detach().cpu())
 
     def close(self) -> None:

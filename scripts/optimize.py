@@ -25,7 +25,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch.envs import make_core, rollout  # noqa: E402
-from cfd_torch.envs.render import MeshRenderer, write_gif  # noqa: E402
+from cfd_torch.envs.render import write_gif  # noqa: E402
 
 TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 
@@ -80,9 +80,7 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(args.out / "loss.png", dpi=120)
     if not args.no_gif:
-        meshes = core.render_meshes()
-        r = MeshRenderer([(v, f) for v, f, _ in meshes], [c for _, _, c in meshes], width=320, height=320,
-                         camera=core.render_camera())  # fmt: skip
+        r = core.renderer(320, 320)
         frames = [r.render(q) for q in best[1]]
         r.close()
         write_gif(frames, args.out / "best.gif", fps=round(1 / core.scene.dt))
