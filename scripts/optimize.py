@@ -46,7 +46,9 @@ def main() -> None:
     core = make_core(f"cfd_torch/{args.task}-v0", **TASK_KWARGS.get(args.task, {}))
     s0 = core.reset(args.seed, 1)
     theta = torch.zeros(args.horizon, 1, core.action_dim, dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([theta], lr=args.lr)
+    # Adam's default eps (1e-8) would swallow the far field's gradients (1e-13 to 1e-9 at the trivial starts): the
+    # update is lr * m / (sqrt(v) + eps), so eps must sit far below them
+    opt = torch.optim.Adam([theta], lr=args.lr, eps=1e-30)
     log = []
     best = None
     for it in tqdm(range(args.iters + 1), desc=f"{args.task} Adam"):
