@@ -32,7 +32,8 @@ class ContactConfig:
     Attributes:
         stiffness: mu, the scale of the potential P = mu E (E mixes dimensionless and 1/m terms).
         margin: delta, the distance below which the potential is +inf [m].
-        eps: relative width of the hierarchy's blend band, d2 = (1 + eps) d1.
+        eps: relative width of the hierarchy's blend band, d2 = d1 + max(eps d1, 2 margin) (never narrower than
+            twice the margin: see :mod:`cfd_torch.contact.central`).
         split: which node of a node pair the traversal descends: "both", or the "larger" sphere.
         pair_tol: relative gradient tolerance of each leaf pair's plane solve.
         pair_max_iter: Newton iteration cap of the plane solve (a pair that does not converge raises).

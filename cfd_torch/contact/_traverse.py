@@ -11,7 +11,11 @@ recursion of SPEC section 4, started at the two roots::
     F(I, J) = P_exact(tri_I, tri_J)                   if both are leaves
             = sum of P over the child pairs           otherwise (split both, or the larger)
 
-with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / (eps d1).
+with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / w, w = max(eps d1, 2 delta): the band is
+never narrower than twice the margin delta (:func:`cfd_torch.contact.central.band_width`), so that a far pair
+(s >= 1, central term only, finite) has its spheres at least 2 delta apart and no triangle pair below it within
+the margin; a narrower band (eps d1 < delta: d1 < 0.1 m at the defaults) left the potential finite and flat up to
+a jump to +inf where the meshes were already within the margin (a barrier without a barrier's growth).
 
 Unrolled, P is a sum of terms ``w * V`` where V is P_c(r) or P_exact and w is the node pair's own phi (central
 terms) times the (1 - phi) of all its ancestors. The traversal is breadth-first and batched: the frontier of node
@@ -34,6 +38,7 @@ import torch
 
 from ..rotation import point_jacobian, rot_second, rotation_derivatives
 from .bsh import BSH
+from .central import BAND_MARGINS
 from .pair import pair_potential_derivatives
 
 
@@ -167,7 +172,9 @@ def _node_threads(P: int) -> int:
     return 1 if P < _THREAD_MIN_PAIRS else min(numba.get_num_threads(), 4)
 
 
-def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess):
+def _traverse_cpu(
+    forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess
+):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
     weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2).
 
@@ -179,7 +186,15 @@ def _traverse_cpu(forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, o
     dt = R.dtype
     dRn = (dR if dR is not None else torch.zeros(Nb, 3, 3, 3, dtype=dt)).contiguous().numpy()
     d2Rn = (d2R if d2R is not None else torch.zeros(Nb, 3, 3, 3, 3, dtype=dt)).contiguous().numpy()
-    common = (R.contiguous().numpy(), dRn, d2Rn, t.contiguous().numpy(), float(mu), float(eps))
+    common = (
+        R.contiguous().numpy(),
+        dRn,
+        d2Rn,
+        t.contiguous().numpy(),
+        float(mu),
+        float(eps),
+        float(min_width),
+    )
     P = pair_body.shape[0]
 
     def run(rows: torch.Tensor | None):
@@ -292,10 +307,11 @@ def traverse(
     grad = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
     eye = torch.eye(3, dtype=dt, device=dev)
+    min_width = BAND_MARGINS * float(margin)
 
     if dev.type == "cpu" and backend != "torch":
         leaves, n_pairs, levels, wtable = _traverse_cpu(
-            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, split, order, value, grad, hess
+            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess
         )
         I = pair_root[:0, 0]  # skip the tensor traversal below
     else:
@@ -314,7 +330,7 @@ def traverse(
         d = torch.einsum("eij,ej->ei", R[ba], CI) + t[ba] - torch.einsum("eij,ej->ei", R[bb], CJ) - t[bb]
         r = torch.linalg.vector_norm(d, dim=-1)
         d1 = forest.radius[I] + forest.radius[J]
-        width = eps * d1
+        width = torch.clamp(eps * d1, min=min_width)
         s = (r - d1) / width
         dr = d2r = None
         if order >= 1:
@@ -533,7 +549,7 @@ def penetrating(
             forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
             pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin), float(eps),
-            split == "both", out.numpy(),
+            BAND_MARGINS * float(margin), split == "both", out.numpy(),
         )  # fmt: skip
         return out.bool()
     value = traverse(

@@ -36,8 +36,8 @@ def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
 
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
-def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, split_both, order,
-                   value, grad, hess):  # fmt: skip
+def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split_both,
+                   order, value, grad, hess):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
 
     Inherited weights live in a table, not on the stack: entry 0 is the weight 1 (zero derivatives) that every
@@ -100,7 +100,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
             r = math.sqrt(r2)
             inv_r = 1.0 / r
             d1 = radius[I] + radius[J]
-            width = eps * d1
+            width = max(eps * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
             s = (r - d1) / width
             tt = min(max(s, 0.0), 1.0)
             phi = tt * tt * tt * (tt * (6.0 * tt - 15.0) + 10.0)
@@ -246,14 +246,14 @@ def _triangles_intersect(A, B) -> bool:
 
 
 @numba.njit(**_JIT)
-def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, eps, split_both,
-                      out):  # fmt: skip
+def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, eps, min_width,
+                      split_both, out):  # fmt: skip
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
     and a pair of leaves is infeasible when the triangles' distance is <= margin or they intersect (the plane
     solve's own tests: its start needs the distance, and no plane separates intersecting triangles).
-    Here a node pair is descended only where the potential descends it too (s < 1: sphere gap below eps d1,
+    Here a node pair is descended only where the potential descends it too (s < 1: sphere gap below the band width,
     with the same split rule, so both reach a leaf pair through the same ancestors) and its spheres are within
     ``margin`` of each other (every triangle pair below two spheres farther apart than that is farther apart
     too); a body pair stops at its first hit. No weights, no plane solves: a collision query, for the
@@ -287,7 +287,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                 r2 += dx * dx
             d1 = sa * radius[I] + sb * radius[J]
             r = math.sqrt(r2)
-            if r - d1 >= eps * d1:  # the potential's far field: central term only, finite
+            if r - d1 >= max(eps * d1, min_width):  # the potential's far field: central term only, finite
                 continue
             # (a relative slack of 1e-9 covers the rounding of the world centres)
             if r - d1 > margin + 1e-9 * (r + d1):

@@ -9,6 +9,14 @@ centre distance ``r`` alone, the same for a triangle pair and for any pair of cl
 
 The quintic smoothstep ``Phi(s) = clip(6 s^5 - 15 s^4 + 10 s^3, 0, 1)`` has ``Phi'`` and ``Phi''`` zero at s = 0 and
 s = 1, so a blend ``phi P_c + (1 - phi) P_fine`` with ``phi = Phi((r - d1) / (d2 - d1))`` is C2.
+
+The band's width ``d2 - d1`` is ``max(eps d1, 2 delta)`` (:func:`band_width`): SPEC's ``eps d1``, but never less than
+twice the margin delta. A far pair (r >= d2) gets the central term alone, finite, so its spheres must be farther
+apart than delta, or the meshes below could be within the margin (where the potential is +inf) while the
+potential stays finite and flat: two 80-face balls (d1 = 0.057 m, eps d1 = 0.57 mm < delta = 1 mm) meeting vertex
+to vertex had P = P_c up to a gap of 0.57 mm and +inf just below, a wall with no barrier in front of it, against
+which a Newton solve stalls. With a band of 2 delta, every triangle pair below a pair in the band's upper half is
+more than delta apart, and the fine potential's barrier grows within the band.
 """
 
 from __future__ import annotations
@@ -18,7 +26,9 @@ import torch
 from .._validate import check_finite_tensor
 from ..config import DEFAULT_CONTACT
 
-__all__ = ["central_potential", "smoothstep", "blend_weight"]
+__all__ = ["central_potential", "smoothstep", "blend_weight", "band_width", "BAND_MARGINS"]
+
+BAND_MARGINS = 2.0  # the blend band is at least this many contact margins wide
 
 
 def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness) -> torch.Tensor:
@@ -57,20 +67,31 @@ def smoothstep(s: torch.Tensor) -> torch.Tensor:
     return t * t * t * (t * (6.0 * t - 15.0) + 10.0)
 
 
-def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float) -> torch.Tensor:
-    """Weight of the central potential in the blend of two nodes: ``Phi((r - d1) / (eps d1))``.
+def band_width(d1: torch.Tensor | float, eps: float, margin: float = 0.0):
+    """Width ``d2 - d1`` of the blend band of two nodes: ``max(eps d1, BAND_MARGINS margin)`` (module docstring)."""
+    if isinstance(d1, torch.Tensor):
+        return torch.clamp(eps * d1, min=BAND_MARGINS * margin)
+    return max(eps * d1, BAND_MARGINS * margin)
+
+
+def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: float = 0.0) -> torch.Tensor:
+    """Weight of the central potential in the blend of two nodes: ``Phi((r - d1) / w)``, ``w = band_width(d1, eps,
+    margin) = max(eps d1, 2 margin)``.
 
     Args:
         r: (...) centre distance of the two nodes [m].
         d1: (...) or scalar, sum of the two bounding radii ``R_I + R_J`` [m], > 0.
-        eps: relative width of the blend band, > 0 (``d2 = (1 + eps) d1``).
+        eps: relative width of the blend band, > 0 (``d2 = d1 + max(eps d1, 2 margin)``).
+        margin: the contact margin delta [m] (the hierarchy's potential uses its own; 0: the band is ``eps d1``).
 
     Returns:
         (...) phi: 0 for r <= d1 (fine potential only), 1 for r >= d2 (central only), C2 in between.
     """
     if not eps > 0:
         raise ValueError(f"eps must be > 0, got {eps}")
-    return smoothstep((r - d1) / (eps * d1))
+    if not margin >= 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    return smoothstep((r - d1) / band_width(d1, eps, margin))
 
 
 def _first(mask: torch.Tensor) -> tuple[int, ...]:

@@ -29,7 +29,7 @@ from .._validate import check_positive
 from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from .bsh import BSH
-from .central import central_potential, smoothstep
+from .central import band_width, central_potential, smoothstep
 from .pair import pair_potential
 
 __all__ = ["mesh_potential_reference", "mesh_traversal_counts_reference"]
@@ -95,7 +95,8 @@ def _recurse(a: _Body, i: int, b: _Body, j: int, kw: dict, counts: dict | None) 
     diff = a.centre[i] - b.centre[j]
     d1 = a.radius[i] + b.radius[j]
     r_val = float(diff.detach().norm())
-    s_val = (r_val - d1) / (kw["eps"] * d1)
+    width = band_width(d1, kw["eps"], kw["margin"])
+    s_val = (r_val - d1) / width
     if s_val >= 1.0:
         return central_potential(diff.norm(), mu=kw["mu"])
     if a.is_leaf(i) and b.is_leaf(j):
@@ -107,7 +108,7 @@ def _recurse(a: _Body, i: int, b: _Body, j: int, kw: dict, counts: dict | None) 
     if s_val <= 0.0:  # phi = 0 with zero derivatives: the fine potential alone (r may be 0 here)
         return fine
     r = diff.norm()
-    phi = smoothstep((r - d1) / (kw["eps"] * d1))
+    phi = smoothstep((r - d1) / width)
     return phi * central_potential(r, mu=kw["mu"]) + (1.0 - phi) * fine
 
 
@@ -130,7 +131,7 @@ def mesh_potential_reference(
             ``R(omega) X + t``.
         mu: contact coefficient (stiffness scale).
         margin: delta; the potential is +inf when two triangles come within it.
-        eps: relative width of the blend band, ``d2 = (1 + eps) d1``.
+        eps: relative width of the blend band, ``d2 = d1 + max(eps d1, 2 margin)``.
         split: ``"both"`` or ``"larger"`` (which node(s) of an internal pair to descend into).
 
     Returns:

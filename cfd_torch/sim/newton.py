@@ -382,6 +382,15 @@ def newton(
         later = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken > 0, accumulate=True)
         later = later & ~retry
         first_try = ~failed & ~later & ~retry
+        # each island's step decreased its own energy: together they must not raise the scene's (islands judged
+        # uncoupled at q0 can move into each other's blend band; accepting that can cycle between a split and a
+        # whole iteration forever); a scene whose islands did raise it keeps q0 and searches whole from then on
+        lim = L + 1e-12 * cur.scale[idx]
+        rose = first_try & several & ~(full.value <= lim) if full is not None else torch.zeros_like(first_try)
+        if bool(rose.any()):
+            q_new[rose] = q0[rose]
+            split[idx[rose]] = False
+            first_try = first_try & ~rose
         q[idx[~failed]] = q_new[~failed]
         if bool(failed.any()):
             reason[idx[failed]] = int(Stop.LINE_SEARCH_FAILED)
@@ -392,7 +401,8 @@ def newton(
         if bool(later.any()):
             ev = _call(energy, q[idx[later]], idx[later], 2, act[idx[later]] if freeze else None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
-            bad = ~torch.isfinite(ev.value)  # islands accepted at different tries that ended up in contact
+            # islands accepted at different tries that ended up in contact, or that together raised the energy
+            bad = ~torch.isfinite(ev.value) | (several[later] & ~(ev.value <= lim[later]))
             if bool(bad.any()):
                 lb = torch.nonzero(later)[:, 0][bad]
                 q[idx[lb]] = q0[lb]
