@@ -31,12 +31,13 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
+import ctypes.util
 import os
 
 # Headless rendering (cfd_torch.envs) needs MuJoCo's EGL backend, chosen when mujoco is first imported; this
 # package's MJCF loader and pytorch_kinematics import mujoco, so the choice is made here (an explicit MUJOCO_GL or a
-# display wins).
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+# display wins; without an EGL library mujoco would fail to import with it, so it is left alone)
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
     os.environ["MUJOCO_GL"] = "egl"
 
 from .config import ContactConfig, FrictionConfig, SolverConfig  # noqa: E402
