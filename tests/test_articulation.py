@@ -174,3 +174,127 @@ def test_ant_falls_freely_with_its_joints_still():
     assert float(c[-1, 2]) == pytest.approx(0.75 - 9.81 * 0.01**2 * 6, abs=1e-9)
     assert torch.allclose(c[:, 6:], th.expand(4, -1), atol=1e-9)
     assert torch.allclose(c[:, 3:6], c[0, 3:6].expand(4, -1), atol=1e-9)
+
+
+# --------------------------------------------------------------------- closed-form derivatives against torch.func
+def _branchy_chain() -> Articulation:
+    """A fixed-base tree of hinges and slides with tilted axes, offsets and anchors: root - hinge - slide - hinge,
+    root - slide - hinge, and a second hinge on the first slide."""
+    rng = np.random.default_rng(3)
+    parents, kinds = (-1, 0, 1, 2, 0, 4, 2), (None, "hinge", "slide", "hinge", "slide", "hinge", "hinge")
+    links, joints = [], []
+    for k, (par, kind) in enumerate(zip(parents, kinds, strict=True)):
+        js = ()
+        if kind is not None:
+            js = (
+                NS(name=f"j{k}", kind=kind, axis=rng.normal(size=3), pos=rng.normal(size=3), range=None,
+                   damping=0.0, armature=0.0, stiffness=0.0, springref=0.0),
+            )  # fmt: skip
+            joints += list(js)
+        quat = rng.normal(size=4)
+        links.append(
+            NS(name=f"l{k}", parent=par, pos=rng.normal(size=3), quat=quat / np.linalg.norm(quat), joints=js,
+               mesh=trimesh.creation.box((0.1, 0.2, 0.3)), mass=1.0, com=rng.normal(size=3),
+               second_moment=np.diag([0.1, 0.2, 0.3]))
+        )  # fmt: skip
+    return Articulation(
+        NS(name="branchy", links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
+    )
+
+
+def _reference_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+    """(6 La,) the moving links' rows for one configuration q (Qa,), link by link, in ops whose forward-mode
+    derivatives stay accurate at small angles (a series exp; log R = 2 atan(s / w) v / s of the quaternion
+    [w, v], s = |v|, with atan's series where s << w). The library's value path (a two-term exp series below
+    1e-4 rad, sin t / t above it, and atan2(s, w) / s) is exact in value but not under forward mode: its second
+    derivatives lose about eps / theta^2 near theta = 0 (2e-10 at 1e-9 rad), where the closed form does not."""
+    from cfd_torch.rotation import _rotation_derivatives_torch
+    from cfd_torch.sim.articulation import _quat_from_matrix
+
+    base = q[:6] if art.floating else root
+    th = q[6:] if art.floating else q
+    Rs, ps = [_rotation_derivatives_torch(base[None, 3:], 0)[0][0]], [base[:3]]
+    for i in range(1, art.num_links):
+        Rp, pp = Rs[int(art.parent[i])], ps[int(art.parent[i])]
+        R, p = Rp @ torch.as_tensor(art.offset_R[i]), pp + Rp @ torch.as_tensor(art.offset_p[i])
+        a, c, t = torch.as_tensor(art.axis[i]), torch.as_tensor(art.anchor[i]), th[i - 1]
+        if art.kind[i] == "hinge":
+            K = torch.linalg.cross(a.expand(3, 3), torch.eye(3, dtype=F64)).T  # [a]_x
+            Rj = torch.eye(3, dtype=F64) + torch.sin(t) * K + (1.0 - torch.cos(t)) * (K @ K)
+            R, p = R @ Rj, p + R @ (c - Rj @ c)
+        else:
+            p = p + R @ (a * t)
+        Rs.append(R)
+        ps.append(p)
+    R = torch.stack(Rs)
+    quat = _quat_from_matrix(R)
+    w, v = quat[:, :1], quat[:, 1:]
+    s2 = (v * v).sum(-1, keepdim=True)
+    x2 = s2 / (w * w)
+    small = x2 < 1e-2
+    s = torch.sqrt(torch.where(small, torch.ones_like(s2), s2))
+    series = sum((-x2) ** k / (2 * k + 1) for k in range(12)) / w  # atan(s / w) / s
+    log = 2.0 * torch.where(small, series, torch.atan2(s, w) / s) * v
+    rows = torch.cat([torch.stack(ps) + (R @ torch.as_tensor(art.com)[..., None])[..., 0], log], 1)
+    return rows[0 if art.floating else 1 :].reshape(-1)
+
+
+def _reference_derivatives(art: Articulation, q: torch.Tensor, root: torch.Tensor, g: torch.Tensor):
+    """J (A, 6 La, Qa) and sum_k g_k d2 row_k / dq dq (A, Qa, Qa) by nested forward mode (torch.func)."""
+
+    def jac(qa, rt):
+        J = torch.func.jacfwd(_reference_rows, argnums=1)(art, qa, rt)
+        return J, J
+
+    D2, J = torch.func.vmap(torch.func.jacfwd(jac, has_aux=True))(q, root)
+    return J, torch.einsum("ak,akij->aij", g.reshape(g.shape[0], -1), D2)
+
+
+@pytest.mark.parametrize("which", ["ant", "branchy"])
+def test_closed_form_derivatives_match_torch_func(which):
+    """The Jacobian of the link rows and their second derivatives contracted with a row gradient, against nested
+    forward mode, with rotation vectors (the Ant's base; the branchy chain's first link) of norm 0 to near pi."""
+    from cfd_torch.rotation import rotation_matrix, rotation_vector
+    from cfd_torch.sim.articulation import (
+        _fk_derivatives,
+        _fk_rows,
+        _joint_values,
+        _quat_from_matrix,
+        articulation,
+    )
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    rng = np.random.default_rng(7)
+    norms = torch.tensor([0.0, 1e-9, 1e-5, 0.3, 2.0, math.pi - 1e-4, math.pi - 1e-8], dtype=F64)
+    A = len(norms)
+    u = torch.as_tensor(rng.normal(size=(A, 3)))
+    rot = u / u.norm(dim=1, keepdim=True) * norms[:, None]  # (A, 3)
+    if which == "ant":
+        art = articulation(gymnasium_ant_xml())
+        q = torch.cat(
+            [torch.as_tensor(rng.normal(size=(A, 3))), rot, torch.as_tensor(rng.uniform(-3, 3, (A, 8)))], 1
+        )
+        root, fixed, lo = torch.zeros(A, 6, dtype=F64), None, 0
+    else:  # the root turned so that link 1 has the rotation vector rot
+        art = _branchy_chain()
+        q = torch.as_tensor(rng.uniform(-1.5, 1.5, (A, art.num_coords)))
+        R1 = rotation_matrix(rot) @ (
+            torch.as_tensor(art.offset_R[1]) @ rotation_matrix(torch.as_tensor(art.axis[1]) * q[:, :1])
+        ).transpose(-1, -2)
+        root = torch.cat(
+            [torch.as_tensor(rng.normal(size=(A, 3))), rotation_vector(_quat_from_matrix(R1))], 1
+        )
+        fixed, lo = root, 1
+    rows = _fk_rows(art, q, fixed)[:, lo:]
+    assert torch.allclose(rows[:, 0, 3:].norm(dim=-1), norms, rtol=1e-9, atol=1e-14)
+    g = torch.as_tensor(rng.normal(size=rows.shape))
+    J, second = _fk_derivatives(art, q, fixed, lo, g)
+    J_ref, second_ref = _reference_derivatives(art, q, root, g)
+    assert torch.allclose(
+        rows.reshape(A, -1), torch.vmap(lambda x, r: _reference_rows(art, x, r))(q, root), atol=1e-12
+    )
+    assert J_ref.abs().amax((1, 2)).min() > 0.5 and second_ref.abs().amax((1, 2)).min() > 0.5
+    assert (J - J_ref).abs().max() < 1e-10
+    assert (second - second_ref).abs().max() < 1e-10
+    assert torch.equal(_fk_derivatives(art, q, fixed, lo, None)[0], J)
+    assert torch.allclose(_joint_values(art, _fk_rows(art, q, fixed)), q, rtol=0.0, atol=1e-12)  # the inverse

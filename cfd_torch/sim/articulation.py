@@ -4,8 +4,8 @@ Every link is a body of the scene (a state row: the pose of its centre-of-mass f
 mass properties), so contact, inertia and friction see links exactly as they see free rigid bodies. What differs is
 the step's unknowns: the base pose (translation and rotation vector of the root link's frame, floating bases only)
 and one value per joint. :class:`ArticulatedKinematics` maps them to the link poses by forward kinematics, with its
-first and second derivatives (``torch.func`` over the closed-form chain below), and adds the joint-space terms of
-the incremental potential: armature, damping, springs, limits and actuation.
+closed-form first and second derivatives (forward mode along the tree, then the log map's derivatives), and adds
+the joint-space terms of the incremental potential: armature, damping, springs, limits and actuation.
 
 Forward kinematics (MuJoCo's convention, one joint per link): the frame of link i is
 
@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from ..contact.bsh import BSH
-from ..rotation import rotation_matrix, rotation_vector
+from ..rotation import rotation_derivatives, rotation_matrix, rotation_vector
 from .bodies import RigidBody
 from .mjcf import load_mjcf, quat_to_matrix
 
@@ -132,6 +133,7 @@ class Articulation:
         self.num_actuators = len(self.gear)
         #: coordinates of the step: the base pose (6, floating only), then the joints
         self.num_coords = (6 if self.floating else 0) + self.num_joints
+        self._levels, self._level_back = _levels(self)  # the tree by depth, for the forward kinematics
 
     def poses(self, joints: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
@@ -159,31 +161,48 @@ def articulation(source, *, max_edge: float | None = None, **mjcf_options) -> Ar
 
 
 # ------------------------------------------------------------------------------------------- forward kinematics
-def _rot_axis(a: torch.Tensor, th: torch.Tensor) -> torch.Tensor:
-    """(A, 3, 3) rotations by th (A,) about the unit axis a (3,)."""
-    K = torch.zeros(3, 3, dtype=th.dtype, device=th.device)
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -a[2], a[1], a[2], -a[0], -a[1], a[0]
-    eye = torch.eye(3, dtype=th.dtype, device=th.device)
-    s, c = torch.sin(th)[:, None, None], torch.cos(th)[:, None, None]
-    return eye + s * K + (1.0 - c) * (K @ K)
+class _Level(NamedTuple):
+    """The links at one depth of the tree (n of them)."""
+
+    links: torch.Tensor  # (n,) link indices
+    parent: torch.Tensor  # (n,) their parents' positions in the level above
+    joint: torch.Tensor  # (n,) their joint indices (link - 1)
+    Ro: torch.Tensor  # (n, 3, 3) link frame in the parent's at zero joint value
+    po: torch.Tensor  # (n, 3)
+    K: torch.Tensor  # (n, 3, 3) [axis]_x for hinges, 0 for slides
+    K2: torch.Tensor  # (n, 3, 3) K @ K
+    anchor: torch.Tensor  # (n, 3) hinge anchor (link frame)
+    slide: torch.Tensor  # (n, 3) slide axis, 0 for hinges
+
+    def to(self, dtype: torch.dtype, device: torch.device) -> _Level:
+        return _Level(
+            *(x.to(device) for x in self[:3]), *(x.to(dtype=dtype, device=device) for x in self[3:])
+        )
 
 
-def _exp(w: torch.Tensor) -> torch.Tensor:
-    """(A, 3, 3) rotation matrices of rotation vectors w (A, 3), in tensor ops only (``torch.func`` transforms
-    them; the library's :func:`cfd_torch.rotation.rotation_matrix` may run a numba kernel)."""
-    t2 = (w * w).sum(-1)
-    small = t2 < 1e-8
-    t2s = torch.where(small, torch.ones_like(t2), t2)
-    t = torch.sqrt(t2s)
-    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / t2s)
-    z = torch.zeros_like(w[:, 0])
-    K = torch.stack(
-        [torch.stack([z, -w[:, 2], w[:, 1]], -1), torch.stack([w[:, 2], z, -w[:, 0]], -1),
-         torch.stack([-w[:, 1], w[:, 0], z], -1)], -2,
-    )  # fmt: skip
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a[:, None, None] * K + b[:, None, None] * (K @ K)
+def _levels(art: Articulation) -> tuple[tuple[_Level, ...], torch.Tensor]:
+    """The tree by depth (root excluded; float64 CPU tensors) and the permutation (L,) from level order (root, then
+    level by level) back to link order."""
+    depth = np.zeros(art.num_links, dtype=np.int64)
+    for i in range(1, art.num_links):
+        depth[i] = depth[art.parent[i]] + 1
+    hinge = np.array([k == "hinge" for k in art.kind], dtype=float)[:, None]
+    a = art.axis * hinge
+    K = np.zeros((art.num_links, 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
+    K = K - K.transpose(0, 2, 1)
+    order, above, levels = [0], np.array([0]), []
+    for d in range(1, int(depth.max(initial=0)) + 1):
+        links = np.flatnonzero(depth == d)
+        fields = (
+            links, np.searchsorted(above, art.parent[links]), links - 1,  # ``above`` is sorted
+            art.offset_R[links], art.offset_p[links], K[links], K[links] @ K[links], (art.anchor * hinge)[links],
+            (art.axis * (1.0 - hinge))[links],
+        )  # fmt: skip
+        levels.append(_Level(*(torch.from_numpy(np.ascontiguousarray(x)) for x in fields)))
+        order += list(links)
+        above = links
+    return tuple(levels), torch.from_numpy(np.argsort(order))
 
 
 def _quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
@@ -208,33 +227,101 @@ def _quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[:, :1] < 0, -q, q)
 
 
+def _vee(S: torch.Tensor) -> torch.Tensor:
+    """(..., 3) the axial vector of the skew part of (..., 3, 3) matrices."""
+    return 0.5 * torch.stack(
+        [S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]], -1
+    )
+
+
+def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order: int) -> list[torch.Tensor]:
+    """The link frames and, up to ``order``, their derivatives in the coordinates q (A, Q) (base pose first if
+    floating; a fixed base stands at root (A, 6)): R (A, L, 3, 3), p (A, L, 3), dR (A, L, Q, 3, 3),
+    dp (A, L, Q, 3), d2R (A, L, Q, Q, 3, 3), d2p (A, L, Q, Q, 3).
+
+    Forward mode along the tree, one depth at a time. A link's frame is its parent's times its local transform
+    G(theta) = [Ro Rj(theta), po + Ro (c - Rj(theta) c + s theta)] (hinge: Rj = I + sin K + (1 - cos) K^2,
+    K = [axis]_x, anchor c; slide: Rj = I, axis s), so with E_a = 1 when coordinate a is the link's own joint::
+
+        R = Rp Rl,                        p = pp + Rp pl
+        dR_a = dRp_a Rl + E_a Rp Rl',     dp_a = dpp_a + dRp_a pl + E_a Rp pl'
+        d2R_ab = d2Rp_ab Rl + E_b dRp_a Rl' + E_a dRp_b Rl' + E_a E_b Rp Rl''     (d2p_ab alike)
+
+    A floating root is [exp(w), t]: its derivatives are those of :func:`cfd_torch.rotation.rotation_derivatives`
+    and the identity; a fixed root has none.
+    """
+    levels = [lv.to(q.dtype, q.device) for lv in art._levels]
+    back = art._level_back.to(q.device)
+    A, Q = q.shape
+    base = q[:, :6] if art.floating else root
+    th = q[:, 6:] if art.floating else q
+    if order and art.floating:
+        R0, dE, d2E = rotation_derivatives(base[:, 3:], order)
+    else:
+        R0 = rotation_matrix(base[:, 3:])
+    out = [[R0[:, None]], [base[:, None, :3]]]
+    if order:
+        dR0, dp0 = q.new_zeros(A, 1, Q, 3, 3), q.new_zeros(A, 1, Q, 3)
+        if art.floating:
+            dR0[:, 0, 3:6] = dE.permute(0, 3, 1, 2)
+            dp0[:, 0, :3] = torch.eye(3, dtype=q.dtype, device=q.device)
+        out += [[dR0], [dp0]]
+    if order >= 2:
+        d2R0, d2p0 = q.new_zeros(A, 1, Q, Q, 3, 3), q.new_zeros(A, 1, Q, Q, 3)
+        if art.floating:
+            d2R0[:, 0, 3:6, 3:6] = d2E.permute(0, 3, 4, 1, 2)
+        out += [[d2R0], [d2p0]]
+    first = 6 if art.floating else 0
+    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    mv = lambda M, v: (M @ v[..., None])[..., 0]  # noqa: E731  (batched matrix-vector products)
+    for lv in levels:
+        Rp, pp = out[0][-1][:, lv.parent], out[1][-1][:, lv.parent]  # (A, n, 3, 3), (A, n, 3)
+        t = th[:, lv.joint]  # (A, n)
+        s, c = torch.sin(t)[..., None, None], torch.cos(t)[..., None, None]
+        Rj = eye + s * lv.K + (1.0 - c) * lv.K2
+        Rl = lv.Ro @ Rj
+        pl = lv.po + mv(lv.Ro, lv.anchor - mv(Rj, lv.anchor) + t[..., None] * lv.slide)
+        out[0].append(Rp @ Rl)
+        out[1].append(pp + mv(Rp, pl))
+        if not order:
+            continue
+        E = torch.nn.functional.one_hot(first + lv.joint, Q).to(q.dtype)  # (n, Q)
+        dRp, dpp = out[2][-1][:, lv.parent], out[3][-1][:, lv.parent]  # (A, n, Q, 3, 3), (A, n, Q, 3)
+        Rj1 = c * lv.K + s * lv.K2
+        Rl1, pl1 = lv.Ro @ Rj1, mv(lv.Ro, lv.slide - mv(Rj1, lv.anchor))
+        out[2].append(dRp @ Rl[:, :, None] + E[..., None, None] * (Rp @ Rl1)[:, :, None])
+        out[3].append(dpp + mv(dRp, pl[:, :, None]) + E[..., None] * mv(Rp, pl1)[:, :, None])
+        if order < 2:
+            continue
+        d2Rp, d2pp = out[4][-1][:, lv.parent], out[5][-1][:, lv.parent]  # (A, n, Q, Q, 3, 3), (A, n, Q, Q, 3)
+        Rj2 = c * lv.K2 - s * lv.K
+        Rl2, pl2 = lv.Ro @ Rj2, -mv(lv.Ro, mv(Rj2, lv.anchor))
+        EE = E[:, :, None] * E[:, None, :]  # (n, Q, Q)
+        X = (dRp @ Rl1[:, :, None])[:, :, :, None] * E[
+            :, None, :, None, None
+        ]  # (A, n, Q, Q, 3, 3) E_b dRp_a Rl'
+        x = mv(dRp, pl1[:, :, None])[:, :, :, None] * E[:, None, :, None]  # (A, n, Q, Q, 3) E_b dRp_a pl'
+        out[4].append(
+            d2Rp @ Rl[:, :, None, None]
+            + X
+            + X.transpose(2, 3)
+            + EE[..., None, None] * (Rp @ Rl2)[:, :, None, None]
+        )
+        out[5].append(
+            d2pp
+            + mv(d2Rp, pl[:, :, None, None])
+            + x
+            + x.transpose(2, 3)
+            + EE[..., None] * mv(Rp, pl2)[:, :, None, None]
+        )
+    return [torch.cat(parts, 1)[:, back] for parts in out]
+
+
 def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
     """Link frames (R (A, L, 3, 3), p (A, L, 3)) for coordinates q (A, Qa) (base pose first if floating) and, for a
     fixed base, the root link frame's pose root (A, 6)."""
-    dt = q.dtype
-    base = q[:, :6] if art.floating else root
-    th = q[:, 6:] if art.floating else q
-    Rs = [_exp(base[:, 3:])]
-    ps = [base[:, :3]]
-    for i in range(1, art.num_links):
-        j = int(art.parent[i])
-        Rp, pp = Rs[j], ps[j]
-        Ro = torch.as_tensor(art.offset_R[i], dtype=dt, device=q.device)
-        po = torch.as_tensor(art.offset_p[i], dtype=dt, device=q.device)
-        R = Rp @ Ro
-        p = pp + Rp @ po
-        a = torch.as_tensor(art.axis[i], dtype=dt, device=q.device)
-        t = th[:, i - 1]
-        if art.kind[i] == "hinge":
-            c = torch.as_tensor(art.anchor[i], dtype=dt, device=q.device)
-            Rj = _rot_axis(a, t)
-            p = p + (R @ (c - Rj @ c)[..., None])[..., 0]
-            R = R @ Rj
-        else:
-            p = p + (R @ (a[None] * t[:, None])[..., None])[..., 0]
-        Rs.append(R)
-        ps.append(p)
-    return torch.stack(Rs, 1), torch.stack(ps, 1)
+    R, p = _chain(art, q, root, 0)
+    return R, p
 
 
 def _fk_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor | None) -> torch.Tensor:
@@ -247,6 +334,55 @@ def _fk_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor | None) -> t
     return torch.cat([t, w], -1)
 
 
+def _fk_derivatives(
+    art: Articulation, q: torch.Tensor, root: torch.Tensor | None, lo: int, g: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The Jacobian J (A, 6 (L - lo), Q) of the rows of links lo.. (:func:`_fk_rows`) in q (A, Q) and, for row
+    gradients g (A, L - lo, 6), the contraction sum_k g_k d2 row_k / dq dq (A, Q, Q).
+
+    Centre of mass x = p + R com: its derivatives are those of p and R applied to com. Rotation vector w = log R:
+    differentiating R(q) = exp(w(q)) with the exponential's derivatives E_i = dexp/dw_i, E_ij
+    (:func:`cfd_torch.rotation.rotation_derivatives`)::
+
+        dR_a = sum_i E_i w_i,a                     =>  vee(dR_a R^T) = G w_a,  G e_i = vee(E_i R^T)
+        d2R_ab = sum_ij E_ij w_i,a w_j,b + sum_i E_i w_i,ab
+                                                   =>  G w_ab = vee(M_ab R^T),  M_ab = d2R_ab - sum_ij E_ij w_i,a w_j,b
+
+    (G: the left Jacobian of exp, invertible for |w| <= pi; E_i R^T and M_ab R^T are skew). Contracted with
+    g_w and h = G^-T g_w: g_w . w_ab = h . vee(M_ab R^T) = <M_ab, P> with P = [h]_x R / 2.
+    """
+    chain = _chain(art, q, root, 1 if g is None else 2)
+    R, p, dR, dp = (x[:, lo:] for x in chain[:4])
+    A, La, Q = dR.shape[:3]
+    com = torch.as_tensor(art.com[lo:], dtype=q.dtype, device=q.device)  # (La, 3)
+    w = rotation_vector(_quat_from_matrix(R.reshape(A * La, 3, 3)))
+    Re, dE, d2E = rotation_derivatives(w, 1 if g is None else 2)
+    G = _vee(dE.permute(0, 3, 1, 2) @ Re.transpose(-1, -2)[:, None]).transpose(-1, -2).reshape(A, La, 3, 3)
+    V = _vee(dR @ R.transpose(-1, -2)[:, :, None])  # (A, La, Q, 3): world angular velocities
+    Om = torch.linalg.solve(G, V.transpose(-1, -2))  # (A, La, 3, Q) = dw/dq
+    Jx = dp + (dR @ com[:, None, :, None])[..., 0]  # (A, La, Q, 3)
+    J = torch.cat([Jx.transpose(-1, -2), Om], -2).reshape(A, 6 * La, Q)
+    if g is None:
+        return J, None
+    d2R, d2p = (x[:, lo:] for x in chain[4:])
+    gx, gw = g[..., :3], g[..., 3:]
+    h = torch.linalg.solve(G.transpose(-1, -2), gw[..., None])[..., 0]  # (A, La, 3)
+    z = torch.zeros_like(h[..., 0])
+    H = torch.stack(
+        [torch.stack([z, -h[..., 2], h[..., 1]], -1), torch.stack([h[..., 2], z, -h[..., 0]], -1),
+         torch.stack([-h[..., 1], h[..., 0], z], -1)], -2,
+    )  # fmt: skip
+    P = 0.5 * H @ R  # (A, La, 3, 3)
+    C = P + gx[..., :, None] * com[:, None, :]  # g_x . d2R com = <d2R, g_x com^T>
+    N = torch.einsum("emnij,emn->eij", d2E, P.reshape(A * La, 3, 3)).reshape(A, La, 3, 3)
+    second = (
+        torch.einsum("alxymn,almn->axy", d2R, C)
+        + torch.einsum("alxym,alm->axy", d2p, gx)
+        - torch.einsum("alix,alij,aljy->axy", Om, N, Om)
+    )
+    return J, second
+
+
 def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     """(A, Qa) the coordinates whose forward kinematics gives the link rows (A, L, 6) (base pose if floating, then
     the joints)."""
@@ -254,29 +390,17 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     R = rotation_matrix(rows[..., 3:])
     com = torch.as_tensor(art.com, dtype=dt, device=dev)
     p = rows[..., :3] - (R @ com[None, :, :, None])[..., 0]
-    out = []
-    for i in range(1, art.num_links):
-        j = int(art.parent[i])
-        Ro = torch.as_tensor(art.offset_R[i], dtype=dt, device=dev)
-        po = torch.as_tensor(art.offset_p[i], dtype=dt, device=dev)
-        F = R[:, j] @ Ro  # the joint's frame at zero
-        rel = F.transpose(-1, -2) @ R[:, i]  # rotate(a, theta) for a hinge, identity for a slide
-        a = torch.as_tensor(art.axis[i], dtype=dt, device=dev)
-        if art.kind[i] == "hinge":
-            sin = (
-                0.5
-                * torch.stack(
-                    [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]],
-                    -1,
-                )
-                @ a
-            )
-            cos = 0.5 * (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
-            out.append(torch.atan2(sin, cos))
-        else:
-            d = F.transpose(-1, -2) @ (p[:, i] - p[:, j] - R[:, j] @ po)[..., None]
-            out.append((d[..., 0] * a).sum(-1))
-    th = torch.stack(out, 1) if out else rows.new_zeros(rows.shape[0], 0)
+    as_t = lambda x: torch.as_tensor(x, dtype=dt, device=dev)  # noqa: E731
+    par = torch.as_tensor(art.parent[1:], device=dev)
+    Rp, pp = R[:, par], p[:, par]  # (A, J, 3, 3), (A, J, 3) the parents' frames
+    F = Rp @ as_t(art.offset_R[1:])  # the joints' frames at zero
+    rel = F.transpose(-1, -2) @ R[:, 1:]  # rotate(a, theta) for a hinge, identity for a slide
+    a = as_t(art.axis[1:])
+    hinge = torch.as_tensor([k == "hinge" for k in art.kind[1:]], dtype=torch.bool, device=dev)
+    angle = torch.atan2((_vee(rel) * a).sum(-1), 0.5 * (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0))
+    d = p[:, 1:] - pp - (Rp @ as_t(art.offset_p[1:])[..., None])[..., 0]  # the slide, in the world frame
+    shift = ((F.transpose(-1, -2) @ d[..., None])[..., 0] * a).sum(-1)
+    th = torch.where(hinge, angle, shift)  # (A, J)
     if not art.floating:
         return th
     base_w = rows[:, 0, 3:]
@@ -370,26 +494,15 @@ class ArticulatedKinematics:
             parts.append(_joint_values(art, poses[:, r : r + art.num_links]))
         return torch.cat(parts, 1)
 
-    def _derivatives(self, q: torch.Tensor, fixed: torch.Tensor, second: bool):
+    def _derivatives(self, q: torch.Tensor, fixed: torch.Tensor, grad: torch.Tensor | None):
         """Per articulation: its moving rows [r0, r1), its coordinates' slice, the Jacobian (A, 6 La, Qa) of those
-        rows and, with ``second``, their second derivatives (A, 6 La, Qa, Qa) (one nested forward-mode pass)."""
+        rows and, for pose-space gradients grad (A, N, 6), sum_k grad_k d2 row_k / dqa dqa (A, Qa, Qa)."""
         out = []
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
             lo = 0 if art.floating else 1
-
-            def f(qa, rt, art=art):
-                return self._rows(art, qa[None], rt[None])[0].reshape(-1)
-
-            if second:
-
-                def jac(qa, rt, f=f):
-                    J = torch.func.jacfwd(f)(qa, rt)
-                    return J, J
-
-                D2, J = torch.func.vmap(torch.func.jacfwd(jac, has_aux=True))(q[:, sl], fixed[:, r])
-            else:
-                J, D2 = torch.func.vmap(torch.func.jacfwd(f))(q[:, sl], fixed[:, r]), None
-            out.append((r + lo, r + art.num_links, sl, J, D2))
+            g = None if grad is None else grad[:, r + lo : r + art.num_links]
+            J, second = _fk_derivatives(art, q[:, sl], None if art.floating else fixed[:, r], lo, g)
+            out.append((r + lo, r + art.num_links, sl, J, second))
         return out
 
     def pullback(self, q, grad, hess, fixed):
@@ -399,13 +512,12 @@ class ArticulatedKinematics:
         if nf:
             J[:, self._f6.to(q.device), torch.arange(nf, device=q.device)] = 1.0
         second = grad.new_zeros(A, self.num_coords, self.num_coords)
-        g6 = grad.reshape(A, 6 * N)
         want = hess is not None and bool((grad != 0).any())  # a pure Hessian pull-back needs no d2pose/dq2
-        for r0, r1, sl, Ja, D2 in self._derivatives(q, fixed, want):
+        for r0, r1, sl, Ja, S in self._derivatives(q, fixed, grad if want else None):
             J[:, 6 * r0 : 6 * r1, sl] = Ja
-            if D2 is not None:
-                second[:, sl, sl] = torch.einsum("ak,akij->aij", g6[:, 6 * r0 : 6 * r1], D2)
-        gq = (J.transpose(1, 2) @ g6[..., None])[..., 0]
+            if S is not None:
+                second[:, sl, sl] = S
+        gq = (J.transpose(1, 2) @ grad.reshape(A, 6 * N)[..., None])[..., 0]
         if hess is None:
             return gq, None
         return gq, J.transpose(1, 2) @ hess @ J + second
@@ -414,7 +526,7 @@ class ArticulatedKinematics:
         A = q.shape[0]
         out = v.new_zeros(A, self.num_bodies, 6)
         out[:, self.free.to(v.device)] = v[:, : 6 * len(self.free)].reshape(A, -1, 6)
-        for r0, r1, sl, Ja, _ in self._derivatives(q, fixed, False):
+        for r0, r1, sl, Ja, _ in self._derivatives(q, fixed, None):
             out[:, r0:r1] = (Ja @ v[:, sl, None])[..., 0].reshape(A, r1 - r0, 6)
         return out
 
