@@ -14,11 +14,11 @@ __all__ = ["floor_body", "Pusher"]
 GAP = 2e-3  # bodies start this far above the floor [m] (more than the contact margin, 1 mm) and land
 
 
-def floor_body(size: float) -> RigidBody:
-    """A static ``size`` x ``size`` x 0.2 m box whose top face is the plane z = 0 (12 triangles; the scene refines
-    it to its partners' scale)."""
+def floor_body(size: float, centre: tuple[float, float] = (0.0, 0.0)) -> RigidBody:
+    """A static ``size`` x ``size`` x 0.2 m box centred at ``centre`` (xy) whose top face is the plane z = 0 (12
+    triangles; the scene refines it to its partners' scale)."""
     mesh = trimesh.creation.box((size, size, 0.2))
-    mesh.apply_translation((0.0, 0.0, -0.1))
+    mesh.apply_translation((centre[0], centre[1], -0.1))
     return rigid_body(mesh, kind="static")
 
 

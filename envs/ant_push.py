@@ -20,10 +20,11 @@ class AntPushCore(TaskCore):
     """AntPush: the Gymnasium Ant (``gymnasium/envs/mujoco/assets/ant.xml``: a torso on a floating base, four legs
     of two hinges each, eight motors of gear 150) pushes a box to a target.
 
-    Scene: a 0.3 m cube (``box_density`` 50 kg/m^3: 1.35 kg) and the Ant on a static 10 x 10 m floor (top at
-    z = 0), friction 1 (the Ant's MJCF value), gravity 9.81 m/s^2, dt = 0.01 s (retried as up to 8 sub-steps if a
-    solve fails). Rows: 0 box, 1 floor, 2-10 the Ant's links (torso first). The Ant's joint limits, damping and
-    armature are its MJCF's (limits as the simulator's C2 barrier).
+    Scene: a 0.3 m cube (``box_density`` 50 kg/m^3: 1.35 kg) and the Ant on a static floor (top at z = 0; a square
+    of side ``distance`` + 5 m centred between the Ant and the target: 7 m by default), friction 1 (the Ant's MJCF
+    value), gravity 9.81 m/s^2, dt = 0.01 s (retried as up to 8 sub-steps if a solve fails). Rows: 0 box, 1 floor,
+    2-10 the Ant's links (torso first). The Ant's joint limits, damping and armature are its MJCF's (limits as the
+    simulator's C2 barrier).
 
     Action: (8,) in [-1, 1], the motors' controls in MJCF order (joint torque 150 x control).
 
@@ -58,7 +59,9 @@ class AntPushCore(TaskCore):
     ) -> None:
         self.ant = articulation(gymnasium_ant_xml())
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
-        scene = Scene([box, floor_body(10.0)], articulations=[self.ant], dt=dt, friction=1.0, substeps=8)
+        # the floor is refined to the Ant's capsule edges: keep it no larger than the task needs
+        floor = floor_body(distance + 5.0, centre=((1.0 + distance) / 2, 0.0))
+        scene = Scene([box, floor], articulations=[self.ant], dt=dt, friction=1.0, substeps=8)
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance
         self.action_cost = action_cost
@@ -111,18 +114,11 @@ class AntPushCore(TaskCore):
         return (state.q[:, 0, :2] - state.task["target"]).norm(dim=1) < self.success_radius
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        pose = [
-            5.0,
-            5.0,
-            3.0,
-            4.0,
-            4.0,
-            4.0,
-        ]  # within the 10 x 10 m floor; rotation vectors re-centred below pi
+        half = self.distance + 3.0  # beyond the floor's edges [m]
+        pose = [half, half, 3.0, 4.0, 4.0, 4.0]  # rotation vectors are re-centred below pi
         vel = [50.0] * 6
-        high = torch.tensor(
-            pose + vel + [4.0] * 8 + [200.0] * 8 + pose + vel + [5.0, 5.0], dtype=torch.float64
-        )
+        joints = [4.0] * 8 + [200.0] * 8
+        high = torch.tensor(pose + vel + joints + pose + vel + [half, half], dtype=torch.float64)
         return -high, high
 
     def render_camera(self) -> dict:

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 import cfd_torch.envs  # noqa: F401  (registers the ids)
 
-TASKS = ["Billiards", "Push", "Sort", "Gather"]
+TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 
 def bench(task: str, steps: int, num_envs: int, scale: float) -> dict:

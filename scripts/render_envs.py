@@ -19,7 +19,7 @@ from tqdm import tqdm
 from cfd_torch.envs import make_core
 from cfd_torch.envs.render import write_gif
 
-TASKS = ["Billiards", "Push", "Sort", "Gather"]
+TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 
 def scripted(core, state) -> torch.Tensor:
