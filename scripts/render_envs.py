@@ -1,7 +1,7 @@
 """Pictures of the environments: each task from seed 0, driven for ``--steps`` steps by a scripted action (Push,
-Sort, Gather: the pusher heads for the first box or cube; Billiards: the cue ball pushed toward the rack's apex
-for 8 steps),
-rendered headless. Writes ``<task>.png`` (first and last frame side by side) and ``<task>.gif`` under ``--out``.
+Sort, Gather: the pusher heads for the first box or cube; Billiards: the cue ball pushed toward the rack's apex for
+8 steps; AntPush: 2 Hz sines of staggered phase on the motors), rendered headless. Writes ``<task>.png`` (first and
+last frame side by side) and ``<task>.gif`` under ``--out``.
 
     python scripts/render_envs.py --out results/envs
 """
@@ -24,6 +24,10 @@ TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 def scripted(core, state) -> torch.Tensor:
     """(1, 2) action: the actuated body heads for body 0 (unit speed; the cue ball is pushed for 8 steps only)."""
+    if core.action_dim != 2:  # the Ant: its eight motors driven by sines of staggered phase
+        t = float(state.t[0]) * core.scene.dt
+        k = torch.arange(core.action_dim, dtype=state.q.dtype)
+        return 0.8 * torch.sin(2 * torch.pi * 2.0 * t + k * torch.pi / 4)[None]
     d = state.q[0, 0, :2] - state.q[0, core.action_body, :2]
     if core.action_body == 15 and int(state.t[0]) >= 8:
         return torch.zeros(1, 2, dtype=d.dtype)
