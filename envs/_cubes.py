@@ -76,6 +76,18 @@ class CubesCore(TaskCore):
         g = -float(self.scene.gravity[2])
         return self.pusher.action(state, self.num_cubes, action, self.scene.dt, g, self.num_cubes + 2)
 
+    def outside(self, state: EnvState) -> torch.Tensor:
+        """(B, 10) how far each cube's centre is outside its target region [m] (0 inside)."""
+        raise NotImplementedError(f"{type(self).__name__} must define outside")
+
+    def reward_terms(
+        self, state: EnvState, action: torch.Tensor, next_state: EnvState
+    ) -> dict[str, torch.Tensor]:
+        return self._distance_terms(self.outside(next_state).mean(1), action)
+
+    def terminated(self, state: EnvState) -> torch.Tensor:
+        return (self.outside(state) == 0).all(1)
+
     def _region_distance(self, xy: torch.Tensor, centre: torch.Tensor, radius: float) -> torch.Tensor:
         """(B, n) how far each cube's centre is outside its region (0 inside) [m]."""
         return ((xy - centre).norm(dim=-1) - radius).clamp_min(0.0)

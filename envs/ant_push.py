@@ -6,17 +6,19 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
+from cfd_torch.rotation import rotation_matrix
 from cfd_torch.sim.articulation import articulation
 from cfd_torch.sim.mjcf import gymnasium_ant_xml
 
 from ._pusher import GAP, floor_body
-from .core import EnvState, TaskCore
+from ._target import BoxToTargetCore
+from .core import EnvState
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["AntPushCore", "AntPushEnv", "AntPushVectorEnv"]
 
 
-class AntPushCore(TaskCore):
+class AntPushCore(BoxToTargetCore):
     """AntPush: the Gymnasium Ant (``gymnasium/envs/mujoco/assets/ant.xml``: a torso on a floating base, four legs
     of two hinges each, eight motors of gear 150) pushes a box to a target.
 
@@ -73,7 +75,7 @@ class AntPushCore(TaskCore):
         # the Ant's lowest vertex at those joints and a base at the origin
         rows = self.ant.poses(self._joints)
         low = min(
-            float((b.bsh.vertices.double() @ _rot(r[3:]).T + r[:3])[:, 2].min())
+            float((b.bsh.vertices.double() @ rotation_matrix(r[None, 3:])[0].T + r[:3])[:, 2].min())
             for b, r in zip(self.ant.bodies, rows, strict=True)
         )
         self._base_height = GAP - low
@@ -97,21 +99,12 @@ class AntPushCore(TaskCore):
 
     def observe(self, state: EnvState) -> torch.Tensor:
         c, cp = self._coords(state.q), self._coords(state.q_prev)
-        v = (c - cp) / self.scene.dt
-        v[:, 12:] = torch.remainder(v[:, 12:] * self.scene.dt + torch.pi, 2 * torch.pi) - torch.pi
-        v[:, 12:] = v[:, 12:] / self.scene.dt  # hinge angles wrap at pi
+        d = c - cp
+        d[:, 12:] = torch.remainder(d[:, 12:] + torch.pi, 2 * torch.pi) - torch.pi  # hinge angles wrap at pi
+        v = d / self.scene.dt
         return torch.cat(
             [c[:, 6:12], v[:, 6:12], c[:, 12:], v[:, 12:], c[:, :6], v[:, :6], state.task["target"]], 1
         )
-
-    def reward_terms(
-        self, state: EnvState, action: torch.Tensor, next_state: EnvState
-    ) -> dict[str, torch.Tensor]:
-        d = (next_state.q[:, 0, :2] - next_state.task["target"]).norm(dim=1)
-        return {"distance": -d, "action": -self.action_cost * (action * action).sum(1)}
-
-    def terminated(self, state: EnvState) -> torch.Tensor:
-        return (state.q[:, 0, :2] - state.task["target"]).norm(dim=1) < self.success_radius
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         half = self.distance + 3.0  # beyond the floor's edges [m]
@@ -130,12 +123,6 @@ class AntPushCore(TaskCore):
         if i == 1:
             return (0.6, 0.62, 0.6, 1.0)
         return (0.3, 0.5, 0.85, 1.0)
-
-
-def _rot(w: torch.Tensor) -> torch.Tensor:
-    from cfd_torch.rotation import rotation_matrix
-
-    return rotation_matrix(w[None])[0]
 
 
 class AntPushEnv(CoreEnv):

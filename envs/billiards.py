@@ -98,11 +98,11 @@ class BilliardsCore(TaskCore):
         q[:15, :2] = self.rack
         q[15, 0] = -0.1 + 0.2 * u[0]
         q[15, 1] = -0.6 + 0.2 * u[1]
-        target = int(u[2] * 15) if self.target_ball is None else self.target_ball
+        target = int(u[2] * 15) if self.target_ball is None else self.target_ball  # (u < 1)
         pocket = int(u[3] * 4) if self.pocket is None else self.pocket
         task = {
-            "target": torch.tensor(min(target, 14), dtype=torch.long),
-            "pocket": torch.tensor(POCKETS[min(pocket, len(POCKETS) - 1)], dtype=torch.float64),
+            "target": torch.tensor(target, dtype=torch.long),
+            "pocket": torch.tensor(POCKETS[pocket], dtype=torch.float64),
         }
         return q, q.clone(), task
 
@@ -125,7 +125,7 @@ class BilliardsCore(TaskCore):
         self, state: EnvState, action: torch.Tensor, next_state: EnvState
     ) -> dict[str, torch.Tensor]:
         d = (self.object_ball(next_state) - next_state.task["pocket"]).norm(dim=1)
-        return {"distance": -d, "action": -self.action_cost * (action * action).sum(1)}
+        return self._distance_terms(d, action)
 
     def terminated(self, state: EnvState) -> torch.Tensor:
         return (self.object_ball(state) - state.task["pocket"]).norm(dim=1) < self.pocket_radius

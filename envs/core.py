@@ -113,6 +113,7 @@ class TaskCore(abc.ABC):
         scene: the :class:`cfd_torch.Scene` (bodies, dt, contact and friction settings).
         action_dim: A, the size of an action (every component in [-1, 1], scaled inside).
         action_body: the body the action drives (the cue ball, the pole, the pusher).
+        action_cost: the weight of the reward's ``action`` term, -action_cost |a|^2.
         obs_dim: O, the size of an observation.
         horizon: the episode length the task is designed for (the Gymnasium id's ``max_episode_steps``).
         device, dtype: of every tensor the core makes (float64 by default: the simulator's reference path).
@@ -120,6 +121,7 @@ class TaskCore(abc.ABC):
 
     action_dim: int
     action_body: int
+    action_cost: float
     obs_dim: int
     horizon: int
 
@@ -260,4 +262,8 @@ class TaskCore(abc.ABC):
 
     def velocity(self, state: EnvState) -> torch.Tensor:
         """(B, N, 6) backward-difference generalised velocities."""
-        return (state.q - state.q_prev) / self.scene.dt
+        return state.sim.velocity(self.scene.dt)
+
+    def _distance_terms(self, distance: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The reward terms every task has: ``distance`` = -distance (B,) [m] and ``action`` = -action_cost |a|^2."""
+        return {"distance": -distance, "action": -self.action_cost * (action * action).sum(1)}

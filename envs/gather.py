@@ -54,17 +54,6 @@ class GatherCore(CubesCore):
     def _goal_obs(self, state: EnvState) -> torch.Tensor:
         return state.task["centre"]
 
-    def reward_terms(
-        self, state: EnvState, action: torch.Tensor, next_state: EnvState
-    ) -> dict[str, torch.Tensor]:
-        return {
-            "distance": -self.outside(next_state).mean(1),
-            "action": -self.action_cost * (action * action).sum(1),
-        }
-
-    def terminated(self, state: EnvState) -> torch.Tensor:
-        return (self.outside(state) == 0).all(1)
-
 
 class GatherEnv(CoreEnv):
     __doc__ = "Gymnasium face of :class:`GatherCore` (its docstring is the manual).\n\n" + CoreEnv.__doc__

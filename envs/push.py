@@ -10,13 +10,14 @@ import trimesh
 from cfd_torch import Action, Scene, rigid_body
 
 from ._pusher import GAP, Pusher, floor_body
-from .core import EnvState, TaskCore
+from ._target import BoxToTargetCore
+from .core import EnvState
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["PushCore", "PushEnv", "PushVectorEnv"]
 
 
-class PushCore(TaskCore):
+class PushCore(BoxToTargetCore):
     """Push: drive a pole so that it pushes a box to a target.
 
     Scene: a 0.3 m cube (``box_density`` 200 kg/m^3: 5.4 kg) resting on a static floor (10 x 10 m, top at z = 0),
@@ -87,15 +88,6 @@ class PushCore(TaskCore):
     def observe(self, state: EnvState) -> torch.Tensor:
         v = self.velocity(state)
         return torch.cat([state.q[:, 0], v[:, 0], state.q[:, 1], v[:, 1], state.task["target"]], 1)
-
-    def reward_terms(
-        self, state: EnvState, action: torch.Tensor, next_state: EnvState
-    ) -> dict[str, torch.Tensor]:
-        d = (next_state.q[:, 0, :2] - next_state.task["target"]).norm(dim=1)
-        return {"distance": -d, "action": -self.action_cost * (action * action).sum(1)}
-
-    def terminated(self, state: EnvState) -> torch.Tensor:
-        return (state.q[:, 0, :2] - state.task["target"]).norm(dim=1) < self.success_radius
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         half = self.distance + 2.0  # the floor's half width [m]

@@ -56,17 +56,6 @@ class SortCore(CubesCore):
         sign = 2.0 * state.task["classes"].to(state.q.dtype) - 1.0
         return torch.cat([sign, state.task["centres"].reshape(-1, 4)], 1)
 
-    def reward_terms(
-        self, state: EnvState, action: torch.Tensor, next_state: EnvState
-    ) -> dict[str, torch.Tensor]:
-        return {
-            "distance": -self.outside(next_state).mean(1),
-            "action": -self.action_cost * (action * action).sum(1),
-        }
-
-    def terminated(self, state: EnvState) -> torch.Tensor:
-        return (self.outside(state) == 0).all(1)
-
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i < self.num_cubes:
             return (0.85, 0.45, 0.2, 1.0)

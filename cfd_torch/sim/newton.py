@@ -110,19 +110,6 @@ def _call(energy, q, scenes, order, active):
     return energy(q, scenes, order) if active is None else energy(q, scenes, order, active)
 
 
-def _cross(
-    ev: EnergyEval, act: torch.Tensor, others: torch.Tensor, pair_bodies: torch.Tensor
-) -> torch.Tensor:
-    """(A,) the value of the pairs of ``ev`` between a body of ``act`` (A, M) and one of ``others`` (A, M)."""
-    A, M = act.shape
-    pb = torch.where(pair_bodies >= 0, pair_bodies, M)
-    a = torch.cat([act, act.new_zeros(A, 1)], 1)
-    o = torch.cat([others, others.new_zeros(A, 1)], 1)
-    on = (a[:, pb[:, 0]] & o[:, pb[:, 1]]) | (o[:, pb[:, 0]] & a[:, pb[:, 1]])
-    zero = torch.zeros((), dtype=ev.pair_value.dtype, device=act.device)
-    return torch.where(on, ev.pair_value, zero).sum(1)
-
-
 def _restricted(
     ev: EnergyEval, act: torch.Tensor, pair_bodies: torch.Tensor, others: torch.Tensor | None = None
 ):
@@ -298,7 +285,9 @@ def newton(
         if freeze:
             others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
             L0, scale0 = _restricted(_rows(cur, idx[gs]), gm, pair_bodies, others)
-            cross0 = _cross(_rows(cur, idx[gs]), gm, others, pair_bodies)
+            cross0 = (
+                _restricted(_rows(cur, idx[gs]), gm, pair_bodies)[0] - L0
+            )  # its pairs with the other islands
         else:
             L0, scale0 = L, cur.scale[idx]
         noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
@@ -329,11 +318,12 @@ def newton(
             if freeze:
                 rows_ev = _rows(ev, pos[gs[sub]])
                 L_try = _restricted(rows_ev, gm[sub], pair_bodies, others[sub])[0]
+                with_others = _restricted(rows_ev, gm[sub], pair_bodies)[0]
+                # feasible: all its pairs finite, those with the other islands too
+                feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
                 # cannot show (a body at rest pulled only by the far field of another island)
-                slack = (_cross(rows_ev, gm[sub], others[sub], pair_bodies) - cross0[sub]).abs()
-                # feasible: all its pairs finite, those with the other islands too
-                feas = torch.isfinite(_restricted(rows_ev, gm[sub], pair_bodies)[0])
+                slack = torch.where(feas, (with_others - L_try - cross0[sub]).abs(), torch.zeros_like(L_try))
             else:
                 L_try = ev.value[pos[gs[sub]]]
                 feas = torch.isfinite(L_try)

@@ -1,0 +1,28 @@
+"""What Push and AntPush share: the goal is body 0, a box, at a target point."""
+
+from __future__ import annotations
+
+import torch
+
+from .core import EnvState, TaskCore
+
+__all__ = ["BoxToTargetCore"]
+
+
+class BoxToTargetCore(TaskCore):
+    """A task whose goal is body 0 (a box) with its centre within ``success_radius`` of ``state.task["target"]``
+    (xy); reward terms: the box's distance to the target after the step, the action cost."""
+
+    success_radius: float
+
+    def box_distance(self, state: EnvState) -> torch.Tensor:
+        """(B,) horizontal distance of the box's centre to the target [m]."""
+        return (state.q[:, 0, :2] - state.task["target"]).norm(dim=1)
+
+    def reward_terms(
+        self, state: EnvState, action: torch.Tensor, next_state: EnvState
+    ) -> dict[str, torch.Tensor]:
+        return self._distance_terms(self.box_distance(next_state), action)
+
+    def terminated(self, state: EnvState) -> torch.Tensor:
+        return self.box_distance(state) < self.success_radius
