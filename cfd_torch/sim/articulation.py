@@ -505,7 +505,7 @@ class ArticulatedKinematics:
             out.append((r + lo, r + art.num_links, sl, J, second))
         return out
 
-    def pullback(self, q, grad, hess, fixed):
+    def pullback(self, q, grad, hess, fixed, extra=()):
         A, N = grad.shape[:2]
         J = grad.new_zeros(A, 6 * N, self.num_coords)
         nf = 6 * len(self.free)
@@ -518,9 +518,9 @@ class ArticulatedKinematics:
             if S is not None:
                 second[:, sl, sl] = S
         gq = (J.transpose(1, 2) @ grad.reshape(A, 6 * N)[..., None])[..., 0]
-        if hess is None:
-            return gq, None
-        return gq, J.transpose(1, 2) @ hess @ J + second
+        Jt = J.transpose(1, 2)
+        more = tuple(Jt @ X @ J for X in extra)
+        return gq, (None if hess is None else Jt @ hess @ J + second), more
 
     def push(self, q, v, fixed):
         A = q.shape[0]

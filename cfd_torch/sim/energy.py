@@ -332,21 +332,24 @@ def incremental_potential(
         Hp = Hp + Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N)
     Gb = q.new_zeros(B, N, 6)
     Gb[:, dyn] = g_b.reshape(B, Nd, 6)
-    grad, hess = kin.pullback(q, Gb + Gp, Hp, prob.fixed)
+    # the gap majorizer and (for articulations) the inertia are pulled back with the same Jacobian
+    extra = []
+    if order >= 2 and gap is not None:
+        extra.append(gap)
+    if order >= 2 and prob.joint is not None:
+        extra.append(Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N))
+    grad, hess, pulled = kin.pullback(q, Gb + Gp, Hp, prob.fixed, extra)
     if jg is not None:
         grad = grad + jg
         hess = None if hess is None else hess + jh
     h_floor = gap_q = None
     if order >= 2:
         if gap is not None:
-            gap_q = kin.pullback(q, torch.zeros_like(Gb), gap, prob.fixed)[1]
+            gap_q = pulled[0]
         if prob.joint is None:
             h_floor = 0.1 * torch.linalg.eigvalsh(h_b).reshape(B, -1).amin(1)
         else:  # the inertia of the coordinates themselves (links chained through the forward kinematics)
-            Hb_q = kin.pullback(
-                q, torch.zeros_like(Gb), Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N), prob.fixed
-            )[1]
-            h_floor = 0.1 * torch.linalg.eigvalsh(Hb_q).amin(1)
+            h_floor = 0.1 * torch.linalg.eigvalsh(pulled[-1]).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
         node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None,

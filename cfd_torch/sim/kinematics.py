@@ -11,6 +11,7 @@ stepper. Rows of bodies the map does not move (static, kinematic) come from the 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -40,10 +41,16 @@ class Kinematics(Protocol):
         ...
 
     def pullback(
-        self, q: torch.Tensor, grad: torch.Tensor, hess: torch.Tensor | None, fixed: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """J^T grad (A, Q) and J^T hess J + sum_k grad_k d2pose_k/dq2 (A, Q, Q) for pose-space grad (A, N, 6) and
-        hess (A, 6N, 6N), with the other bodies at ``fixed`` (A, N, 6)."""
+        self,
+        q: torch.Tensor,
+        grad: torch.Tensor,
+        hess: torch.Tensor | None,
+        fixed: torch.Tensor,
+        extra: Sequence[torch.Tensor] = (),
+    ) -> tuple[torch.Tensor, torch.Tensor | None, tuple[torch.Tensor, ...]]:
+        """J^T grad (A, Q), J^T hess J + sum_k grad_k d2pose_k/dq2 (A, Q, Q) for pose-space grad (A, N, 6) and
+        hess (A, 6N, 6N) (None for None), and J^T X J (A, Q, Q) for each pose-space matrix X (A, 6N, 6N) of
+        ``extra`` (one Jacobian for all), with the other bodies at ``fixed`` (A, N, 6)."""
         ...
 
     def push(self, q: torch.Tensor, v: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
@@ -93,10 +100,12 @@ class FreeBodies:
         grad: torch.Tensor,
         hess: torch.Tensor | None,
         fixed: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        extra: Sequence[torch.Tensor] = (),
+    ) -> tuple[torch.Tensor, torch.Tensor | None, tuple[torch.Tensor, ...]]:
         d6 = self._d6.to(q.device)
         g = grad.reshape(grad.shape[0], -1)[:, d6]
-        return g, (None if hess is None else hess[:, d6][:, :, d6])
+        more = tuple(X[:, d6][:, :, d6] for X in extra)
+        return g, (None if hess is None else hess[:, d6][:, :, d6]), more
 
     def push(self, q: torch.Tensor, v: torch.Tensor, fixed: torch.Tensor | None = None) -> torch.Tensor:
         out = v.new_zeros(v.shape[0], self.num_bodies, 6)
