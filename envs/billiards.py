@@ -33,8 +33,10 @@ class BilliardsCore(TaskCore):
 
     Scene: 16 balls (icosphere meshes, ``subdivisions`` 2: 320 faces) of radius ``ball_radius`` (0.0286 m) and mass
     ``ball_mass`` (0.17 kg) on the plane z = 0, gravity off and no table mesh: a frictionless table top (the balls
-    slide, they do not roll). Bodies 0-14 are the rack (``rack_positions``: apex at the origin, rows toward +y),
-    body 15 the cue ball. dt = 0.01 s; a step the Newton solve cannot converge is retried as up to 8 sub-steps.
+    slide, they do not roll). The scene is planar (``Scene(planar=True)``): each ball moves in x, y and turns about
+    z only, so no impact lifts it off the table. Bodies 0-14 are the rack (``rack_positions``: apex at the origin,
+    rows toward +y), body 15 the cue ball. dt = 0.01 s; a step the Newton solve cannot converge is retried as up
+    to 8 sub-steps.
 
     Action: (2,) in [-1, 1], the planar force on the cue ball's centre, ``max_force`` (5 N) per unit.
 
@@ -82,7 +84,7 @@ class BilliardsCore(TaskCore):
                 raise ValueError(f"{name} must be positive, got {v}")
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=ball_radius)
         ball = rigid_body(mesh, density=ball_mass / mesh.volume)
-        scene = Scene([ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8)
+        scene = Scene([ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8, planar=True)
         super().__init__(scene, device=device, dtype=dtype)
         self.ball_radius = ball_radius
         self.max_force = max_force

@@ -976,3 +976,60 @@ def test_fast_path_equals_the_plain_reference_path():
     with torch.no_grad():  # the landing cube's sideways velocity: central differences of the fast forward
         fd = (run(True, 1e-5, False) - run(True, -1e-5, False)) / 2e-5
     assert abs(float(g_fast[1, 1]) - fd) < 1e-5 * abs(fd), (float(g_fast[1, 1]), fd)
+
+
+# ================================================================================================ planar scenes
+def test_planar_collision_keeps_bodies_in_their_planes_and_conserves_momentum(small_sphere):
+    # an oblique collision of balls whose centres are 2 cm apart in height: free bodies would be pushed out of
+    # their planes; planar ones keep height, roll and pitch exactly and exchange momentum in the plane
+    scene = Scene([small_sphere, small_sphere], gravity=(0.0, 0.0, 0.0), planar=True)
+    assert scene.kinematics.num_coords == 6
+    q0 = _poses((0.0, 0.0, 0.0), (0.25, 0.05, 0.02, 0.0, 0.0, 0.3))
+    v = _poses((2.0, 0.0), ())
+    states = rollout(scene, scene.initial_state(q0, v), 25)
+    qs = _qs(states)
+    assert torch.equal(qs[:, :, 2], q0[None, :, 2].expand(len(qs), -1))  # heights as at the start
+    assert float(qs[:, :, 3:5].abs().max()) == 0.0  # no roll or pitch
+    vel = states[-1].velocity(scene.dt)
+    assert float(vel[1, :2].norm()) > 0.5  # the struck ball moves
+    assert float(vel[:, 5].abs().max()) > 0.0  # the oblique contact turns them about z
+    p = (vel[:, :2] * small_sphere.mass).sum(0)
+    assert float((p - torch.tensor([2.0 * small_sphere.mass, 0.0], dtype=F64)).abs().max()) <= 1e-8
+    gaps = [_distance(small_sphere, q[0], small_sphere, q[1]) for q in qs]
+    assert min(gaps) > MARGIN
+
+
+def test_planar_step_gradcheck_through_contact(small_sphere):
+    # every input the planar step reads, heights included (they set the contact geometry), in contact 3 mm apart
+    scene = Scene([small_sphere, small_sphere], gravity=(0.0, 0.0, 0.0), planar=True, newton_tol=1e-13)
+    t0 = torch.tensor([[0.0, 0.0, 0.0], [0.194, 0.03, 0.01]], dtype=F64)  # surfaces 3 mm apart
+    yaw0 = torch.tensor([0.1, -0.2], dtype=F64)
+
+    def poses(t, yaw):
+        return torch.cat([t, torch.zeros_like(t[:, :2]), yaw[:, None]], 1)
+
+    def f(t, t_prev, yaw, force):
+        q, q_prev = poses(t, yaw), poses(t_prev, yaw - 0.01)
+        return step(scene, State(q, q_prev), Action(force=force)).q
+
+    inputs = [
+        t0.clone(), t0 - DT * torch.tensor([[0.3, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=F64), yaw0.clone(),
+        torch.tensor([[1.0, 0.5, -2.0], [0.0, 0.0, 0.0]], dtype=F64),
+    ]  # fmt: skip
+    inputs = [x.requires_grad_(True) for x in inputs]
+    _, info = step(scene, State(poses(*inputs[::2]), poses(inputs[1], inputs[2] - 0.01)), return_info=True)
+    assert info.leaf_pairs > 0
+    grads = torch.autograd.grad(f(*inputs)[1, :2].sum(), inputs)
+    assert float(grads[0][:, 2].abs().max()) > 0.0  # the heights reach the struck ball's motion
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
+
+
+def test_planar_scene_refuses_roll_and_pitch_and_articulations(small_sphere):
+    scene = Scene([small_sphere], planar=True)
+    q = _poses((0.0, 0.0, 0.0, 0.1, 0.0, 0.0))
+    with pytest.raises(ValueError, match="state.q: a planar scene.s dynamic bodies must have zero roll"):
+        step(scene, State(q, q))
+    with pytest.raises(ValueError, match="planar must be a bool"):
+        Scene([small_sphere], planar=1)

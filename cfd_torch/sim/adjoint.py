@@ -85,12 +85,9 @@ class StepFn(torch.autograd.Function):
                 res, work = solve_step(prob)
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
                 raise StepError(f"the step failed: {err}") from err
-        # the adjoint needs the contact Hessian's cross blocks with the bodies the map does not move only
-        N = scene.num_bodies
-        still = torch.ones(N, dtype=torch.bool)
-        still[scene.kinematics.bodies] = False
-        rows6 = (torch.nonzero(still)[:, 0, None] * 6 + torch.arange(6)).reshape(-1).to(q_t.device)
-        cross = res.at.contact_hess[:, rows6]  # (B, 6 F, 6 N)
+        # the adjoint needs the contact Hessian's cross blocks with the pose components the map does not move only
+        rows6 = torch.nonzero(~scene.kinematics.moved.reshape(-1))[:, 0].to(q_t.device)
+        cross = res.at.contact_hess[:, rows6]  # (B, F, 6 N)
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
             res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl
@@ -161,8 +158,9 @@ class StepFn(torch.autograd.Function):
                 )
                 Gf, _ = sum_pairs(B, N, cp, gf, None)
                 s = s + (Gf * Jlam).sum()
-            # contact: d(g)/d(pose_j) for a pose the map does not move is the cross block of the contact Hessian
-            c = (cross @ Jlam.reshape(B, 6 * N, 1))[:, :, 0]  # (B, 6 F)
+            # contact: d(g)/d(pose_j) for a pose component the map does not move is the cross block of the contact
+            # Hessian
+            c = (cross @ Jlam.reshape(B, 6 * N, 1))[:, :, 0]  # (B, F)
             s = s + (c * poses_next.reshape(B, 6 * N)[:, rows6]).sum()
             grads = torch.autograd.grad(-s, th, allow_unused=True)
         out = [None if gth is None else gth.to(x.dtype) for gth, x in zip(grads, inputs, strict=True)]

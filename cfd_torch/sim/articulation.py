@@ -455,6 +455,8 @@ class ArticulatedKinematics:
             coord_body += [owner] * art.num_coords
             start += art.num_coords
         self.bodies = torch.tensor(moving, dtype=torch.long)
+        self.moved = torch.zeros(num_bodies, 6, dtype=torch.bool)
+        self.moved[self.bodies] = True
         self.coord_body = torch.tensor(coord_body, dtype=torch.long)
         self.num_coords = start
         self._f6 = (free[:, None] * 6 + torch.arange(6)).reshape(-1)

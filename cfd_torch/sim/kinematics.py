@@ -6,7 +6,8 @@ inertia are evaluated in pose space and pulled back,
     grad_q = J^T grad_pose,    hess_q = J^T hess_pose J + sum_k grad_pose_k d2pose_k / dq2,
 
 so articulated bodies (a floating base and joint angles through forward kinematics) are a new map, not a new
-stepper. Rows of bodies the map does not move (static, kinematic) come from the step's fixed poses.
+stepper. Rows of bodies the map does not move (static, kinematic), and the components of rows it holds (a planar
+map keeps each body's height, roll and pitch), come from the step's fixed poses.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ class Kinematics(Protocol):
     coord_body: torch.Tensor
     #: whether converged bodies may be frozen one by one (False when a coordinate moves several bodies)
     freezable: bool
+    #: (N, 6) bool, the pose components the map moves (the others come from the fixed poses)
+    moved: torch.Tensor
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
@@ -68,28 +71,41 @@ class Kinematics(Protocol):
 
 
 class FreeBodies:
-    """Free rigid bodies: q is the poses of the dynamic bodies, (A, 6 Nd), an identity map onto their rows.
+    """Free rigid bodies: q is the poses of the dynamic bodies, (A, 6 Nd), an identity map onto their rows; or,
+    planar, their x, y and rotation-vector z components, (A, 3 Nd): each body moves in its plane z = const and turns
+    about the vertical (its height, roll and pitch stay those of the start poses; with zero roll and pitch the
+    rotation-vector z component is the yaw angle, so the map is linear).
 
     Args:
         dynamic: (Nd,) indices of the dynamic bodies.
         num_bodies: N.
+        planar: the planar map.
     """
 
-    def __init__(self, dynamic: torch.Tensor, num_bodies: int) -> None:
+    def __init__(self, dynamic: torch.Tensor, num_bodies: int, planar: bool = False) -> None:
         self.dynamic = dynamic
         self.bodies = dynamic
         self.num_bodies = num_bodies
-        self.num_coords = 6 * len(dynamic)
-        self.coord_body = torch.arange(self.num_coords) // 6
-        self._d6 = (dynamic[:, None] * 6 + torch.arange(6)).reshape(-1)  # their rows of a (6N,) pose vector
+        self.planar = planar
+        comps = torch.tensor([0, 1, 5] if planar else [0, 1, 2, 3, 4, 5])
+        self._k = len(comps)
+        self._rot = comps >= 3  # which of a body's coordinates are rotation-vector components
+        self._trans = comps[comps < 3]  # the translation components the map moves
+        self.num_coords = self._k * len(dynamic)
+        self.coord_body = torch.arange(self.num_coords) // self._k
+        self._d6 = (dynamic[:, None] * 6 + comps).reshape(-1)  # their entries of a (6N,) pose vector
+        self.moved = torch.zeros(num_bodies * 6, dtype=torch.bool)
+        self.moved[self._d6] = True
+        self.moved = self.moved.reshape(num_bodies, 6)
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
-        out = fixed.clone()
-        out[:, self.dynamic.to(q.device)] = q.reshape(q.shape[0], -1, 6)
-        return out
+        A = q.shape[0]
+        d6 = self._d6.to(q.device)
+        out = fixed.reshape(A, -1).index_copy(1, d6, q)  # out of place: differentiable in q and fixed
+        return out.reshape(fixed.shape)
 
     def coords(self, poses: torch.Tensor) -> torch.Tensor:
-        return poses[:, self.dynamic.to(poses.device)].reshape(poses.shape[0], -1)
+        return poses.reshape(poses.shape[0], -1)[:, self._d6.to(poses.device)]
 
     #: converged bodies may be frozen one by one (each coordinate moves one body)
     freezable = True
@@ -108,17 +124,20 @@ class FreeBodies:
         return g, (None if hess is None else hess[:, d6][:, :, d6]), more
 
     def push(self, q: torch.Tensor, v: torch.Tensor, fixed: torch.Tensor | None = None) -> torch.Tensor:
-        out = v.new_zeros(v.shape[0], self.num_bodies, 6)
-        out[:, self.dynamic.to(v.device)] = v.reshape(v.shape[0], -1, 6)
-        return out
+        out = v.new_zeros(v.shape[0], self.num_bodies * 6)
+        out[:, self._d6.to(v.device)] = v
+        return out.reshape(v.shape[0], self.num_bodies, 6)
 
     def extrapolate(self, q_t: torch.Tensor, q_p: torch.Tensor) -> torch.Tensor:
         # dropped for a body turning by 1 rad or more per step (its rotation vector would wrap)
-        v = (q_t - q_p).reshape(q_t.shape[0], -1, 6)
-        v = torch.where((v[..., 3:].abs() < 1.0).all(-1, keepdim=True), v, v * 0.0)
+        v = (q_t - q_p).reshape(q_t.shape[0], -1, self._k)
+        rot = self._rot.to(q_t.device)
+        v = torch.where((v[..., rot].abs() < 1.0).all(-1, keepdim=True), v, v * 0.0)
         return q_t + v.reshape(q_t.shape[0], -1)
 
     def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
-        out = q.reshape(q.shape[0], -1, 6).clone()
-        out[..., :3] += shift[:, None, :]
+        """(A, Q) with every body translated by ``shift`` (A, 3) (planar: its horizontal part)."""
+        out = q.reshape(q.shape[0], -1, self._k).clone()
+        t = self._trans.to(q.device)
+        out[..., : len(t)] += shift[:, None, t]
         return out.reshape(q.shape[0], -1)

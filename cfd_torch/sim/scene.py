@@ -58,6 +58,10 @@ class Scene:
             of one robot.
         contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the paper's
             potential, ``CfdContact`` with ``contact``).
+        planar: the dynamic bodies move in their horizontal planes and turn about the vertical only: the step
+            solves for each one's x, y and yaw, and keeps its height, roll and pitch (which must be zero) from the
+            start state (:class:`~cfd_torch.sim.kinematics.FreeBodies`). For table-top scenes such as billiards:
+            no table is needed and no contact can lift a body out of its plane. Not with articulations.
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
             ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``friction_eps_v``
             (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
@@ -82,6 +86,7 @@ class Scene:
         exclude: Sequence[tuple[int, int]] = (),
         contact_model: ContactModel | None = None,
         articulations: Sequence[Articulation] = (),
+        planar: bool = False,
         **shorthand: float | int | str,
     ) -> None:
         bodies = tuple(bodies)
@@ -148,12 +153,15 @@ class Scene:
         )
         self.static_mask = torch.tensor([b.kind == "static" for b in bodies])
         self.pairs = pairs
+        if not isinstance(planar, bool) or (planar and arts):
+            raise ValueError(f"planar must be a bool, and False with articulations; got {planar!r}")
+        self.planar = planar
         if arts:
             links = {r + k for a, r in zip(arts, first, strict=True) for k in range(a.num_links)}
             free = torch.tensor([int(i) for i in self.dynamic if int(i) not in links], dtype=torch.long)
             self.kinematics = ArticulatedKinematics(free, arts, first, N)
         else:
-            self.kinematics = FreeBodies(self.dynamic, N)
+            self.kinematics = FreeBodies(self.dynamic, N, planar)
         self._given_contact_model = contact_model
         self.contact_model = (
             CfdContact([b.bsh for b in bodies], self.contact) if contact_model is None else contact_model
@@ -180,7 +188,7 @@ class Scene:
         kw = {
             "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
             "solver": self.solver, "exclude": self.exclude, "contact_model": self._given_contact_model,
-            "articulations": self.articulations,
+            "articulations": self.articulations, "planar": self.planar,
         }  # fmt: skip
         kw.update(changes)
         n = len(self.bodies) - sum(a.num_links for a in self.articulations)

@@ -189,6 +189,14 @@ def step(
     batched = state.q.dim() == 3
     B = state.q.shape[0] if batched else 1
     dtype, dev = state.q.dtype, state.q.device
+    if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
+        dyn = scene.dynamic.to(dev)
+        for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
+            if bool((x[..., dyn, 3:5].abs() > 1e-12).any()):
+                raise ValueError(
+                    f"{name}: a planar scene's dynamic bodies must have zero roll and pitch (rotation vectors "
+                    "(0, 0, yaw))"
+                )
     if action is not None and not isinstance(action, Action):
         raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
     action = Action() if action is None else action
