@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .core import EnvState, TaskCore
+from .core import EnvState, TaskCore, disc
 
 __all__ = ["BoxToTargetCore"]
 
@@ -26,3 +26,11 @@ class BoxToTargetCore(TaskCore):
 
     def terminated(self, state: EnvState) -> torch.Tensor:
         return self.box_distance(state) < self.success_radius
+
+    def render_markers(self):
+        return [(*disc(self.success_radius), (0.2, 0.75, 0.3, 0.6))]  # the target's success disc
+
+    def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
+        pose = torch.zeros(1, 6, dtype=torch.float64)
+        pose[0, :2] = task["target"].detach().cpu()
+        return pose

@@ -9,7 +9,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore
+from .core import EnvState, TaskCore, disc
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -143,10 +143,25 @@ class BilliardsCore(TaskCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (0.0, -0.1, 0.0), "distance": 1.4, "azimuth": 90.0, "elevation": -60.0}
+        return {"lookat": (0.0, 0.2, 0.0), "distance": 2.3, "azimuth": 90.0, "elevation": -70.0}
 
     def render_floor(self) -> float:
         return -self.ball_radius
+
+    def render_markers(self):
+        return [(*disc(self.pocket_radius), (0.1, 0.1, 0.1, 0.6))]  # the target pocket's success disc
+
+    def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
+        pose = torch.zeros(1, 6, dtype=torch.float64)
+        pose[0, :2] = task["pocket"].detach().cpu()
+        pose[0, 2] = -self.ball_radius  # on the drawn table
+        return pose
+
+    def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]]:
+        """The object ball black, like the pocket's disc."""
+        colours = [self._colour(i, b) for i, b in enumerate(self.scene.bodies)] + [(0.1, 0.1, 0.1, 0.6)]
+        colours[int(task["target"])] = (0.08, 0.08, 0.08, 1.0)
+        return colours
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i == 15:

@@ -20,13 +20,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.utils._pytree as pytree
+import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
 from cfd_torch.sim.bodies import RigidBody
 
-__all__ = ["EnvState", "StepOut", "TaskCore", "stack_states"]
+__all__ = ["EnvState", "StepOut", "TaskCore", "disc", "stack_states", "task_at"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,19 @@ def _unflatten(values, keys) -> EnvState:
 pytree.register_pytree_node(
     EnvState, _flatten, _unflatten, flatten_with_keys_fn=None, serialized_type_name="cfd_torch.envs.EnvState"
 )
+
+
+def task_at(state: EnvState, index: int) -> dict[str, torch.Tensor]:
+    """The task variables of environment ``index`` (unbatched)."""
+    return {k: v[index] for k, v in state.task.items()}
+
+
+def disc(radius: float, height: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+    """(vertices, faces) of a flat 48-sided disc of ``radius`` whose top face is at ``height`` (a marker resting on
+    the plane z = 0 at pose (x, y, 0, 0, 0, 0))."""
+    mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=48)
+    mesh.apply_translation((0.0, 0.0, height / 2))
+    return torch.as_tensor(mesh.vertices, dtype=torch.float64), torch.as_tensor(mesh.faces, dtype=torch.long)
 
 
 def stack_states(states: list[EnvState]) -> EnvState:
@@ -163,8 +178,30 @@ class TaskCore(abc.ABC):
         """(O,) lower and upper physical bounds of an observation (the Gymnasium Box)."""
 
     def render_meshes(self) -> list[tuple[torch.Tensor, torch.Tensor, tuple[float, float, float, float]]]:
-        """(vertices (V, 3) body frame, faces (F, 3), RGBA colour) of every body, in scene order."""
-        return [(b.bsh.vertices, b.bsh.faces, self._colour(i, b)) for i, b in enumerate(self.scene.bodies)]
+        """(vertices (V, 3) body frame, faces (F, 3), RGBA colour) of every body, in scene order, then of every
+        marker (:meth:`render_markers`)."""
+        bodies = [(b.bsh.vertices, b.bsh.faces, self._colour(i, b)) for i, b in enumerate(self.scene.bodies)]
+        return bodies + self.render_markers()
+
+    def render_markers(self) -> list[tuple[torch.Tensor, torch.Tensor, tuple[float, float, float, float]]]:
+        """Drawn-only meshes (goal regions, targets) after the bodies: (vertices, faces, RGBA); none by default.
+        They are not in the scene: nothing touches them."""
+        return []
+
+    def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(M, 6) poses of the markers for one environment's task variables (unbatched)."""
+        return torch.zeros(0, 6, dtype=torch.float64)
+
+    def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]] | None:
+        """RGBA of every body and marker for one environment's task variables (unbatched), or None for the
+        renderer's construction colours."""
+        return None
+
+    def draw(self, renderer, q: torch.Tensor, task: dict[str, torch.Tensor]) -> np.ndarray:
+        """One frame of a :meth:`renderer`: the bodies at poses q (N, 6) and the markers of one environment's task
+        variables (``state.task`` at one index: :func:`task_at`)."""
+        poses = torch.cat([q.detach().cpu().double(), self.marker_poses(task).cpu().double()])
+        return renderer.render(poses, self.render_colours(task))
 
     def render_camera(self) -> dict | None:
         """A free camera (lookat, distance, azimuth, elevation) framing the task, or None for the default."""

@@ -7,7 +7,7 @@ import math
 import torch
 
 from ._cubes import CubesCore
-from .core import EnvState
+from .core import EnvState, disc
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["GatherCore", "GatherEnv", "GatherVectorEnv"]
@@ -53,6 +53,14 @@ class GatherCore(CubesCore):
 
     def _goal_obs(self, state: EnvState) -> torch.Tensor:
         return state.task["centre"]
+
+    def render_markers(self):
+        return [(*disc(self.region_radius), (0.2, 0.75, 0.3, 0.5))]
+
+    def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
+        pose = torch.zeros(1, 6, dtype=torch.float64)
+        pose[0, :2] = task["centre"].detach().cpu()
+        return pose
 
 
 class GatherEnv(CoreEnv):

@@ -194,6 +194,8 @@ class MeshRenderer:
         self._model.vis.headlight.diffuse = [0.45] * 3
         self._data = mujoco.MjData(self._model)
         self._mocap = self._model.body_mocapid[1 : len(meshes) + 1]  # body i + 1 carries mesh i
+        self._geoms = np.array([self._model.body_geomadr[i + 1] for i in range(len(meshes))])  # mesh i's geom
+        self._colors = self._model.geom_rgba[self._geoms].copy()
         self._camera_settings = camera
         self._framed = False
         self.camera = mujoco.MjvCamera()
@@ -237,12 +239,15 @@ class MeshRenderer:
         self.camera.elevation = float(settings["elevation"])
         self._framed = True
 
-    def render(self, poses: npt.ArrayLike | torch.Tensor) -> np.ndarray:
+    def render(
+        self, poses: npt.ArrayLike | torch.Tensor, colors: npt.ArrayLike | torch.Tensor | None = None
+    ) -> np.ndarray:
         """One RGB frame of the bodies at ``poses``.
 
         Args:
             poses: (N, 6) array-like or tensor, translation [m] then rotation vector (axis * angle [rad]) per
                 body; body-frame vertex X is drawn at R(omega) X + t.
+            colors: (N, 4) RGBA in [0, 1] for this frame only, or None for the construction colours.
 
         Returns:
             A new (height, width, 3) uint8 array.
@@ -253,6 +258,17 @@ class MeshRenderer:
         n = len(self._vertices)
         if poses.shape != (n, 6) or not np.isfinite(poses).all():
             raise ValueError(f"poses must be a finite ({n}, 6) array, got shape {poses.shape}")
+        if colors is None:
+            rgba = self._colors
+        else:
+            rgba = _numpy(colors, "colors", np.float32)
+            if rgba.shape != (n, 4) or not (
+                np.isfinite(rgba).all() and (rgba >= 0).all() and (rgba <= 1).all()
+            ):
+                raise ValueError(
+                    f"colors must be an ({n}, 4) array of RGBA values in [0, 1], got {rgba.shape}"
+                )
+        self._model.geom_rgba[self._geoms] = rgba
         quat = _quaternions(poses[:, 3:])
         if not self._framed:
             self._frame(poses[:, :3], _rotation_matrices(quat))

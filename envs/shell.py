@@ -16,7 +16,7 @@ import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .core import EnvState, TaskCore, stack_states
+from .core import EnvState, TaskCore, stack_states, task_at
 
 __all__ = ["CoreEnv", "CoreVectorEnv"]
 
@@ -37,10 +37,11 @@ class _Frames:
         self.core, self.width, self.height = core, width, height
         self.renderer = None
 
-    def frame(self, q: torch.Tensor) -> np.ndarray:
+    def frame(self, state: EnvState) -> np.ndarray:
+        """The frame of the first environment of ``state``."""
         if self.renderer is None:
             self.renderer = self.core.renderer(self.width, self.height)
-        return self.renderer.render(q.detach().cpu())
+        return self.core.draw(self.renderer, state.q[0], task_at(state, 0))
 
     def close(self) -> None:
         if self.renderer is not None:
@@ -106,7 +107,7 @@ class CoreEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self.state is None:
             return None
-        return self._frames.frame(self.state.q[0])
+        return self._frames.frame(self.state)
 
     def close(self) -> None:
         self._frames.close()
@@ -225,7 +226,7 @@ class CoreVectorEnv(VectorEnv):
     def render(self):
         if self.render_mode != "rgb_array" or any(s is None for s in self.states):
             return None
-        return tuple(self._frames.frame(s.q[0]) for s in self.states)
+        return tuple(self._frames.frame(s) for s in self.states)
 
     def close_extras(self, **kwargs: Any) -> None:
         self._frames.close()

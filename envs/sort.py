@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ._cubes import CubesCore
-from .core import EnvState
+from .core import EnvState, disc
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["SortCore", "SortEnv", "SortVectorEnv"]
@@ -56,10 +56,26 @@ class SortCore(CubesCore):
         sign = 2.0 * state.task["classes"].to(state.q.dtype) - 1.0
         return torch.cat([sign, state.task["centres"].reshape(-1, 4)], 1)
 
+    CLASS_COLOURS = ((0.85, 0.25, 0.2), (0.95, 0.75, 0.15))  # class 0 red, class 1 yellow
+
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i < self.num_cubes:
             return (0.85, 0.45, 0.2, 1.0)
         return [(0.25, 0.45, 0.85, 1.0), (0.6, 0.62, 0.6, 1.0)][i - self.num_cubes]
+
+    def render_markers(self):
+        return [(*disc(self.region_radius), (*c, 0.45)) for c in self.CLASS_COLOURS]
+
+    def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
+        poses = torch.zeros(2, 6, dtype=torch.float64)
+        poses[:, :2] = task["centres"].detach().cpu()
+        return poses
+
+    def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]]:
+        """Cubes in their class's colour, regions in a lighter one."""
+        cubes = [(*self.CLASS_COLOURS[int(k)], 1.0) for k in task["classes"]]
+        rest = [self._colour(i, b) for i, b in enumerate(self.scene.bodies)][self.num_cubes :]
+        return cubes + rest + [(*c, 0.45) for c in self.CLASS_COLOURS]
 
 
 class SortEnv(CoreEnv):

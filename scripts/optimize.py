@@ -38,6 +38,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch.envs import make_core, rollout  # noqa: E402
+from cfd_torch.envs.core import task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
 
 TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
@@ -202,7 +203,7 @@ def main() -> None:
     fig.savefig(args.out / "loss.png", dpi=120)
     if not args.no_gif:
         r = core.renderer(320, 320)
-        frames = [r.render(q) for q in frames_q]
+        frames = [core.draw(r, q, task_at(s0, 0)) for q in frames_q]
         r.close()
         write_gif(frames, args.out / "best.gif", fps=round(1 / core.scene.dt))
     print(json.dumps(summary, indent=1), f"\nwritten to {args.out}")

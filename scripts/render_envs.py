@@ -17,6 +17,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from cfd_torch.envs import make_core
+from cfd_torch.envs.core import task_at
 from cfd_torch.envs.render import write_gif
 
 TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
@@ -46,11 +47,12 @@ def main() -> None:
         core = make_core(f"cfd_torch/{task}-v0")
         state = core.reset(0, 1)
         r = core.renderer(args.size, args.size)
-        frames = [r.render(state.q[0])]
+        goal = task_at(state, 0)
+        frames = [core.draw(r, state.q[0], goal)]
         with torch.no_grad():
             for _ in range(args.steps):
                 state = core.step(state, scripted(core, state)).state
-                frames.append(r.render(state.q[0]))
+                frames.append(core.draw(r, state.q[0], goal))
         r.close()
         Image.fromarray(np.concatenate([frames[0], frames[-1]], 1)).save(args.out / f"{task.lower()}.png")
         write_gif(frames, args.out / f"{task.lower()}.gif", fps=round(1 / core.scene.dt))

@@ -12,6 +12,7 @@ from gymnasium.utils.env_checker import check_env
 
 import cfd_torch.envs as envs
 from cfd_torch.envs import EnvState, make_core, rollout
+from cfd_torch.envs.core import task_at
 
 F64 = torch.float64
 AVAILABLE = ["cfd_torch/Billiards-v0", "cfd_torch/Push-v0", "cfd_torch/Sort-v0", "cfd_torch/Gather-v0"]
@@ -218,3 +219,20 @@ def test_rendered_frames_show_the_scene_and_change_when_it_moves():
     later = env.render()
     assert np.abs(later.astype(int) - first.astype(int)).sum(2).astype(bool).sum() > 20
     env.close()
+
+
+def test_sort_frames_show_classes_and_regions():
+    core = make_core("cfd_torch/Sort-v0")
+    state = core.reset(0, 1)
+    goal = task_at(state, 0)
+    r = core.renderer(200, 200)
+    try:
+        img = core.draw(r, state.q[0], goal).astype(int)
+        red = (img[..., 0] > img[..., 1] + 80) & (img[..., 0] > img[..., 2] + 80)  # class 0 cubes and region
+        yellow = (img[..., 0] > img[..., 2] + 80) & (img[..., 1] > img[..., 2] + 80)  # class 1
+        assert red.sum() > 100 and yellow.sum() > 100, (red.sum(), yellow.sum())  # observed 178, 173
+        moved = dict(goal, centres=goal["centres"].flip(0))  # the two regions swap places
+        other = core.draw(r, state.q[0], moved).astype(int)
+        assert np.abs(other - img).sum(2).astype(bool).sum() > 500
+    finally:
+        r.close()

@@ -133,3 +133,15 @@ def test_write_gif(tmp_path, renderer):
         assert gif.n_frames == len(frames)
         assert gif.size == (WIDTH, HEIGHT)
         assert gif.info["duration"] == 100
+
+
+def test_per_frame_colors_override_and_restore(renderer):
+    plain = renderer.render(POSES)
+    swapped = renderer.render(POSES, colors=[COLORS[2], COLORS[0], COLORS[1]])  # red box drawn blue, ...
+    assert _pixels(swapped, 2) > 100 and _pixels(swapped, 0) > 100
+    assert np.abs(swapped.astype(int) - plain.astype(int)).sum(2).astype(bool).sum() > 100
+    assert np.array_equal(renderer.render(POSES), plain)  # a frame without colors uses the construction ones
+    with pytest.raises(ValueError, match="colors must be an \\(3, 4\\) array"):
+        renderer.render(POSES, colors=COLORS[:2])
+    with pytest.raises(ValueError, match="colors must be an \\(3, 4\\) array"):
+        renderer.render(POSES, colors=[(2.0, 0.0, 0.0, 1.0)] * 3)
