@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .core import EnvState, TaskCore, disc
+from .core import EnvState, TaskCore, disc, marker_rows
 
 __all__ = ["BoxToTargetCore"]
 
@@ -31,6 +31,4 @@ class BoxToTargetCore(TaskCore):
         return [(*disc(self.success_radius), (0.2, 0.75, 0.3, 0.6))]  # the target's success disc
 
     def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
-        pose = torch.zeros(1, 6, dtype=torch.float64)
-        pose[0, :2] = task["target"].detach().cpu()
-        return pose
+        return marker_rows(task["target"])

@@ -9,7 +9,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore, disc
+from .core import EnvState, TaskCore, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -152,14 +152,11 @@ class BilliardsCore(TaskCore):
         return [(*disc(self.pocket_radius), (0.1, 0.1, 0.1, 0.6))]  # the target pocket's success disc
 
     def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
-        pose = torch.zeros(1, 6, dtype=torch.float64)
-        pose[0, :2] = task["pocket"].detach().cpu()
-        pose[0, 2] = -self.ball_radius  # on the drawn table
-        return pose
+        return marker_rows(task["pocket"], z=-self.ball_radius)  # on the drawn table
 
     def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]]:
         """The object ball black, like the pocket's disc."""
-        colours = [self._colour(i, b) for i, b in enumerate(self.scene.bodies)] + [(0.1, 0.1, 0.1, 0.6)]
+        colours = self.construction_colours()
         colours[int(task["target"])] = (0.08, 0.08, 0.08, 1.0)
         return colours
 

@@ -28,7 +28,7 @@ import trimesh
 from cfd_torch import Action, Params, Scene, State, step
 from cfd_torch.sim.bodies import RigidBody
 
-__all__ = ["EnvState", "StepOut", "TaskCore", "disc", "stack_states", "task_at"]
+__all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_states", "task_at"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,14 @@ def disc(radius: float, height: float = 1e-3) -> tuple[torch.Tensor, torch.Tenso
     mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=48)
     mesh.apply_translation((0.0, 0.0, height / 2))
     return torch.as_tensor(mesh.vertices, dtype=torch.float64), torch.as_tensor(mesh.faces, dtype=torch.long)
+
+
+def marker_rows(xy: torch.Tensor, z: float = 0.0) -> torch.Tensor:
+    """(M, 6) unrotated poses at the points xy ((M, 2) or (2,)) and height z: markers lying on a plane."""
+    xy = xy.detach().cpu().double().reshape(-1, 2)
+    return torch.cat(
+        [xy, torch.full((len(xy), 1), float(z), dtype=torch.float64), xy.new_zeros(len(xy), 3)], 1
+    )
 
 
 def stack_states(states: list[EnvState]) -> EnvState:
@@ -194,8 +202,14 @@ class TaskCore(abc.ABC):
 
     def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]] | None:
         """RGBA of every body and marker for one environment's task variables (unbatched), or None for the
-        renderer's construction colours."""
+        renderer's construction colours (:meth:`construction_colours`)."""
         return None
+
+    def construction_colours(self) -> list[tuple[float, ...]]:
+        """RGBA of every body and marker as the renderer is built with (task-dependent colours start from it)."""
+        return [self._colour(i, b) for i, b in enumerate(self.scene.bodies)] + [
+            c for *_, c in self.render_markers()
+        ]
 
     def draw(self, renderer, q: torch.Tensor, task: dict[str, torch.Tensor]) -> np.ndarray:
         """One frame of a :meth:`renderer`: the bodies at poses q (N, 6) and the markers of one environment's task

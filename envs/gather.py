@@ -7,7 +7,7 @@ import math
 import torch
 
 from ._cubes import CubesCore
-from .core import EnvState, disc
+from .core import EnvState, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["GatherCore", "GatherEnv", "GatherVectorEnv"]
@@ -58,9 +58,7 @@ class GatherCore(CubesCore):
         return [(*disc(self.region_radius), (0.2, 0.75, 0.3, 0.5))]
 
     def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
-        pose = torch.zeros(1, 6, dtype=torch.float64)
-        pose[0, :2] = task["centre"].detach().cpu()
-        return pose
+        return marker_rows(task["centre"])
 
 
 class GatherEnv(CoreEnv):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ._cubes import CubesCore
-from .core import EnvState, disc
+from .core import EnvState, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["SortCore", "SortEnv", "SortVectorEnv"]
@@ -67,15 +67,13 @@ class SortCore(CubesCore):
         return [(*disc(self.region_radius), (*c, 0.45)) for c in self.CLASS_COLOURS]
 
     def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
-        poses = torch.zeros(2, 6, dtype=torch.float64)
-        poses[:, :2] = task["centres"].detach().cpu()
-        return poses
+        return marker_rows(task["centres"])
 
     def render_colours(self, task: dict[str, torch.Tensor]) -> list[tuple[float, ...]]:
         """Cubes in their class's colour, regions in a lighter one."""
-        cubes = [(*self.CLASS_COLOURS[int(k)], 1.0) for k in task["classes"]]
-        rest = [self._colour(i, b) for i, b in enumerate(self.scene.bodies)][self.num_cubes :]
-        return cubes + rest + [(*c, 0.45) for c in self.CLASS_COLOURS]
+        colours = self.construction_colours()
+        colours[: self.num_cubes] = [(*self.CLASS_COLOURS[int(k)], 1.0) for k in task["classes"]]
+        return colours
 
 
 class SortEnv(CoreEnv):

@@ -46,15 +46,16 @@ TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 
 
 class Optimiser:
-    """Adam or normalised gradient descent with backtracking on one parameter tensor; ``step`` returns the
-    evaluation at the new parameters."""
+    """Adam or normalised gradient descent with backtracking on one parameter tensor: ``start`` begins a problem
+    (parameters and their evaluation function), ``step`` returns the evaluation at the new parameters."""
 
-    def __init__(self, kind: str, lr: float, evaluate) -> None:
-        self.kind, self.lr, self.evaluate = kind, lr, evaluate
+    def __init__(self, kind: str, lr: float) -> None:
+        self.kind, self.lr = kind, lr
         self.step_size = lr
         self.adam = None
 
-    def start(self, theta: torch.Tensor):
+    def start(self, theta: torch.Tensor, evaluate):
+        self.evaluate = evaluate
         self.theta = theta.detach().clone().requires_grad_(True)
         if self.kind == "adam":
             # Adam's update is lr * m / (sqrt(v) + eps): eps must sit far below the far field's gradients
@@ -142,8 +143,8 @@ def main() -> None:
     theta = torch.zeros(knots, 1, core.action_dim, dtype=torch.float64)
     log = []
     if not args.mpc:
-        opt = Optimiser(args.optimizer, args.lr, evaluate_from(s0))
-        cur = opt.start(theta)
+        opt = Optimiser(args.optimizer, args.lr)
+        cur = opt.start(theta, evaluate_from(s0))
         best = None
         for it in tqdm(range(args.iters + 1), desc=f"{args.task} {args.optimizer}"):
             rec = record(cur, iter=it, step=opt.step_size)
@@ -161,10 +162,9 @@ def main() -> None:
             zero = rollout(core, s0, torch.zeros(args.steps, 1, core.action_dim, dtype=torch.float64))
         zero_loss = float(-(zero.info["reward_distance"] * zero.alive).sum())
         state, executed, qs = s0, [], [s0.q[0]]
-        opt = Optimiser(args.optimizer, args.lr, None)
+        opt = Optimiser(args.optimizer, args.lr)
         for t in tqdm(range(args.steps), desc=f"{args.task} MPC {args.optimizer}"):
-            opt.evaluate = evaluate_from(state)
-            cur = opt.start(theta)
+            cur = opt.start(theta, evaluate_from(state))
             window0 = cur[0]
             for _ in range(args.iters):
                 cur = opt.step()

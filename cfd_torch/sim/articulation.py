@@ -519,8 +519,8 @@ class ArticulatedKinematics:
             J[:, 6 * r0 : 6 * r1, sl] = Ja
             if S is not None:
                 second[:, sl, sl] = S
-        gq = (J.transpose(1, 2) @ grad.reshape(A, 6 * N)[..., None])[..., 0]
         Jt = J.transpose(1, 2)
+        gq = (Jt @ grad.reshape(A, 6 * N)[..., None])[..., 0]
         more = tuple(Jt @ X @ J for X in extra)
         return gq, (None if hess is None else Jt @ hess @ J + second), more
 
