@@ -19,7 +19,9 @@ F64 = torch.float64
 L, W, RHO = 0.5, 0.05, 1000.0
 
 
-def _pendulum(*, damping=0.0, armature=0.0, limits=None, gear=None, floating=False) -> Articulation:
+def _pendulum(
+    *, damping=0.0, armature=0.0, limits=None, gear=None, floating=False, actuator=None
+) -> Articulation:
     """A 0.05 x 0.05 x 0.5 m bar hanging from a hinge about y at the root's origin."""
     bar = trimesh.creation.box((W, W, L))
     bar.apply_translation((0.0, 0.0, -L / 2))
@@ -40,8 +42,12 @@ def _pendulum(*, damping=0.0, armature=0.0, limits=None, gear=None, floating=Fal
            mass=m, com=np.array([0.0, 0.0, -L / 2]), second_moment=S),
     )  # fmt: skip
     acts = (
-        () if gear is None else (NS(name="motor", joint=0, kind="motor", gear=gear, ctrlrange=(-1.0, 1.0)),)
-    )
+        () if gear is None else (NS(name="motor", joint=0, kind="motor", gear=gear, ctrlrange=(-1.0, 1.0),
+                                    kp=0.0, kv=0.0, forcerange=None),)
+    )  # fmt: skip
+    if actuator is not None:
+        acts = (NS(**{"name": "act", "joint": 0, "gear": 1.0, "ctrlrange": None, "kp": 0.0, "kv": 0.0,
+                      "forcerange": None} | actuator),)  # fmt: skip
     return Articulation(NS(name="pendulum", links=links, joints=(joint,), actuators=acts, floating=floating))
 
 
@@ -122,6 +128,97 @@ def test_rollout_gradient_matches_finite_differences():
         fd_u = (final(th0, u + h) - final(th0, u - h)) / (2 * h)
     assert float(g_th) == pytest.approx(float(fd_th), rel=1e-5)
     assert float(g_u) == pytest.approx(float(fd_u), rel=1e-5)
+
+
+def test_position_actuator_follows_the_implicit_pd_recursion():
+    """A position actuator (kp, kv, gear 2) pulls small swings toward its target ctrl / gear along implicit Euler's
+    scalar recursion I_p (th' - 2 th + th_) / dt^2 + kv g^2 (th' - th) / dt + (m g l_c + kp g^2) th' = kp g ctrl."""
+    kp, kv, g, dt, ctrl = 3.0, 0.2, 2.0, 0.01, 0.04
+    art = _pendulum(actuator={"kind": "position", "kp": kp, "kv": kv, "gear": g})
+    scene = Scene([], articulations=[art], dt=dt)
+    q0 = art.poses(torch.tensor([0.0], dtype=F64), torch.zeros(6, dtype=F64))
+    action = Action(ctrl=torch.tensor([ctrl], dtype=F64))
+    th = _angles(scene, rollout(scene, State(q0, q0.clone()), [action] * 150))
+    om, I_p = _omega(art)
+    k = om * om * I_p + kp * g * g
+    ref = [0.0, 0.0]
+    for _ in range(150):
+        t, tp = ref[-1], ref[-2]
+        ref.append(
+            (I_p / dt**2 * (2 * t - tp) + kv * g * g / dt * t + kp * g * ctrl)
+            / (I_p / dt**2 + kv * g * g / dt + k)
+        )
+    ref = np.array(ref[1:])
+    assert np.abs(ref).max() > 0.01  # it moved
+    assert np.abs(th - ref).max() < 2e-3 * np.abs(ref).max()  # sin th ~ th: 0.03 rad swings
+
+
+def test_stiff_position_actuator_is_stable_and_differentiable():
+    """kp = 1e4 N m/rad at dt = 0.01 (explicit PD would diverge: kp dt^2 / I_p ~ 10): the bar settles at the
+    static balance of gravity and the PD spring, and the gradient of the final angle in the target matches finite
+    differences."""
+    kp, kv = 1e4, 10.0
+    art = _pendulum(actuator={"kind": "position", "kp": kp, "kv": kv, "ctrlrange": (-1.0, 1.0)})
+    scene = Scene([], articulations=[art], dt=0.01)
+    q0 = art.poses(torch.tensor([0.0], dtype=F64), torch.zeros(6, dtype=F64))
+    b = art.bodies[1]
+
+    def final(u: torch.Tensor, n: int) -> torch.Tensor:
+        traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=u[None])] * n)
+        return scene.kinematics.coords(traj.q[-1][None])[0, 0]
+
+    # static balance: kp (u - th) = m g l_c sin th
+    th = float(final(torch.tensor(0.5, dtype=F64), 100))
+    assert kp * (0.5 - th) == pytest.approx(b.mass * 9.81 * (L / 2) * math.sin(th), rel=1e-3)
+    u = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    (g_u,) = torch.autograd.grad(final(u, 5), u)
+    assert abs(float(g_u)) > 1e-2
+    h = 1e-6
+    with torch.no_grad():
+        fd = (final(u + h, 5) - final(u - h, 5)) / (2 * h)
+    assert float(g_u) == pytest.approx(float(fd), rel=1e-5)
+
+
+def test_actuator_force_ranges():
+    """A motor's forcerange narrows its control's clip; a position actuator's is refused (its force is implicit)."""
+    art = _pendulum(actuator={"kind": "motor", "ctrlrange": (-1.0, 1.0), "forcerange": (-0.5, 2.0)})
+    assert (art.ctrl_lower[0], art.ctrl_upper[0]) == (-0.5, 1.0)
+    with pytest.raises(ValueError, match="position actuator 'act' has a forcerange"):
+        _pendulum(actuator={"kind": "position", "kp": 1.0, "forcerange": (-1.0, 1.0)})
+    with pytest.raises(ValueError, match="'velocity' actuator; motor and position actuators are supported"):
+        _pendulum(actuator={"kind": "velocity", "kv": 1.0})
+
+
+def test_mjcf_position_actuator_settles_at_its_target():
+    """An MJCF hinge with a <position> actuator (gear 2) and no gravity settles where MuJoCo's law puts it,
+    th = ctrl / gear, and its data are kp gear^2 and kv gear^2 on the joint."""
+    from cfd_torch.sim.articulation import articulation
+
+    xml = """
+    <mujoco model="servo">
+      <worldbody>
+        <body name="base">
+          <geom type="box" size="0.05 0.05 0.05"/>
+          <body name="arm" pos="0 0 0.2">
+            <joint name="hinge" axis="0 1 0"/>
+            <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+          </body>
+        </body>
+      </worldbody>
+      <actuator><position name="servo" joint="hinge" kp="20" kv="1" gear="2" ctrlrange="-1 1"/></actuator>
+    </mujoco>"""
+    art = articulation(xml)
+    assert (float(art.pd_stiffness[0]), float(art.pd_damping[0]), float(art.ctrl_gain[0])) == (
+        80.0,
+        4.0,
+        20.0,
+    )
+    scene = Scene([], articulations=[art], dt=0.01, gravity=(0.0, 0.0, 0.0))
+    q0 = art.poses(torch.tensor([0.0], dtype=F64))
+    traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=torch.tensor([0.6], dtype=F64))] * 300)
+    th = _angles(scene, traj)
+    assert abs(th[10]) > 0.05  # it moved toward the target
+    assert th[-1] == pytest.approx(0.3, abs=1e-6)
 
 
 def test_bad_ctrl_is_refused():

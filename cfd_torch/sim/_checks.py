@@ -138,7 +138,7 @@ def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor) -> None:
         )
     if ctrl.shape not in ((U,), (B, U)):
         raise ValueError(
-            f"action.ctrl must have shape ({U},) or ({B}, {U}) (the scene's motors), got {tuple(ctrl.shape)}"
+            f"action.ctrl must have shape ({U},) or ({B}, {U}) (the scene's actuators), got {tuple(ctrl.shape)}"
         )
     if not bool(torch.isfinite(ctrl).all()):
         raise ValueError("action.ctrl contains NaN or inf")

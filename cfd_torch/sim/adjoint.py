@@ -53,12 +53,12 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
 
 
 def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl: torch.Tensor) -> JointInputs | None:
-    """The joint-space inputs of a scene with articulations (coordinates of the two earlier states, the motors'
-    joint torques of ``ctrl``), None without."""
+    """The joint-space inputs of a scene with articulations (coordinates of the two earlier states, the joint
+    torques of the controls ``ctrl``), None without."""
     if not scene.articulations:
         return None
     kin = scene.kinematics
-    return JointInputs(kin.coords(q_t), kin.coords(q_p), kin.motor_torque(ctrl))
+    return JointInputs(kin.coords(q_t), kin.coords(q_p), kin.ctrl_torque(ctrl))
 
 
 class StepFn(torch.autograd.Function):

@@ -22,6 +22,9 @@ Joint-space terms, for each joint with value theta (theta_t, theta_p: one and tw
     armature a (theta - 2 theta_t + theta_p)^2 / (2 dt^2)  +  damping d (theta - theta_t)^2 / (2 dt)
     + stiffness k (theta - ref)^2 / 2  +  limit barrier  -  tau (theta - theta_t)
 
+with the position actuators' kp gear^2 theta^2 / 2 and kv gear^2 added to the stiffness and damping, and tau the
+torque of the controls (:meth:`ArticulatedKinematics.ctrl_torque`).
+
 The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) = -(s - 1)^2 ln s for 0 < s < 1
 (zero beyond, C2 at s = 1, +inf at s <= 0): a joint never reaches its limit, whatever the torque.
 """
@@ -55,8 +58,17 @@ class Articulation:
     values), ``kind`` (L,) "root", "hinge" or "slide", ``axis`` and ``anchor`` (L, 3), ``com`` (L, 3),
     ``bodies`` (the L RigidBody links, centre-of-mass frames; a fixed base's root is a static body in its link
     frame), ``floating``, per joint (J = L - 1, link order) ``joint_names``, ``lower``/``upper`` (J,) limits
-    (+-inf: none), ``damping``, ``armature``, ``stiffness``, ``springref``, and per actuator ``actuator_joint``,
-    ``gear``, ``ctrl_lower``, ``ctrl_upper`` (motors: torque = gear * clip(ctrl)).
+    (+-inf: none), ``damping``, ``armature``, ``stiffness``, ``springref``, ``pd_stiffness`` and ``pd_damping``
+    (the position actuators' kp gear^2 and kv gear^2), and per actuator ``actuator_joint``, ``gear``,
+    ``ctrl_gain`` (1 for a motor, kp for a position actuator), ``ctrl_lower``, ``ctrl_upper`` (the control's
+    clip; a motor's forcerange narrows it). An actuator's torque on its joint is MuJoCo's:
+
+        motor:     tau = gear clip(ctrl)
+        position:  tau = gear kp clip(ctrl) - kp gear^2 theta - kv gear^2 theta_dot
+
+    The position actuator's stiffness and damping are implicit in the step (terms of the incremental potential, as
+    the joint's own spring and damping), so a stiff PD target is stable at any dt; hinge values are those of the
+    state, in (-pi, pi].
     """
 
     def __init__(self, model, *, max_edge: float | None = None) -> None:
@@ -94,19 +106,37 @@ class Articulation:
         self.stiffness = np.array([j.stiffness for j in joints[1:]], dtype=float)
         self.springref = np.array([j.springref for j in joints[1:]], dtype=float)
         ours = {name: i for i, name in enumerate(self.joint_names)}
-        act_joint, gear, lo, hi = [], [], [], []
+        act_joint, gear, gain, lo, hi = [], [], [], [], []
+        self.pd_stiffness = np.zeros(L - 1)
+        self.pd_damping = np.zeros(L - 1)
         for a in model.actuators:
-            if a.kind != "motor":
+            if a.kind not in ("motor", "position"):
                 raise ValueError(
-                    f"articulation: actuator {a.name!r} is a {a.kind!r} actuator; motors are supported"
+                    f"articulation: actuator {a.name!r} is a {a.kind!r} actuator; motor and position actuators "
+                    "are supported"
                 )
-            act_joint.append(ours[model.joints[a.joint].name])
-            gear.append(a.gear)
             r = a.ctrlrange if a.ctrlrange is not None else (-math.inf, math.inf)
+            if a.forcerange is not None:
+                if a.kind == "position":
+                    raise ValueError(
+                        f"articulation: position actuator {a.name!r} has a forcerange; its PD force is implicit in "
+                        "the step (stiffness and damping of the joint) and cannot be clipped"
+                    )
+                r = (max(r[0], a.forcerange[0]), min(r[1], a.forcerange[1]))  # a motor's force is its control
+            j = ours[model.joints[a.joint].name]
+            act_joint.append(j)
+            gear.append(a.gear)
             lo.append(r[0])
             hi.append(r[1])
+            if a.kind == "motor":
+                gain.append(1.0)
+            else:  # tau = gear kp ctrl - (kp gear^2) theta - (kv gear^2) theta_dot
+                gain.append(a.kp)
+                self.pd_stiffness[j] += a.kp * a.gear**2
+                self.pd_damping[j] += a.kv * a.gear**2
         self.actuator_joint = np.array(act_joint, dtype=np.int64)
         self.gear = np.array(gear, dtype=float)
+        self.ctrl_gain = np.array(gain, dtype=float)
         self.ctrl_lower = np.array(lo, dtype=float)
         self.ctrl_upper = np.array(hi, dtype=float)
         bodies = []
@@ -464,14 +494,17 @@ class ArticulatedKinematics:
         jidx, hinge, data = (
             [],
             [],
-            {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref")},
+            {
+                k: []
+                for k in ("lower", "upper", "damping", "armature", "stiffness", "springref", "pd_stiffness")
+            },
         )
         for art, sl in zip(self.arts, self.coord_slices, strict=True):
             j0 = sl.start + (6 if art.floating else 0)
             jidx += list(range(j0, j0 + art.num_joints))
             hinge += [k == "hinge" for k in art.kind[1:]]
             for key, vals in data.items():
-                vals += list(getattr(art, key))
+                vals += list(art.damping + art.pd_damping if key == "damping" else getattr(art, key))
         self.joint_index = torch.tensor(jidx, dtype=torch.long)
         self.hinge = torch.tensor(hinge, dtype=torch.bool)
         self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
@@ -574,21 +607,25 @@ class ArticulatedKinematics:
         inv = 1.0 / (dt * dt)
         value = (
             0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2
-            + 0.5 * d["stiffness"] * spring**2 + vl + vu - torque * vel
+            + 0.5 * d["stiffness"] * spring**2 + 0.5 * d["pd_stiffness"] * th**2 + vl + vu - torque * vel
         ).sum(1)  # fmt: skip
         if order == 0:
             return value, None, None
-        g = inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + gl - gu - torque
+        g = (
+            inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + d["pd_stiffness"] * th
+            + gl - gu - torque
+        )  # fmt: skip
         grad = q.new_zeros(q.shape).index_add(1, idx, g)
         if order == 1:
             return value, grad, None
-        h = inv * d["armature"] + d["damping"] / dt + d["stiffness"] + hl + hu
+        h = inv * d["armature"] + d["damping"] / dt + d["stiffness"] + d["pd_stiffness"] + hl + hu
         hess = q.new_zeros(q.shape[0], q.shape[1], q.shape[1])
         hess[:, idx, idx] = h
         return value, grad, hess
 
-    def motor_torque(self, ctrl: torch.Tensor) -> torch.Tensor:
-        """(A, J) joint torques of the motors' controls ctrl (A, U) (clipped to their ctrlrange, times gear)."""
+    def ctrl_torque(self, ctrl: torch.Tensor) -> torch.Tensor:
+        """(A, J) the joint torques that depend on the controls ctrl (A, U): gear ctrl_gain clip(ctrl) per
+        actuator (a position actuator's stiffness and damping are joint terms)."""
         out = ctrl.new_zeros(ctrl.shape[0], len(self.joint_index))
         j0, u0 = 0, 0
         for art in self.arts:
@@ -597,9 +634,8 @@ class ArticulatedKinematics:
                 c = ctrl[:, u0 : u0 + U]
                 lo = torch.as_tensor(art.ctrl_lower, dtype=c.dtype, device=c.device)
                 hi = torch.as_tensor(art.ctrl_upper, dtype=c.dtype, device=c.device)
-                tau = torch.as_tensor(art.gear, dtype=c.dtype, device=c.device) * torch.maximum(
-                    torch.minimum(c, hi), lo
-                )
+                scale = torch.as_tensor(art.gear * art.ctrl_gain, dtype=c.dtype, device=c.device)
+                tau = scale * torch.maximum(torch.minimum(c, hi), lo)
                 out = out.index_add(1, j0 + torch.as_tensor(art.actuator_joint, device=c.device), tau)
             j0 += art.num_joints
             u0 += U

@@ -74,7 +74,7 @@ class StepProblem(NamedTuple):
 
 
 class JointInputs(NamedTuple):
-    """The coordinates one and two steps earlier (B, Q) and the joint torques (B, J) of the motors."""
+    """The coordinates one and two steps earlier (B, Q) and the joint torques (B, J) of the controls."""
 
     q_t: torch.Tensor
     q_p: torch.Tensor

@@ -62,8 +62,9 @@ class Action(NamedTuple):
         torque: ([B,] N, 3) world-frame torques [N m] (rows of non-dynamic bodies ignored).
         target: ([B,] K, 6) end-of-step poses of the K kinematic bodies (``Scene.kinematic`` order); None keeps
             them where they are.
-        ctrl: ([B,] U) controls of the articulations' motors, in the scene's articulation order then MJCF order
-            (joint torque = gear * ctrl clipped to ctrlrange); None: zero.
+        ctrl: ([B,] U) controls of the articulations' actuators, in the scene's articulation order then MJCF
+            order, clipped to their ctrlrange (motor: joint torque gear * ctrl; position: a PD servo toward
+            ctrl / gear, :class:`~cfd_torch.sim.articulation.Articulation`); None: zero.
     """
 
     force: torch.Tensor | None = None
