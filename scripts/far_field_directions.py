@@ -49,11 +49,10 @@ def main() -> None:
     heading = math.atan2(float(u[1]), float(u[0]))
     places = [(r, 360.0 * k / args.angles) for r in args.radii for k in range(args.angles)]
     B = len(places)
+    radius = torch.tensor([r for r, _ in places], dtype=torch.float64)
+    angle = heading + torch.deg2rad(torch.tensor([phi for _, phi in places], dtype=torch.float64))
     q = s0.q.expand(B, -1, -1).clone()
-    for b, (r, phi) in enumerate(places):
-        a = heading + math.radians(phi)
-        q[b, 1, 0] = box[0] + r * math.cos(a)
-        q[b, 1, 1] = box[1] + r * math.sin(a)
+    q[:, 1, :2] = box + radius[:, None] * torch.stack([angle.cos(), angle.sin()], 1)
     state = EnvState(
         q, q.clone(), s0.t.expand(B).clone(), {k: v.expand(B, *v.shape[1:]) for k, v in s0.task.items()}
     )
@@ -68,8 +67,7 @@ def main() -> None:
     rows = []
     for b, (r, phi) in enumerate(places):
         d = -g[b] / g[b].norm()
-        ang = heading + math.radians(phi)
-        toward_box = -torch.tensor([math.cos(ang), math.sin(ang)], dtype=torch.float64)
+        toward_box = (box - q[b, 1, :2]) / r
         rows.append({
             "radius": r, "phi_deg": phi, "grad_norm": float(g[b].norm()),
             "toward_box": float(d @ toward_box), "along_target": float(d @ u),

@@ -4,10 +4,10 @@ differentiable simulator: open-loop trajectory optimisation, or model-predictive
 Loss: minus the sum over the horizon of the task's ``distance`` reward term (the action cost is left out: at the
 trivial start its gradient, 2e-3 |a| per step, would swamp the far field's 1e-11 after the first update). Actions
 are the tanh of free parameters (so they stay in [-1, 1]), all zero at the start. Every optimiser takes the unit
-gradient g / |g|: far-field gradients grow by orders of magnitude as bodies approach (1e-13 at 0.5 m, 1e-3 in
-contact on Push), and an optimiser fed raw gradients either crawls in the far field or, like Adam, remembers the
-largest one and stalls after it. Optimisers: ``ngd`` (default: heavy-ball momentum 0.9 on the unit gradient,
-steps of ``--lr``; it keeps the gradient's direction, so Push's pole circles behind the box), ``adam`` (Adam on the
+gradient g / |g|: far-field gradients grow by orders of magnitude as bodies approach (Push's start: about 1e-13
+per action), and an optimiser fed raw gradients either crawls in the far field or, like Adam, remembers the largest
+one and stalls after it. Optimisers: ``ngd`` (default: heavy-ball momentum 0.9 on the unit gradient, steps of
+``--lr``; it keeps the gradient's direction, so Push's pole turns toward the back of the box), ``adam`` (Adam on the
 unit gradient: per-coordinate steps of about ``--lr``, which bends the direction toward the diagonals) and
 ``ngd-ls`` (steps of at most ``--lr`` along -g / |g|, halved until the loss falls: the loss never rises, but
 changes below the solver's tolerance, as in Push's far field, stop it).

@@ -494,20 +494,21 @@ class ArticulatedKinematics:
         jidx, hinge, data = (
             [],
             [],
-            {
-                k: []
-                for k in ("lower", "upper", "damping", "armature", "stiffness", "springref", "pd_stiffness")
-            },
-        )
+            {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref", "pd_stiffness",
+                             "pd_damping")},
+        )  # fmt: skip
         for art, sl in zip(self.arts, self.coord_slices, strict=True):
             j0 = sl.start + (6 if art.floating else 0)
             jidx += list(range(j0, j0 + art.num_joints))
             hinge += [k == "hinge" for k in art.kind[1:]]
             for key, vals in data.items():
-                vals += list(art.damping + art.pd_damping if key == "damping" else getattr(art, key))
+                vals += list(getattr(art, key))
         self.joint_index = torch.tensor(jidx, dtype=torch.long)
         self.hinge = torch.tensor(hinge, dtype=torch.bool)
         self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
+        self.joint_data["damping"] += self.joint_data.pop(
+            "pd_damping"
+        )  # the servos' damping acts as the joint's
 
     # -- the map
     def _rows(self, art: Articulation, qa: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
