@@ -231,6 +231,47 @@ def test_bad_ctrl_is_refused():
         step(scene, State(q0, q0), Action(ctrl=torch.zeros(1, dtype=torch.long)))
 
 
+def _xml(joints: str, root_joints: str = "") -> str:
+    return f"""<mujoco><worldbody><body name="root" pos="0 0 1">{root_joints}<geom type="sphere" size="0.1"/>
+        <body name="arm" pos="0 0 -0.3">{joints}<geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.05"/>
+        </body></body></worldbody></mujoco>"""
+
+
+def test_joint_layouts_that_cannot_be_recovered_are_refused():
+    import dataclasses
+
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import load_mjcf
+
+    hinge = '<joint name="h{}" type="hinge" axis="{}"/>'
+    with pytest.raises(ValueError, match="consecutive parallel hinges"):
+        articulation(
+            _xml(hinge.format(1, "0 1 0") + '<joint name="h2" type="hinge" axis="0 2 0" pos="0 0 -0.1"/>')
+        )
+    with pytest.raises(ValueError, match="at most three of each"):
+        four = "".join(hinge.format(k, a) for k, a in enumerate(["1 0 0", "0 1 0", "0 0 1"]))
+        articulation(_xml(four + '<joint name="h4" type="hinge" axis="1 0 0" pos="0 0 -0.1"/>'))
+    slide = '<joint name="s{}" type="slide" axis="{}"/>'
+    two = load_mjcf(_xml(slide.format(1, "1 0 0") + slide.format(2, "0 1 0")))  # MuJoCo refuses a third
+    third = dataclasses.replace(two.links[1].joints[0], name="s3", axis=np.array([1.0, 1.0, 0.0]))
+    arm = dataclasses.replace(two.links[1], joints=two.links[1].joints + (third,))
+    with pytest.raises(ValueError, match="dependent axes"):
+        Articulation(dataclasses.replace(two, links=(two.links[0], arm), joints=two.joints + (third,)))
+    fixed_root = _xml(hinge.format(1, "0 1 0"))
+    with pytest.raises(ValueError, match="mount places a fixed base"):
+        articulation(fixed_root, mount=[0, 0, 1, 0, 0, 0])
+    hung = articulation(
+        _xml(hinge.format(1, "0 1 0"), root_joints=slide.format(0, "1 0 0")), mount=[0, 0, 1, 0, 0, 0]
+    )
+    with pytest.raises(ValueError, match="base"):
+        hung.poses(torch.zeros(2, dtype=F64), torch.zeros(6, dtype=F64))
+    with pytest.raises(ValueError, match="mount must be"):
+        articulation(_xml(hinge.format(1, "0 1 0"), root_joints=slide.format(0, "1 0 0")), mount=[0, 0, 1])
+    # the mount moves the whole robot: the root's frame is the mount's pose composed with the MJCF's pos="0 0 1"
+    rows = hung.poses(torch.zeros(2, dtype=F64))
+    assert float(rows[0, 2]) == pytest.approx(2.0, abs=1e-12)
+
+
 def test_ant_forward_kinematics_matches_mujoco():
     import mujoco
 
@@ -257,6 +298,70 @@ def test_ant_forward_kinematics_matches_mujoco():
             assert np.abs(R[0, k].numpy() - data.xmat[b].reshape(3, 3)).max() < 1e-10
 
 
+GYM_ASSETS = (
+    ("humanoid.xml", None), ("hopper.xml", None), ("walker2d.xml", None), ("swimmer.xml", None),
+    ("inverted_double_pendulum.xml", None), ("point.xml", None), ("reacher.xml", "body0"),
+    ("pusher.xml", "r_shoulder_pan_link"),
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("asset,root", GYM_ASSETS, ids=[a for a, _ in GYM_ASSETS])
+def test_gymnasium_assets_forward_kinematics_match_mujoco(asset, root):
+    """Gymnasium's bundled robots (several joints per body, planar roots with nonzero ref, carts, fixed arms): link
+    frames against mj_kinematics at random joint values within the joints' ranges (1e-10), and the joint values
+    recovered from the link rows (1e-9)."""
+    import importlib.resources
+
+    import mujoco
+
+    from cfd_torch.rotation import rotation_vector
+    from cfd_torch.sim.articulation import _fk_frames, _fk_rows, _joint_values
+    from cfd_torch.sim.mjcf import load_mjcf
+
+    path = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / asset
+    model = load_mjcf(str(path), root=root)
+    art = Articulation(model)
+    mj = mujoco.MjModel.from_xml_string(model.xml)
+    data = mujoco.MjData(mj)
+    rng = np.random.default_rng(1)
+    lo = np.where(
+        np.isfinite(art.lower), art.lower, art.ref - np.where(np.array(art.joint_kind) == "hinge", 3.0, 1.0)
+    )
+    hi = np.where(
+        np.isfinite(art.upper), art.upper, art.ref + np.where(np.array(art.joint_kind) == "hinge", 3.0, 1.0)
+    )
+    if root is None:
+        assert any(len(js) > 1 for js in art.link_joints) or art.root_moves or asset.startswith("inverted")
+    for _ in range(4):
+        th = rng.uniform(lo, hi)
+        data.qpos[:] = mj.qpos0
+        for name, v in zip(art.joint_names, th, strict=True):
+            data.qpos[mj.joint(name).qposadr[0]] = v
+        q = torch.tensor(th)
+        base = None
+        if art.floating:
+            w = rng.normal(size=3)
+            quat = np.zeros(4)
+            mujoco.mju_axisAngle2Quat(quat, w / np.linalg.norm(w), np.linalg.norm(w))
+            t = rng.normal(size=3)
+            free = mj.body(art.names[0]).jntadr[0]
+            data.qpos[mj.jnt_qposadr[free] : mj.jnt_qposadr[free] + 7] = np.concatenate([t, quat])
+            q = torch.cat([torch.tensor(np.concatenate([t, w])), q])
+        elif not art.root_moves:  # a joint-less fixed root stands where the MJCF puts it
+            link0 = model.links[0]
+            base = torch.cat([torch.tensor(link0.pos), rotation_vector(torch.tensor(link0.quat)[None])[0]])[
+                None
+            ]
+        mujoco.mj_kinematics(mj, data)
+        R, p = _fk_frames(art, q[None], base)
+        for k, link in enumerate(model.links):
+            b = mj.body(link.bodies[0]).id
+            assert np.abs(p[0, k].numpy() - data.xpos[b]).max() < 1e-10, link.name
+            assert np.abs(R[0, k].numpy() - data.xmat[b].reshape(3, 3)).max() < 1e-10, link.name
+        rows = _fk_rows(art, q[None], base)
+        assert torch.allclose(_joint_values(art, rows)[0], q, rtol=0.0, atol=1e-9)
+
+
 def test_ant_falls_freely_with_its_joints_still():
     from cfd_torch.sim.articulation import articulation
     from cfd_torch.sim.mjcf import gymnasium_ant_xml
@@ -274,6 +379,32 @@ def test_ant_falls_freely_with_its_joints_still():
 
 
 # --------------------------------------------------------------------- closed-form derivatives against torch.func
+def _multi_chain() -> Articulation:
+    """A fixed base whose root has joints (slide, slide, hinge: a planar root), hung from a tilted mount, and links
+    with several joints each (three hinges; hinge + slide; two hinges; slide, hinge, slide), tilted axes, anchors
+    and nonzero refs."""
+    rng = np.random.default_rng(5)
+    parents = (-1, 0, 1, 1, 3)
+    patterns = (("slide", "slide", "hinge"), ("hinge",) * 3, ("hinge", "slide"), ("hinge", "hinge"),
+                ("slide", "hinge", "slide"))  # fmt: skip
+    links, joints = [], []
+    for k, (par, kinds) in enumerate(zip(parents, patterns, strict=True)):
+        js = tuple(
+            NS(name=f"j{k}{i}", kind=kind, axis=rng.normal(size=3), pos=rng.normal(size=3), range=None,
+               damping=0.0, armature=0.0, stiffness=0.0, springref=0.0, ref=float(rng.uniform(-1, 1)))
+            for i, kind in enumerate(kinds)
+        )  # fmt: skip
+        joints += list(js)
+        quat = rng.normal(size=4)
+        links.append(
+            NS(name=f"l{k}", parent=par, pos=rng.normal(size=3), quat=quat / np.linalg.norm(quat), joints=js,
+               mesh=trimesh.creation.box((0.1, 0.2, 0.3)), mass=1.0, com=rng.normal(size=3),
+               second_moment=np.diag([0.1, 0.2, 0.3]))
+        )  # fmt: skip
+    model = NS(name="multi", links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
+    return Articulation(model, mount=rng.normal(size=6))
+
+
 def _branchy_chain() -> Articulation:
     """A fixed-base tree of hinges and slides with tilted axes, offsets and anchors: root - hinge - slide - hinge,
     root - slide - hinge, and a second hinge on the first slide."""
@@ -308,19 +439,28 @@ def _reference_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor) -> t
     from cfd_torch.rotation import _rotation_derivatives_torch
     from cfd_torch.sim.articulation import _quat_from_matrix
 
-    base = q[:6] if art.floating else root
+    if art.floating:
+        base = q[:6]
+    else:
+        base = torch.as_tensor(art.mount) if art.root_moves else root
     th = q[6:] if art.floating else q
-    Rs, ps = [_rotation_derivatives_torch(base[None, 3:], 0)[0][0]], [base[:3]]
-    for i in range(1, art.num_links):
-        Rp, pp = Rs[int(art.parent[i])], ps[int(art.parent[i])]
+    R0, p0 = _rotation_derivatives_torch(base[None, 3:], 0)[0][0], base[:3]
+    Rs, ps = [], []
+    for i in range(art.num_links):
+        if i == 0 and not art.root_moves:
+            Rs.append(R0)
+            ps.append(p0)
+            continue
+        Rp, pp = (R0, p0) if i == 0 else (Rs[int(art.parent[i])], ps[int(art.parent[i])])
         R, p = Rp @ torch.as_tensor(art.offset_R[i]), pp + Rp @ torch.as_tensor(art.offset_p[i])
-        a, c, t = torch.as_tensor(art.axis[i]), torch.as_tensor(art.anchor[i]), th[i - 1]
-        if art.kind[i] == "hinge":
-            K = torch.linalg.cross(a.expand(3, 3), torch.eye(3, dtype=F64)).T  # [a]_x
-            Rj = torch.eye(3, dtype=F64) + torch.sin(t) * K + (1.0 - torch.cos(t)) * (K @ K)
-            R, p = R @ Rj, p + R @ (c - Rj @ c)
-        else:
-            p = p + R @ (a * t)
+        for j in art.link_joints[i]:
+            a, c, t = torch.as_tensor(art.axis[j]), torch.as_tensor(art.anchor[j]), th[j] - float(art.ref[j])
+            if art.joint_kind[j] == "hinge":
+                K = torch.linalg.cross(a.expand(3, 3), torch.eye(3, dtype=F64)).T  # [a]_x
+                Rj = torch.eye(3, dtype=F64) + torch.sin(t) * K + (1.0 - torch.cos(t)) * (K @ K)
+                R, p = R @ Rj, p + R @ (c - Rj @ c)
+            else:
+                p = p + R @ (a * t)
         Rs.append(R)
         ps.append(p)
     R = torch.stack(Rs)
@@ -333,7 +473,7 @@ def _reference_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor) -> t
     series = sum((-x2) ** k / (2 * k + 1) for k in range(12)) / w  # atan(s / w) / s
     log = 2.0 * torch.where(small, series, torch.atan2(s, w) / s) * v
     rows = torch.cat([torch.stack(ps) + (R @ torch.as_tensor(art.com)[..., None])[..., 0], log], 1)
-    return rows[0 if art.floating else 1 :].reshape(-1)
+    return rows[art.first_moving :].reshape(-1)
 
 
 def _reference_derivatives(art: Articulation, q: torch.Tensor, root: torch.Tensor, g: torch.Tensor):
@@ -347,10 +487,11 @@ def _reference_derivatives(art: Articulation, q: torch.Tensor, root: torch.Tenso
     return J, torch.einsum("ak,akij->aij", g.reshape(g.shape[0], -1), D2)
 
 
-@pytest.mark.parametrize("which", ["ant", "branchy"])
+@pytest.mark.parametrize("which", ["ant", "branchy", "multi"])
 def test_closed_form_derivatives_match_torch_func(which):
     """The Jacobian of the link rows and their second derivatives contracted with a row gradient, against nested
-    forward mode, with rotation vectors (the Ant's base; the branchy chain's first link) of norm 0 to near pi."""
+    forward mode, with rotation vectors (the Ant's base; the branchy chain's first link) of norm 0 to near pi; and
+    the joint values recovered from the rows (several joints per link, refs and a mounted root in "multi")."""
     from cfd_torch.rotation import rotation_matrix, rotation_vector
     from cfd_torch.sim.articulation import (
         _fk_derivatives,
@@ -372,18 +513,24 @@ def test_closed_form_derivatives_match_torch_func(which):
             [torch.as_tensor(rng.normal(size=(A, 3))), rot, torch.as_tensor(rng.uniform(-3, 3, (A, 8)))], 1
         )
         root, fixed, lo = torch.zeros(A, 6, dtype=F64), None, 0
+    elif which == "multi":  # angles within pi / 2 of ref: three hinges' middle angle has one such solution
+        art = _multi_chain()
+        q = torch.as_tensor(art.ref + rng.uniform(-1.5, 1.5, (A, art.num_coords)))
+        root = torch.zeros(A, 6, dtype=F64)
+        fixed, lo = root, 0
     else:  # the root turned so that link 1 has the rotation vector rot
         art = _branchy_chain()
         q = torch.as_tensor(rng.uniform(-1.5, 1.5, (A, art.num_coords)))
         R1 = rotation_matrix(rot) @ (
-            torch.as_tensor(art.offset_R[1]) @ rotation_matrix(torch.as_tensor(art.axis[1]) * q[:, :1])
+            torch.as_tensor(art.offset_R[1]) @ rotation_matrix(torch.as_tensor(art.axis[0]) * q[:, :1])
         ).transpose(-1, -2)
         root = torch.cat(
             [torch.as_tensor(rng.normal(size=(A, 3))), rotation_vector(_quat_from_matrix(R1))], 1
         )
         fixed, lo = root, 1
     rows = _fk_rows(art, q, fixed)[:, lo:]
-    assert torch.allclose(rows[:, 0, 3:].norm(dim=-1), norms, rtol=1e-9, atol=1e-14)
+    if which != "multi":
+        assert torch.allclose(rows[:, 0, 3:].norm(dim=-1), norms, rtol=1e-9, atol=1e-14)
     g = torch.as_tensor(rng.normal(size=rows.shape))
     J, second = _fk_derivatives(art, q, fixed, lo, g)
     J_ref, second_ref = _reference_derivatives(art, q, root, g)

@@ -7,20 +7,20 @@ and one value per joint. :class:`ArticulatedKinematics` maps them to the link po
 closed-form first and second derivatives (forward mode along the tree, then the log map's derivatives), and adds
 the joint-space terms of the incremental potential: armature, damping, springs, limits and actuation.
 
-Forward kinematics (MuJoCo's convention, one joint per link): the frame of link i is
+Forward kinematics (MuJoCo's `mj_kinematics`): the frame of link i, whose MJCF body has joints 1..k, is
 
-    T_i = T_parent(i) [R(quat_i), pos_i] J_i(theta_i),
-    J = translate(c) rotate(a, theta) translate(-c)     (hinge through anchor c along unit axis a, link frame)
-    J = translate(a theta)                              (slide)
+    T_i = T_parent(i) [R(quat_i), pos_i] J_1(theta_1) .. J_k(theta_k),
+    J = translate(c) rotate(a, theta - ref) translate(-c)     (hinge through anchor c along unit axis a, link frame)
+    J = translate(a (theta - ref))                            (slide)
 
-and its state row is the pose of its centre of mass, (p_i + R_i com_i, log R_i). The joint values of a state are
-recovered from the relative rotation (hinge: atan2, so hinge values live in (-pi, pi]) or translation (slide) of
-each link's frame in its parent's.
+(the root's parent: the base; a fixed base whose root has joints hangs from its mount), and its state row is the
+pose of its centre of mass, (p_i + R_i com_i, log R_i). The joint values of a state are recovered from each link's
+frame in its parent's (:func:`_joint_values`: hinge angles in ref + (-pi, pi]).
 
 Joint-space terms, for each joint with value theta (theta_t, theta_p: one and two steps earlier)::
 
     armature a (theta - 2 theta_t + theta_p)^2 / (2 dt^2)  +  damping d (theta - theta_t)^2 / (2 dt)
-    + stiffness k (theta - ref)^2 / 2  +  limit barrier  -  tau (theta - theta_t)
+    + stiffness k (theta - springref)^2 / 2  +  limit barrier  -  tau (theta - theta_t)
 
 with the position actuators' kp gear^2 theta^2 / 2 and kv gear^2 added to the stiffness and damping, and tau the
 torque of the controls (:meth:`ArticulatedKinematics.ctrl_torque`).
@@ -51,64 +51,99 @@ LIMIT_STIFFNESS = 1.0
 
 
 class Articulation:
-    """A robot: links (bodies of the scene) in a tree of hinge and slide joints, one joint per link but the root.
+    """A robot: links (bodies of the scene) in a tree of hinge and slide joints, on a floating or fixed base.
 
-    Build it with :func:`articulation` from MJCF. Attributes (numpy, float64, link frames): ``names``,
-    ``parent`` (L,), ``offset_R`` (L, 3, 3) and ``offset_p`` (L, 3) (link frame in its parent's at zero joint
-    values), ``kind`` (L,) "root", "hinge" or "slide", ``axis`` and ``anchor`` (L, 3), ``com`` (L, 3),
-    ``bodies`` (the L RigidBody links, centre-of-mass frames; a fixed base's root is a static body in its link
-    frame), ``floating``, per joint (J = L - 1, link order) ``joint_names``, ``lower``/``upper`` (J,) limits
-    (+-inf: none), ``damping``, ``armature``, ``stiffness``, ``springref``, ``pd_stiffness`` and ``pd_damping``
-    (the position actuators' kp gear^2 and kv gear^2), and per actuator ``actuator_joint``, ``gear``,
-    ``ctrl_gain`` (1 for a motor, kp for a position actuator), ``ctrl_lower``, ``ctrl_upper`` (the control's
-    clip; a motor's forcerange narrows it). An actuator's torque on its joint is MuJoCo's:
+    Build it with :func:`articulation` from MJCF. A link carries the joints of its MJCF body (any number of hinges
+    and slides, at most three hinges and three slides; MuJoCo composes them in MJCF order), the root link too when
+    the base is fixed (the Gymnasium hopper's and swimmer's planar root joints, a cart's slide). Each joint moves a
+    frame: frame 0 is the base (the root link's frame when the root has no joints; otherwise the world frame the
+    robot is mounted in, at ``mount``), frame j + 1 the frame after joint j; a link's frame is the frame after its
+    last joint.
+
+    Attributes (numpy, float64): per link (L) ``names``, ``parent``, ``offset_R`` (L, 3, 3) and ``offset_p``
+    (L, 3) (link frame in its parent's at the joints' ``ref``; the root's: in the mount frame), ``com`` (L, 3),
+    ``link_joints`` (the joints of each link), ``bodies`` (the L RigidBody links, centre-of-mass frames; a fixed
+    base's joint-less root is a static body in its link frame); ``floating``, ``root_moves`` (a fixed base whose
+    root has joints), ``mount`` (6,) (the pose of the world frame such a robot hangs from); per joint (J, link
+    order then MJCF order) ``joint_names``, ``joint_kind`` "hinge" or "slide", ``joint_link``, ``axis`` and
+    ``anchor`` (J, 3) in the link frame, ``ref`` (MuJoCo's qpos0: the transform is that of q - ref),
+    ``lower``/``upper`` limits (+-inf: none), ``damping``, ``armature``, ``stiffness``, ``springref``,
+    ``pd_stiffness`` and ``pd_damping`` (the position actuators' kp gear^2 and kv gear^2); per actuator
+    ``actuator_joint``, ``gear``, ``ctrl_gain`` (1 for a motor, kp for a position actuator), ``ctrl_lower``,
+    ``ctrl_upper`` (the control's clip; a motor's forcerange narrows it). An actuator's torque on its joint is
+    MuJoCo's:
 
         motor:     tau = gear clip(ctrl)
         position:  tau = gear kp clip(ctrl) - kp gear^2 theta - kv gear^2 theta_dot
 
     The position actuator's stiffness and damping are implicit in the step (terms of the incremental potential, as
-    the joint's own spring and damping), so a stiff PD target is stable at any dt; hinge values are those of the
-    state, in (-pi, pi].
+    the joint's own spring and damping), so a stiff PD target is stable at any dt.
+
+    Joint values are recovered from the link poses of a state (the state rows are the links' poses): a hinge's in
+    ref + (-pi, pi]; for a link with three hinges, the middle one's two solutions are told apart by its range (the
+    one inside it), else the one nearer ref (|theta - ref| <= pi / 2). Hinge axes that cannot be told apart
+    (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
     """
 
-    def __init__(self, model, *, max_edge: float | None = None) -> None:
+    def __init__(self, model, *, max_edge: float | None = None, mount=None) -> None:
         links = model.links
         L = len(links)
-        for k, link in enumerate(links):
-            if k == 0 and link.joints:
-                raise ValueError(
-                    f"articulation: the root link {link.name!r} has joints; root joints other than a free joint "
-                    "(a floating base) are not supported"
-                )
-            if k > 0 and len(link.joints) != 1:
-                raise ValueError(
-                    f"articulation: link {link.name!r} has {len(link.joints)} joints; one joint per moving link is "
-                    "supported (a body welded to its parent has none and is merged into it)"
-                )
         self.name = model.name
         self.floating = bool(model.floating)
+        self.root_moves = bool(links[0].joints)
+        if self.floating and self.root_moves:
+            raise ValueError(
+                f"articulation: the root link {links[0].name!r} has a free joint and other joints"
+            )
+        self.mount = np.zeros(6) if mount is None else np.asarray(mount, dtype=float).reshape(-1)
+        if self.mount.shape != (6,) or not np.isfinite(self.mount).all():
+            raise ValueError(
+                f"mount must be a finite pose (translation, rotation vector) of 6 values, got {mount!r}"
+            )
+        if mount is not None and not self.root_moves:
+            raise ValueError(
+                "mount places a fixed base whose root has joints; this robot's base is "
+                + ("floating" if self.floating else "its root link, placed by the state's row")
+            )
         self.names = tuple(link.name for link in links)
         self.parent = np.array([link.parent for link in links], dtype=np.int64)
         self.offset_R = np.stack([quat_to_matrix(link.quat) for link in links])
         self.offset_p = np.stack([np.asarray(link.pos, float) for link in links])
-        joints = [None] + [link.joints[0] for link in links[1:]]
-        self.kind = ("root",) + tuple(j.kind for j in joints[1:])
-        z = np.zeros(3)
-        self.axis = np.stack([z] + [np.asarray(j.axis, float) / np.linalg.norm(j.axis) for j in joints[1:]])
-        self.anchor = np.stack([z] + [np.asarray(j.pos, float) for j in joints[1:]])
         self.com = np.stack([np.asarray(link.com, float) for link in links])
-        self.joint_names = tuple(j.name for j in joints[1:])
-        rng = [j.range if j.range is not None else (-math.inf, math.inf) for j in joints[1:]]
+        joints, joint_link, link_joints = [], [], []
+        for k, link in enumerate(links):
+            kinds = [j.kind for j in link.joints]
+            if kinds.count("hinge") > 3 or kinds.count("slide") > 3:
+                raise ValueError(
+                    f"articulation: link {link.name!r} has {kinds.count('hinge')} hinges and "
+                    f"{kinds.count('slide')} slides; at most three of each per link are supported"
+                )
+            if k > 0 and not link.joints:
+                raise ValueError(f"articulation: link {link.name!r} has no joint (weld it into its parent)")
+            link_joints.append(tuple(range(len(joints), len(joints) + len(link.joints))))
+            joints += list(link.joints)
+            joint_link += [k] * len(link.joints)
+        self.link_joints = tuple(link_joints)
+        J = len(joints)
+        self.joint_link = np.array(joint_link, dtype=np.int64)
+        self.joint_kind = tuple(j.kind for j in joints)
+        self.axis = np.array([np.asarray(j.axis, float) / np.linalg.norm(j.axis) for j in joints]).reshape(
+            J, 3
+        )
+        self.anchor = np.array([np.asarray(j.pos, float) for j in joints]).reshape(J, 3)
+        self.ref = np.array([float(getattr(j, "ref", 0.0)) for j in joints])
+        self.joint_names = tuple(j.name for j in joints)
+        rng = [j.range if j.range is not None else (-math.inf, math.inf) for j in joints]
         self.lower = np.array([r[0] for r in rng], dtype=float)
         self.upper = np.array([r[1] for r in rng], dtype=float)
-        self.damping = np.array([j.damping for j in joints[1:]], dtype=float)
-        self.armature = np.array([j.armature for j in joints[1:]], dtype=float)
-        self.stiffness = np.array([j.stiffness for j in joints[1:]], dtype=float)
-        self.springref = np.array([j.springref for j in joints[1:]], dtype=float)
+        self.damping = np.array([j.damping for j in joints], dtype=float)
+        self.armature = np.array([j.armature for j in joints], dtype=float)
+        self.stiffness = np.array([j.stiffness for j in joints], dtype=float)
+        self.springref = np.array([j.springref for j in joints], dtype=float)
         ours = {name: i for i, name in enumerate(self.joint_names)}
         act_joint, gear, gain, lo, hi = [], [], [], [], []
-        self.pd_stiffness = np.zeros(L - 1)
-        self.pd_damping = np.zeros(L - 1)
+        self.pd_stiffness = np.zeros(J)
+        self.pd_damping = np.zeros(J)
         for a in model.actuators:
             if a.kind not in ("motor", "position"):
                 raise ValueError(
@@ -139,11 +174,12 @@ class Articulation:
         self.ctrl_gain = np.array(gain, dtype=float)
         self.ctrl_lower = np.array(lo, dtype=float)
         self.ctrl_upper = np.array(hi, dtype=float)
+        static_root = not (self.floating or self.root_moves)
         bodies = []
         for k, link in enumerate(links):
             V = np.asarray(link.mesh.vertices, dtype=np.float64)
             F = np.asarray(link.mesh.faces, dtype=np.int64)
-            if k == 0 and not self.floating:
+            if k == 0 and static_root:
                 bodies.append(
                     RigidBody(BSH.build(V, F, max_edge=max_edge), "static", 0.0, torch.zeros(3, 3, dtype=torch.float64),
                               torch.zeros(3, dtype=torch.float64))
@@ -159,18 +195,42 @@ class Articulation:
             )  # fmt: skip
         self.bodies = tuple(bodies)
         self.num_links = L
-        self.num_joints = L - 1
+        self.num_joints = J
         self.num_actuators = len(self.gear)
+        #: the first link that moves (a fixed base's joint-less root does not)
+        self.first_moving = 1 if static_root else 0
         #: coordinates of the step: the base pose (6, floating only), then the joints
-        self.num_coords = (6 if self.floating else 0) + self.num_joints
-        self._levels, self._level_back = _levels(self)  # the tree by depth, for the forward kinematics
+        self.num_coords = (6 if self.floating else 0) + J
+        # frames: 0 the base, j + 1 after joint j; a link's frame is the one after its last joint
+        self.link_frame = np.array([js[-1] + 1 if js else 0 for js in self.link_joints], dtype=np.int64)
+        self.frame_parent = np.zeros(J + 1, dtype=np.int64)
+        self.frame_R = np.tile(np.eye(3), (J + 1, 1, 1))
+        self.frame_p = np.zeros((J + 1, 3))
+        for k, js in enumerate(self.link_joints):
+            for m, j in enumerate(js):
+                if m == 0:  # the first joint of a link: from its parent link's frame (the root's: the mount)
+                    self.frame_parent[j + 1] = 0 if k == 0 else self.link_frame[self.parent[k]]
+                    self.frame_R[j + 1], self.frame_p[j + 1] = self.offset_R[k], self.offset_p[k]
+                else:
+                    self.frame_parent[j + 1] = j
+        self._groups = _joint_groups(self)  # links by joint pattern, for recovering joint values
+        self._levels, self._level_back = _levels(self)  # the frame tree by depth, for the forward kinematics
 
     def poses(self, joints: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
-        ([B,] 6) of the root link's frame (translation, rotation vector; fixed bases: where the root stands,
-        default the origin)."""
+        ([B,] 6) of the root link's frame (translation, rotation vector; a fixed base: where its root stands,
+        default the origin). A fixed base whose root has joints hangs from its ``mount``: ``base`` must be None."""
         single = joints.dim() == 1
         th = joints[None] if single else joints
+        if th.shape[-1] != self.num_joints:
+            raise ValueError(
+                f"joints must hold {self.num_joints} values per robot, got shape {tuple(joints.shape)}"
+            )
+        if self.root_moves and base is not None:
+            raise ValueError(
+                f"base: {self.name!r} is mounted where its root's joints hang from (articulation(..., mount=)); "
+                "pass base=None"
+            )
         if base is None:
             base = th.new_zeros(th.shape[0], 6)
         b = base[None] if base.dim() == 1 else base
@@ -179,30 +239,33 @@ class Articulation:
             rows = _fk_rows(self, torch.cat([b, th], 1), None)
         else:
             rows = _fk_rows(self, th, b)
-            rows = torch.cat([b[:, None], rows[:, 1:]], 1)
+            if not self.root_moves:
+                rows = torch.cat([b[:, None], rows[:, 1:]], 1)
         return rows[0] if single else rows
 
 
-def articulation(source, *, max_edge: float | None = None, **mjcf_options) -> Articulation:
+def articulation(source, *, max_edge: float | None = None, mount=None, **mjcf_options) -> Articulation:
     """An :class:`Articulation` from an MJCF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its options
-    pass through). A free joint on the root body makes a floating base; without one the root is fixed where the
-    state puts it."""
-    return Articulation(load_mjcf(source, **mjcf_options), max_edge=max_edge)
+    pass through). A free joint on the root body makes a floating base; without one the base is fixed: a joint-less
+    root stands where the state puts it, a root with joints (a cart's slide, a planar robot's root joints) hangs
+    from the MJCF's world frame placed at ``mount`` (translation, rotation vector; default the origin)."""
+    return Articulation(load_mjcf(source, **mjcf_options), max_edge=max_edge, mount=mount)
 
 
 # ------------------------------------------------------------------------------------------- forward kinematics
 class _Level(NamedTuple):
-    """The links at one depth of the tree (n of them)."""
+    """The joint frames at one depth of the frame tree (n of them)."""
 
-    links: torch.Tensor  # (n,) link indices
+    frames: torch.Tensor  # (n,) frame indices
     parent: torch.Tensor  # (n,) their parents' positions in the level above
-    joint: torch.Tensor  # (n,) their joint indices (link - 1)
-    Ro: torch.Tensor  # (n, 3, 3) link frame in the parent's at zero joint value
+    joint: torch.Tensor  # (n,) their joint indices (frame - 1)
+    Ro: torch.Tensor  # (n, 3, 3) the frame in its parent's at the joint's ref
     po: torch.Tensor  # (n, 3)
     K: torch.Tensor  # (n, 3, 3) [axis]_x for hinges, 0 for slides
     K2: torch.Tensor  # (n, 3, 3) K @ K
     anchor: torch.Tensor  # (n, 3) hinge anchor (link frame)
     slide: torch.Tensor  # (n, 3) slide axis, 0 for hinges
+    ref: torch.Tensor  # (n,) the joint value of the MJCF pose
 
     def to(self, dtype: torch.dtype, device: torch.device) -> _Level:
         return _Level(
@@ -210,28 +273,34 @@ class _Level(NamedTuple):
         )
 
 
-def _levels(art: Articulation) -> tuple[tuple[_Level, ...], torch.Tensor]:
-    """The tree by depth (root excluded; float64 CPU tensors) and the permutation (L,) from level order (root, then
-    level by level) back to link order."""
-    depth = np.zeros(art.num_links, dtype=np.int64)
-    for i in range(1, art.num_links):
-        depth[i] = depth[art.parent[i]] + 1
-    hinge = np.array([k == "hinge" for k in art.kind], dtype=float)[:, None]
-    a = art.axis * hinge
-    K = np.zeros((art.num_links, 3, 3))
+def _skew(a: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) [a]_x of (n, 3) vectors."""
+    K = np.zeros((len(a), 3, 3))
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
-    K = K - K.transpose(0, 2, 1)
+    return K - K.transpose(0, 2, 1)
+
+
+def _levels(art: Articulation) -> tuple[tuple[_Level, ...], torch.Tensor]:
+    """The frame tree by depth (frame 0 excluded; float64 CPU tensors) and the permutation (J + 1,) from level
+    order (frame 0, then level by level) back to frame order."""
+    F = art.num_joints + 1
+    depth = np.zeros(F, dtype=np.int64)
+    for f in range(1, F):  # parents come before children
+        depth[f] = depth[art.frame_parent[f]] + 1
+    hinge = np.array([k == "hinge" for k in art.joint_kind], dtype=float).reshape(-1, 1)
+    K = _skew(art.axis * hinge)
     order, above, levels = [0], np.array([0]), []
     for d in range(1, int(depth.max(initial=0)) + 1):
-        links = np.flatnonzero(depth == d)
+        frames = np.flatnonzero(depth == d)
+        j = frames - 1
         fields = (
-            links, np.searchsorted(above, art.parent[links]), links - 1,  # ``above`` is sorted
-            art.offset_R[links], art.offset_p[links], K[links], K[links] @ K[links], (art.anchor * hinge)[links],
-            (art.axis * (1.0 - hinge))[links],
+            frames, np.searchsorted(above, art.frame_parent[frames]), j,  # ``above`` is sorted
+            art.frame_R[frames], art.frame_p[frames], K[j], K[j] @ K[j], (art.anchor * hinge)[j],
+            (art.axis * (1.0 - hinge))[j], art.ref[j],
         )  # fmt: skip
         levels.append(_Level(*(torch.from_numpy(np.ascontiguousarray(x)) for x in fields)))
-        order += list(links)
-        above = links
+        order += list(frames)
+        above = frames
     return tuple(levels), torch.from_numpy(np.argsort(order))
 
 
@@ -266,12 +335,13 @@ def _vee(S: torch.Tensor) -> torch.Tensor:
 
 def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order: int) -> list[torch.Tensor]:
     """The link frames and, up to ``order``, their derivatives in the coordinates q (A, Q) (base pose first if
-    floating; a fixed base stands at root (A, 6)): R (A, L, 3, 3), p (A, L, 3), dR (A, L, Q, 3, 3),
-    dp (A, L, Q, 3), d2R (A, L, Q, Q, 3, 3), d2p (A, L, Q, Q, 3).
+    floating; a fixed base's frame 0 is root (A, 6), or the mount if its root has joints): R (A, L, 3, 3),
+    p (A, L, 3), dR (A, L, Q, 3, 3), dp (A, L, Q, 3), d2R (A, L, Q, Q, 3, 3), d2p (A, L, Q, Q, 3).
 
-    Forward mode along the tree, one depth at a time. A link's frame is its parent's times its local transform
-    G(theta) = [Ro Rj(theta), po + Ro (c - Rj(theta) c + s theta)] (hinge: Rj = I + sin K + (1 - cos) K^2,
-    K = [axis]_x, anchor c; slide: Rj = I, axis s), so with E_a = 1 when coordinate a is the link's own joint::
+    Forward mode along the frame tree, one depth at a time. A joint's frame is its parent frame's times its local
+    transform G(theta) = [Ro Rj(t), po + Ro (c - Rj(t) c + s t)], t = theta - ref (hinge: Rj = I + sin K +
+    (1 - cos) K^2, K = [axis]_x, anchor c; slide: Rj = I, axis s), so with E_a = 1 when coordinate a is the
+    frame's own joint::
 
         R = Rp Rl,                        p = pp + Rp pl
         dR_a = dRp_a Rl + E_a Rp Rl',     dp_a = dpp_a + dRp_a pl + E_a Rp pl'
@@ -283,7 +353,12 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
     levels = [lv.to(q.dtype, q.device) for lv in art._levels]
     back = art._level_back.to(q.device)
     A, Q = q.shape
-    base = q[:, :6] if art.floating else root
+    if art.floating:
+        base = q[:, :6]
+    elif art.root_moves:
+        base = torch.as_tensor(art.mount, dtype=q.dtype, device=q.device).expand(A, 6)
+    else:
+        base = root
     th = q[:, 6:] if art.floating else q
     if order and art.floating:
         R0, dE, d2E = rotation_derivatives(base[:, 3:], order)
@@ -306,7 +381,7 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
     mv = lambda M, v: (M @ v[..., None])[..., 0]  # noqa: E731  (batched matrix-vector products)
     for lv in levels:
         Rp, pp = out[0][-1][:, lv.parent], out[1][-1][:, lv.parent]  # (A, n, 3, 3), (A, n, 3)
-        t = th[:, lv.joint]  # (A, n)
+        t = th[:, lv.joint] - lv.ref  # (A, n)
         s, c = torch.sin(t)[..., None, None], torch.cos(t)[..., None, None]
         Rj = eye + s * lv.K + (1.0 - c) * lv.K2
         Rl = lv.Ro @ Rj
@@ -344,7 +419,8 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
             + x.transpose(2, 3)
             + EE[..., None] * mv(Rp, pl2)[:, :, None, None]
         )
-    return [torch.cat(parts, 1)[:, back] for parts in out]
+    link = torch.as_tensor(art.link_frame, device=q.device)
+    return [torch.cat(parts, 1)[:, back][:, link] for parts in out]
 
 
 def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
@@ -413,28 +489,163 @@ def _fk_derivatives(
     return J, second
 
 
+class _Group(NamedTuple):
+    """Links whose joints follow one pattern of kinds (n links, k joints each), for recovering joint values."""
+
+    kinds: tuple[str, ...]
+    links: torch.Tensor  # (n,)
+    joints: torch.Tensor  # (n, k) joint indices, in order
+
+
+def _joint_groups(art: Articulation) -> tuple[_Group, ...]:
+    """The links with joints grouped by pattern; refuses links whose joint values cannot be told apart from their
+    pose (consecutive parallel hinges, dependent slide axes)."""
+    patterns: dict[tuple[str, ...], list[int]] = {}
+    for k, js in enumerate(art.link_joints):
+        if js:
+            patterns.setdefault(tuple(art.joint_kind[j] for j in js), []).append(k)
+        hinges = [art.axis[j] for j in js if art.joint_kind[j] == "hinge"]
+        if any(abs(float(u @ v)) > 1.0 - 1e-9 for u, v in zip(hinges, hinges[1:], strict=False)):
+            raise ValueError(
+                f"articulation: link {art.names[k]!r} has two consecutive parallel hinges; their angles cannot be "
+                "told apart"
+            )
+        slides = np.array([art.axis[j] for j in js if art.joint_kind[j] == "slide"]).reshape(-1, 3)
+        if len(slides) and np.linalg.matrix_rank(slides, tol=1e-9) < len(slides):
+            raise ValueError(f"articulation: link {art.names[k]!r} has slides along dependent axes")
+    return tuple(
+        _Group(
+            kinds,
+            torch.tensor(links),
+            torch.tensor([art.link_joints[k] for k in links]).reshape(len(links), -1),
+        )
+        for kinds, links in patterns.items()
+    )
+
+
+def _rot(a: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotations by angles t (...) about unit axes a (..., 3)."""
+    z = torch.zeros_like(a[..., 0])
+    K = torch.stack(
+        [torch.stack([z, -a[..., 2], a[..., 1]], -1), torch.stack([a[..., 2], z, -a[..., 0]], -1),
+         torch.stack([-a[..., 1], a[..., 0], z], -1)], -2,
+    )  # fmt: skip
+    s, c = torch.sin(t)[..., None, None], torch.cos(t)[..., None, None]
+    return torch.eye(3, dtype=a.dtype, device=a.device) + s * K + (1.0 - c) * (K @ K)
+
+
+def _angle_about(a: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(...) the angle of the rotation about unit axes a (..., 3) that takes u to v (their parts normal to a)."""
+    u = u - (u * a).sum(-1, keepdim=True) * a
+    v = v - (v * a).sum(-1, keepdim=True) * a
+    return torch.atan2((a * torch.linalg.cross(u, v)).sum(-1), (u * v).sum(-1))
+
+
+def _wrap(t: torch.Tensor) -> torch.Tensor:
+    return torch.remainder(t + math.pi, 2 * math.pi) - math.pi
+
+
+def _hinge_angles(R: torch.Tensor, ax: list[torch.Tensor]) -> list[list[torch.Tensor]]:
+    """The angle lists [t_1 .. t_h] (each (A, n)) with R = Rot(a_1, t_1) .. Rot(a_h, t_h), h = len(ax) <= 3
+    (R (A, n, 3, 3), axes (n, 3)): one list for one or two hinges, two for three (the middle angle solves
+    P cos t_2 + Q sin t_2 = a_1^T R a_3 - C, which has two solutions, the first with |t_2 - phi| the smaller)."""
+    mv = lambda M, x: (M @ x[..., None])[..., 0]  # noqa: E731
+    Rt = R.transpose(-1, -2)
+    if len(ax) == 1:
+        (a,) = ax
+        return [[torch.atan2((_vee(R) * a).sum(-1), 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0))]]
+    if len(ax) == 2:  # R b = Rot(a, t1) b and R^T a = Rot(b, -t2) a
+        a, b = (x.expand(R.shape[:-1]) for x in ax)
+        return [[_angle_about(a, b, mv(R, b)), _angle_about(b, mv(Rt, a), a)]]
+    a, b, c = (x.expand(R.shape[:-1]) for x in ax)
+    # a^T R c = a^T Rot(b, t2) c = P cos t2 + Q sin t2 + C
+    ab, bc = (a * b).sum(-1), (b * c).sum(-1)
+    P, Qs, C = (a * c).sum(-1) - ab * bc, (a * torch.linalg.cross(b, c)).sum(-1), ab * bc
+    d = (a * mv(R, c)).sum(-1)
+    phi = torch.atan2(Qs, P)
+    off = torch.acos(((d - C) / torch.sqrt(P * P + Qs * Qs)).clamp(-1.0, 1.0))
+    out = []
+    for t2 in (_wrap(phi + off), _wrap(phi - off)):
+        B = _rot(b, t2)  # then R c = Rot(a, t1) B c and R^T a = Rot(c, -t3) B^T a
+        out.append(
+            [_angle_about(a, mv(B, c), mv(R, c)), t2, _angle_about(c, mv(Rt, a), mv(B.transpose(-1, -2), a))]
+        )
+    return out
+
+
 def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     """(A, Qa) the coordinates whose forward kinematics gives the link rows (A, L, 6) (base pose if floating, then
-    the joints)."""
+    the joints).
+
+    Per link, the transform M = (T_parent Offset)^-1 T_link = J_1 .. J_k of its joints: the hinges' angles from M's
+    rotation (:func:`_hinge_angles`), then the slides from its translation, which is affine in them once the
+    hinges are known: p_M = sum_hinges R_<i (c_i - Rot_i c_i) + sum_slides R_<i s_i x_i (R_<i: the rotation of the
+    joints before i), solved in least squares. Of a three-hinge link's two solutions, the one whose translation
+    fits (where the anchors tell them apart), else the one whose middle joint lies within its range, else the one
+    nearer its ref."""
     dt, dev = rows.dtype, rows.device
-    R = rotation_matrix(rows[..., 3:])
-    com = torch.as_tensor(art.com, dtype=dt, device=dev)
-    p = rows[..., :3] - (R @ com[None, :, :, None])[..., 0]
     as_t = lambda x: torch.as_tensor(x, dtype=dt, device=dev)  # noqa: E731
-    par = torch.as_tensor(art.parent[1:], device=dev)
-    Rp, pp = R[:, par], p[:, par]  # (A, J, 3, 3), (A, J, 3) the parents' frames
-    F = Rp @ as_t(art.offset_R[1:])  # the joints' frames at zero
-    rel = F.transpose(-1, -2) @ R[:, 1:]  # rotate(a, theta) for a hinge, identity for a slide
-    a = as_t(art.axis[1:])
-    hinge = torch.as_tensor([k == "hinge" for k in art.kind[1:]], dtype=torch.bool, device=dev)
-    angle = torch.atan2((_vee(rel) * a).sum(-1), 0.5 * (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0))
-    d = p[:, 1:] - pp - (Rp @ as_t(art.offset_p[1:])[..., None])[..., 0]  # the slide, in the world frame
-    shift = ((F.transpose(-1, -2) @ d[..., None])[..., 0] * a).sum(-1)
-    th = torch.where(hinge, angle, shift)  # (A, J)
+    mv = lambda M, x: (M @ x[..., None])[..., 0]  # noqa: E731
+    A = rows.shape[0]
+    R = rotation_matrix(rows[..., 3:])
+    p = rows[..., :3] - mv(R, as_t(art.com)[None])
+    # the frame each link hangs from: its parent link's, the root's the mount (a root without joints: unused)
+    par = torch.as_tensor(np.maximum(art.parent, 0), device=dev)
+    Rp, pp = R[:, par], p[:, par]
+    if art.root_moves:
+        Rp[:, 0] = rotation_matrix(as_t(art.mount[3:]))
+        pp[:, 0] = as_t(art.mount[:3])
+    F = Rp @ as_t(art.offset_R)  # the links' frames at the joints' ref, (A, L, 3, 3)
+    RM = F.transpose(-1, -2) @ R
+    pM = mv(F.transpose(-1, -2), p - pp - mv(Rp, as_t(art.offset_p)))
+    th = rows.new_zeros(A, art.num_joints)
+    lower, upper, ref = as_t(art.lower), as_t(art.upper), as_t(art.ref)
+    axis, anchor = as_t(art.axis), as_t(art.anchor)
+    for g in art._groups:
+        links, joints = g.links.to(dev), g.joints.to(dev)
+        hinge_at = [i for i, kind in enumerate(g.kinds) if kind == "hinge"]
+        target = pM[:, links]
+        candidates = []
+        for angles in (
+            _hinge_angles(RM[:, links], [axis[joints[:, i]] for i in hinge_at]) if hinge_at else [[]]
+        ):
+            values = dict(zip(hinge_at, angles, strict=True))
+            Racc = torch.eye(3, dtype=dt, device=dev).expand(A, len(links), 3, 3)
+            rest, cols = target, []
+            for i, kind in enumerate(g.kinds):
+                ax = axis[joints[:, i]]
+                if kind == "hinge":
+                    c = anchor[joints[:, i]]
+                    Rj = _rot(ax, values[i])
+                    rest = rest - mv(Racc, c - mv(Rj, c))
+                    Racc = Racc @ Rj
+                else:
+                    cols.append(mv(Racc, ax))
+            if cols:
+                Cm = torch.stack(cols, -1)  # (A, n, 3, s)
+                Ct = Cm.transpose(-1, -2)
+                x = torch.linalg.solve(Ct @ Cm, mv(Ct, rest))
+                rest = rest - mv(Cm, x)
+                values.update(
+                    {i: x[..., k] for k, i in enumerate(i for i in range(len(g.kinds)) if i not in values)}
+                )
+            candidates.append((torch.stack([values[i] for i in range(len(g.kinds))], -1), rest.norm(dim=-1)))
+        vals, res = candidates[0]
+        if len(candidates) == 2:
+            other, res2 = candidates[1]
+            m = hinge_at[1]  # the middle hinge decides where the translation does not
+            j = joints[:, m]
+            in_1, in_2 = (
+                (v[..., m] + ref[j] >= lower[j]) & (v[..., m] + ref[j] <= upper[j]) for v in (vals, other)
+            )
+            tol = 1e-9 * (1.0 + target.norm(dim=-1) + anchor[joints].norm(dim=-1).amax(-1))
+            prefer = torch.where(in_1 != in_2, in_2, other[..., m].abs() < vals[..., m].abs())
+            second = torch.where((res - res2).abs() > tol, res2 < res, prefer)
+            vals = torch.where(second[..., None], other, vals)
+        th[:, joints] = vals + ref[joints]
     if not art.floating:
         return th
-    base_w = rows[:, 0, 3:]
-    return torch.cat([p[:, 0], base_w, th], 1)
+    return torch.cat([p[:, 0], rows[:, 0, 3:], th], 1)
 
 
 # ------------------------------------------------------------------------------------------- joint-space terms
@@ -478,7 +689,7 @@ class ArticulatedKinematics:
         coord_body = [k // 6 for k in range(6 * len(free))]
         self.coord_slices = []
         for art, r in zip(self.arts, self.first, strict=True):
-            lo = 0 if art.floating else 1
+            lo = art.first_moving
             owner = len(moving)
             moving += list(range(r + lo, r + art.num_links))
             self.coord_slices.append(slice(start, start + art.num_coords))
@@ -500,7 +711,7 @@ class ArticulatedKinematics:
         for art, sl in zip(self.arts, self.coord_slices, strict=True):
             j0 = sl.start + (6 if art.floating else 0)
             jidx += list(range(j0, j0 + art.num_joints))
-            hinge += [k == "hinge" for k in art.kind[1:]]
+            hinge += [k == "hinge" for k in art.joint_kind]
             for key, vals in data.items():
                 vals += list(getattr(art, key))
         self.joint_index = torch.tensor(jidx, dtype=torch.long)
@@ -513,14 +724,14 @@ class ArticulatedKinematics:
     # -- the map
     def _rows(self, art: Articulation, qa: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
         rows = _fk_rows(art, qa, None if art.floating else root)
-        return rows if art.floating else rows[:, 1:]
+        return rows[:, art.first_moving :]
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         out = fixed.clone()
         A = q.shape[0]
         out[:, self.free.to(q.device)] = q[:, : 6 * len(self.free)].reshape(A, -1, 6)
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
-            lo = 0 if art.floating else 1
+            lo = art.first_moving
             out[:, r + lo : r + art.num_links] = self._rows(art, q[:, sl], fixed[:, r])
         return out
 
@@ -535,7 +746,7 @@ class ArticulatedKinematics:
         rows and, for pose-space gradients grad (A, N, 6), sum_k grad_k d2 row_k / dqa dqa (A, Qa, Qa)."""
         out = []
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
-            lo = 0 if art.floating else 1
+            lo = art.first_moving
             g = None if grad is None else grad[:, r + lo : r + art.num_links]
             J, second = _fk_derivatives(art, q[:, sl], None if art.floating else fixed[:, r], lo, g)
             out.append((r + lo, r + art.num_links, sl, J, second))

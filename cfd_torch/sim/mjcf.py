@@ -9,8 +9,8 @@ Links are the bodies that carry at least one joint, plus the root body; a body w
 parent's link (its geoms, mass and pose composed into that link's frame). A link's pose at joint values q is
 
     T_link = T_parent @ [quat, pos] @ J_1(q_1) @ J_2(q_2) @ ...     (joints in MJCF order)
-    J(q) = translate(pos) @ rotate(axis, q) @ translate(-pos)       (hinge: about the line through pos along axis)
-    J(q) = translate(axis * q)                                      (slide)
+    J(q) = translate(pos) @ rotate(axis, q - ref) @ translate(-pos) (hinge: about the line through pos along axis)
+    J(q) = translate(axis * (q - ref))                              (slide)
 
 with each joint's pos and axis in the link frame, which is MuJoCo's `mj_kinematics` (it right-multiplies the body
 orientation by each joint's local rotation, in order, keeping the joint anchor fixed). A free joint on the root
@@ -21,7 +21,7 @@ MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` 
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
-joints with a nonzero `ref`, unnamed bodies and joints, actuators other than joint-driven motors and position
+unnamed bodies and joints, actuators other than joint-driven motors and position
 servos, compiler options that rescale masses (`settotalmass`, `boundmass`, `boundinertia`, `balanceinertia`).
 """
 
@@ -52,8 +52,8 @@ __all__ = [
 
 @dataclass(frozen=True)
 class JointSpec:
-    """A hinge or slide joint; q is MuJoCo's qpos of the joint (a nonzero MJCF `ref` is refused, so q = 0 is the
-    pose written in the MJCF).
+    """A hinge or slide joint; q is MuJoCo's qpos of the joint (q = ref, the MJCF `ref`, is the pose written in
+    the MJCF).
 
     Attributes:
         name: joint name.
@@ -65,6 +65,8 @@ class JointSpec:
         armature: rotor inertia added to the joint's diagonal of the mass matrix.
         stiffness: joint spring stiffness toward `springref`, 0 if absent.
         springref: spring rest value of q.
+        ref: MuJoCo's qpos0 of the joint (MJCF `ref`): the joint's transform is J(q - ref), so q = ref is the pose
+            written in the MJCF.
     """
 
     name: str
@@ -76,6 +78,7 @@ class JointSpec:
     armature: float
     stiffness: float
     springref: float
+    ref: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -352,7 +355,7 @@ def load_mjcf(
         )
 
     actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu))
-    pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) for j in joints)
+    pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) and j.ref == 0 for j in joints)
     return MJCFModel(
         name=spec.modelname,
         links=tuple(links),
@@ -431,8 +434,6 @@ def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
     if not joint.name:
         raise ValueError(f"unnamed {kind} joint of body '{m.body(m.jnt_bodyid[j]).name}'")
     qadr, dadr = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])
-    if m.qpos0[qadr] != 0:
-        raise ValueError(f"{where}: a nonzero ref ({m.qpos0[qadr]}) is not supported")
     return JointSpec(
         name=joint.name,
         kind=kind,
@@ -443,6 +444,7 @@ def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
         armature=float(m.dof_armature[dadr]),
         stiffness=float(m.jnt_stiffness[j]),
         springref=float(m.qpos_spring[qadr]),
+        ref=float(m.qpos0[qadr]),
     )
 
 
