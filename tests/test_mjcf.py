@@ -337,14 +337,23 @@ def _one_body(inner: str, name: str = 'name="b"') -> str:
       <body {name} pos="1 0 0"><geom size="0.1"/>{inner}</body></body></worldbody></mujoco>"""
 
 
+@pytest.mark.parametrize("asset", ["ant.xml", "half_cheetah.xml"])
+def test_unnamed_bodies_and_settotalmass(asset: str) -> None:
+    """Gymnasium's Ant as shipped (unnamed shins) and half_cheetah (settotalmass 14): unnamed bodies get names from
+    their parents, masses are scaled as MuJoCo scales them (mass properties against the compiled model)."""
+    model = load_mjcf(str(importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / asset))
+    if asset == "ant.xml":
+        assert [link.name for link in model.links][1:3] == ["aux_1", "aux_1/0"]
+    else:
+        assert sum(link.mass for link in model.links) == pytest.approx(14.0, rel=1e-12)
+    _check_mass_properties(model)
+    _check_meshes(model)
+    assert load_mjcf(_one_body('<joint name="h"/>', name="")).links[1].name == "a/0"
+
+
 def test_refusals() -> None:
-    raw_ant = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / "ant.xml"
-    with pytest.raises(ValueError, match=r"body at pos \[0.2, 0.2, 0.0\] in body 'aux_1' has no name"):
-        load_mjcf(str(raw_ant))  # a path; gymnasium_ant_xml() names these bodies
     with pytest.raises(ValueError, match="free joint 'fj' in body 'b'"):
         load_mjcf(_one_body('<freejoint name="fj"/>'))
-    with pytest.raises(ValueError, match=r"body at pos \[1.0, 0.0, 0.0\] in body 'a' has no name"):
-        load_mjcf(_one_body('<joint name="h"/>', name=""))
     with pytest.raises(ValueError, match="joint 'bj' of body 'b': ball joints"):
         load_mjcf(_one_body('<joint name="bj" type="ball"/>'))
     mesh = '<asset><mesh name="tet" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset>'

@@ -21,8 +21,10 @@ MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` 
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
-unnamed bodies and joints, actuators other than joint-driven motors and position
-servos, compiler options that rescale masses (`settotalmass`, `boundmass`, `boundinertia`, `balanceinertia`).
+unnamed joints, actuators other than joint-driven motors and position servos, compiler options that bound
+masses (`boundmass`, `boundinertia`, `balanceinertia`). Unnamed bodies are named after their parent and their
+place among its children ("aux_1/0"; `MJCFModel.xml` then holds MuJoCo's own rewrite of the file with those
+names), and `settotalmass` scales the geoms' masses as MuJoCo does.
 """
 
 from __future__ import annotations
@@ -254,9 +256,18 @@ def load_mjcf(
     else:
         xml = str(source)
     spec = mujoco.MjSpec.from_string(xml)
+    if _name_bodies(spec.worldbody):  # the text of the model carries the names given
+        spec.compile()
+        xml = spec.to_xml()
+        spec = mujoco.MjSpec.from_string(xml)
     root = _root_name(spec, root)
     _check_spec(spec)
     geom_source = _tag_geoms(spec)
+    mass_scale = 1.0
+    if spec.compiler.settotalmass > 0:  # MuJoCo scales every mass and inertia by one factor
+        unscaled = mujoco.MjSpec.from_string(xml)
+        unscaled.compiler.settotalmass = -1
+        mass_scale = spec.compiler.settotalmass / float(unscaled.compile().body_mass.sum())
     explicit_inertial = {b.name: bool(b.explicitinertial) for b in spec.bodies}
     inertiafromgeom = mujoco.mjtInertiaFromGeom(spec.compiler.inertiafromgeom)
     group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
@@ -282,10 +293,6 @@ def load_mjcf(
     link_joint: list[tuple[int, ...]] = []
     for b in bodies:
         parent = int(m.body_parentid[b])
-        if not m.body(b).name:
-            raise ValueError(
-                f"body at pos {m.body_pos[b].tolist()} in body '{m.body(parent).name or 'world'}' has no name"
-            )
         jids = list(range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]))
         if b == root_id:
             jids = [j for j in jids if m.jnt_type[j] != _FREE]
@@ -330,7 +337,15 @@ def load_mjcf(
                 # MuJoCo infers masses from the geoms in inertiagrouprange only.
                 counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
                 geom = _geom_spec(
-                    m, g, T, geom_source, sphere_subdivisions, capsule_count, cylinder_sections, counts
+                    m,
+                    g,
+                    T,
+                    geom_source,
+                    sphere_subdivisions,
+                    capsule_count,
+                    cylinder_sections,
+                    counts,
+                    mass_scale,
                 )
                 if counts:
                     R = quat_to_matrix(geom.quat)
@@ -368,6 +383,18 @@ def load_mjcf(
     )
 
 
+def _name_bodies(parent, prefix: str = "") -> bool:
+    """Name every unnamed body after its parent and its place among the parent's children ("torso/2"); whether
+    any was unnamed."""
+    named = False
+    for k, body in enumerate(parent.bodies):
+        if not body.name:
+            body.name = f"{prefix or 'world'}/{k}"
+            named = True
+        named = _name_bodies(body, body.name) or named
+    return named
+
+
 def _root_name(spec: mujoco.MjSpec, root: str | None) -> str:
     top = [b.name for b in spec.worldbody.bodies]
     if root is None:
@@ -389,8 +416,8 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
                     f"free joint '{joint.name}' in body '{body.name}': only the root body may have a free joint"
                 )
     c = spec.compiler
-    if c.settotalmass > 0 or c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
-        raise ValueError("compiler settotalmass/boundmass/boundinertia/balanceinertia are not supported")
+    if c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
+        raise ValueError("compiler boundmass/boundinertia/balanceinertia are not supported")
 
 
 def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:
@@ -457,6 +484,7 @@ def _geom_spec(
     capsule_count: tuple[int, int],
     cylinder_sections: int,
     counts: bool,
+    mass_scale: float,
 ) -> GeomSpec:
     compiled_name = m.geom(g).name
     name, density, explicit_mass, shell = source[compiled_name]
@@ -473,7 +501,7 @@ def _geom_spec(
         )
     size = m.geom_size[g].copy()
     volume = _volume(kind, size)
-    mass = explicit_mass if not math.isnan(explicit_mass) else density * volume
+    mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
     T = T_link_body @ _transform(m.geom_pos[g], m.geom_quat[g])
     mesh = _primitive_mesh(kind, size, sphere_subdivisions, capsule_count, cylinder_sections)
     mesh.apply_transform(T)
