@@ -130,6 +130,61 @@ def test_rollout_gradient_matches_finite_differences():
     assert float(g_u) == pytest.approx(float(fd_u), rel=1e-5)
 
 
+def test_rollout_gradient_through_contact_of_a_planar_robot():
+    """Gymnasium's hopper (a planar root of two slides and a hinge with nonzero ref, three motors) dropped 2 mm onto
+    a floor: the gradient of its final coordinates through 10 steps of contact, in the initial joint velocities and
+    the controls, against central differences."""
+    import importlib.resources
+
+    from cfd_torch import rigid_body
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.articulation import articulation
+
+    hop = articulation(
+        str(importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / "hopper.xml")
+    )
+    floor = trimesh.creation.box((3.0, 3.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    scene = Scene([rigid_body(floor, kind="static")], articulations=[hop], dt=0.01)
+    th = torch.tensor(np.clip(hop.ref, hop.lower + 0.1, hop.upper - 0.1), dtype=F64)
+
+    def lowest(rows: torch.Tensor) -> float:
+        return min(
+            float((b.bsh.vertices.double() @ rotation_matrix(r[None, 3:])[0].T + r[:3])[:, 2].min())
+            for b, r in zip(hop.bodies, rows.detach(), strict=True)
+        )
+
+    th[hop.joint_names.index("rootz")] -= lowest(hop.poses(th)) - 0.002
+    zero = torch.zeros(1, 6, dtype=F64)
+    low = []
+
+    def final(v0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        q0, qp = torch.cat([zero, hop.poses(th)]), torch.cat([zero, hop.poses(th - 0.01 * v0)])
+        traj = rollout(scene, State(q0, qp), [Action(ctrl=u[None])] * 10)
+        low.append(lowest(traj.q[-1, 1:]))
+        return scene.kinematics.coords(traj.q[-1][None])[0]
+
+    w = torch.tensor([1.0, 0.5, 0.3, 0.2, -0.2, 0.1], dtype=F64)
+    v0 = torch.tensor([0.2, -0.1, 0.3, 0.5, -0.4, 0.2], dtype=F64, requires_grad=True)
+    u = torch.tensor([0.3, -0.2, 0.4], dtype=F64, requires_grad=True)
+    c = final(v0, u)
+    assert (
+        0.0 < low[0] < 2e-3
+    )  # it landed (a free fall drops g dt^2 55 = 0.054 m in 10 steps), no penetration
+    g_v, g_u = torch.autograd.grad(w @ c, (v0, u))
+    assert g_v.norm() > 1e-2 and g_u.norm() > 1e-2
+    rng = np.random.default_rng(0)
+    h = 1e-6
+    for g, x in ((g_v, "v0"), (g_u, "u")):
+        d = torch.as_tensor(rng.normal(size=len(g)))
+        with torch.no_grad():
+            if x == "v0":
+                fd = w @ (final(v0 + h * d, u) - final(v0 - h * d, u)) / (2 * h)
+            else:
+                fd = w @ (final(v0, u + h * d) - final(v0, u - h * d)) / (2 * h)
+        assert abs(float(g @ d - fd)) < 1e-4 * float(g.norm() * d.norm()), (x, float(g @ d), float(fd))
+
+
 def test_position_actuator_follows_the_implicit_pd_recursion():
     """A position actuator (kp, kv, gear 2) pulls small swings toward its target ctrl / gear along implicit Euler's
     scalar recursion I_p (th' - 2 th + th_) / dt^2 + kv g^2 (th' - th) / dt + (m g l_c + kp g^2) th' = kp g ctrl."""
@@ -339,7 +394,9 @@ def test_gymnasium_assets_forward_kinematics_match_mujoco(asset, root):
         base = None
         if art.floating:
             w = rng.normal(size=3)
-            w *= rng.uniform(0.0, 3.0) / np.linalg.norm(w)  # a rotation vector as the rows give it back (< pi)
+            w *= rng.uniform(0.0, 3.0) / np.linalg.norm(
+                w
+            )  # a rotation vector as the rows give it back (< pi)
             quat = np.zeros(4)
             mujoco.mju_axisAngle2Quat(quat, w / np.linalg.norm(w), np.linalg.norm(w))
             t = rng.normal(size=3)
