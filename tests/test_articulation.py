@@ -8,6 +8,7 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 import pytest
+import scipy.linalg
 import torch
 import trimesh
 
@@ -78,6 +79,56 @@ def test_pendulum_period_and_decay_match_implicit_euler():
     env = lambda k: math.hypot(th[k], (th[k] - th[k - 1]) / math.tan(math.atan(om * dt)))  # noqa: E731
     n = int(z[1] - z[0])
     assert env(1 + n) / env(1) == pytest.approx((1.0 + (om * dt) ** 2) ** (-n / 2), rel=2e-2)
+
+
+DOUBLE_PENDULUM = """<mujoco><worldbody><body name="base" pos="0 0 2"><geom type="sphere" size="0.05"/>
+  <body name="upper"><joint name="j1" type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/>
+    <body name="lower" pos="0 0 -0.5"><joint name="j2" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.4" size="0.03"/></body></body></body></worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("mode", [0, 1])
+def test_double_pendulum_normal_modes_and_energy_match_implicit_euler(mode):
+    """A double pendulum (two capsules on hinges, MJCF) released from rest in one of its normal modes at 1e-3 rad:
+    the joint angles follow the mode shape times implicit Euler's scalar recursion x_{n+1} = (2 x_n - x_{n-1}) /
+    (1 + w^2 dt^2) for that mode's w (from M and K of the linearised chain, built from the links' own mass
+    properties), and its energy 1/2 v^T M v + 1/2 x^T K x (finite-difference velocities) follows that of the
+    recursion's trajectory: implicit Euler loses energy at (1 + w^2 dt^2)^-1 per step."""
+    from cfd_torch.sim.articulation import articulation
+
+    art = articulation(DOUBLE_PENDULUM)
+    g, dt, steps = 9.81, 0.01, 120
+    (m1, m2) = (art.bodies[k].mass for k in (1, 2))
+    c1, c2 = -art.com[1, 2], -art.com[2, 2]  # centres of mass below each hinge
+    I1, I2 = (float(art.bodies[k].inertia[1, 1]) for k in (1, 2))  # about y through the centre of mass
+    l1 = 0.5
+    M = np.array(
+        [[I1 + m1 * c1**2 + I2 + m2 * (l1**2 + c2**2 + 2 * l1 * c2), I2 + m2 * (c2**2 + l1 * c2)],
+         [I2 + m2 * (c2**2 + l1 * c2), I2 + m2 * c2**2]]
+    )  # fmt: skip
+    K = g * np.array([[m1 * c1 + m2 * (l1 + c2), m2 * c2], [m2 * c2, m2 * c2]])
+    w2, V = scipy.linalg.eigh(K, M)
+    v = V[:, mode] / np.abs(V[:, mode]).max()
+    x = [1.0, 1.0]
+    for _ in range(steps):
+        x.append((2 * x[-1] - x[-2]) / (1 + w2[mode] * dt**2))
+    x = np.array(x[1:])
+    scene = Scene([], articulations=[art], dt=dt)
+    q0 = art.poses(torch.as_tensor(1e-3 * v), torch.tensor([0.0, 0.0, 2.0, 0.0, 0.0, 0.0], dtype=F64))
+    traj = rollout(scene, State(q0, q0.clone()), steps)
+    th = scene.kinematics.coords(traj.q).detach().numpy()  # (steps + 1, 2)
+    assert np.abs(th - 1e-3 * x[:, None] * v).max() < 1e-3 * 1e-3  # 0.1 % of the amplitude
+
+    def energy(th: np.ndarray) -> np.ndarray:
+        vel = np.diff(th, axis=0) / dt
+        return 0.5 * np.einsum("ni,ij,nj->n", vel, M, vel) + 0.5 * np.einsum("ni,ij,nj->n", th[1:], K, th[1:])
+
+    e_sim, e_ref = energy(th), energy(1e-3 * x[:, None] * v)
+    assert np.abs(e_sim - e_ref).max() < 2e-3 * e_ref[0]
+    assert (
+        e_sim[-1] < (1 - 0.5 * steps * w2[mode] * dt**2) * e_sim[0]
+    )  # implicit Euler's loss, to first order
 
 
 def test_damping_and_armature_match_the_linear_recursion():
