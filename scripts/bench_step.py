@@ -2,7 +2,7 @@
 
 Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol unless stated; every random choice
 from a fixed seed, so both sides of ``--baseline`` and every run get the same scene). Case names in brackets; the
-``--cases`` names are billiards, cubes, push, boxes, ball.
+``--cases`` names are billiards, cubes, push, boxes, ball, ant.
 
 1. billiards (``billiards{n}``, n = rack balls + cue ball, 16 by default): a break shot, then the balls rolling
    (sliding: friction ``--billiards-friction``, default 0). Balls: icosphere subdivision 2 (320 faces), radius
@@ -33,6 +33,13 @@ from a fixed seed, so both sides of ``--baseline`` and every run get the same sc
    0.5; the configuration of ``bench_contact.py`` section 4), the box as-is and refined with ``max_edge`` =
    ``--ground-edge-factor`` x the ball's mean edge length, each with friction off (0) and on (``--friction``).
    Timed after the ball has settled.
+
+6. ant: Gymnasium's Ant (``gymnasium_ant_xml(servos=(100, 5))``: its eight motors as position servos, kp 100
+   N m/rad, kv 5 N m s/rad) on a static 3 x 3 x 0.2 m box floor (top face at z = 0; refined to the capsules'
+   edges), friction 1, lowest vertex 2 mm above the floor, hips at 0 and ankles mid-range. A gait: each joint's
+   target is its stance angle + 0.25 sin(2 pi 1.5 t + phase) rad, phases 0 for the hips, pi / 2 for the ankles,
+   legs 1 and 3 opposite to 2 and 4. 10 warm-up steps (landing), 10 timed steps (3 with ``--quick``). Revisions
+   before servos existed cannot run it.
 
 A case may act on its steps: ``Case.action(t, state)`` returns the step's :class:`cfd_torch.Action` (push's
 kinematic target), t counted from the case's start state; the warm-up, both passes and ``--profile`` pass it.
@@ -294,6 +301,42 @@ def ball_on_box(args, refined: bool, friction: float) -> Case:
     return Case(name, scene, scene.initial_state(poses), args.warmup_ball, args.steps_ball, meta)
 
 
+def ant(args) -> Case:
+    """Gymnasium's Ant on position servos walking a sinusoidal gait on a 3 x 3 m floor (see the module docstring)."""
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    robot = articulation(gymnasium_ant_xml(servos=(100.0, 5.0)))
+    floor = trimesh.creation.box(extents=(3.0, 3.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    scene = Scene([rigid_body(floor, kind="static")], articulations=[robot], friction=1.0)
+    lo, hi = torch.as_tensor(robot.lower), torch.as_tensor(robot.upper)
+    stance = torch.where((lo < 0) & (hi > 0), torch.zeros_like(lo), 0.5 * (lo + hi))
+    rows = robot.poses(stance)
+    low = min(
+        float((b.bsh.vertices.double() @ rotation_matrix(r[None, 3:])[0].T + r[:3])[:, 2].min())
+        for b, r in zip(robot.bodies, rows, strict=True)
+    )
+    base = torch.tensor([0.0, 0.0, 2e-3 - low, 0.0, 0.0, 0.0], dtype=F64)
+    poses = torch.cat([torch.zeros(1, 6, dtype=F64), robot.poses(stance, base)])
+    # joints in link order: hip_1, ankle_1, .., hip_4, ankle_4; the actuators in MJCF order address them
+    leg = torch.arange(8) // 2
+    phase = torch.where(torch.arange(8) % 2 == 1, math.pi / 2, 0.0) + math.pi * (leg % 2)
+    order = torch.as_tensor(robot.actuator_joint)
+
+    def action(t: int, state: State) -> Action:
+        target = stance + 0.25 * torch.sin(2 * math.pi * 1.5 * t * scene.dt + phase)
+        return Action(ctrl=target[order][None])
+
+    meta = {
+        "servos": [100.0, 5.0], "floor_extents": [3.0, 3.0, 0.2], "friction": 1.0, "drop_gap": 2e-3,
+        "link_faces": [b.bsh.num_faces for b in robot.bodies], "floor_faces": scene.bodies[0].bsh.num_faces,
+        "gait": "stance + 0.25 sin(2 pi 1.5 t + phase) rad",
+    }  # fmt: skip
+    return Case("ant", scene, scene.initial_state(poses), args.warmup_ant, args.steps_ant, meta, action)
+
+
 def make_cases(args) -> list[Case]:
     cases = []
     for name in args.cases:
@@ -305,6 +348,8 @@ def make_cases(args) -> list[Case]:
             cases.append(push(args))
         elif name == "boxes":
             cases.append(boxes(args))
+        elif name == "ant":
+            cases.append(ant(args))
         elif name == "ball":
             for refined in (False, True):
                 for mu_f in (0.0, args.friction):
@@ -740,7 +785,7 @@ def _source_hash() -> str:
 
 
 CUE_LEAD_STEPS = 4
-CASES = ("billiards", "cubes", "push", "boxes", "ball")
+CASES = ("billiards", "cubes", "push", "boxes", "ball", "ant")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -819,6 +864,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.warmup_billiards = 2  # the balls land on the table; the cue ball then approaches and hits the rack
     args.warmup_cubes = 3  # compilation; the cubes land in the first timed steps, then slide
     args.warmup_push = 4  # the box lands (~3 steps); the pole reaches it in the first timed step
+    args.steps_ant = args.steps or (3 if args.quick else 10)
+    args.warmup_ant = 10  # the Ant lands on its feet and starts its gait
     return args
 
 

@@ -215,14 +215,27 @@ _FREE = int(mujoco.mjtJoint.mjJNT_FREE)
 _GEOM_TAG = "__cfd_torch_geom_"
 
 
-def gymnasium_ant_xml() -> str:
+def gymnasium_ant_xml(servos: tuple[float, float] | None = None) -> str:
     """Gymnasium's bundled ant.xml with its four unnamed shin bodies named "ankle_1_link" .. "ankle_4_link"
-    (pytorch-kinematics keys frames by body name); everything else unchanged."""
+    (pytorch-kinematics keys frames by body name); everything else unchanged, unless ``servos`` = (kp, kv) is
+    given: then each of the eight motors (gear 150) becomes a position servo on the same joint, ctrl the target
+    angle in radians (unclipped; the joint's limits still hold), torque kp (ctrl - q) - kv q_dot [N m]."""
     text = (importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / "ant.xml").read_text()
     count = iter(range(1, 5))
     patched, n = re.subn(r"<body pos=", lambda _: f'<body name="ankle_{next(count)}_link" pos=', text)
     if n != 4:
         raise ValueError(f"gymnasium's ant.xml changed: expected 4 unnamed bodies, found {n}")
+    if servos is not None:
+        kp, kv = (float(x) for x in servos)
+        if not (kp > 0 and kv >= 0 and math.isfinite(kp) and math.isfinite(kv)):
+            raise ValueError(f"servos must be (kp > 0, kv >= 0), got {servos!r}")
+        patched, n = re.subn(
+            r'<motor ctrllimited="true" ctrlrange="-1.0 1.0" joint="(\w+)" gear="150"/>',
+            lambda mt: f'<position ctrllimited="false" joint="{mt.group(1)}" kp="{kp!r}" kv="{kv!r}"/>',
+            patched,
+        )
+        if n != 8:
+            raise ValueError(f"gymnasium's ant.xml changed: expected 8 motors, found {n}")
     return patched
 
 
