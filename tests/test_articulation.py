@@ -485,6 +485,48 @@ def test_ant_falls_freely_with_its_joints_still():
     assert torch.allclose(c[:, 3:6], c[0, 3:6].expand(4, -1), atol=1e-9)
 
 
+@pytest.mark.slow
+def test_ant_dropped_on_a_floor_settles_standing():
+    """Gymnasium's Ant (motors at zero control) dropped from 5 cm onto a floor (friction 1): 300 steps (3 s) with every
+    vertex above the floor, the torso held up by its legs, and at rest at the end (about 2 minutes)."""
+    from cfd_torch import rigid_body
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    ant = articulation(gymnasium_ant_xml())
+    floor = trimesh.creation.box((3.0, 3.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    scene = Scene([rigid_body(floor, kind="static")], articulations=[ant], dt=0.01, friction=1.0)
+    lo, hi = torch.as_tensor(ant.lower), torch.as_tensor(ant.upper)
+    stance = torch.where((lo < 0) & (hi > 0), torch.zeros_like(lo), 0.5 * (lo + hi))
+
+    def lowest(rows: torch.Tensor) -> torch.Tensor:  # (T, L, 6) -> (T,) the lowest vertex of the Ant
+        out = []
+        for k, b in enumerate(ant.bodies):
+            V = b.bsh.vertices.double()
+            out.append(
+                (V @ rotation_matrix(rows[:, k, 3:]).transpose(-1, -2) + rows[:, k, None, :3])[..., 2].amin(1)
+            )
+        return torch.stack(out, 1).amin(1)
+
+    rows = ant.poses(stance)
+    base = torch.tensor([0.0, 0.0, 0.05 - float(lowest(rows[None])[0]), 0.0, 0.0, 0.0], dtype=F64)
+    q0 = torch.cat([torch.zeros(1, 6, dtype=F64), ant.poses(stance, base)])
+    traj = rollout(scene, State(q0, q0.clone()), 300)
+    q = traj.q.detach()
+    assert torch.isfinite(q).all()
+    low = lowest(q[:, 1:])
+    assert float(low.min()) > 0.0  # never through the floor
+    assert float(low[-50:].max()) < 2e-3  # standing on it
+    torso = q[:, 1, 2]
+    assert (
+        float(torso[-1]) > 0.2
+    )  # held up by the legs (the torso sphere's radius is 0.25 m: not lying on it)
+    c = scene.kinematics.coords(q[-2:])
+    assert float((c[1] - c[0]).abs().max()) < 1e-4  # at rest
+
+
 # --------------------------------------------------------------------- closed-form derivatives against torch.func
 def _multi_chain() -> Articulation:
     """A fixed base whose root has joints (slide, slide, hinge: a planar root), hung from a tilted mount, and links

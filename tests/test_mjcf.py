@@ -375,6 +375,13 @@ def test_gymnasium_ant_with_servos() -> None:
     plain, servo = load_mjcf(gymnasium_ant_xml()), load_mjcf(gymnasium_ant_xml(servos=(100.0, 5.0)))
     assert [a.joint for a in servo.actuators] == [a.joint for a in plain.actuators]
     for a in servo.actuators:
-        assert (a.kind, a.gear, a.kp, a.kv, a.ctrlrange, a.forcerange) == ("position", 1.0, 100.0, 5.0, None, None)
+        assert (a.kind, a.gear, a.kp, a.kv, a.ctrlrange, a.forcerange) == (
+            "position",
+            1.0,
+            100.0,
+            5.0,
+            None,
+            None,
+        )
     with pytest.raises(ValueError, match="servos must be"):
         gymnasium_ant_xml(servos=(0.0, 1.0))
