@@ -425,7 +425,8 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
 
 def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
     """Link frames (R (A, L, 3, 3), p (A, L, 3)) for coordinates q (A, Qa) (base pose first if floating) and, for a
-    fixed base, the root link frame's pose root (A, 6)."""
+    fixed base with a joint-less root, the root link frame's pose root (A, 6) (a root with joints hangs from the
+    articulation's mount)."""
     R, p = _chain(art, q, root, 0)
     return R, p
 
