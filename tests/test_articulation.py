@@ -528,19 +528,15 @@ def test_ant_dropped_on_a_floor_settles_standing():
 
 
 # --------------------------------------------------------------------- closed-form derivatives against torch.func
-def _multi_chain() -> Articulation:
-    """A fixed base whose root has joints (slide, slide, hinge: a planar root), hung from a tilted mount, and links
-    with several joints each (three hinges; hinge + slide; two hinges; slide, hinge, slide), tilted axes, anchors
-    and nonzero refs."""
-    rng = np.random.default_rng(5)
-    parents = (-1, 0, 1, 1, 3)
-    patterns = (("slide", "slide", "hinge"), ("hinge",) * 3, ("hinge", "slide"), ("hinge", "hinge"),
-                ("slide", "hinge", "slide"))  # fmt: skip
+def _random_chain(name: str, seed: int, parents, patterns, refs: bool, mount=None) -> Articulation:
+    """A tree of links with random offsets, COMs, joint axes and anchors (and refs), joints per link as patterns."""
+    rng = np.random.default_rng(seed)
     links, joints = [], []
     for k, (par, kinds) in enumerate(zip(parents, patterns, strict=True)):
         js = tuple(
-            NS(name=f"j{k}{i}", kind=kind, axis=rng.normal(size=3), pos=rng.normal(size=3), range=None,
-               damping=0.0, armature=0.0, stiffness=0.0, springref=0.0, ref=float(rng.uniform(-1, 1)))
+            NS(name=f"j{k}{i}" if refs else f"j{k}", kind=kind, axis=rng.normal(size=3), pos=rng.normal(size=3),
+               range=None, damping=0.0, armature=0.0, stiffness=0.0, springref=0.0,
+               **({"ref": float(rng.uniform(-1, 1))} if refs else {}))
             for i, kind in enumerate(kinds)
         )  # fmt: skip
         joints += list(js)
@@ -550,33 +546,24 @@ def _multi_chain() -> Articulation:
                mesh=trimesh.creation.box((0.1, 0.2, 0.3)), mass=1.0, com=rng.normal(size=3),
                second_moment=np.diag([0.1, 0.2, 0.3]))
         )  # fmt: skip
-    model = NS(name="multi", links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
-    return Articulation(model, mount=rng.normal(size=6))
+    model = NS(name=name, links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
+    return Articulation(model, mount=None if mount is None else mount(rng))
+
+
+def _multi_chain() -> Articulation:
+    """A fixed base whose root has joints (slide, slide, hinge: a planar root), hung from a tilted mount, and links
+    with several joints each (three hinges; hinge + slide; two hinges; slide, hinge, slide), tilted axes, anchors
+    and nonzero refs."""
+    patterns = (("slide", "slide", "hinge"), ("hinge",) * 3, ("hinge", "slide"), ("hinge", "hinge"),
+                ("slide", "hinge", "slide"))  # fmt: skip
+    return _random_chain("multi", 5, (-1, 0, 1, 1, 3), patterns, True, mount=lambda rng: rng.normal(size=6))
 
 
 def _branchy_chain() -> Articulation:
     """A fixed-base tree of hinges and slides with tilted axes, offsets and anchors: root - hinge - slide - hinge,
     root - slide - hinge, and a second hinge on the first slide."""
-    rng = np.random.default_rng(3)
-    parents, kinds = (-1, 0, 1, 2, 0, 4, 2), (None, "hinge", "slide", "hinge", "slide", "hinge", "hinge")
-    links, joints = [], []
-    for k, (par, kind) in enumerate(zip(parents, kinds, strict=True)):
-        js = ()
-        if kind is not None:
-            js = (
-                NS(name=f"j{k}", kind=kind, axis=rng.normal(size=3), pos=rng.normal(size=3), range=None,
-                   damping=0.0, armature=0.0, stiffness=0.0, springref=0.0),
-            )  # fmt: skip
-            joints += list(js)
-        quat = rng.normal(size=4)
-        links.append(
-            NS(name=f"l{k}", parent=par, pos=rng.normal(size=3), quat=quat / np.linalg.norm(quat), joints=js,
-               mesh=trimesh.creation.box((0.1, 0.2, 0.3)), mass=1.0, com=rng.normal(size=3),
-               second_moment=np.diag([0.1, 0.2, 0.3]))
-        )  # fmt: skip
-    return Articulation(
-        NS(name="branchy", links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
-    )
+    kinds = ((), ("hinge",), ("slide",), ("hinge",), ("slide",), ("hinge",), ("hinge",))
+    return _random_chain("branchy", 3, (-1, 0, 1, 2, 0, 4, 2), kinds, False)
 
 
 def _reference_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
