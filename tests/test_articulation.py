@@ -236,15 +236,21 @@ def test_rollout_gradient_through_contact_of_a_planar_robot():
         assert abs(float(g @ d - fd)) < 1e-4 * float(g.norm() * d.norm()), (x, float(g @ d), float(fd))
 
 
-def test_position_actuator_follows_the_implicit_pd_recursion():
+@pytest.mark.parametrize("gains_from", ["mjcf", "params"])
+def test_position_actuator_follows_the_implicit_pd_recursion(gains_from):
     """A position actuator (kp, kv, gear 2) pulls small swings toward its target ctrl / gear along implicit Euler's
-    scalar recursion I_p (th' - 2 th + th_) / dt^2 + kv g^2 (th' - th) / dt + (m g l_c + kp g^2) th' = kp g ctrl."""
+    scalar recursion I_p (th' - 2 th + th_) / dt^2 + kv g^2 (th' - th) / dt + (m g l_c + kp g^2) th' = kp g ctrl,
+    with its gains from the MJCF or overridden by Params.kp / kv (the MJCF's then 1 and 0)."""
     kp, kv, g, dt, ctrl = 3.0, 0.2, 2.0, 0.01, 0.04
-    art = _pendulum(actuator={"kind": "position", "kp": kp, "kv": kv, "gear": g})
+    mjcf = (kp, kv) if gains_from == "mjcf" else (1.0, 0.0)
+    art = _pendulum(actuator={"kind": "position", "kp": mjcf[0], "kv": mjcf[1], "gear": g})
     scene = Scene([], articulations=[art], dt=dt)
+    params = scene.params()
+    if gains_from == "params":
+        params = params._replace(kp=torch.tensor([kp], dtype=F64), kv=torch.tensor([kv], dtype=F64))
     q0 = art.poses(torch.tensor([0.0], dtype=F64), torch.zeros(6, dtype=F64))
     action = Action(ctrl=torch.tensor([ctrl], dtype=F64))
-    th = _angles(scene, rollout(scene, State(q0, q0.clone()), [action] * 150))
+    th = _angles(scene, rollout(scene, State(q0, q0.clone()), [action] * 150, params))
     om, I_p = _omega(art)
     k = om * om * I_p + kp * g * g
     ref = [0.0, 0.0]
@@ -283,6 +289,101 @@ def test_stiff_position_actuator_is_stable_and_differentiable():
     with torch.no_grad():
         fd = (final(u + h, 5) - final(u - h, 5)) / (2 * h)
     assert float(g_u) == pytest.approx(float(fd), rel=1e-5)
+
+
+def test_servo_gain_and_target_gradients_match_finite_differences():
+    """The final angle of a servo-driven bar after 20 steps (it swings, not settled) is differentiable in the servo
+    gains Params.kp and kv and the target ctrl: each gradient non-zero and equal to central differences."""
+    art = _pendulum(
+        actuator={"kind": "position", "kp": 5.0, "kv": 0.3, "gear": 1.5, "ctrlrange": (-1.0, 1.0)}
+    )
+    scene = Scene([], articulations=[art], dt=0.01)
+    base = scene.params()
+    q0 = art.poses(torch.tensor([0.1], dtype=F64), torch.zeros(6, dtype=F64))
+
+    def final(kp: torch.Tensor, kv: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        params = base._replace(kp=kp, kv=kv)
+        traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=u)] * 20, params)
+        return scene.kinematics.coords(traj.q[-1][None])[0, 0]
+
+    x = [torch.tensor([v], dtype=F64, requires_grad=True) for v in (5.0, 0.3, 0.4)]
+    grads = torch.autograd.grad(final(*x), x)
+    h = 1e-6
+    for k, g in enumerate(grads):
+        assert abs(float(g)) > 1e-3, k
+        with torch.no_grad():
+            up = [v + (h if i == k else 0.0) for i, v in enumerate(x)]
+            dn = [v - (h if i == k else 0.0) for i, v in enumerate(x)]
+            fd = (final(*up) - final(*dn)) / (2 * h)
+        assert float(g) == pytest.approx(float(fd), rel=1e-5, abs=1e-9), k
+    with pytest.raises(ValueError, match="params.kp must be >= 0"):
+        step(scene, State(q0, q0.clone()), None, base._replace(kp=torch.tensor([-1.0], dtype=F64)))
+    with pytest.raises(ValueError, match=r"params.kv must have shape \(1,\)"):
+        step(scene, State(q0, q0.clone()), None, base._replace(kv=torch.zeros(2, dtype=F64)))
+
+
+_SWEEPER = """
+<mujoco model="sweeper">
+  <worldbody>
+    <body name="base">
+      <geom type="sphere" size="0.02"/>
+      <body name="arm">
+        <joint name="yaw" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03"/>
+        <body name="tip" pos="0.5 0 0">
+          <joint name="bend" type="hinge" axis="0 0 1"/>
+          <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.02"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="yaw" gear="1"/></actuator>
+</mujoco>"""
+
+
+def test_kinematic_robot_follows_its_joints_exactly_and_pushes():
+    """A kinematic two-link arm (articulation(..., kinematic=True)) sweeping through a free ball (no gravity): its
+    links stand exactly where forward kinematics of Action.joints puts them, they push the ball, and the ball's
+    final position is differentiable in the joint trajectory (non-zero, equal to central differences)."""
+    from cfd_torch import rigid_body
+    from cfd_torch.sim.articulation import articulation
+
+    art = articulation(_SWEEPER, kinematic=True)
+    ball = rigid_body(trimesh.creation.icosphere(2, 0.05), density=500.0)
+    scene = Scene([ball], articulations=[art], dt=0.01, gravity=(0.0, 0.0, 0.0))
+    assert (scene.num_actuators, scene.num_kinematic_coords) == (
+        0,
+        2,
+    )  # a kinematic robot's motor plays no part
+    assert scene.kinematic.tolist() == [2, 3] and len(scene.kinematics.bodies) == 1
+    zero = torch.zeros(2, dtype=F64)
+    q0 = torch.cat([torch.tensor([[0.4, 0.12, 0.0, 0.0, 0.0, 0.0]], dtype=F64), art.poses(zero)])
+    state = State(q0, q0.clone())
+    assert torch.equal(step(scene, state).q[1:], q0[1:])  # no joints: the robot stays put
+    plan = torch.stack([torch.linspace(0.02, 0.3, 15), torch.linspace(0.0, -0.2, 15)], 1).to(F64)
+
+    def run(plan: torch.Tensor):
+        return rollout(scene, state, [Action(joints=j) for j in plan])
+
+    traj = run(plan)
+    for t in range(1, 16):
+        assert torch.allclose(traj.q[t, 1:], art.poses(plan[t - 1]), rtol=0, atol=1e-12)
+    assert float(traj.q[-1, 0, 1] - 0.12) > 0.01  # the ball was swept along +y
+    assert torch.allclose(scene.kinematic_coords(traj.q[-1][None])[0], plan[-1], atol=1e-12)
+
+    w = torch.tensor([0.3, 1.0, 0.0], dtype=F64)
+    p = plan.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(run(p).q[-1, 0, :3] @ w, p)
+    assert float(g.abs().max()) > 1e-2
+    d = torch.randn(plan.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
+    h = 1e-6
+    with torch.no_grad():
+        fd = (run(plan + h * d).q[-1, 0, :3] @ w - run(plan - h * d).q[-1, 0, :3] @ w) / (2 * h)
+    assert float((g * d).sum()) == pytest.approx(float(fd), rel=1e-5)
+    with pytest.raises(ValueError, match=r"action.joints must have shape \(2,\)"):
+        step(scene, state, Action(joints=torch.zeros(3, dtype=F64)))
+    with pytest.raises(ValueError, match=r"action.ctrl must have shape \(0,\)"):
+        step(scene, state, Action(ctrl=torch.zeros(1, dtype=F64)))
 
 
 def test_actuator_force_ranges():

@@ -383,7 +383,7 @@ def test_step_gradcheck_with_contact_friction_and_pusher(ground, pusher):
     def f(q, q_prev, force, torque, target, mass, S, mu):
         return step(scene, State(q, q_prev), Action(force, torque, target), Params(mass, S, mu)).q
 
-    inputs = [x.clone().requires_grad_(True) for x in (q, q_prev, force, torque, target, *p)]
+    inputs = [x.clone().requires_grad_(True) for x in (q, q_prev, force, torque, target, *p[:3])]
     grads = torch.autograd.grad(f(*inputs)[0].sum(), inputs)
     for name, g in zip(
         ("q", "q_prev", "force", "torque", "target", "mass", "S", "friction"), grads, strict=True

@@ -53,17 +53,27 @@ def check_state_tensor(
         )
 
 
-def check_params(params: Params, B: int, Nd: int, device: torch.device, batched: bool) -> Params:
+def check_params(
+    params: Params,
+    B: int,
+    Nd: int,
+    device: torch.device,
+    batched: bool,
+    gains: tuple[torch.Tensor, torch.Tensor],
+) -> Params:
     """Finite, physical, on the state's device, each field shared or per scene; returned with a batch dimension B:
     mass > 0, friction >= 0, the symmetric part of S positive semi-definite with a positive definite inertia
-    tr(S) I - S."""
+    tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv)."""
     if not isinstance(params, Params):
         raise TypeError(f"params must be a cfd_torch.Params, got {type(params).__name__}")
-    for name, x in (
-        ("mass", params.mass),
-        ("second_moment", params.second_moment),
-        ("friction", params.friction),
-    ):
+    U = gains[0].shape[0]
+    params = params._replace(
+        kp=gains[0].to(device) if params.kp is None else params.kp,
+        kv=gains[1].to(device) if params.kv is None else params.kv,
+    )
+    shapes = {"mass": (Nd,), "second_moment": (Nd, 3, 3), "friction": (), "kp": (U,), "kv": (U,)}
+    for name in shapes:
+        x = getattr(params, name)
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"params.{name} must be a torch.Tensor, got {type(x).__name__}")
         if x.dtype not in _FLOATS:
@@ -73,8 +83,8 @@ def check_params(params: Params, B: int, Nd: int, device: torch.device, batched:
         if not bool(torch.isfinite(x).all()):
             raise ValueError(f"params.{name} contains NaN or inf")
     fields = []
-    for name, x, shape in (("mass", params.mass, (Nd,)), ("second_moment", params.second_moment, (Nd, 3, 3)),
-                           ("friction", params.friction, ())):  # fmt: skip
+    for name, shape in shapes.items():
+        x = getattr(params, name)
         if x.shape == shape:
             x = x.expand(B, *shape)  # shared by the batch
         elif x.shape != (B, *shape) or not batched:
@@ -86,6 +96,9 @@ def check_params(params: Params, B: int, Nd: int, device: torch.device, batched:
         raise ValueError("params.mass must be positive")
     if bool((params.friction.detach() < 0).any()):
         raise ValueError("params.friction must be >= 0")
+    for name in ("kp", "kv"):
+        if bool((getattr(params, name).detach() < 0).any()):
+            raise ValueError(f"params.{name} must be >= 0 (a servo gain)")
     S = params.second_moment.detach().to(torch.float64).reshape(-1, 3, 3)
     S = 0.5 * (S + S.transpose(1, 2))  # the step uses the symmetric part
     eye = torch.eye(3, dtype=S.dtype, device=S.device)
@@ -119,26 +132,28 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
         first = int(torch.nonzero(bad)[0, 0])
         s, i, j = rows[first].tolist()
         k, st = (i, j) if scene.bodies[i].kind == "kinematic" else (j, i)
+        link = k in scene.kinematic[scene.num_kinematic_bodies :].tolist()
         raise ValueError(
-            f"action.target: kinematic body {k} at its target penetrates static body {st} (is within the contact "
+            f"{'action.joints' if link else 'action.target'}: kinematic {'robot link' if link else 'body'} {k} "
+            f"at its target penetrates static body {st} (is within the contact "
             f"margin {scene.contact.margin} of it){f' in scene {s}' if B > 1 else ''}; neither moves, so no step can "
             "resolve it"
         )
 
 
-def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor) -> None:
-    """action.ctrl: a float tensor (U,) or (B, U) of finite values, on the state's device and dtype."""
+def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor, name: str = "action.ctrl") -> None:
+    """action.ctrl (or another per-scene vector ``name``): a float tensor (U,) or (B, U) of finite values, on the
+    state's device and dtype."""
+    what = "the scene's actuators" if name == "action.ctrl" else "the kinematic robots' coordinates"
     if not isinstance(ctrl, torch.Tensor):
-        raise TypeError(f"action.ctrl must be a torch.Tensor, got {type(ctrl).__name__}")
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(ctrl).__name__}")
     if not ctrl.is_floating_point():
-        raise ValueError(f"action.ctrl must be a float tensor, got {ctrl.dtype}")
+        raise ValueError(f"{name} must be a float tensor, got {ctrl.dtype}")
     if ctrl.device != like.device or ctrl.dtype != like.dtype:
         raise ValueError(
-            f"action.ctrl is {ctrl.dtype} on {ctrl.device}, state.q {like.dtype} on {like.device}: they must match"
+            f"{name} is {ctrl.dtype} on {ctrl.device}, state.q {like.dtype} on {like.device}: they must match"
         )
     if ctrl.shape not in ((U,), (B, U)):
-        raise ValueError(
-            f"action.ctrl must have shape ({U},) or ({B}, {U}) (the scene's actuators), got {tuple(ctrl.shape)}"
-        )
+        raise ValueError(f"{name} must have shape ({U},) or ({B}, {U}) ({what}), got {tuple(ctrl.shape)}")
     if not bool(torch.isfinite(ctrl).all()):
-        raise ValueError("action.ctrl contains NaN or inf")
+        raise ValueError(f"{name} contains NaN or inf")

@@ -3,8 +3,8 @@
 q* solves g(q*, theta) = dL/dq = 0, so dq*/dtheta = -H^-1 d2L/(dq dtheta) (implicit function theorem). The backward
 does one linear solve H lam = grad_out with the Hessian of the converged iterate (positive definite: Newton stops
 only there) and one vector-Jacobian product -lam^T d2L/(dq dtheta) for theta = previous states, actions (forces,
-torques, kinematic targets), masses, second moments and the friction coefficient. Reverse mode through a rollout is
-ordinary autograd chaining of these steps.
+torques, kinematic targets, controls), masses, second moments, the friction coefficient and the servo gains.
+Reverse mode through a rollout is ordinary autograd chaining of these steps.
 """
 
 from __future__ import annotations
@@ -52,22 +52,22 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
     return lag
 
 
-def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl: torch.Tensor) -> JointInputs | None:
-    """The joint-space inputs of a scene with articulations (coordinates of the two earlier states, the joint
-    torques of the controls ``ctrl``), None without."""
-    if not scene.articulations:
+def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv) -> JointInputs | None:
+    """The joint-space inputs of a scene with simulated articulations (coordinates of the two earlier states, the
+    actuators' terms for the controls ``ctrl`` and servo gains ``kp``, ``kv``), None without."""
+    if not scene.simulates_joints:
         return None
     kin = scene.kinematics
-    return JointInputs(kin.coords(q_t), kin.coords(q_p), kin.ctrl_torque(ctrl))
+    return JointInputs(kin.coords(q_t), kin.coords(q_p), *kin.drive(ctrl, kp, kv))
 
 
 class StepFn(torch.autograd.Function):
-    """(scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl) -> q* (B, Q) and, not differentiable, the solver's
-    statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,), work (3,)
-    (energy evaluations, node pairs, leaf pairs) and the forward's wall time (1,)."""
+    """(scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv) -> q* (B, Q) and, not differentiable,
+    the solver's statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,),
+    work (3,) (energy evaluations, node pairs, leaf pairs) and the forward's wall time (1,)."""
 
     @staticmethod
-    def forward(ctx, scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl):
+    def forward(ctx, scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv):
         t0 = time.perf_counter()
         B = q_t.shape[0]
         with _serial_torch():
@@ -77,7 +77,7 @@ class StepFn(torch.autograd.Function):
             on = (mu_f > 0) | ctx.needs_input_grad[8]
             lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
-            joint = _joint_inputs(scene, q_t, q_p, ctrl)
+            joint = _joint_inputs(scene, q_t, q_p, ctrl, kp, kv)
             prob = StepProblem(
                 scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint
             )
@@ -90,7 +90,7 @@ class StepFn(torch.autograd.Function):
         cross = res.at.contact_hess[:, rows6]  # (B, F, 6 N)
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
-            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl
+            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv
         )
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
@@ -118,7 +118,7 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl = ctx.saved_tensors
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv = ctx.saved_tensors
         B, N = q_t.shape[:2]
         kin = scene.kinematics
         dyn = kin.bodies.to(q.device)
@@ -128,10 +128,10 @@ class StepFn(torch.autograd.Function):
             raise RuntimeError("cfd_torch.step backward: the step's Hessian is not positive definite")
         lam = torch.cholesky_solve(gout.to(H.dtype)[:, :, None], chol)[:, :, 0]
         Jlam = kin.push(q, lam, end_poses(scene, q_t, target))  # (B, N, 6)
-        inputs = (q_t, q_p, force, torque, target, mass, S, mu_f, ctrl)
+        inputs = (q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv)
         with torch.enable_grad():
             th = [x.detach().requires_grad_(True) for x in inputs]
-            tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl = th
+            tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl, tkp, tkv = th
             poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
@@ -140,9 +140,9 @@ class StepFn(torch.autograd.Function):
                 rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
-            joint = _joint_inputs(scene, tq_t, tq_p, tctrl)
+            joint = _joint_inputs(scene, tq_t, tq_p, tctrl, tkp, tkv)
             if joint is not None:
-                _, g_j, _ = kin.joint_terms(q, joint.q_t, joint.q_p, joint.torque, scene.dt, 1)
+                _, g_j, _ = kin.joint_terms(q, joint, scene.dt, 1)
                 s = s + (g_j * lam).sum()
             if ctx.friction_on is not None:
                 lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True)

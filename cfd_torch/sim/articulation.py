@@ -85,10 +85,13 @@ class Articulation:
     (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
     """
 
-    def __init__(self, model, *, max_edge: float | None = None, mount=None) -> None:
+    def __init__(self, model, *, max_edge: float | None = None, mount=None, kinematic: bool = False) -> None:
         links = model.links
         L = len(links)
         self.name = model.name
+        if not isinstance(kinematic, bool):
+            raise ValueError(f"kinematic must be a bool, got {kinematic!r}")
+        self.kinematic = kinematic
         self.floating = bool(model.floating)
         self.root_moves = bool(links[0].joints)
         if self.floating and self.root_moves:
@@ -141,7 +144,7 @@ class Articulation:
         self.stiffness = np.array([j.stiffness for j in joints], dtype=float)
         self.springref = np.array([j.springref for j in joints], dtype=float)
         ours = {name: i for i, name in enumerate(self.joint_names)}
-        act_joint, gear, gain, lo, hi = [], [], [], [], []
+        act_joint, gear, kp, kv, lo, hi = [], [], [], [], [], []
         self.pd_stiffness = np.zeros(J)
         self.pd_damping = np.zeros(J)
         for a in model.actuators:
@@ -164,14 +167,19 @@ class Articulation:
             lo.append(r[0])
             hi.append(r[1])
             if a.kind == "motor":
-                gain.append(1.0)
+                kp.append(0.0)
+                kv.append(0.0)
             else:  # tau = gear kp ctrl - (kp gear^2) theta - (kv gear^2) theta_dot
-                gain.append(a.kp)
+                kp.append(a.kp)
+                kv.append(a.kv)
                 self.pd_stiffness[j] += a.kp * a.gear**2
                 self.pd_damping[j] += a.kv * a.gear**2
         self.actuator_joint = np.array(act_joint, dtype=np.int64)
         self.gear = np.array(gear, dtype=float)
-        self.ctrl_gain = np.array(gain, dtype=float)
+        self.servo = np.array([m.kind == "position" for m in model.actuators], dtype=bool)
+        self.kp = np.array(kp, dtype=float)
+        self.kv = np.array(kv, dtype=float)
+        self.ctrl_gain = np.where(self.servo, self.kp, 1.0)
         self.ctrl_lower = np.array(lo, dtype=float)
         self.ctrl_upper = np.array(hi, dtype=float)
         static_root = not (self.floating or self.root_moves)
@@ -187,10 +195,16 @@ class Articulation:
                 self.com[0] = 0.0  # a static body keeps its mesh's (the link's) frame
                 continue
             S = np.asarray(link.second_moment, dtype=np.float64)
+            if (
+                kinematic
+            ):  # posed by the action, massless to the step; its row is still its centre-of-mass pose
+                mass, S = 0.0, np.zeros((3, 3))
+            else:
+                mass, S = float(link.mass), 0.5 * (S + S.T)
             bodies.append(
                 RigidBody(
-                    BSH.build(V - self.com[k], F, max_edge=max_edge), "dynamic", float(link.mass),
-                    torch.from_numpy(0.5 * (S + S.T)).clone(), torch.from_numpy(self.com[k].copy()),
+                    BSH.build(V - self.com[k], F, max_edge=max_edge), "kinematic" if kinematic else "dynamic",
+                    mass, torch.from_numpy(S).clone(), torch.from_numpy(self.com[k].copy()),
                 )
             )  # fmt: skip
         self.bodies = tuple(bodies)
@@ -243,13 +257,33 @@ class Articulation:
                 rows = torch.cat([b[:, None], rows[:, 1:]], 1)
         return rows[0] if single else rows
 
+    def moving_rows(self, coords: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        """(A, L - first_moving, 6) the state rows of the links that move, for coordinates (A, Qa) (the base pose
+        if floating, then the joints), a joint-less fixed root at ``root`` (A, 6) (ignored otherwise).
+        Differentiable in both."""
+        return _fk_rows(self, coords, None if self.floating else root)[:, self.first_moving :]
 
-def articulation(source, *, max_edge: float | None = None, mount=None, **mjcf_options) -> Articulation:
+    def coords(self, rows: torch.Tensor) -> torch.Tensor:
+        """(A, Qa) the coordinates (base pose if floating, then the joints) of the link rows (A, L, 6): the
+        inverse of the forward kinematics."""
+        return _joint_values(self, rows)
+
+
+def articulation(
+    source, *, max_edge: float | None = None, mount=None, kinematic: bool = False, **mjcf_options
+) -> Articulation:
     """An :class:`Articulation` from an MJCF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its options
     pass through). A free joint on the root body makes a floating base; without one the base is fixed: a joint-less
     root stands where the state puts it, a root with joints (a cart's slide, a planar robot's root joints) hangs
-    from the MJCF's world frame placed at ``mount`` (translation, rotation vector; default the origin)."""
-    return Articulation(load_mjcf(source, **mjcf_options), max_edge=max_edge, mount=mount)
+    from the MJCF's world frame placed at ``mount`` (translation, rotation vector; default the origin).
+
+    ``kinematic=True`` makes a robot whose coordinates follow the action exactly (a pusher): its moving links are
+    kinematic bodies, posed each step by forward kinematics of ``Action.joints``, pushing the dynamic bodies
+    through contact and differentiable in those coordinates; its actuators, masses, limits and damping play no
+    part."""
+    return Articulation(
+        load_mjcf(source, **mjcf_options), max_edge=max_edge, mount=mount, kinematic=kinematic
+    )
 
 
 # ------------------------------------------------------------------------------------------- forward kinematics
@@ -666,6 +700,15 @@ def _limit_barrier(x: torch.Tensor, order: int):
     return v, g, h
 
 
+class JointDrive(NamedTuple):
+    """What the actuators add to the joint terms, per joint (A, J): the controls' torque, and the servos'
+    stiffness (about zero) and damping."""
+
+    torque: torch.Tensor
+    stiffness: torch.Tensor
+    damping: torch.Tensor
+
+
 class ArticulatedKinematics:
     """The kinematics map of a scene with articulations (:class:`cfd_torch.sim.kinematics.Kinematics`): q = the
     free dynamic bodies' poses (6 each), then per articulation its base pose (floating) and joint values.
@@ -706,40 +749,41 @@ class ArticulatedKinematics:
         jidx, hinge, data = (
             [],
             [],
-            {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref", "pd_stiffness",
-                             "pd_damping")},
+            {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref")},
         )  # fmt: skip
+        act = {k: [] for k in ("joint", "gear", "servo", "ctrl_lower", "ctrl_upper", "kp", "kv")}
         for art, sl in zip(self.arts, self.coord_slices, strict=True):
             j0 = sl.start + (6 if art.floating else 0)
+            act["joint"] += list(len(jidx) + art.actuator_joint)
             jidx += list(range(j0, j0 + art.num_joints))
             hinge += [k == "hinge" for k in art.joint_kind]
             for key, vals in data.items():
                 vals += list(getattr(art, key))
+            for key, vals in act.items():
+                vals += [] if key == "joint" else list(getattr(art, key))
         self.joint_index = torch.tensor(jidx, dtype=torch.long)
         self.hinge = torch.tensor(hinge, dtype=torch.bool)
         self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
-        self.joint_data["damping"] += self.joint_data.pop(
-            "pd_damping"
-        )  # the servos' damping acts as the joint's
+        # the actuators of all articulations (U): joint (into joint_index), gear, servo (position actuator or
+        # motor), the control's clip and the MJCF's servo gains (zero for motors)
+        self.actuator_joint = torch.tensor(act.pop("joint"), dtype=torch.long)
+        self.actuator_servo = torch.tensor(act.pop("servo"), dtype=torch.bool)
+        self.actuator_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in act.items()}
 
     # -- the map
-    def _rows(self, art: Articulation, qa: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
-        rows = _fk_rows(art, qa, None if art.floating else root)
-        return rows[:, art.first_moving :]
-
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         out = fixed.clone()
         A = q.shape[0]
         out[:, self.free.to(q.device)] = q[:, : 6 * len(self.free)].reshape(A, -1, 6)
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
             lo = art.first_moving
-            out[:, r + lo : r + art.num_links] = self._rows(art, q[:, sl], fixed[:, r])
+            out[:, r + lo : r + art.num_links] = art.moving_rows(q[:, sl], fixed[:, r])
         return out
 
     def coords(self, poses: torch.Tensor) -> torch.Tensor:
         parts = [poses[:, self.free.to(poses.device)].reshape(poses.shape[0], -1)]
         for art, r in zip(self.arts, self.first, strict=True):
-            parts.append(_joint_values(art, poses[:, r : r + art.num_links]))
+            parts.append(art.coords(poses[:, r : r + art.num_links]))
         return torch.cat(parts, 1)
 
     def _derivatives(self, q: torch.Tensor, fixed: torch.Tensor, grad: torch.Tensor | None):
@@ -803,11 +847,15 @@ class ArticulatedKinematics:
         return out
 
     # -- joint-space terms
-    def joint_terms(self, q, q_t, q_p, torque, dt: float, order: int):
-        """Armature, damping, springs, limits and joint torques (A, J) of all joints at q (A, Q), with q_t and q_p
-        the coordinates one and two steps earlier: value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``)."""
+    def joint_terms(self, q, joint, dt: float, order: int):
+        """Armature, damping, springs, limits and the actuators' terms of all joints at q (A, Q), for ``joint``
+        (:class:`cfd_torch.sim.energy.JointInputs`: the coordinates one and two steps earlier and the actuators'
+        :class:`JointDrive`): value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``)."""
         idx = self.joint_index.to(q.device)
+        q_t, q_p, torque = joint.q_t, joint.q_p, joint.torque
         d = {k: v.to(dtype=q.dtype, device=q.device) for k, v in self.joint_data.items()}
+        d["damping"] = d["damping"] + joint.damping
+        d["pd_stiffness"] = joint.stiffness
         th, tt, tp = q[:, idx], q_t[:, idx], q_p[:, idx]
         hinge = self.hinge.to(q.device)
         # hinge values are angles: differences taken mod 2 pi (the state's values live in (-pi, pi])
@@ -836,23 +884,27 @@ class ArticulatedKinematics:
         hess[:, idx, idx] = h
         return value, grad, hess
 
-    def ctrl_torque(self, ctrl: torch.Tensor) -> torch.Tensor:
-        """(A, J) the joint torques that depend on the controls ctrl (A, U): gear ctrl_gain clip(ctrl) per
-        actuator (a position actuator's stiffness and damping are joint terms)."""
-        out = ctrl.new_zeros(ctrl.shape[0], len(self.joint_index))
-        j0, u0 = 0, 0
-        for art in self.arts:
-            U = art.num_actuators
-            if U:
-                c = ctrl[:, u0 : u0 + U]
-                lo = torch.as_tensor(art.ctrl_lower, dtype=c.dtype, device=c.device)
-                hi = torch.as_tensor(art.ctrl_upper, dtype=c.dtype, device=c.device)
-                scale = torch.as_tensor(art.gear * art.ctrl_gain, dtype=c.dtype, device=c.device)
-                tau = scale * torch.maximum(torch.minimum(c, hi), lo)
-                out = out.index_add(1, j0 + torch.as_tensor(art.actuator_joint, device=c.device), tau)
-            j0 += art.num_joints
-            u0 += U
-        return out
+    def servo_gains(self, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(U,) kp and (U,) kv: the MJCF's position-actuator gains (zero for motors), ``Params.kp`` / ``kv``'s
+        default."""
+        return tuple(self.actuator_data[k].to(dtype=dtype, device=device) for k in ("kp", "kv"))
+
+    def drive(self, ctrl: torch.Tensor, kp: torch.Tensor, kv: torch.Tensor) -> JointDrive:
+        """The actuators' joint terms for controls ctrl (A, U) and servo gains kp, kv (A, U) (motors' entries
+        unused): per joint the torque sum gear g clip(ctrl) (g = 1 for a motor, kp for a servo) and the servos'
+        stiffness sum kp gear^2 and damping sum kv gear^2 (A, J). Differentiable in ctrl, kp and kv."""
+        d = {k: v.to(dtype=ctrl.dtype, device=ctrl.device) for k, v in self.actuator_data.items()}
+        servo = self.actuator_servo.to(ctrl.device)
+        on = servo.to(ctrl.dtype)
+        c = torch.maximum(torch.minimum(ctrl, d["ctrl_upper"]), d["ctrl_lower"])
+        g2 = d["gear"] ** 2
+        j = self.actuator_joint.to(ctrl.device)
+        zero = ctrl.new_zeros(ctrl.shape[0], len(self.joint_index))
+        return JointDrive(
+            zero.index_add(1, j, d["gear"] * torch.where(servo, kp, torch.ones_like(kp)) * c),
+            zero.index_add(1, j, on * kp * g2),
+            zero.index_add(1, j, on * kv * g2),
+        )
 
     @property
     def num_actuators(self) -> int:

@@ -74,11 +74,14 @@ class StepProblem(NamedTuple):
 
 
 class JointInputs(NamedTuple):
-    """The coordinates one and two steps earlier (B, Q) and the joint torques (B, J) of the controls."""
+    """The coordinates one and two steps earlier (B, Q) and the actuators' terms per joint (B, J): the controls'
+    torque and the servos' stiffness and damping (:meth:`ArticulatedKinematics.drive`)."""
 
     q_t: torch.Tensor
     q_p: torch.Tensor
     torque: torch.Tensor
+    stiffness: torch.Tensor
+    damping: torch.Tensor
 
 
 class EnergyEval(NamedTuple):
@@ -315,7 +318,7 @@ def incremental_potential(
     jv = jg = jh = None
     if prob.joint is not None:
         jq = prob.joint
-        jv, jg, jh = kin.joint_terms(q, jq.q_t, jq.q_p, jq.torque, scene.dt, order)
+        jv, jg, jh = kin.joint_terms(q, jq, scene.dt, order)
         value = value + jv
     scale = value.abs() + local.abs().sum(1) + (0.0 if jv is None else jv.abs())
     if order == 0:

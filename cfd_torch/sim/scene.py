@@ -98,6 +98,8 @@ class Scene:
         if not (bodies or arts) or not all(isinstance(b, RigidBody) for b in bodies):
             raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
         self.articulations = arts
+        #: how many of ``bodies`` are kinematic (``Action.target``'s rows; kinematic robots' links come after them)
+        self.num_kinematic_bodies = sum(b.kind == "kinematic" for b in bodies)
         rows, first = len(bodies), []
         robot_pairs = []
         for a in arts:
@@ -156,10 +158,13 @@ class Scene:
         if not isinstance(planar, bool) or (planar and arts):
             raise ValueError(f"planar must be a bool, and False with articulations; got {planar!r}")
         self.planar = planar
-        if arts:
-            links = {r + k for a, r in zip(arts, first, strict=True) for k in range(a.num_links)}
+        moving = [(a, r) for a, r in zip(arts, first, strict=True) if not a.kinematic]
+        #: the kinematic robots and their first rows (their links are posed by ``Action.joints``)
+        self.kinematic_articulations = tuple((a, r) for a, r in zip(arts, first, strict=True) if a.kinematic)
+        if moving:
+            links = {r + k for a, r in moving for k in range(a.num_links)}
             free = torch.tensor([int(i) for i in self.dynamic if int(i) not in links], dtype=torch.long)
-            self.kinematics = ArticulatedKinematics(free, arts, first, N)
+            self.kinematics = ArticulatedKinematics(free, [a for a, _ in moving], [r for _, r in moving], N)
         else:
             self.kinematics = FreeBodies(self.dynamic, N, planar)
         self._given_contact_model = contact_model
@@ -174,6 +179,36 @@ class Scene:
     @property
     def num_bodies(self) -> int:
         return len(self.bodies)
+
+    @property
+    def simulates_joints(self) -> bool:
+        """Whether the step solves for joints (the scene has robots that are not kinematic)."""
+        return isinstance(self.kinematics, ArticulatedKinematics)
+
+    @property
+    def num_actuators(self) -> int:
+        """U, the actuators of the simulated (not kinematic) robots: ``Action.ctrl``'s length."""
+        return self.kinematics.num_actuators if self.simulates_joints else 0
+
+    @property
+    def num_kinematic_coords(self) -> int:
+        """The coordinates of the kinematic robots: ``Action.joints``'s length."""
+        return sum(a.num_coords for a, _ in self.kinematic_articulations)
+
+    def kinematic_link_poses(self, joints: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """(B, Kl, 6) the poses of the kinematic robots' moving links (their rows of ``Scene.kinematic``, in order)
+        for their coordinates ``joints`` (B, Qk) (per robot: base pose if floating, then joint values), a
+        joint-less fixed root standing where ``q`` (B, N, 6) has it. Differentiable in ``joints``."""
+        out, c = [], 0
+        for art, r in self.kinematic_articulations:
+            out.append(art.moving_rows(joints[:, c : c + art.num_coords], q[:, r]))
+            c += art.num_coords
+        return torch.cat(out, 1)
+
+    def kinematic_coords(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, Qk) the kinematic robots' coordinates at poses ``q`` (B, N, 6) (the inverse of
+        :meth:`kinematic_link_poses`)."""
+        return torch.cat([a.coords(q[:, r : r + a.num_links]) for a, r in self.kinematic_articulations], 1)
 
     def __getattr__(self, name: str):
         """The constructor's shorthand names read the config fields too (``scene.margin`` is
@@ -198,10 +233,15 @@ class Scene:
         """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one
         row per body the kinematics map moves."""
         d = self.kinematics.bodies.tolist()
+        gains = (
+            self.kinematics.servo_gains(dtype, device) if self.simulates_joints
+            else (torch.zeros(0, dtype=dtype, device=device),) * 2
+        )  # fmt: skip
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
             torch.stack([self.bodies[i].second_moment for i in d]).to(dtype=dtype, device=device),
             torch.tensor(float(self.friction.coefficient), dtype=dtype, device=device),
+            *gains,
         )
 
     def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:

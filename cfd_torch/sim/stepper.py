@@ -74,7 +74,8 @@ def _solve(
     q_t, q_p, target = _shift(q_t, -c), _shift(q_p, -c), _shift(target.to(f64), -c)
     q, iters, fc, ff, nfc, work, seconds = StepFn.apply(
         scene, q_t, q_p, force.to(f64), torque.to(f64), target, params.mass.to(f64),
-        0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64), ctrl.to(f64),
+        0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64), ctrl.to(f64), params.kp.to(f64),
+        params.kv.to(f64),
     )  # fmt: skip
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     moved[scene.kinematics.bodies] = True
@@ -205,21 +206,33 @@ def step(
     torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
     check_state_tensor(force, "action.force", N, 3, B if batched else 1, like=state.q)
     check_state_tensor(torque, "action.torque", N, 3, B if batched else 1, like=state.q)
-    K = len(scene.kinematic)
+    K = scene.num_kinematic_bodies
     kin = scene.kinematic.to(dev)
-    target = action.target if action.target is not None else state.q[..., kin, :]
+    target = action.target if action.target is not None else state.q[..., kin[:K], :]
     check_state_tensor(target, "action.target", K, 6, B if batched else 1, like=state.q)
     if not batched and any(x.dim() == 3 for x in (force, torque, target)):
         raise ValueError("action fields have a batch dimension but state.q does not")
-    U = scene.kinematics.num_actuators if scene.articulations else 0
+    U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else 1, state.q)
+    gains = scene.kinematics.servo_gains(f64, dev) if scene.simulates_joints else (state.q.new_zeros(0),) * 2
     params = scene.params(f64, dev) if params is None else params
-    params = check_params(params, B, len(scene.kinematics.bodies), dev, batched)
-    if action.target is not None:
-        check_targets_clear(scene, _batch(state.q, B), _batch(target, B))
+    params = check_params(params, B, len(scene.kinematics.bodies), dev, batched, gains)
+    target = _batch(target, B)
+    if scene.kinematic_articulations:  # the kinematic robots' links: forward kinematics of action.joints
+        if action.joints is None:
+            links = _batch(state.q[..., kin[K:], :], B)
+        else:
+            check_ctrl(
+                action.joints, scene.num_kinematic_coords, B if batched else 1, state.q, "action.joints"
+            )
+            joints = action.joints.expand(B, -1) if action.joints.dim() == 1 else action.joints
+            links = scene.kinematic_link_poses(joints, _batch(state.q, B)).to(dtype)
+        target = torch.cat([target, links], 1)
+    if action.target is not None or action.joints is not None:
+        check_targets_clear(scene, _batch(state.q, B), target)
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
-    force, torque, target = _batch(force, B), _batch(torque, B), _batch(target, B)
+    force, torque = _batch(force, B), _batch(torque, B)
     ctrl = ctrl.expand(B, U) if ctrl.dim() == 1 else ctrl
     q_next, q_prev_next, si = _advance(scene, st, force, torque, target, ctrl, params)
     q_next = q_next.to(dtype)

@@ -60,17 +60,24 @@ class Action(NamedTuple):
         force: ([B,] N, 3) world-frame forces on the bodies' centres of mass [N] (rows of non-dynamic bodies
             ignored).
         torque: ([B,] N, 3) world-frame torques [N m] (rows of non-dynamic bodies ignored).
-        target: ([B,] K, 6) end-of-step poses of the K kinematic bodies (``Scene.kinematic`` order); None keeps
-            them where they are.
-        ctrl: ([B,] U) controls of the articulations' actuators, in the scene's articulation order then MJCF
-            order, clipped to their ctrlrange (motor: joint torque gear * ctrl; position: a PD servo toward
-            ctrl / gear, :class:`~cfd_torch.sim.articulation.Articulation`); None: zero.
+        target: ([B,] K, 6) end-of-step poses of the K kinematic bodies (``Scene.num_kinematic_bodies``, in
+            ``Scene.kinematic`` order; kinematic robots' links are posed by ``joints``); None keeps them where they
+            are.
+        ctrl: ([B,] U) controls of the simulated articulations' actuators (``Scene.num_actuators``), in the scene's
+            articulation order then MJCF order, clipped to their ctrlrange (motor: joint torque gear * ctrl;
+            position: a PD servo toward ctrl / gear with ``Params.kp`` and ``kv``,
+            :class:`~cfd_torch.sim.articulation.Articulation`); None: zero.
+        joints: ([B,] Qk) end-of-step coordinates of the kinematic robots (``articulation(..., kinematic=True)``,
+            ``Scene.num_kinematic_coords``), per robot in scene order its base pose (floating bases) then its joint
+            values: their links are posed there exactly, by forward kinematics (differentiable); None keeps them
+            where they are.
     """
 
     force: torch.Tensor | None = None
     torque: torch.Tensor | None = None
     target: torch.Tensor | None = None
     ctrl: torch.Tensor | None = None
+    joints: torch.Tensor | None = None
 
 
 class Params(NamedTuple):
@@ -81,11 +88,16 @@ class Params(NamedTuple):
         second_moment: ([B,] Nd, 3, 3) second moments of mass about the centres of mass, body frame [kg m^2]
             (the step uses their symmetric part).
         friction: ([B]) Coulomb's coefficient.
+        kp, kv: ([B,] U) the position actuators' (servos') stiffness and damping gains, in ``Action.ctrl``'s order
+            (a servo's joint torque is gear kp ctrl - kp gear^2 theta - kv gear^2 theta_dot; motors' entries are
+            unused); None: the MJCF's (``Scene.params()`` fills them in).
     """
 
     mass: torch.Tensor
     second_moment: torch.Tensor
     friction: torch.Tensor
+    kp: torch.Tensor | None = None
+    kv: torch.Tensor | None = None
 
 
 class StepInfo(NamedTuple):
