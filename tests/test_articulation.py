@@ -60,6 +60,20 @@ def _omega(art: Articulation) -> tuple[float, float]:
     return math.sqrt(m * 9.81 * (L / 2) / I_p), I_p
 
 
+def _lowest(bodies, rows: torch.Tensor) -> torch.Tensor:
+    """(T,) the lowest vertex height of ``bodies`` at their state rows (T, L, 6)."""
+    from cfd_torch.rotation import rotation_matrix
+
+    rows = rows.detach()
+    out = [
+        (b.bsh.vertices.double() @ rotation_matrix(rows[:, k, 3:]).transpose(-1, -2) + rows[:, k, None, :3])[
+            ..., 2
+        ].amin(1)
+        for k, b in enumerate(bodies)
+    ]
+    return torch.stack(out, 1).amin(1)
+
+
 def _angles(scene: Scene, traj) -> np.ndarray:
     return scene.kinematics.coords(traj.q.reshape(-1, *traj.q.shape[-2:]))[:, 0].detach().numpy()
 
@@ -188,7 +202,6 @@ def test_rollout_gradient_through_contact_of_a_planar_robot():
     import importlib.resources
 
     from cfd_torch import rigid_body
-    from cfd_torch.rotation import rotation_matrix
     from cfd_torch.sim.articulation import articulation
 
     hop = articulation(
@@ -200,10 +213,7 @@ def test_rollout_gradient_through_contact_of_a_planar_robot():
     th = torch.tensor(np.clip(hop.ref, hop.lower + 0.1, hop.upper - 0.1), dtype=F64)
 
     def lowest(rows: torch.Tensor) -> float:
-        return min(
-            float((b.bsh.vertices.double() @ rotation_matrix(r[None, 3:])[0].T + r[:3])[:, 2].min())
-            for b, r in zip(hop.bodies, rows.detach(), strict=True)
-        )
+        return float(_lowest(hop.bodies, rows[None])[0])
 
     th[hop.joint_names.index("rootz")] -= lowest(hop.poses(th)) - 0.002
     zero = torch.zeros(1, 6, dtype=F64)
@@ -591,7 +601,6 @@ def test_ant_dropped_on_a_floor_settles_standing():
     """Gymnasium's Ant (motors at zero control) dropped from 5 cm onto a floor (friction 1): 300 steps (3 s) with every
     vertex above the floor, the torso held up by its legs, and at rest at the end (about 2 minutes)."""
     from cfd_torch import rigid_body
-    from cfd_torch.rotation import rotation_matrix
     from cfd_torch.sim.articulation import articulation
     from cfd_torch.sim.mjcf import gymnasium_ant_xml
 
@@ -603,13 +612,7 @@ def test_ant_dropped_on_a_floor_settles_standing():
     stance = torch.where((lo < 0) & (hi > 0), torch.zeros_like(lo), 0.5 * (lo + hi))
 
     def lowest(rows: torch.Tensor) -> torch.Tensor:  # (T, L, 6) -> (T,) the lowest vertex of the Ant
-        out = []
-        for k, b in enumerate(ant.bodies):
-            V = b.bsh.vertices.double()
-            out.append(
-                (V @ rotation_matrix(rows[:, k, 3:]).transpose(-1, -2) + rows[:, k, None, :3])[..., 2].amin(1)
-            )
-        return torch.stack(out, 1).amin(1)
+        return _lowest(ant.bodies, rows)
 
     rows = ant.poses(stance)
     base = torch.tensor([0.0, 0.0, 0.05 - float(lowest(rows[None])[0]), 0.0, 0.0, 0.0], dtype=F64)
@@ -779,3 +782,64 @@ def test_closed_form_derivatives_match_torch_func(which):
     assert (second - second_ref).abs().max() < 1e-10
     assert torch.equal(_fk_derivatives(art, q, fixed, lo, None)[0], J)
     assert torch.allclose(_joint_values(art, _fk_rows(art, q, fixed)), q, rtol=0.0, atol=1e-12)  # the inverse
+
+
+@pytest.mark.slow
+def test_ant_pushing_a_box_rollout_gradient_matches_finite_differences():
+    """Gymnasium's Ant on position servos, dropped 2 mm onto a floor (friction 1) with a 0.3 m box 0.55 m ahead,
+    walks a sinusoidal gait for 30 steps: the gradient of its torso's and the box's final poses in the 240 servo
+    targets and the eight kp gains matches central differences (non-zero first), with the feet on the floor
+    throughout (about a minute)."""
+    from cfd_torch import rigid_body
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    ant = articulation(gymnasium_ant_xml(servos=(100.0, 5.0)))
+    floor = trimesh.creation.box((3.0, 3.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=50.0)
+    scene = Scene([box, rigid_body(floor, kind="static")], articulations=[ant], dt=0.01, friction=1.0)
+    lo, hi = torch.as_tensor(ant.lower), torch.as_tensor(ant.upper)
+    stance = torch.where((lo < 0) & (hi > 0), torch.zeros_like(lo), 0.5 * (lo + hi)).to(F64)
+    base = torch.tensor(
+        [0.0, 0.0, 2e-3 - float(_lowest(ant.bodies, ant.poses(stance)[None])[0]), 0, 0, 0], dtype=F64
+    )
+    box_pose = torch.tensor([[0.55, 0.0, 0.152, 0.0, 0.0, 0.0]], dtype=F64)
+    q0 = torch.cat([box_pose, torch.zeros(1, 6, dtype=F64), ant.poses(stance, base)])
+    order = torch.as_tensor(ant.actuator_joint)
+    t = torch.arange(30, dtype=F64)[:, None]
+    phase = torch.tensor([0.0, math.pi / 2] * 2 + [math.pi, 3 * math.pi / 2] * 2, dtype=F64)
+    plan = (stance + 0.25 * torch.sin(2 * math.pi * 1.5 * 0.01 * t + phase))[
+        :, order
+    ]  # (30, 8) servo targets
+    kp0 = scene.params().kp
+    w = torch.tensor([0.7, -0.4, 1.0, 0.2, 0.3, -0.5], dtype=F64)
+    low = []
+
+    def final(plan: torch.Tensor, kp: torch.Tensor) -> torch.Tensor:
+        traj = rollout(
+            scene, State(q0, q0.clone()), [Action(ctrl=u) for u in plan], scene.params()._replace(kp=kp)
+        )
+        low.append(float(_lowest(ant.bodies, traj.q[:, 2:]).min()))
+        return traj.q[-1, 2] @ w + traj.q[-1, 0] @ w.flip(0)
+
+    x = [plan.clone().requires_grad_(True), kp0.clone().requires_grad_(True)]
+    grads = torch.autograd.grad(final(*x), x)
+    assert 0.0 < low[0] < 2e-3  # on the floor, never through it
+    gen = torch.Generator().manual_seed(0)
+    h = 1e-6
+    for k, (g, least) in enumerate(
+        zip(grads, (1e-2, 1e-4), strict=True)
+    ):  # per rad of target, per N m/rad of kp
+        assert float(g.abs().max()) > least, k
+        d = torch.randn(g.shape, dtype=F64, generator=gen)
+        with torch.no_grad():
+            up = [v + h * d if i == k else v for i, v in enumerate(x)]
+            dn = [v - h * d if i == k else v for i, v in enumerate(x)]
+            fd = (final(*up) - final(*dn)) / (2 * h)
+        assert abs(float((g * d).sum() - fd)) < 1e-4 * float(g.norm() * d.norm()), (
+            k,
+            float((g * d).sum()),
+            float(fd),
+        )
+    assert max(low) < 2e-3
