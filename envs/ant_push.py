@@ -28,7 +28,10 @@ class AntPushCore(BoxToTargetCore):
     2-10 the Ant's links (torso first). The Ant's joint limits, damping and armature are its MJCF's (limits as the
     simulator's C2 barrier).
 
-    Action: (8,) in [-1, 1], the motors' controls in MJCF order (joint torque 150 x control).
+    Action: (8,) in [-1, 1], one per actuator in MJCF order. ``actuation="torque"`` (default, Gymnasium's Ant): the
+    motors' controls (joint torque 150 x control). ``actuation="position"``: PD targets, mapped linearly onto each
+    joint's range (-1: its lower limit, +1: its upper limit), followed by position servos of gains ``servo_gains``
+    = (kp [N m/rad], kv [N m s/rad]) (default (100, 5); the step's ``Params.kp`` / ``kv`` make them differentiable).
 
     Observation (42,): the torso's pose (translation, rotation vector) and velocity (6 + 6), the 8 joint angles and
     their velocities (8 + 8), the box's pose and velocity (6 + 6), the target's xy (2).
@@ -55,11 +58,16 @@ class AntPushCore(BoxToTargetCore):
         box_density: float = 50.0,
         action_cost: float = 1e-3,
         success_radius: float = 0.1,
+        actuation: str = "torque",
+        servo_gains: tuple[float, float] = (100.0, 5.0),
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        self.ant = articulation(gymnasium_ant_xml())
+        if actuation not in ("torque", "position"):
+            raise ValueError(f"actuation must be 'torque' or 'position', got {actuation!r}")
+        self.actuation = actuation
+        self.ant = articulation(gymnasium_ant_xml(servos=servo_gains if actuation == "position" else None))
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
         # the floor is refined to the Ant's capsule edges: keep it no larger than the task needs
         floor = floor_body(distance + 5.0, centre=((1.0 + distance) / 2, 0.0))
@@ -79,6 +87,10 @@ class AntPushCore(BoxToTargetCore):
             for b, r in zip(self.ant.bodies, rows, strict=True)
         )
         self._base_height = GAP - low
+        # position actuation: an action's affine map onto the actuated joints' ranges
+        joint = torch.as_tensor(self.ant.actuator_joint)
+        self._target_mid = (0.5 * (lo + hi))[joint].to(dtype=dtype, device=device)
+        self._target_half = (0.5 * (hi - lo))[joint].to(dtype=dtype, device=device)
 
     def _initial(self, gen: torch.Generator):
         u = torch.rand(1, generator=gen, dtype=torch.float64)
@@ -91,6 +103,8 @@ class AntPushCore(BoxToTargetCore):
         return q, q.clone(), {"target": target}
 
     def _action(self, state: EnvState, action: torch.Tensor) -> Action:
+        if self.actuation == "position":
+            return Action(ctrl=self._target_mid + self._target_half * action)
         return Action(ctrl=action)
 
     def _coords(self, q: torch.Tensor) -> torch.Tensor:

@@ -47,6 +47,27 @@ def test_ant_push_stands_and_observes():
     assert float((s.q[0, 0, :2] - torch.tensor([1.0, 0.0], dtype=F64)).abs().max()) < 1e-4
 
 
+def test_ant_push_position_actuation_follows_its_targets():
+    """AntPush with actuation="position": a constant action of +0.5 drives every actuated joint from its stance
+    to three quarters of its range (0.17-0.26 rad away; within 0.03 rad after 20 steps of the default servos, which
+    then overshoot and settle), and the Gymnasium shell passes the option through."""
+    core = make_core("cfd_torch/AntPush-v0", actuation="position")
+    s = core.reset(0, 1)
+    lo, hi = torch.as_tensor(core.ant.lower), torch.as_tensor(core.ant.upper)
+    j0 = core.scene.kinematics.coords(s.q)[0, 12:]
+    for _ in range(20):
+        s = core.step(s, torch.full((1, 8), 0.5, dtype=F64)).state
+    j = core.scene.kinematics.coords(s.q)[0, 12:]
+    goal = lo + 0.75 * (hi - lo)
+    assert float((j0 - goal).abs().min()) > 0.15
+    assert float((j - goal).abs().max()) < 0.03
+    with pytest.raises(ValueError, match="actuation must be 'torque' or 'position'"):
+        make_core("cfd_torch/AntPush-v0", actuation="velocity")
+    env = gym.make("cfd_torch/AntPush-v0", actuation="position").unwrapped
+    assert env.core.actuation == "position"
+    env.close()
+
+
 @pytest.mark.slow
 def test_gymnasium_check_env_ant_push():
     env = gym.make("cfd_torch/AntPush-v0").unwrapped
