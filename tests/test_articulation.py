@@ -394,6 +394,17 @@ def test_kinematic_robot_follows_its_joints_exactly_and_pushes():
         step(scene, state, Action(joints=torch.zeros(3, dtype=F64)))
     with pytest.raises(ValueError, match=r"action.ctrl must have shape \(0,\)"):
         step(scene, state, Action(ctrl=torch.zeros(1, dtype=F64)))
+    # a static block beside the arm: joints that put a link into it are refused, naming action.joints (the arm
+    # overlapping its own static base is not contact)
+    block = trimesh.creation.box((0.1, 0.1, 0.1))
+    block.apply_translation((0.35, -0.3, 0.0))
+    walled = Scene([ball, rigid_body(block, kind="static")], articulations=[art], gravity=(0.0, 0.0, 0.0))
+    q1 = torch.cat([q0[:1], torch.zeros(1, 6, dtype=F64), q0[1:]])
+    step(walled, State(q1, q1.clone()), Action(joints=torch.tensor([-0.3, 0.0], dtype=F64)))
+    with pytest.raises(
+        ValueError, match="action.joints: kinematic robot link 3 at its target penetrates static body 1"
+    ):
+        step(walled, State(q1, q1.clone()), Action(joints=torch.tensor([-0.9, 0.0], dtype=F64)))
 
 
 def test_actuator_force_ranges():

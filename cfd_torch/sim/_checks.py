@@ -118,7 +118,7 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
     step can resolve it. ``target`` (B, K, 6). One collision query over the kinematic-static pairs not excluded."""
     kin = scene.kinematic.tolist()
     static = torch.nonzero(scene.static_mask)[:, 0].tolist()
-    excluded = {(min(a, b), max(a, b)) for a, b in scene.exclude}
+    excluded = {(min(a, b), max(a, b)) for a, b in scene.no_contact}
     pairs = [(min(k, s), max(k, s)) for k in kin for s in static if (min(k, s), max(k, s)) not in excluded]
     if not pairs:
         return

@@ -141,9 +141,9 @@ class Scene:
         self.solver: SolverConfig = cfg["solver"]
         self.exclude = tuple((int(a), int(b)) for a, b in exclude)
         N = len(bodies)
-        pairs = body_pairs(
-            N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.exclude + tuple(robot_pairs)
-        )
+        #: every body pair without contact: ``exclude`` and the pairs of links of one robot
+        self.no_contact = self.exclude + tuple(robot_pairs)
+        pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
         if self.contact.refine_obstacles is not None and contact_model is None:
             bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
         self.bodies = bodies
