@@ -46,6 +46,13 @@ class ContactConfig:
             :func:`cfd_torch.sim.bodies.refine_obstacles`); None keeps every mesh as given. A leaf sphere much
             larger than its partner's makes every partner triangle inside it an exact leaf pair, so a coarse floor
             costs several times a fine one.
+        potential: the contact potential a :class:`cfd_torch.Scene` simulates: "cfd" (this library's, the fields
+            above) or "ipc", IPC's log barrier over vertex-face and edge-edge pairs within ``dhat``
+            (:class:`cfd_torch.contact.ipc.IpcContact`, ipc-toolkit's definition: a baseline whose forces and
+            gradients vanish beyond ``dhat``; obstacles are not refined for it). Friction and the solver are the
+            same for both.
+        dhat: IPC's activation distance [m].
+        barrier_stiffness: IPC's kappa [N / m^3].
     """
 
     stiffness: float = 1e-8
@@ -56,8 +63,15 @@ class ContactConfig:
     pair_max_iter: int = 100
     backend: Literal["auto", "torch"] = "auto"
     refine_obstacles: float | None = 2.0
+    potential: Literal["cfd", "ipc"] = "cfd"
+    dhat: float = 1e-2
+    barrier_stiffness: float = 1e6
 
     def __post_init__(self) -> None:
+        if self.potential not in ("cfd", "ipc"):
+            raise ValueError(f"ContactConfig.potential must be 'cfd' or 'ipc', got {self.potential!r}")
+        _positive("ContactConfig", "dhat", self.dhat)
+        _positive("ContactConfig", "barrier_stiffness", self.barrier_stiffness)
         if self.refine_obstacles is not None:
             _positive("ContactConfig", "refine_obstacles", self.refine_obstacles)
         if self.backend not in ("auto", "torch"):

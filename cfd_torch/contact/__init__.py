@@ -1,5 +1,6 @@
 """The contact model: the exact pair potential, the central potential and blend, the sphere hierarchy, the BSH
-potential of body pairs and scenes built from them, and the protocol the simulator talks to.
+potential of body pairs and scenes built from them, the protocol the simulator talks to, and IPC's log barrier as
+a baseline model behind it.
 
 Its public names are re-exported by :mod:`cfd_torch` and here.
 """
@@ -7,6 +8,7 @@ Its public names are re-exported by :mod:`cfd_torch` and here.
 from .bsh import BSH
 from .central import blend_weight, central_potential, smoothstep
 from .cfd import CfdContact
+from .ipc import IpcContact
 from .mesh import MeshDerivatives, mesh_potential, mesh_potential_derivatives
 from .model import ContactEval, ContactModel, LaggedContacts, sum_pairs
 from .pair import PairDerivatives, PairSolveError, pair_potential, pair_potential_derivatives
@@ -14,8 +16,8 @@ from .reference import mesh_potential_reference
 from .scene import ContactPotential, contact_potential
 
 __all__ = [
-    "BSH", "CfdContact", "ContactEval", "ContactModel", "ContactPotential", "LaggedContacts", "MeshDerivatives",
-    "PairDerivatives", "PairSolveError", "blend_weight", "central_potential", "contact_potential", "mesh_potential",
-    "mesh_potential_derivatives", "mesh_potential_reference", "pair_potential", "pair_potential_derivatives",
-    "smoothstep", "sum_pairs",
+    "BSH", "CfdContact", "ContactEval", "ContactModel", "ContactPotential", "IpcContact", "LaggedContacts",
+    "MeshDerivatives", "PairDerivatives", "PairSolveError", "blend_weight", "central_potential",
+    "contact_potential", "mesh_potential", "mesh_potential_derivatives", "mesh_potential_reference",
+    "pair_potential", "pair_potential_derivatives", "smoothstep", "sum_pairs",
 ]  # fmt: skip

@@ -11,6 +11,7 @@ import torch
 
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact.cfd import CfdContact
+from ..contact.ipc import IpcContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
 from ._checks import check_state_tensor
@@ -31,6 +32,9 @@ _SHORTHAND = {
     "pair_max_iter": ("contact", "pair_max_iter"),
     "backend": ("contact", "backend"),
     "refine_obstacles": ("contact", "refine_obstacles"),
+    "potential": ("contact", "potential"),
+    "dhat": ("contact", "dhat"),
+    "barrier_stiffness": ("contact", "barrier_stiffness"),
     "friction_eps_v": ("friction", "eps_v"),
     "friction_active": ("friction", "active"),
     "newton_tol": ("solver", "newton_tol"),
@@ -56,14 +60,15 @@ class Scene:
         articulations: robots (:func:`cfd_torch.sim.articulation.articulation`); their links are the state rows
             after ``bodies``, each robot's consecutive (``articulation_rows``), with no contact between two links
             of one robot.
-        contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the paper's
-            potential, ``CfdContact`` with ``contact``).
+        contact_model: a :class:`cfd_torch.contact.ContactModel` built for these bodies (default: the one
+            ``contact.potential`` names, with ``contact``'s settings).
         planar: the dynamic bodies move in their horizontal planes and turn about the vertical only: the step
             solves for each one's x, y and yaw, and keeps its height, roll and pitch (which must be zero) from the
             start state (:class:`~cfd_torch.sim.kinematics.FreeBodies`). For table-top scenes such as billiards:
             no table is needed and no contact can lift a body out of its plane. Not with articulations.
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
-            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``friction_eps_v``
+            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``potential`` ("cfd" or
+            "ipc": the contact potential), ``dhat``, ``barrier_stiffness``, ``friction_eps_v``
             (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
             ``reach_shrink``, ``substeps``, ``fast``.
 
@@ -144,7 +149,11 @@ class Scene:
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
-        if self.contact.refine_obstacles is not None and contact_model is None:
+        if (
+            self.contact.refine_obstacles is not None
+            and contact_model is None
+            and self.contact.potential == "cfd"
+        ):
             bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
         self.bodies = bodies
         self.dynamic = torch.tensor(
@@ -168,9 +177,14 @@ class Scene:
         else:
             self.kinematics = FreeBodies(self.dynamic, N, planar)
         self._given_contact_model = contact_model
-        self.contact_model = (
-            CfdContact([b.bsh for b in bodies], self.contact) if contact_model is None else contact_model
-        )
+        if contact_model is not None:
+            self.contact_model = contact_model
+        elif self.contact.potential == "ipc":
+            self.contact_model = IpcContact(
+                [b.bsh for b in bodies], self.contact.dhat, self.contact.barrier_stiffness
+            )
+        else:
+            self.contact_model = CfdContact([b.bsh for b in bodies], self.contact)
         # farthest vertex of each body from its frame origin: bounds vertex displacements
         self.extent = torch.tensor(
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64

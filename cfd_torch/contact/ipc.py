@@ -1,0 +1,475 @@
+"""IPC's log barrier between rigid bodies as a contact model: the experiments' ``ipc`` baseline.
+
+Incremental Potential Contact (Li et al. 2020) as ipc-toolkit 1.6.1 defines it (``NormalCollisions`` with its
+default collision set, ``BarrierPotential(dhat, kappa)``): over every vertex-face pair and every edge-edge pair of
+two bodies closer than dhat,
+
+    P = kappa sum_VF b(d^2; dhat^2) + kappa sum_EE m(c) b(d^2; dhat^2),    b(x; xh) = -(x - xh)^2 ln(x / xh)
+
+on 0 < x < xh (0 beyond, +inf at x <= 0), d the distance between the two primitives (to the closest feature:
+face, edge or vertex), and for edge pairs the mollifier m(c) = (2 - c / eps_x) c / eps_x for c < eps_x (1 above),
+c = |ea x eb|^2, eps_x = 1e-3 |ea|^2 |eb|^2 at rest, which keeps nearly parallel edges smooth. (ipc-toolkit merges
+the collisions a vertex-face or edge-edge pair reduces to, e.g. a vertex nearest to an edge found from both faces of
+the edge, into one whose weight is their multiplicity: the same sum.) Everything is exactly zero beyond dhat, so no
+force and no gradient reaches bodies that do not already nearly touch.
+
+Each evaluation finds the pairs: bodies whose world bounding boxes come within dhat, then their vertices, faces and
+edges within dhat of the other body's box, then every vertex-face and edge-edge combination of those within dhat.
+Derivatives: the barrier of each primitive pair as a function of its four world points (the distance formula of its
+closest-feature type, fixed per evaluation as in ipc-toolkit) by ``torch.func``, chained to the two bodies' poses
+x = R(omega) X + t with the rotation's closed-form first and second derivatives. A body pair is infeasible (+inf)
+when two of its triangles touch or intersect (the collision query of the hierarchy, at zero margin).
+
+Lagged friction uses one contact per primitive pair: the closest points on the two bodies (material points),
+the normal along the line between them, and the barrier's normal force kappa m |b'(d^2)| 2 d.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+
+from .._validate import check_positive
+from ..rotation import rotation_derivatives, rotation_matrix
+from ._traverse import Forest, build_forest, penetrating
+from .bsh import BSH
+from .model import ContactEval, LaggedContacts
+
+__all__ = ["IpcContact", "ipc_barrier_derivatives"]
+
+#: edge-edge mollifier threshold factor (ipc-toolkit's ``edge_edge_mollifier_threshold``)
+_MOLLIFIER = 1e-3
+
+
+def ipc_barrier_derivatives(x: torch.Tensor, xhat: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """b(x; xhat) = -(x - xhat)^2 ln(x / xhat) and its first two derivatives in x, for 0 < x < xhat."""
+    r = x - xhat
+    ln = torch.log(x / xhat)
+    return -r * r * ln, -2 * r * ln - r * r / x, -2 * ln - 4 * r / x + r * r / (x * x)
+
+
+def _safe(den: torch.Tensor) -> torch.Tensor:
+    return torch.where(den > 0, den, torch.ones_like(den))
+
+
+def _point_line(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    e = b - a
+    c = torch.linalg.cross(p - a, e)
+    return (c * c).sum(-1) / _safe((e * e).sum(-1))
+
+
+def _vf_distance2(x: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+    """Squared distance of point x[0] to the feature ``kind`` of the triangle x[1:4]: 0 its plane, 1-3 the lines
+    of edges (1 2), (2 3), (3 1), 4-6 its vertices (one-hot (..., 7) ``kind``)."""
+    p, t0, t1, t2 = x.unbind(-2)
+    n = torch.linalg.cross(t1 - t0, t2 - t0)
+    plane = ((p - t0) * n).sum(-1) ** 2 / _safe((n * n).sum(-1))
+    d = torch.stack(
+        [
+            plane,
+            _point_line(p, t0, t1),
+            _point_line(p, t1, t2),
+            _point_line(p, t2, t0),
+            ((p - t0) ** 2).sum(-1),
+            ((p - t1) ** 2).sum(-1),
+            ((p - t2) ** 2).sum(-1),
+        ],
+        -1,
+    )
+    return (d * kind).sum(-1)
+
+
+def _ee_distance2(x: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+    """Squared distance of edges x[0:2] and x[2:4] by the feature pair ``kind``: 0 line-line, 1-2 a0 / a1 to line b,
+    3-4 b0 / b1 to line a, 5-8 the endpoint pairs (a0 b0), (a0 b1), (a1 b0), (a1 b1) (one-hot (..., 9))."""
+    a0, a1, b0, b1 = x.unbind(-2)
+    n = torch.linalg.cross(a1 - a0, b1 - b0)
+    lines = ((b0 - a0) * n).sum(-1) ** 2 / _safe((n * n).sum(-1))
+    d = torch.stack(
+        [
+            lines,
+            _point_line(a0, b0, b1),
+            _point_line(a1, b0, b1),
+            _point_line(b0, a0, a1),
+            _point_line(b1, a0, a1),
+            ((a0 - b0) ** 2).sum(-1),
+            ((a0 - b1) ** 2).sum(-1),
+            ((a1 - b0) ** 2).sum(-1),
+            ((a1 - b1) ** 2).sum(-1),
+        ],
+        -1,
+    )
+    return (d * kind).sum(-1)
+
+
+def _mollifier(x: torch.Tensor, eps_x: torch.Tensor) -> torch.Tensor:
+    """ipc-toolkit's edge-edge mollifier of c = |ea x eb|^2 (1 for vertex-face pairs, whose eps_x is 0)."""
+    n = torch.linalg.cross(x[..., 1, :] - x[..., 0, :], x[..., 3, :] - x[..., 2, :])
+    c = (n * n).sum(-1)
+    s = c / _safe(eps_x)
+    return torch.where(c < eps_x, (2.0 - s) * s, torch.ones_like(c))
+
+
+def _energy(x: torch.Tensor, kind: torch.Tensor, eps_x: torch.Tensor, edge: torch.Tensor, xhat: float):
+    """kappa-free barrier of one primitive pair at its world points x (4, 3): vertex-face (``edge`` 0) or edge-edge
+    (``edge`` 1, mollified), ``kind`` one-hot over 9 features (vertex-face pairs use the first 7)."""
+    d2 = torch.where(edge > 0, _ee_distance2(x, kind), _vf_distance2(x, kind[..., :7]))
+    return _mollifier(x, eps_x) * ipc_barrier_derivatives(d2, xhat)[0]
+
+
+def _classify_vf(x: torch.Tensor) -> torch.Tensor:
+    """(C,) the closest feature (0-6, as ``_vf_distance2``) of triangles x[:, 1:4] to points x[:, 0]."""
+    p, a, b, c = x.unbind(1)
+    ab, ac = b - a, c - a
+    # barycentric coordinates of the projection onto the plane
+    n = torch.linalg.cross(ab, ac)
+    nn = (n * n).sum(-1)
+    u = (torch.linalg.cross(b - p, c - p) * n).sum(-1) / nn
+    v = (torch.linalg.cross(c - p, a - p) * n).sum(-1) / nn
+    w = 1.0 - u - v
+    inside = (u >= 0) & (v >= 0) & (w >= 0)
+    # otherwise the nearest of the three edges (segments: clamped), reported as the edge's line or an endpoint
+    edges = [(a, b, 1, 4, 5), (b, c, 2, 5, 6), (c, a, 3, 6, 4)]
+    best = torch.full_like(nn, float("inf"))
+    kind = torch.zeros_like(nn, dtype=torch.long)
+    for e0, e1, line, k0, k1 in edges:
+        e = e1 - e0
+        s = (((p - e0) * e).sum(-1) / (e * e).sum(-1)).clamp(0.0, 1.0)
+        d = ((p - e0 - s[:, None] * e) ** 2).sum(-1)
+        k = torch.where(s <= 0, k0, torch.where(s >= 1, k1, line))
+        better = d < best
+        best, kind = torch.where(better, d, best), torch.where(better, k, kind)
+    return torch.where(inside, torch.zeros_like(kind), kind)
+
+
+def _classify_ee(x: torch.Tensor) -> torch.Tensor:
+    """(C,) the closest feature pair (0-8, as ``_ee_distance2``) of segments x[:, 0:2] and x[:, 2:4]."""
+    a0, a1, b0, b1 = x.unbind(1)
+    u, v, w = a1 - a0, b1 - b0, a0 - b0
+    a, b, c, d, e = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1), (u * w).sum(-1), (v * w).sum(-1)
+    den = a * c - b * b
+    parallel = den <= 1e-14 * a * c
+    s = torch.where(parallel, torch.zeros_like(a), (b * e - c * d) / _safe(den)).clamp(0.0, 1.0)
+    t = (b * s + e) / c
+    t_cl = t.clamp(0.0, 1.0)
+    s = torch.where((t < 0) | (t > 1), ((b * t_cl - d) / a).clamp(0.0, 1.0), s)
+    t = t_cl
+    sa = torch.where(s <= 0, 0, torch.where(s >= 1, 1, 2))  # a0, a1, interior
+    tb = torch.where(t <= 0, 0, torch.where(t >= 1, 1, 2))
+    table = torch.tensor([[5, 6, 1], [7, 8, 2], [3, 4, 0]], device=x.device)
+    return table[sa, tb]
+
+
+def _closest_points(
+    x: torch.Tensor, kind: torch.Tensor, edge: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The closest points (C, 3) of the two primitives of each pair (its first and its second primitive), for its
+    feature ``kind`` (C,) long; differentiable in the world points x (C, 4, 3)."""
+
+    def on_line(p, a, b):
+        e = b - a
+        return a + (((p - a) * e).sum(-1) / (e * e).sum(-1))[:, None] * e
+
+    p, t0, t1, t2 = x.unbind(1)
+    n = torch.linalg.cross(t1 - t0, t2 - t0)
+    vf_second = torch.stack(
+        [p - (((p - t0) * n).sum(-1) / (n * n).sum(-1))[:, None] * n, on_line(p, t0, t1), on_line(p, t1, t2),
+         on_line(p, t2, t0), t0, t1, t2, p, p], 1,
+    )  # fmt: skip
+    a0, a1, b0, b1 = p, t0, t1, t2
+    u, v, w = a1 - a0, b1 - b0, a0 - b0
+    a, b, c, d, e = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1), (u * w).sum(-1), (v * w).sum(-1)
+    den = _safe(a * c - b * b)
+    sl, tl = (b * e - c * d) / den, (a * e - b * d) / den
+    ee_first = torch.stack(
+        [a0 + sl[:, None] * u, a0, a1, on_line(b0, a0, a1), on_line(b1, a0, a1), a0, a0, a1, a1], 1
+    )
+    ee_second = torch.stack(
+        [b0 + tl[:, None] * v, on_line(a0, b0, b1), on_line(a1, b0, b1), b0, b1, b0, b1, b0, b1], 1
+    )
+    pick = lambda y: y.gather(1, kind[:, None, None].expand(-1, 1, 3))[:, 0]  # noqa: E731
+    is_edge = edge[:, None] > 0
+    return torch.where(is_edge, pick(ee_first), p), torch.where(is_edge, pick(ee_second), pick(vf_second))
+
+
+class _Collisions(NamedTuple):
+    """The primitive pairs within dhat of one evaluation (C of them), and the body pairs near enough to have some.
+
+    Attributes:
+        near: (Q,) the asked pairs whose bodies' boxes come within dhat (the only ones that can have collisions
+            or intersect).
+        pair: (C,) each primitive pair's body pair (index into the asked pairs).
+        X: (C, 4, 3) its body-frame points: a vertex-face pair's vertex then the face, an edge-edge pair's edge of
+            body i then that of body j.
+        side: (C, 4) on which body of the pair each point lies (0: i, 1: j).
+        edge: (C,) 0 vertex-face, 1 edge-edge.
+        kind: (C,) the closest feature (``_vf_distance2`` / ``_ee_distance2``).
+        eps_x: (C,) the mollifier's threshold (0 for vertex-face pairs).
+        x: (C, 4, 3) the world points; d2: (C,) the squared distances.
+    """
+
+    near: torch.Tensor
+    pair: torch.Tensor
+    X: torch.Tensor
+    side: torch.Tensor
+    edge: torch.Tensor
+    kind: torch.Tensor
+    eps_x: torch.Tensor
+    x: torch.Tensor
+    d2: torch.Tensor
+
+
+def _ranges(start: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For groups g with items start[g] .. start[g] + count[g] - 1: (group of each item, item), concatenated."""
+    g = torch.repeat_interleave(torch.arange(len(count), device=count.device), count)
+    first = torch.cumsum(count, 0) - count
+    return g, start[g] + torch.arange(int(count.sum()), device=count.device) - first[g]
+
+
+def _cross(ga: torch.Tensor, gb: torch.Tensor, G: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """All (ia, ib) with ga[ia] == gb[ib] (group ids in [0, G))."""
+    order = torch.argsort(gb, stable=True)
+    cb = torch.bincount(gb, minlength=G)
+    start = torch.cumsum(cb, 0) - cb
+    rep = cb[ga]
+    ia = torch.repeat_interleave(torch.arange(len(ga), device=ga.device), rep)
+    offs = torch.arange(int(rep.sum()), device=ga.device) - (torch.cumsum(rep, 0) - rep)[ia]
+    return ia, order[start[ga[ia]] + offs]
+
+
+class IpcContact:
+    """IPC's log barrier between N bodies (a :class:`cfd_torch.contact.ContactModel`; see the module docstring).
+
+    Args:
+        bshes: the N bodies' hierarchies (their meshes: vertices, faces, and the edges of the faces).
+        dhat: activation distance [m]: the potential, its forces and its gradients are exactly zero beyond it.
+        stiffness: kappa [N / m^3] (b is in m^4: the force of a primitive pair at d = dhat / 2 is about
+            kappa 4.3 dhat^3).
+    """
+
+    warm_start = False
+
+    def __init__(self, bshes: Sequence[BSH], dhat: float = 1e-2, stiffness: float = 1e6) -> None:
+        if not all(isinstance(b, BSH) for b in bshes) or not bshes:
+            raise ValueError("bshes must be a non-empty sequence of cfd_torch.BSH")
+        check_positive(dhat, "dhat")
+        check_positive(stiffness, "stiffness")
+        self.dhat, self.stiffness = float(dhat), float(stiffness)
+        self.num_bodies = len(bshes)
+        X, F, E, vb, fb, eb = [], [], [], [], [], []
+        nv = nf = ne = 0
+        vs, fs, es = [0], [0], [0]
+        for k, b in enumerate(bshes):
+            V = b.vertices.to(torch.float64)
+            Fk = b.faces.to(torch.long)
+            Ek = torch.sort(Fk[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1).values.unique(dim=0)
+            X.append(V)
+            F.append(Fk + nv)
+            E.append(Ek + nv)
+            vb.append(torch.full((len(V),), k))
+            fb.append(torch.full((len(Fk),), k))
+            eb.append(torch.full((len(Ek),), k))
+            nv, nf, ne = nv + len(V), nf + len(Fk), ne + len(Ek)
+            vs.append(nv)
+            fs.append(nf)
+            es.append(ne)
+        self._X, self._F, self._E = torch.cat(X), torch.cat(F), torch.cat(E)
+        self._vbody, self._fbody, self._ebody = torch.cat(vb), torch.cat(fb), torch.cat(eb)
+        self._vstart, self._fstart, self._estart = (torch.tensor(s) for s in (vs, fs, es))
+        uniq: dict[int, int] = {}
+        for b in bshes:
+            uniq.setdefault(id(b), len(uniq))
+        self._bshes = tuple({id(b): b for b in bshes}.values())
+        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self._forest: tuple[Forest, torch.Tensor] | None = None
+
+    # -- the collision query: triangles touching or intersecting
+    def infeasible(
+        self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        if pairs.shape[0] == 0:
+            return torch.zeros(0, dtype=torch.bool, device=poses.device)
+        if self._forest is None:
+            forest = build_forest(self._bshes, torch.float64, torch.device("cpu"))
+            self._forest = (forest, forest.roots[self._which])
+        forest, roots = self._forest
+        cpu = torch.device("cpu")
+        S, N = poses.shape[:2]
+        p = pairs.to(cpu)
+        rows = p[:, :1] * N + p[:, 1:]
+        sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
+        out = penetrating(
+            forest, rows, roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6), margin=0.0,
+            eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
+        )  # fmt: skip
+        return out.to(poses.device)
+
+    # -- the primitive pairs within dhat
+    def _collisions(self, poses: torch.Tensor, pairs: torch.Tensor) -> _Collisions:
+        dev = poses.device
+        S, N = poses.shape[:2]
+        X, Fv, Ev = self._X.to(dev), self._F.to(dev), self._E.to(dev)
+        vbody = self._vbody.to(dev)
+        R = rotation_matrix(poses.reshape(S * N, 6)[:, 3:].detach())
+        t = poses.reshape(S * N, 6)[:, :3].detach()
+        # world vertices of the bodies of the pairs' pose sets, (S, V, 3)
+        rows = torch.arange(S, device=dev)[:, None] * N + vbody[None]
+        W = torch.einsum("svij,vj->svi", R[rows], X) + t[rows]
+        lo = W.new_full((S, N, 3), float("inf")).scatter_reduce(
+            1, vbody[None, :, None].expand(S, -1, 3), W, "amin"
+        )
+        hi = W.new_full((S, N, 3), -float("inf")).scatter_reduce(
+            1, vbody[None, :, None].expand(S, -1, 3), W, "amax"
+        )
+        h = self.dhat
+        s, i, j = pairs.unbind(1)
+        near = ((lo[s, i] <= hi[s, j] + h) & (lo[s, j] <= hi[s, i] + h)).all(1)
+        q = torch.nonzero(near)[:, 0]  # the body pairs whose boxes come within dhat
+        Q = len(q)
+        sq, iq, jq = s[q], i[q], j[q]
+        # the overlap of the two boxes, grown by dhat: only primitives touching it can be within dhat
+        blo = torch.maximum(lo[sq, iq], lo[sq, jq]) - h
+        bhi = torch.minimum(hi[sq, iq], hi[sq, jq]) + h
+
+        def within(g, pts):  # (n,) whether the primitives' points (n, k, 3) have a box meeting group g's
+            return ((pts.amin(1) <= bhi[g]) & (pts.amax(1) >= blo[g])).all(1)
+
+        def primitives(
+            body, start, index
+        ):  # per near pair, the primitives of ``body`` meeting the overlap box
+            g, item = _ranges(start.to(dev)[body], (start.to(dev)[body + 1] - start.to(dev)[body]))
+            ids = item[:, None] if index is None else index[item]
+            pts = W[sq[g][:, None], ids]
+            keep = within(g, pts)
+            return g[keep], item[keep]
+
+        vstart, fstart, estart = self._vstart, self._fstart, self._estart
+        out = []
+        for a_body, b_body, side_a in (
+            (iq, jq, 0),
+            (jq, iq, 1),
+        ):  # vertices of one body against faces of the other
+            gv, v = primitives(a_body, vstart, None)
+            gf, f = primitives(b_body, fstart, Fv)
+            ia, ib = _cross(gv, gf, Q)
+            ids = torch.cat([v[ia][:, None], Fv[f[ib]]], 1)  # (C, 4) vertex, face
+            out.append(
+                (gv[ia], ids, torch.tensor([side_a, 1 - side_a, 1 - side_a, 1 - side_a], device=dev), 0)
+            )
+        ge_i, e_i = primitives(iq, estart, Ev)
+        ge_j, e_j = primitives(jq, estart, Ev)
+        ia, ib = _cross(ge_i, ge_j, Q)
+        out.append(
+            (ge_i[ia], torch.cat([Ev[e_i[ia]], Ev[e_j[ib]]], 1), torch.tensor([0, 0, 1, 1], device=dev), 1)
+        )
+        g = torch.cat([o[0] for o in out])
+        ids = torch.cat([o[1] for o in out])
+        side = torch.cat([o[2].expand(len(o[0]), 4) for o in out])
+        edge = torch.cat([torch.full((len(o[0]),), o[3], device=dev, dtype=torch.long) for o in out])
+        x = W[sq[g][:, None], ids]
+        kind = torch.where(edge > 0, _classify_ee(x), _classify_vf(x)) if len(g) else edge
+        d2 = (
+            torch.where(
+                edge > 0,
+                _ee_distance2(x, torch.nn.functional.one_hot(kind, 9).to(x.dtype)),
+                _vf_distance2(x, torch.nn.functional.one_hot(kind.clamp(max=6), 7).to(x.dtype)),
+            )
+            if len(g)
+            else x.new_zeros(0)
+        )
+        keep = d2 < h * h
+        g, ids, side, edge, kind, x, d2 = (y[keep] for y in (g, ids, side, edge, kind, x, d2))
+        Xb = X[ids]
+        ea, eb = Xb[:, 1] - Xb[:, 0], Xb[:, 3] - Xb[:, 2]
+        eps_x = torch.where(
+            edge > 0, _MOLLIFIER * (ea * ea).sum(-1) * (eb * eb).sum(-1), torch.zeros_like(d2)
+        )
+        return _Collisions(q, q[g], Xb, side, edge, kind, eps_x, x, d2)
+
+    def evaluate(
+        self,
+        poses: torch.Tensor,
+        pairs: torch.Tensor,
+        order: int,
+        ids: torch.Tensor | None = None,
+        warm: object | None = None,
+    ) -> ContactEval:
+        P = pairs.shape[0]
+        f64 = torch.float64
+        poses = poses.detach().to(f64)
+        value = poses.new_zeros(P)
+        grad = poses.new_zeros(P, 12) if order >= 1 else None
+        hess = poses.new_zeros(P, 12, 12) if order >= 2 else None
+        if P == 0:
+            return ContactEval(value, grad, hess, 0, 0)
+        col = self._collisions(poses, pairs)
+        C = len(col.pair)
+        xhat = self.dhat * self.dhat
+        kind = torch.nn.functional.one_hot(col.kind, 9).to(f64)
+        edge = col.edge.to(f64)
+        if C:
+            e = self.stiffness * _energy(col.x, kind, col.eps_x, edge, xhat)
+            value.index_add_(0, col.pair, e)
+        if order >= 1 and C:
+            fn = lambda x, k, ex, ed: self.stiffness * _energy(x, k, ex, ed, xhat)  # noqa: E731
+            gx = torch.func.vmap(torch.func.grad(fn))(col.x, kind, col.eps_x, edge)  # (C, 4, 3)
+            S, N = poses.shape[:2]
+            body = pairs[col.pair][:, 1:].gather(1, col.side)  # (C, 4) the body of each point
+            rows = pairs[col.pair][:, :1] * N + body
+            Rr, dR, d2R = rotation_derivatives(poses.reshape(S * N, 6)[:, 3:], 2 if order >= 2 else 1)
+            dRX = torch.einsum("cpijk,cpj->cpik", dR[rows], col.X)  # (C, 4, 3, 3): d x / d omega_k
+            eye = torch.eye(3, dtype=f64, device=poses.device).expand(C, 4, 3, 3)
+            J6 = torch.cat([eye, dRX], -1)  # (C, 4, 3, 6)
+            on_j = col.side[..., None, None].to(f64)
+            J = torch.cat([J6 * (1 - on_j), J6 * on_j], -1)  # (C, 4, 3, 12)
+            grad.index_add_(0, col.pair, torch.einsum("cpi,cpiq->cq", gx, J))
+            if order >= 2:
+                Hx = torch.func.vmap(torch.func.hessian(fn))(col.x, kind, col.eps_x, edge)  # (C, 4, 3, 4, 3)
+                H = torch.einsum("cpiqj,cpia,cqjb->cab", Hx, J, J)
+                second = torch.einsum("cpi,cpijkl,cpj->cpkl", gx, d2R[rows], col.X)  # (C, 4, 3, 3)
+                for side in (0, 1):
+                    o = 6 * side + 3
+                    H[:, o : o + 3, o : o + 3] += (second * (col.side == side)[..., None, None].to(f64)).sum(
+                        1
+                    )
+                hess.index_add_(0, col.pair, H)
+        if len(col.near):  # touching or intersecting triangles: +inf (as ``infeasible``)
+            bad = self.infeasible(poses, pairs[col.near])
+            value[col.near[bad]] = float("inf")
+        return ContactEval(value, grad, hess, 0, C)
+
+    def lagged(
+        self, poses: torch.Tensor, pairs: torch.Tensor, active: float, create_graph: bool = False
+    ) -> LaggedContacts:
+        S, N = poses.shape[:2]
+        with torch.no_grad():
+            col = self._collisions(poses.detach().to(torch.float64), pairs)
+        body = pairs[col.pair][:, 1:].gather(1, col.side)
+        rows = pairs[col.pair][:, :1] * N + body  # (C, 4)
+        table = poses.reshape(S * N, 6) if create_graph else poses.reshape(S * N, 6).detach()
+        R = rotation_matrix(table[:, 3:])
+        x = torch.einsum("cpij,cpj->cpi", R[rows], col.X) + table[rows, :3]  # world points (C, 4, 3)
+        first, second = _closest_points(x, col.kind, col.edge)
+        # the first primitive lies on body i unless it is a vertex of body j (then swap)
+        swap = (col.side[:, 0] == 1)[:, None]
+        xi, xj = torch.where(swap, second, first), torch.where(swap, first, second)
+        diff = xi - xj
+        d = torch.linalg.vector_norm(diff, dim=-1)
+        n = diff / d[:, None]
+        xhat = self.dhat * self.dhat
+        m = _mollifier(x, col.eps_x)
+        lam = self.stiffness * m * ipc_barrier_derivatives(d * d, xhat)[1].abs() * 2 * d
+        pc = pairs[col.pair]
+        bi, bj = pc[:, 0] * N + pc[:, 1], pc[:, 0] * N + pc[:, 2]
+        Xi = torch.einsum("cji,cj->ci", R[bi], xi - table[bi, :3])
+        Xj = torch.einsum("cji,cj->ci", R[bj], xj - table[bj, :3])
+        keep = torch.ones_like(d, dtype=torch.bool)
+        if active > 0 and len(d):
+            top = d.new_zeros(pairs.shape[0]).scatter_reduce(0, col.pair, lam.detach(), "amax")
+            keep = lam.detach() >= active * top[col.pair]
+        T = torch.eye(3, dtype=n.dtype, device=n.device) - n[:, :, None] * n[:, None, :]
+        return LaggedContacts(
+            col.pair[keep], torch.stack([Xi, Xj], 1)[keep], torch.stack([xi, xj], 1)[keep], T[keep], lam[keep]
+        )

@@ -1,0 +1,164 @@
+"""The IPC baseline contact model (``cfd_torch.contact.ipc``): against ipc-toolkit, its vanishing far field, and
+in the stepper (a resting box, a collision, friction, rollout gradients)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from cfd_torch import Action, Scene, State, rigid_body, step
+from cfd_torch.contact.bsh import BSH
+from cfd_torch.contact.cfd import CfdContact
+from cfd_torch.contact.ipc import IpcContact
+from cfd_torch.rotation import rotation_matrix
+from cfd_torch.sim.stepper import rollout
+
+F64 = torch.float64
+PAIR = torch.tensor([[0, 0, 1]])
+
+
+def _world(bshes, q: torch.Tensor) -> torch.Tensor:
+    return torch.cat(
+        [
+            b.vertices.double() @ rotation_matrix(p[None, 3:])[0].T + p[:3]
+            for b, p in zip(bshes, q, strict=True)
+        ]
+    )
+
+
+def _touching_at(model, q: torch.Tensor, direction: torch.Tensor, gap: float) -> torch.Tensor:
+    """q with body 1 moved along ``direction`` to ``gap`` beyond where the two first touch (bisection on the
+    model's collision query)."""
+    lo, hi = 0.0, 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        qq = q.clone()
+        qq[1, :3] = mid * direction
+        lo, hi = (mid, hi) if bool(model.infeasible(qq[None], PAIR)[0]) else (lo, mid)
+    out = q.clone()
+    out[1, :3] = (hi + gap) * direction
+    return out
+
+
+def test_ipc_matches_ipc_toolkit_on_random_configurations():
+    """Value, pose gradient and pose Hessian of an icosphere and a box in random relative poses within dhat equal
+    ipc-toolkit 1.6.1's BarrierPotential on the world vertices, chained to the poses (J^T g and J^T H J + g . d2V),
+    to 1e-12 relative."""
+    ipctk = pytest.importorskip("ipctk")
+    a, b = trimesh.creation.icosphere(1, 0.1), trimesh.creation.box((0.2, 0.15, 0.1))
+    bshes = (BSH.from_trimesh(a), BSH.from_trimesh(b))
+    dhat, kappa = 0.02, 1e6
+    model = IpcContact(bshes, dhat, kappa)
+    F = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    gen = torch.Generator().manual_seed(0)
+    checked = 0
+    for _ in range(4):
+        q = torch.zeros(2, 6, dtype=F64)
+        q[:, 3:] = torch.randn(2, 3, generator=gen, dtype=F64)
+        d = torch.randn(3, generator=gen, dtype=F64)
+        q = _touching_at(model, q, d / d.norm(), float(torch.rand(1, generator=gen)) * 0.8 * dhat)
+        ev = model.evaluate(q[None], PAIR, 2)
+        V = _world(bshes, q).numpy()
+        mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+        mesh.can_collide = ipctk.make_connected_components_filter(F)
+        C = ipctk.NormalCollisions()
+        C.build(mesh, V, dhat)
+        B = ipctk.BarrierPotential(dhat, kappa)
+        g = torch.tensor(B.gradient(C, mesh, V))
+        H = torch.tensor(B.hessian(C, mesh, V).toarray())
+        x = q.reshape(-1)
+        J = torch.autograd.functional.jacobian(lambda z: _world(bshes, z.reshape(2, 6)).reshape(-1), x)
+        Hg = torch.autograd.functional.hessian(
+            lambda z, g=g: _world(bshes, z.reshape(2, 6)).reshape(-1) @ g, x
+        )
+        assert len(C) > 0 and float(ev.value[0]) > 0
+        assert float(ev.value[0]) == pytest.approx(B(C, mesh, V), rel=1e-12)
+        gq, Hq = J.T @ g, J.T @ H @ J + Hg
+        assert float((ev.grad[0] - gq).abs().max()) <= 1e-12 * float(gq.abs().max())
+        assert float((ev.hess[0] - Hq).abs().max()) <= 1e-12 * float(Hq.abs().max())
+        checked += 1
+    assert checked == 4
+
+
+def test_ipc_vanishes_beyond_dhat_where_ours_does_not():
+    """Two spheres 5 cm apart with dhat 1 cm: IPC's value and gradient are exactly zero, this library's are not;
+    touching or intersecting bodies are +inf and infeasible."""
+    s = BSH.from_trimesh(trimesh.creation.icosphere(2, 0.1))
+    q = torch.zeros(2, 6, dtype=F64)
+    q[1, 0] = 0.25
+    ipc = IpcContact([s, s], dhat=0.01)
+    ev = ipc.evaluate(q[None], PAIR, 2)
+    assert float(ev.value[0]) == 0.0 and float(ev.grad.abs().max()) == 0.0 and ev.leaf_pairs == 0
+    ours = CfdContact([s, s]).evaluate(q[None], PAIR, 1)
+    assert float(ours.grad[0, 0]) > 0.0  # pushes body 0 toward -x: dP/dx0 > 0
+    q[1, 0] = 0.15
+    assert bool(ipc.infeasible(q[None], PAIR)[0]) and float(ipc.evaluate(q[None], PAIR, 0).value[0]) == np.inf
+    with pytest.raises(ValueError, match="dhat"):
+        IpcContact([s, s], dhat=0.0)
+    ball = rigid_body(trimesh.creation.icosphere(1, 0.1))
+    with pytest.raises(ValueError, match="ContactConfig.potential must be 'cfd' or 'ipc'"):
+        Scene([ball], potential="sdf")
+    with pytest.raises(ValueError, match="ContactConfig.barrier_stiffness"):
+        Scene([ball], potential="ipc", barrier_stiffness=-1.0)
+
+
+def _box(extent: float, **kw):
+    return rigid_body(trimesh.creation.box((extent,) * 3), **kw)
+
+
+def test_ipc_box_rests_holds_and_slides():
+    """A 0.2 m box dropped 3 cm onto a floor with potential="ipc" (dhat 1 cm, kappa 1e6): it settles above the
+    floor within dhat and stays; pushed with 10 N (friction 0.5: mu m g = 39 N) it holds to a millimetre over
+    0.5 s (the soft barrier lets it tilt), pushed with 60 N it slides."""
+    floor = trimesh.creation.box((2.0, 2.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    box = _box(0.2)
+    scene = Scene([box, rigid_body(floor, kind="static")], potential="ipc", friction=0.5)
+    assert isinstance(scene.contact_model, IpcContact)
+    q = torch.zeros(2, 6, dtype=F64)
+    q[0, 2] = 0.13
+    traj = rollout(scene, State(q, q.clone()), 60)
+    gap = traj.q[:, 0, 2] - 0.1
+    assert float(gap.min()) > 0.0
+    assert 0.0 < float(gap[-10:].min()) and float(gap[-10:].max()) < 0.01
+    assert float((gap[-10:] - gap[-1]).abs().max()) < 1e-4  # at rest, to its last bounces of about 10 um
+    rest = traj[-1]
+    for force, lo, hi in ((10.0, 0.0, 2e-3), (60.0, 0.05, 1.0)):
+        s = rest
+        push = Action(force=torch.tensor([[force, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=F64))
+        for _ in range(50):
+            s = step(scene, s, push)
+        assert lo <= float(s.q[0, 0] - rest.q[0, 0]) < hi, force
+
+
+def test_ipc_collision_and_rollout_gradient():
+    """Two balls meeting head on with potential="ipc" (no gravity): momentum conserved, they part, and the
+    gradient of the struck ball's final position in the striker's initial velocity matches central differences
+    (non-zero: the contact acts)."""
+    ball = rigid_body(trimesh.creation.icosphere(2, 0.05), density=500.0)
+    scene = Scene([ball, ball], potential="ipc", gravity=(0.0, 0.0, 0.0), dhat=5e-3, barrier_stiffness=1e6)
+    q0 = torch.zeros(2, 6, dtype=F64)
+    q0[1, 0] = 0.12
+
+    def run(v: torch.Tensor):
+        vel = torch.zeros(2, 6, dtype=F64)
+        vel[0, :3] = v
+        return rollout(scene, scene.initial_state(q0, vel), 30)
+
+    v = torch.tensor([0.5, 0.02, 0.0], dtype=F64, requires_grad=True)
+    traj = run(v)
+    P = (traj.q[-1] - traj.q[-2])[:, :3].sum(0) / scene.dt * ball.mass
+    assert torch.allclose(P, ball.mass * v.detach(), rtol=0, atol=1e-9 * ball.mass)
+    assert float(traj.q[-1, 1, 0] - traj.q[-1, 0, 0]) > 0.1 + 5e-3  # struck and parted
+    w = torch.tensor([1.0, 0.5, 0.0], dtype=F64)
+    (g,) = torch.autograd.grad(traj.q[-1, 1, :3] @ w, v)
+    assert float(g.abs().max()) > 1e-2
+    h = 1e-6
+    for k in range(2):
+        e = torch.zeros(3, dtype=F64)
+        e[k] = h
+        with torch.no_grad():
+            fd = (run(v + e).q[-1, 1, :3] @ w - run(v - e).q[-1, 1, :3] @ w) / (2 * h)
+        assert float(g[k]) == pytest.approx(float(fd), rel=1e-5, abs=1e-8)
