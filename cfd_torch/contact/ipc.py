@@ -32,7 +32,8 @@ from typing import NamedTuple
 import torch
 
 from .._validate import check_positive
-from ..rotation import rotation_derivatives, rotation_matrix
+from ..rotation import rotation_matrix
+from ._primitives import Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
 from ._traverse import Forest, build_forest, penetrating
 from .bsh import BSH
 from .model import ContactEval, LaggedContacts
@@ -221,24 +222,6 @@ class _Collisions(NamedTuple):
     d2: torch.Tensor
 
 
-def _ranges(start: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """For groups g with items start[g] .. start[g] + count[g] - 1: (group of each item, item), concatenated."""
-    g = torch.repeat_interleave(torch.arange(len(count), device=count.device), count)
-    first = torch.cumsum(count, 0) - count
-    return g, start[g] + torch.arange(int(count.sum()), device=count.device) - first[g]
-
-
-def _cross(ga: torch.Tensor, gb: torch.Tensor, G: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """All (ia, ib) with ga[ia] == gb[ib] (group ids in [0, G))."""
-    order = torch.argsort(gb, stable=True)
-    cb = torch.bincount(gb, minlength=G)
-    start = torch.cumsum(cb, 0) - cb
-    rep = cb[ga]
-    ia = torch.repeat_interleave(torch.arange(len(ga), device=ga.device), rep)
-    offs = torch.arange(int(rep.sum()), device=ga.device) - (torch.cumsum(rep, 0) - rep)[ia]
-    return ia, order[start[ga[ia]] + offs]
-
-
 class IpcContact:
     """IPC's log barrier between N bodies (a :class:`cfd_torch.contact.ContactModel`; see the module docstring).
 
@@ -258,26 +241,7 @@ class IpcContact:
         check_positive(stiffness, "stiffness")
         self.dhat, self.stiffness = float(dhat), float(stiffness)
         self.num_bodies = len(bshes)
-        X, F, E, vb, fb, eb = [], [], [], [], [], []
-        nv = nf = ne = 0
-        vs, fs, es = [0], [0], [0]
-        for k, b in enumerate(bshes):
-            V = b.vertices.to(torch.float64)
-            Fk = b.faces.to(torch.long)
-            Ek = torch.sort(Fk[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1).values.unique(dim=0)
-            X.append(V)
-            F.append(Fk + nv)
-            E.append(Ek + nv)
-            vb.append(torch.full((len(V),), k))
-            fb.append(torch.full((len(Fk),), k))
-            eb.append(torch.full((len(Ek),), k))
-            nv, nf, ne = nv + len(V), nf + len(Fk), ne + len(Ek)
-            vs.append(nv)
-            fs.append(nf)
-            es.append(ne)
-        self._X, self._F, self._E = torch.cat(X), torch.cat(F), torch.cat(E)
-        self._vbody, self._fbody, self._ebody = torch.cat(vb), torch.cat(fb), torch.cat(eb)
-        self._vstart, self._fstart, self._estart = (torch.tensor(s) for s in (vs, fs, es))
+        self._meshes = Meshes.build(bshes)
         uniq: dict[int, int] = {}
         for b in bshes:
             uniq.setdefault(id(b), len(uniq))
@@ -309,58 +273,23 @@ class IpcContact:
     # -- the primitive pairs within dhat
     def _collisions(self, poses: torch.Tensor, pairs: torch.Tensor) -> _Collisions:
         dev = poses.device
-        S, N = poses.shape[:2]
-        X, Fv, Ev = self._X.to(dev), self._F.to(dev), self._E.to(dev)
-        vbody = self._vbody.to(dev)
-        R = rotation_matrix(poses.reshape(S * N, 6)[:, 3:].detach())
-        t = poses.reshape(S * N, 6)[:, :3].detach()
-        # world vertices of the bodies of the pairs' pose sets, (S, V, 3)
-        rows = torch.arange(S, device=dev)[:, None] * N + vbody[None]
-        W = torch.einsum("svij,vj->svi", R[rows], X) + t[rows]
-        lo = W.new_full((S, N, 3), float("inf")).scatter_reduce(
-            1, vbody[None, :, None].expand(S, -1, 3), W, "amin"
-        )
-        hi = W.new_full((S, N, 3), -float("inf")).scatter_reduce(
-            1, vbody[None, :, None].expand(S, -1, 3), W, "amax"
-        )
+        m = self._meshes
         h = self.dhat
-        s, i, j = pairs.unbind(1)
-        near = ((lo[s, i] <= hi[s, j] + h) & (lo[s, j] <= hi[s, i] + h)).all(1)
-        q = torch.nonzero(near)[:, 0]  # the body pairs whose boxes come within dhat
-        Q = len(q)
-        sq, iq, jq = s[q], i[q], j[q]
-        # the overlap of the two boxes, grown by dhat: only primitives touching it can be within dhat
-        blo = torch.maximum(lo[sq, iq], lo[sq, jq]) - h
-        bhi = torch.minimum(hi[sq, iq], hi[sq, jq]) + h
-
-        def within(g, pts):  # (n,) whether the primitives' points (n, k, 3) have a box meeting group g's
-            return ((pts.amin(1) <= bhi[g]) & (pts.amax(1) >= blo[g])).all(1)
-
-        def primitives(
-            body, start, index
-        ):  # per near pair, the primitives of ``body`` meeting the overlap box
-            g, item = _ranges(start.to(dev)[body], (start.to(dev)[body + 1] - start.to(dev)[body]))
-            ids = item[:, None] if index is None else index[item]
-            pts = W[sq[g][:, None], ids]
-            keep = within(g, pts)
-            return g[keep], item[keep]
-
-        vstart, fstart, estart = self._vstart, self._fstart, self._estart
+        near = near_pairs(m, poses, pairs, h)
+        Q = len(near.pair)
+        Fv, Ev = m.F.to(dev), m.E.to(dev)
         out = []
-        for a_body, b_body, side_a in (
-            (iq, jq, 0),
-            (jq, iq, 1),
-        ):  # vertices of one body against faces of the other
-            gv, v = primitives(a_body, vstart, None)
-            gf, f = primitives(b_body, fstart, Fv)
-            ia, ib = _cross(gv, gf, Q)
+        for a_body, b_body, side_a in ((near.i, near.j, 0), (near.j, near.i, 1)):  # vertices against faces
+            gv, v = primitives(near, a_body, m.vstart, None)
+            gf, f = primitives(near, b_body, m.fstart, Fv)
+            ia, ib = grouped_cross(gv, gf, Q)
             ids = torch.cat([v[ia][:, None], Fv[f[ib]]], 1)  # (C, 4) vertex, face
             out.append(
                 (gv[ia], ids, torch.tensor([side_a, 1 - side_a, 1 - side_a, 1 - side_a], device=dev), 0)
             )
-        ge_i, e_i = primitives(iq, estart, Ev)
-        ge_j, e_j = primitives(jq, estart, Ev)
-        ia, ib = _cross(ge_i, ge_j, Q)
+        ge_i, e_i = primitives(near, near.i, m.estart, Ev)
+        ge_j, e_j = primitives(near, near.j, m.estart, Ev)
+        ia, ib = grouped_cross(ge_i, ge_j, Q)
         out.append(
             (ge_i[ia], torch.cat([Ev[e_i[ia]], Ev[e_j[ib]]], 1), torch.tensor([0, 0, 1, 1], device=dev), 1)
         )
@@ -368,25 +297,18 @@ class IpcContact:
         ids = torch.cat([o[1] for o in out])
         side = torch.cat([o[2].expand(len(o[0]), 4) for o in out])
         edge = torch.cat([torch.full((len(o[0]),), o[3], device=dev, dtype=torch.long) for o in out])
-        x = W[sq[g][:, None], ids]
+        x = near.W[near.s[g][:, None], ids]
         kind = torch.where(edge > 0, _classify_ee(x), _classify_vf(x)) if len(g) else edge
-        d2 = (
-            torch.where(
-                edge > 0,
-                _ee_distance2(x, torch.nn.functional.one_hot(kind, 9).to(x.dtype)),
-                _vf_distance2(x, torch.nn.functional.one_hot(kind.clamp(max=6), 7).to(x.dtype)),
-            )
-            if len(g)
-            else x.new_zeros(0)
-        )
+        one_hot = torch.nn.functional.one_hot(kind, 9).to(x.dtype)
+        d2 = torch.where(edge > 0, _ee_distance2(x, one_hot), _vf_distance2(x, one_hot[..., :7]))
         keep = d2 < h * h
         g, ids, side, edge, kind, x, d2 = (y[keep] for y in (g, ids, side, edge, kind, x, d2))
-        Xb = X[ids]
+        Xb = m.X.to(dev)[ids]
         ea, eb = Xb[:, 1] - Xb[:, 0], Xb[:, 3] - Xb[:, 2]
         eps_x = torch.where(
             edge > 0, _MOLLIFIER * (ea * ea).sum(-1) * (eb * eb).sum(-1), torch.zeros_like(d2)
         )
-        return _Collisions(q, q[g], Xb, side, edge, kind, eps_x, x, d2)
+        return _Collisions(near.pair, near.pair[g], Xb, side, edge, kind, eps_x, x, d2)
 
     def evaluate(
         self,
@@ -415,25 +337,13 @@ class IpcContact:
         if order >= 1 and C:
             fn = lambda x, k, ex, ed: self.stiffness * _energy(x, k, ex, ed, xhat)  # noqa: E731
             gx = torch.func.vmap(torch.func.grad(fn))(col.x, kind, col.eps_x, edge)  # (C, 4, 3)
-            S, N = poses.shape[:2]
+            N = poses.shape[1]
             body = pairs[col.pair][:, 1:].gather(1, col.side)  # (C, 4) the body of each point
             rows = pairs[col.pair][:, :1] * N + body
-            Rr, dR, d2R = rotation_derivatives(poses.reshape(S * N, 6)[:, 3:], 2 if order >= 2 else 1)
-            dRX = torch.einsum("cpijk,cpj->cpik", dR[rows], col.X)  # (C, 4, 3, 3): d x / d omega_k
-            eye = torch.eye(3, dtype=f64, device=poses.device).expand(C, 4, 3, 3)
-            J6 = torch.cat([eye, dRX], -1)  # (C, 4, 3, 6)
-            on_j = col.side[..., None, None].to(f64)
-            J = torch.cat([J6 * (1 - on_j), J6 * on_j], -1)  # (C, 4, 3, 12)
-            grad.index_add_(0, col.pair, torch.einsum("cpi,cpiq->cq", gx, J))
-            if order >= 2:
-                Hx = torch.func.vmap(torch.func.hessian(fn))(col.x, kind, col.eps_x, edge)  # (C, 4, 3, 4, 3)
-                H = torch.einsum("cpiqj,cpia,cqjb->cab", Hx, J, J)
-                second = torch.einsum("cpi,cpijkl,cpj->cpkl", gx, d2R[rows], col.X)  # (C, 4, 3, 3)
-                for side in (0, 1):
-                    o = 6 * side + 3
-                    H[:, o : o + 3, o : o + 3] += (second * (col.side == side)[..., None, None].to(f64)).sum(
-                        1
-                    )
+            Hx = torch.func.vmap(torch.func.hessian(fn))(col.x, kind, col.eps_x, edge) if order >= 2 else None
+            g, H = chain_to_poses(gx, Hx, col.X, col.side, rows, poses)
+            grad.index_add_(0, col.pair, g)
+            if H is not None:
                 hess.index_add_(0, col.pair, H)
         if len(col.near):  # touching or intersecting triangles: +inf (as ``infeasible``)
             bad = self.infeasible(poses, pairs[col.near])
