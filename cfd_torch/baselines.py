@@ -21,7 +21,14 @@ from ._geometry import triangle_closest_points
 from ._validate import check_positive, check_triangles
 from .config import DEFAULT_CONTACT
 
-__all__ = ["ipc_barrier", "ipc_pair_barrier", "sdrs_barrier", "sdrs_pair_potential"]
+__all__ = [
+    "ipc_barrier",
+    "ipc_pair_barrier",
+    "sdrs_barrier",
+    "sdrs_energy",
+    "sdrs_pair_potential",
+    "sdrs_planes",
+]
 
 
 def ipc_barrier(x: torch.Tensor, xhat: float) -> torch.Tensor:
@@ -79,7 +86,8 @@ def _barycentric(tri: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     return torch.stack([1 - v - t, v, t], -1)
 
 
-def _sdrs_energy(p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float) -> torch.Tensor:
+def sdrs_energy(p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float) -> torch.Tensor:
+    """(K,) the SDRS energy (kappa 1) of triangle pairs X (K, 6, 3) for planes p (K, 4)."""
     sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
     s = sg * (torch.einsum("kvc,kc->kv", X, p[:, :3]) + p[:, 3:]) - margin / 2
     r = torch.linalg.vector_norm(p[:, :3], dim=-1)
@@ -113,7 +121,14 @@ def sdrs_pair_potential(
     check_triangles(tri_a, "tri_a")
     check_triangles(tri_b, "tri_b")
     X = torch.cat([tri_a, tri_b], 1).to(torch.float64)
-    Xd = X.detach()
+    p = sdrs_planes(X.detach(), dhat, margin, iters)
+    return kappa * sdrs_energy(p, X, dhat, margin).to(tri_a.dtype)
+
+
+def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -> torch.Tensor:
+    """(K, 4) the planes (n, d) minimising the SDRS energy of triangle pairs Xd (K, 6, 3) (float64, vertices of a
+    then b), by damped Newton from this library's feasible start, enlarged toward |n| = 1 - dhat / 2 so that far
+    pairs start where the energy is exactly zero. Raises ValueError if a pair is within the margin."""
     from .contact._pair_torch import start_planes
 
     p, dist = start_planes(Xd, margin)
@@ -121,33 +136,41 @@ def sdrs_pair_potential(
         raise ValueError("sdrs_pair_potential: some triangle pairs are within the margin")
     # The start has |n| < 1 and all gaps > 0; enlarge |n| toward 1 - dhat/2 so far pairs start in the zero region.
     p = p * ((1.0 - 0.5 * dhat) / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
-    p = torch.where(
-        torch.isfinite(_sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0]
-    )
+    p = torch.where(torch.isfinite(sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0])
 
     def total(q: torch.Tensor) -> torch.Tensor:
-        return _sdrs_energy(q, Xd, dhat, margin).sum()
+        return sdrs_energy(q, Xd, dhat, margin).sum()
 
     for _ in range(iters):
-        e = _sdrs_energy(p, Xd, dhat, margin)
+        e = sdrs_energy(p, Xd, dhat, margin)
         if bool((e == 0).all()):
             break
         g = torch.func.grad(total)(p)
-        H = torch.func.vmap(torch.func.hessian(lambda q, x: _sdrs_energy(q[None], x[None], dhat, margin)[0]))(
+        H = torch.func.vmap(torch.func.hessian(lambda q, x: sdrs_energy(q[None], x[None], dhat, margin)[0]))(
             p, Xd
         )
         H = (
             H
-            + 1e-12 * torch.eye(4, dtype=X.dtype) * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None]
+            + 1e-12
+            * torch.eye(4, dtype=Xd.dtype, device=Xd.device)
+            * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None]
         )
-        step = torch.linalg.solve(H + 1e-30 * torch.eye(4, dtype=X.dtype), -g[..., None]).squeeze(-1)
+        step = torch.linalg.solve(
+            H + 1e-30 * torch.eye(4, dtype=Xd.dtype, device=Xd.device), -g[..., None]
+        ).squeeze(-1)
         a = torch.ones_like(e)
         for _ls in range(40):
-            e_new = _sdrs_energy(p + a[:, None] * step, Xd, dhat, margin)
+            e_new = sdrs_energy(p + a[:, None] * step, Xd, dhat, margin)
             bad = ~(e_new <= e)
             if not bool(bad.any()):
                 break
             a = torch.where(bad, 0.5 * a, a)
         ok = e_new <= e
         p = torch.where(ok[:, None], p + a[:, None] * step, p)
-    return kappa * _sdrs_energy(p.detach(), X, dhat, margin).to(tri_a.dtype)
+        # converged: Newton steps at rounding level, or no pair's energy falls any more (the value and its vertex
+        # gradient are stationary in the plane, so a plane off by 1e-10 changes them at that order)
+        small = step.abs().amax(-1) <= 1e-10 * (1.0 + p.abs().amax(-1))
+        stalled = ~ok | (e - e_new <= 1e-15 * e.abs())
+        if bool((small | stalled | (e == 0)).all()):
+            break
+    return p

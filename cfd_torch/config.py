@@ -10,9 +10,10 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "DEFAULT_CONTACT"]
+__all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "POTENTIALS", "DEFAULT_CONTACT"]
 
 SPLIT_RULES = ("both", "larger")
+POTENTIALS = ("cfd", "ipc", "sdrs")
 
 
 def _positive(owner: str, name: str, value: object) -> None:
@@ -47,12 +48,13 @@ class ContactConfig:
             larger than its partner's makes every partner triangle inside it an exact leaf pair, so a coarse floor
             costs several times a fine one.
         potential: the contact potential a :class:`cfd_torch.Scene` simulates: "cfd" (this library's, the fields
-            above) or "ipc", IPC's log barrier over vertex-face and edge-edge pairs within ``dhat``
-            (:class:`cfd_torch.contact.ipc.IpcContact`, ipc-toolkit's definition: a baseline whose forces and
-            gradients vanish beyond ``dhat``; obstacles are not refined for it). Friction and the solver are the
-            same for both.
-        dhat: IPC's activation distance [m].
-        barrier_stiffness: IPC's kappa [N / m^3].
+            above); or one of the locally supported baselines, whose forces and gradients vanish beyond ``dhat``
+            (obstacles are not refined for them): "ipc", IPC's log barrier over vertex-face and edge-edge pairs
+            (:class:`cfd_torch.contact.ipc.IpcContact`, ipc-toolkit's definition), or "sdrs", the local plane
+            barrier over triangle pairs (:class:`cfd_torch.contact.sdrs.SdrsContact`, with ``margin``). Friction
+            and the solver are the same for all.
+        dhat: the baselines' activation distance [m].
+        barrier_stiffness: the baselines' kappa; None: the model's default (IPC 1e6 N / m^3, SDRS 10).
     """
 
     stiffness: float = 1e-8
@@ -63,15 +65,16 @@ class ContactConfig:
     pair_max_iter: int = 100
     backend: Literal["auto", "torch"] = "auto"
     refine_obstacles: float | None = 2.0
-    potential: Literal["cfd", "ipc"] = "cfd"
+    potential: Literal["cfd", "ipc", "sdrs"] = "cfd"
     dhat: float = 1e-2
-    barrier_stiffness: float = 1e6
+    barrier_stiffness: float | None = None
 
     def __post_init__(self) -> None:
-        if self.potential not in ("cfd", "ipc"):
-            raise ValueError(f"ContactConfig.potential must be 'cfd' or 'ipc', got {self.potential!r}")
+        if self.potential not in POTENTIALS:
+            raise ValueError(f"ContactConfig.potential must be one of {POTENTIALS}, got {self.potential!r}")
         _positive("ContactConfig", "dhat", self.dhat)
-        _positive("ContactConfig", "barrier_stiffness", self.barrier_stiffness)
+        if self.barrier_stiffness is not None:
+            _positive("ContactConfig", "barrier_stiffness", self.barrier_stiffness)
         if self.refine_obstacles is not None:
             _positive("ContactConfig", "refine_obstacles", self.refine_obstacles)
         if self.backend not in ("auto", "torch"):

@@ -14,6 +14,7 @@ from ..contact.cfd import CfdContact
 from ..contact.ipc import IpcContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
+from ..contact.sdrs import SdrsContact
 from ._checks import check_state_tensor
 from .articulation import ArticulatedKinematics, Articulation
 from .bodies import RigidBody, refine_obstacles
@@ -67,8 +68,8 @@ class Scene:
             start state (:class:`~cfd_torch.sim.kinematics.FreeBodies`). For table-top scenes such as billiards:
             no table is needed and no contact can lift a body out of its plane. Not with articulations.
         **shorthand: a config field by a flat name, e.g. ``mu`` (``contact.stiffness``), ``margin``, ``eps``,
-            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``potential`` ("cfd" or
-            "ipc": the contact potential), ``dhat``, ``barrier_stiffness``, ``friction_eps_v``
+            ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``potential`` ("cfd", "ipc"
+            or "sdrs": the contact potential), ``dhat``, ``barrier_stiffness``, ``friction_eps_v``
             (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
             ``reach_shrink``, ``substeps``, ``fast``.
 
@@ -179,10 +180,14 @@ class Scene:
         self._given_contact_model = contact_model
         if contact_model is not None:
             self.contact_model = contact_model
-        elif self.contact.potential == "ipc":
-            self.contact_model = IpcContact(
-                [b.bsh for b in bodies], self.contact.dhat, self.contact.barrier_stiffness
-            )
+        elif self.contact.potential != "cfd":
+            c = self.contact
+            kappa = {} if c.barrier_stiffness is None else {"stiffness": c.barrier_stiffness}
+            bshes = [b.bsh for b in bodies]
+            self.contact_model = (
+                IpcContact(bshes, c.dhat, **kappa) if c.potential == "ipc"
+                else SdrsContact(bshes, c.dhat, margin=c.margin, **kappa)
+            )  # fmt: skip
         else:
             self.contact_model = CfdContact([b.bsh for b in bodies], self.contact)
         # farthest vertex of each body from its frame origin: bounds vertex displacements

@@ -1,0 +1,224 @@
+"""SDRS's local plane barrier between rigid bodies as a contact model: the experiments' ``sdrs`` baseline.
+
+The separating-plane construction of this library's exact pair potential with every term replaced by the locally
+supported barrier B(y) = -(y - dhat)^2 ln(y / dhat) / y (0 for y >= dhat, :func:`cfd_torch.baselines.sdrs_barrier`),
+summed over the triangle pairs of two bodies with no hierarchy, no blend and no central term::
+
+    P = kappa sum_(ta, tb) min_p [ B(1 - |n|) + sum_k B(sg_k (n . x_k + d) - delta / 2) ]
+
+A triangle pair contributes exactly zero once some plane with |n| <= 1 - dhat leaves its six vertices dhat + delta / 2
+away, in particular whenever the triangles are farther apart than 2 (dhat + delta / 2) / (1 - dhat): only pairs closer
+than that are evaluated (the bodies' boxes, then the triangles' distances), and no force or gradient reaches bodies
+farther apart. A pair within the margin delta (or intersecting) is +inf, as for this library's potential.
+
+Derivatives by the implicit function theorem at each pair's optimal plane p*(x) (x: its 18 vertex coordinates):
+grad = f_x and Hessian f_xx - f_xp f_pp^-1 f_px of f(p, x), from ``torch.func``, chained to the two bodies' poses.
+Lagged friction: one contact per active triangle pair, this library's construction (the vertex forces
+kappa |B'(s_k)| |n| along the plane normal, their sum on one triangle the normal force, their centres the contact
+points).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from .._geometry import triangle_closest_points
+from .._validate import check_positive
+from ..baselines import sdrs_barrier, sdrs_energy, sdrs_planes
+from ..rotation import rotation_matrix
+from ._primitives import Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
+from ._traverse import Forest, build_forest, penetrating
+from .bsh import BSH
+from .model import ContactEval, LaggedContacts
+
+__all__ = ["SdrsContact"]
+
+_SIDE = torch.tensor([0, 0, 0, 1, 1, 1])  # a triangle pair's six vertices: three of body i, three of body j
+
+
+class SdrsContact:
+    """SDRS's local plane barrier between N bodies (a :class:`cfd_torch.contact.ContactModel`; module docstring).
+
+    Args:
+        bshes: the N bodies' hierarchies (their triangles).
+        dhat: the barrier's support [m].
+        stiffness: kappa [N m^-1 per unit B'; B is in m]: a vertex dhat / 2 from the plane pushes with about
+            3 kappa.
+        margin: delta [m], as this library's potential.
+    """
+
+    warm_start = False
+
+    def __init__(
+        self, bshes: Sequence[BSH], dhat: float = 1e-2, stiffness: float = 10.0, margin: float = 1e-3
+    ):
+        if not bshes or not all(isinstance(b, BSH) for b in bshes):
+            raise ValueError("bshes must be a non-empty sequence of cfd_torch.BSH")
+        for name, v in (("dhat", dhat), ("stiffness", stiffness), ("margin", margin)):
+            check_positive(v, name)
+        if not dhat < 1.0:
+            raise ValueError(f"dhat must be below 1 (the plane's normal has |n| <= 1 - dhat), got {dhat}")
+        self.dhat, self.stiffness, self.margin = float(dhat), float(stiffness), float(margin)
+        self.num_bodies = len(bshes)
+        self._meshes = Meshes.build(bshes)
+        uniq: dict[int, int] = {}
+        for b in bshes:
+            uniq.setdefault(id(b), len(uniq))
+        self._bshes = tuple({id(b): b for b in bshes}.values())
+        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self._forest: tuple[Forest, torch.Tensor] | None = None
+
+    @property
+    def reach(self) -> float:
+        """Triangles farther apart than this contribute exactly zero [m]."""
+        return 2.0 * (self.dhat + 0.5 * self.margin) / (1.0 - self.dhat)
+
+    def infeasible(
+        self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        if pairs.shape[0] == 0:
+            return torch.zeros(0, dtype=torch.bool, device=poses.device)
+        if self._forest is None:
+            forest = build_forest(self._bshes, torch.float64, torch.device("cpu"))
+            self._forest = (forest, forest.roots[self._which])
+        forest, roots = self._forest
+        cpu = torch.device("cpu")
+        S, N = poses.shape[:2]
+        p = pairs.to(cpu)
+        sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
+        out = penetrating(
+            forest, p[:, :1] * N + p[:, 1:], roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6),
+            margin=self.margin, eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
+        )  # fmt: skip
+        return out.to(poses.device)
+
+    def _triangle_pairs(self, poses: torch.Tensor, pairs: torch.Tensor):
+        """The near body pairs (Q,), and the feasible triangle pairs within reach: their body pair (C,), body-frame
+        and world vertices (C, 6, 3)."""
+        m = self._meshes
+        dev = poses.device
+        near = near_pairs(m, poses, pairs, self.reach)
+        Fv = m.F.to(dev)
+        ga, fa = primitives(near, near.i, m.fstart, Fv)
+        gb, fb = primitives(near, near.j, m.fstart, Fv)
+        ia, ib = grouped_cross(ga, gb, len(near.pair))
+        g = ga[ia]
+        ids = torch.cat([Fv[fa[ia]], Fv[fb[ib]]], 1)  # (C, 6)
+        x = near.W[near.s[g][:, None], ids]
+        dist = triangle_closest_points(x[:, :3], x[:, 3:]).dist if len(g) else x.new_zeros(0)
+        keep = (dist < self.reach) & (dist > self.margin)
+        return near.pair, near.pair[g[keep]], m.X.to(dev)[ids[keep]], x[keep]
+
+    def evaluate(
+        self,
+        poses: torch.Tensor,
+        pairs: torch.Tensor,
+        order: int,
+        ids: torch.Tensor | None = None,
+        warm: object | None = None,
+    ) -> ContactEval:
+        P = pairs.shape[0]
+        poses = poses.detach().to(torch.float64)
+        value = poses.new_zeros(P)
+        grad = poses.new_zeros(P, 12) if order >= 1 else None
+        hess = poses.new_zeros(P, 12, 12) if order >= 2 else None
+        if P == 0:
+            return ContactEval(value, grad, hess, 0, 0)
+        near, pair, X, x = self._triangle_pairs(poses, pairs)
+        h, dl = self.dhat, self.margin
+        C = 0
+        if len(pair):
+            p = sdrs_planes(x, h, dl)
+            e = self.stiffness * sdrs_energy(p, x, h, dl)
+            on = e > 0  # the others are exactly zero, with their derivatives
+            pair, X, x, p, e = pair[on], X[on], x[on], p[on], e[on]
+            C = len(pair)
+            value.index_add_(0, pair, e)
+        if order >= 1 and C:
+            kappa = self.stiffness
+
+            def f(z):  # z = (plane (4), vertices (18))
+                return kappa * sdrs_energy(z[None, :4], z[None, 4:].reshape(1, 6, 3), h, dl)[0]
+
+            z = torch.cat([p, x.reshape(C, 18)], 1)
+            gz = torch.func.vmap(torch.func.grad(f))(z)
+            gx = gz[:, 4:].reshape(C, 6, 3)  # f_x (f_p = 0 at the optimum)
+            Hx = None
+            if order >= 2:
+                Hz = torch.func.vmap(torch.func.hessian(f))(z)
+                Hpp, Hpx, Hxx = Hz[:, :4, :4], Hz[:, :4, 4:], Hz[:, 4:, 4:]
+                Hx = (Hxx - Hpx.transpose(1, 2) @ torch.linalg.solve(Hpp, Hpx)).reshape(C, 6, 3, 6, 3)
+            N = poses.shape[1]
+            side = _SIDE.to(poses.device).expand(C, 6)
+            rows = pairs[pair][:, :1] * N + pairs[pair][:, 1:].gather(1, side)
+            g, H = chain_to_poses(gx, Hx, X, side, rows, poses)
+            grad.index_add_(0, pair, g)
+            if H is not None:
+                hess.index_add_(0, pair, H)
+        if len(near):  # within the margin or intersecting: +inf (as ``infeasible``)
+            bad = self.infeasible(poses, pairs[near])
+            value[near[bad]] = float("inf")
+        return ContactEval(value, grad, hess, 0, C)
+
+    def lagged(
+        self, poses: torch.Tensor, pairs: torch.Tensor, active: float, create_graph: bool = False
+    ) -> LaggedContacts:
+        S, N = poses.shape[:2]
+        h, dl = self.dhat, self.margin
+        with torch.no_grad():
+            _, pair, X, xd = self._triangle_pairs(poses.detach().to(torch.float64), pairs)
+            p = sdrs_planes(xd, h, dl) if len(pair) else xd.new_zeros(0, 4)
+            on = sdrs_energy(p, xd, h, dl) > 0 if len(pair) else torch.zeros(0, dtype=torch.bool)
+            pair, X, xd, p = pair[on], X[on], xd[on], p[on]
+        side = _SIDE.to(poses.device).expand(len(pair), 6)
+        rows = pairs[pair][:, :1] * N + pairs[pair][:, 1:].gather(1, side)
+        table = poses.reshape(S * N, 6) if create_graph else poses.reshape(S * N, 6).detach()
+        R = rotation_matrix(table[:, 3:])
+        x = torch.einsum("cvij,cvj->cvi", R[rows], X) + table[rows, :3]
+        if create_graph and len(pair):  # the plane as a differentiable function of the vertices: one implicit
+            # Newton step from the optimum (its value is the optimum, its first derivative dp*/dx)
+            def fp(q, v):
+                return sdrs_energy(q[None], v[None], h, dl)[0]
+
+            Hpp = torch.func.vmap(torch.func.hessian(fp))(p, xd)
+            gp = torch.func.vmap(torch.func.grad(fp))(p, x)
+            p = (
+                p
+                - torch.linalg.solve(Hpp, gp[..., None])[..., 0]
+                + torch.linalg.solve(Hpp, gp.detach()[..., None])[..., 0]
+            )
+        n = p[:, :3]
+        sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=x.dtype, device=x.device)
+        s = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
+        with torch.enable_grad():
+            y = s.detach().requires_grad_(True)
+            (dB,) = torch.autograd.grad(sdrs_barrier(y, h).sum(), y)
+        # B'(s) as a function of s: exact at s, and first-order in s through B'' (for the adjoint)
+        if create_graph:
+            y = s.detach().requires_grad_(True)
+            with torch.enable_grad():
+                (b1,) = torch.autograd.grad(sdrs_barrier(y, h).sum(), y, create_graph=True)
+                (b2,) = torch.autograd.grad(b1.sum(), y)
+            dB = dB + b2 * (s - s.detach())
+        f = (
+            self.stiffness * dB.abs() * torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+        )  # (C, 6) vertex forces
+        fa, fb = f[:, :3], f[:, 3:]
+        lam = fa.sum(1)
+        Xa = (fa[..., None] * X[:, :3]).sum(1) / fa.sum(1, keepdim=True)
+        Xb = (fb[..., None] * X[:, 3:]).sum(1) / fb.sum(1, keepdim=True)
+        pc = pairs[pair]
+        bi, bj = pc[:, 0] * N + pc[:, 1], pc[:, 0] * N + pc[:, 2]
+        xa = torch.einsum("cij,cj->ci", R[bi], Xa) + table[bi, :3]
+        xb = torch.einsum("cij,cj->ci", R[bj], Xb) + table[bj, :3]
+        u = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+        T = torch.eye(3, dtype=u.dtype, device=u.device) - u[:, :, None] * u[:, None, :]
+        keep = torch.ones_like(lam, dtype=torch.bool)
+        if active > 0 and len(lam):
+            top = lam.new_zeros(pairs.shape[0]).scatter_reduce(0, pair, lam.detach(), "amax")
+            keep = lam.detach() >= active * top[pair]
+        return LaggedContacts(
+            pair[keep], torch.stack([Xa, Xb], 1)[keep], torch.stack([xa, xb], 1)[keep], T[keep], lam[keep]
+        )
