@@ -98,7 +98,7 @@ def test_ipc_vanishes_beyond_dhat_where_ours_does_not():
     with pytest.raises(ValueError, match="dhat"):
         IpcContact([s, s], dhat=0.0)
     ball = rigid_body(trimesh.creation.icosphere(1, 0.1))
-    with pytest.raises(ValueError, match="ContactConfig.potential must be 'cfd' or 'ipc'"):
+    with pytest.raises(ValueError, match=r"ContactConfig.potential must be one of \('cfd', 'ipc', 'sdrs'\)"):
         Scene([ball], potential="sdf")
     with pytest.raises(ValueError, match="ContactConfig.barrier_stiffness"):
         Scene([ball], potential="ipc", barrier_stiffness=-1.0)
