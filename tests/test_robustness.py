@@ -255,3 +255,69 @@ def test_coplanar_large_triangles_a_few_margins_apart_are_feasible():
     )  # fmt: skip
     v = float(pair_potential(X[:3], X[3:], mu=1e-12, margin=1e-6, backend="numba"))
     assert abs(v / 8.017288258655264e-4 - 1.0) < 1e-6
+
+
+# Rows of scripts/stress.py (pair section, seed 0) that failed against the 50-digit reference: 100 m triangles
+# within 1.01-10 margins of a 1 um margin, kappa = (size + gap) / (gap - margin) = 1e7..1e10. The solve stopped on
+# a noise bound that counted the gaps' rounding in E_pp's weak directions too (up to 1e16 times too large), the gaps
+# were formed about an origin ~size from the contact, and E_pp's weak directions rounded away in the Hessian's
+# Schur complement: errors up to 3e3 (value) and 4e6 (Hessian) times eps kappa. Now within eps kappa.
+STRESS_ROWS = {
+    # vertex on vertex, 1.01 margins, offset 1e2 m: value 6e-3 off (eps kappa = 2.2e-6)
+    "vertex-vertex": (
+        [[-57.28912589235813, -34.781822719613686, 74.21711974194974],
+         [-60.636915625092314, -20.143268253744882, 169.55850066674657],
+         [-64.59976386753736, -125.05798990111248, 24.449216519104063],
+         [-57.28912542832013, -34.78182203227476, 74.21711916546562],
+         [-1.4590945334825918, -35.02826865247956, -12.129360500202793],
+         [-72.5034382685168, 51.11935513708302, 36.00259129535777]],
+        9999996438.63719,
+    ),
+    # coplanar side by side, 10 margins, offset 1e5 m: value 1.3e-6, Hessian 1.1e-2 off (eps kappa = 2.5e-9)
+    "coplanar": (
+        [[-27721.510103397166, -56728.05874753142, -77606.47834022804],
+         [-27668.336257220573, -56695.222025390125, -77529.34698343523],
+         [-27732.74808418, -56716.83109821582, -77520.99021830119],
+         [-27713.935431478214, -56723.38112402808, -77595.49091233163],
+         [-27671.117836563637, -56696.93975166057, -77533.38182247196],
+         [-27677.597866343654, -56717.172411251275, -77633.72102171645]],
+        11111111.492341014,
+    ),
+    # near-parallel edges, 1.01 margins, offset 1e5 m: Hessian 0.61 off (eps kappa = 2.2e-6)
+    "near-parallel-edges": (
+        [[-17950.780702095435, -29084.22774646075, -94012.48305678474],
+         [-17894.204561142942, -29075.154692271808, -93957.25723623017],
+         [-17915.415309097112, -29201.220683704592, -94016.90694947029],
+         [-17933.631123651885, -29081.477487013486, -93995.74279112664],
+         [-17864.098598599223, -29070.326628887462, -93927.86982275029],
+         [-18027.04524808049, -29068.61992177897, -93985.9559277884]],
+        9996626465.402332,
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("case", sorted(STRESS_ROWS))
+def test_near_margin_large_triangles_match_a_50_digit_solve(case, backend):
+    """The stress rows above against scripts/stress.py's 50-digit solve (mpmath, about 1 s): value, gradient and
+    Hessian within 4 eps kappa (normwise relative; measured <= 0.7, and a 1-ulp change of the input moves the true
+    value by ~0.1-1 eps kappa, so this is the problem's own conditioning)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    try:
+        import stress
+    finally:
+        sys.path.pop(0)
+    rows, kappa = STRESS_ROWS[case]
+    X = torch.tensor(rows, dtype=F64)
+    Xc = X - stress.exact_shift(X[None])[0]  # the same bits, near the origin
+    d = pair_potential_derivatives(X[:3], X[3:], mu=1.0, margin=1e-6, backend=backend)
+    start = pair_potential_derivatives(Xc[:3], Xc[3:], mu=1.0, margin=1e-6, backend="numba").plane
+    ref = stress.mp_pair(Xc, 1e-6, [start])
+    assert ref is not None
+    bound = 4 * stress.EPS64 * kappa
+    assert abs(float(d.value) / float(ref[0]) - 1) < bound
+    assert _rel(d.grad, ref[1]) < bound
+    assert _rel(d.hessian, ref[2]) < bound

@@ -29,16 +29,25 @@ _STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when n
 _EPS_RES = 16 * 2.220446049250313e-16  # rounding of E, relative to the magnitudes it is computed from
 _GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component, relative to its scale sc
 _WARM_ITER = 30  # iterations a warm-started solve gets before the cold start is tried
+# E_pp with a Cholesky pivot below this fraction of its largest diagonal entry (condition ~1e8 and more: parallel
+# edges, coplanar pairs, a vertex on a vertex, near the margin) is re-formed in its own eigenbasis for the Hessian
+# (``_rotated_epp``); below it, the plain one loses at most ~1e-8 of the Schur complement to rounding
+_ROT_COND = 1e-8
 
 
 @numba.njit(**_JIT_INLINE)
 def _eval(X, p, half_delta, lam, g, H, sc, s):
-    """E at p with its gradient g (4), Hessian H (4, 4), per-component scales sc (8) and gaps s (6).
+    """E at p with its gradient g (4), Hessian H (4, 4), per-component scales sc (9) and gaps s (6).
 
     sc[:4] is each gradient component's rounding-noise scale (the magnitudes it is summed from, amplified by the
-    cancellation in the gaps), sc[4:] the plain sum of those magnitudes, what the convergence test measures the
+    cancellation in the gaps), sc[4:8] the plain sum of those magnitudes, what the convergence test measures the
     gradient against (near the margin the amplification reaches 2 (|n.x| + |d|) / s, and a test against it would
-    stop with the plane, and the derivatives, off by that factor times the tolerance).
+    stop with the plane, and the derivatives, off by that factor times the tolerance). sc[8] is the Newton
+    decrement g^T H^-1 g that the gaps' own rounding gives, 2 sum_k (16 eps mag_k)^2 / s_k^3 (mag_k = |n.x_k| +
+    |d| + delta/2 termwise): the gradient's noise from gap k is a multiple of abar_k, and H >= 2 abar_k abar_k^T /
+    s_k^3, so its H^-1-norm is at most that. (A bound from the componentwise scales sc[:4] instead counts that
+    noise in the directions where H is weak too, and near the margin it exceeded the true decrement by up to
+    1e16: the solve stopped with the plane far from its optimum.)
 
     Returns (E, e_res): E = +inf outside the feasible set (g, H, sc then undefined), and the rounding resolution
     of E, sum_k eps (|n.x_k| + |d| + delta/2) / s_k^2 (each gap is a difference of terms of that size) plus the
@@ -69,6 +78,7 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
     h03 = h13 = h23 = h33 = 0.0
     e = lam * inv_om
     e_res = e
+    gn2 = 0.0
     for k in range(6):
         sg = 1.0 if k < 3 else -1.0
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
@@ -82,6 +92,7 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
         # eps (|n.x_k| + |d|), amplified in 1/s^2 by 2 (|n.x_k| + |d|) / s_k.
         mag = abs(n0 * x0) + abs(n1 * x1) + abs(n2 * x2) + abs(d) + half_delta
         e_res += mag * w1
+        gn2 += mag * mag * w1 * inv
         sw = sg * w1
         aw = abs(w1) * (1.0 + 2.0 * mag * inv)
         g0 -= sw * x0
@@ -110,6 +121,7 @@ def _eval(X, p, half_delta, lam, g, H, sc, s):
     g[0], g[1], g[2], g[3] = g0, g1, g2, g3
     sc[0], sc[1], sc[2], sc[3] = sc0, sc1, sc2, sc3
     sc[4], sc[5], sc[6], sc[7] = sp0, sp1, sp2, sp3
+    sc[8] = 2.0 * _GRAD_EPS * _GRAD_EPS * gn2
     H[0, 0], H[0, 1], H[0, 2], H[0, 3] = h00, h01, h02, h03
     H[1, 0], H[1, 1], H[1, 2], H[1, 3] = h01, h11, h12, h13
     H[2, 0], H[2, 1], H[2, 2], H[2, 3] = h02, h12, h22, h23
@@ -135,6 +147,117 @@ def _frame(X, c, Xc):
         c[j] = math.floor(c[j] / g + 0.5) * g
         for v in range(6):
             Xc[v, j] = X[v, j] - c[j]
+
+
+@numba.njit(**_JIT_INLINE)
+def _eig4(A, V):
+    """Eigenvectors of the symmetric A (4, 4) into the columns of V (cyclic Jacobi; A is overwritten)."""
+    for i in range(4):
+        for j in range(4):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(12):
+        off = 0.0
+        dia = 0.0
+        for i in range(4):
+            dia += A[i, i] * A[i, i]
+            for j in range(i + 1, 4):
+                off += A[i, j] * A[i, j]
+        if not off > 1e-40 * dia:
+            break
+        for a in range(3):
+            for b in range(a + 1, 4):
+                apq = A[a, b]
+                if apq == 0.0:
+                    continue
+                theta = (A[b, b] - A[a, a]) / (2.0 * apq)
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(4):  # A <- A J (columns a, b)
+                    akp, akq = A[k, a], A[k, b]
+                    A[k, a] = c * akp - sn * akq
+                    A[k, b] = sn * akp + c * akq
+                for k in range(4):  # A <- J^T A (rows a, b)
+                    apk, aqk = A[a, k], A[b, k]
+                    A[a, k] = c * apk - sn * aqk
+                    A[b, k] = sn * apk + c * aqk
+                for k in range(4):
+                    vkp, vkq = V[k, a], V[k, b]
+                    V[k, a] = c * vkp - sn * vkq
+                    V[k, b] = sn * vkp + c * vkq
+
+
+@numba.njit(**_JIT_INLINE)
+def _rotated_epp(Xo, s, p, lam, H, Q, B, Hq):
+    """Q (4, 4) = eigenvectors of E_pp = H; B (6, 4) = Q^T [x_k; 1]; Hq = Q^T E_pp Q formed from B (its entries
+    sum_k 2 B_ka B_kb / s_k^3 plus the regulariser's, rotated).
+
+    E_pp's weak directions (the plane's tilt about a contact line or point, held by the far vertices and the
+    regulariser) are combinations of its entries that cancel to 1e-20 of them and less near the margin: in
+    (n, d) coordinates they round to nothing (or to an indefinite matrix), and the Hessian's Schur complement,
+    whose largest terms are 1 / (s^4 times such an eigenvalue), comes out off by 1e-3 to 1. In the eigenbasis
+    (accurate to eps in angle: the weak subspace is orthogonal to the stiff one) each entry is a sum of squares of
+    the vertices' own components B_ka, which keep their digits."""
+    for i in range(4):
+        for j in range(4):
+            Hq[i, j] = H[i, j]
+    _eig4(Hq, Q)
+    for k in range(6):
+        for a in range(4):
+            B[k, a] = Q[0, a] * Xo[k, 0] + Q[1, a] * Xo[k, 1] + Q[2, a] * Xo[k, 2] + Q[3, a]
+    r = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+    om = 1.0 - r
+    gl = lam / (om * om)
+    c2 = gl / r
+    c12 = 2.0 * gl / om - c2
+    for a in range(4):
+        ua = (Q[0, a] * p[0] + Q[1, a] * p[1] + Q[2, a] * p[2]) / r  # (Q3^T u)_a
+        for b in range(a, 4):
+            ub = (Q[0, b] * p[0] + Q[1, b] * p[1] + Q[2, b] * p[2]) / r
+            acc = c12 * ua * ub + c2 * (Q[0, a] * Q[0, b] + Q[1, a] * Q[1, b] + Q[2, a] * Q[2, b])
+            for k in range(6):
+                acc += 2.0 * B[k, a] * B[k, b] / (s[k] * s[k] * s[k])
+            Hq[a, b] = acc
+            Hq[b, a] = acc
+
+
+@numba.njit(**_JIT_INLINE)
+def _contact_frame(Xc, p, half_delta, o, Xo):
+    """o (3) = the vertices of Xc (6, 3) averaged with weights (min_j |s_j| / |s_k|)^3 (the gaps' weights in E_pp,
+    2 / s_k^3, normalised) at the plane p, a point in the contact region; Xo = Xc - o, and p (4) moved to the frame
+    at o (d + n.o).
+
+    The solve and the derivatives are formed there: a gap n.x + d of a pair in contact at a distance R from the
+    origin is a difference of terms of size R (absolute rounding eps R, which near the margin was 1e3-1e4 times the
+    rounding of the contact's own geometry), and E_pp's entries x x^T / s^3 are then R^2 / s^3, which buries the
+    plane's tilt about the contact (set by the far vertices and the regulariser) in their rounding. o need not be
+    exact: Xc - o rounds to eps |Xc - o|, a backward error of an ulp of the geometry; ``_pair_torch.contact_frame``
+    is the same."""
+    m = math.inf
+    for k in range(6):
+        sg = 1.0 if k < 3 else -1.0
+        sk = abs(sg * (p[0] * Xc[k, 0] + p[1] * Xc[k, 1] + p[2] * Xc[k, 2] + p[3]) - half_delta)
+        Xo[k, 0] = sk  # (scratch)
+        m = min(m, sk)
+    wsum = 0.0
+    o0 = o1 = o2 = 0.0
+    for k in range(6):
+        a = Xo[k, 0]
+        w = 1.0 if a <= m else (m / a) ** 3
+        wsum += w
+        o0 += w * Xc[k, 0]
+        o1 += w * Xc[k, 1]
+        o2 += w * Xc[k, 2]
+    o[0], o[1], o[2] = o0 / wsum, o1 / wsum, o2 / wsum
+    if not (math.isfinite(o[0]) and math.isfinite(o[1]) and math.isfinite(o[2])):
+        o[0] = o[1] = o[2] = 0.0
+    for k in range(6):
+        for j in range(3):
+            Xo[k, j] = Xc[k, j] - o[j]
+    p[3] += p[0] * o[0] + p[1] * o[1] + p[2] * o[2]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -242,7 +365,7 @@ def _chol_solve4(L, Li, b, x):
 
 @numba.njit(parallel=True, **_JIT)
 def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
-                lowrank, WTo, So, P0, has0):  # fmt: skip
+                lowrank, WTo, So, P0, has0, O):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
     Each pair is solved in the frame centred at its C[k] (``_geometry.frame_origin``, computed here: x - C[k] is
@@ -264,13 +387,15 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         P0, has0: (K, 4) planes (in the input's frame) to start from where has0 (K,) is set (a warm start, e.g.
             the pair's optimum at nearby vertices) and the plane is strictly feasible; the closest-point start
             otherwise. Empty (0, 4) and (0,) for none. The optimum does not depend on the start (to the tolerance).
+        O: (K, 3) out: the contact frame's origin (``_contact_frame``) relative to C[k], where the pair was solved
+            and its derivatives formed (P is converted back to the frame at C[k]).
     """
     K = X.shape[0]
     half_delta = 0.5 * delta
     nchunks = min(K, 256)
     for c in numba.prange(nchunks):
         g, g2 = np.empty(4), np.empty(4)
-        sc, sc2 = np.empty(8), np.empty(8)
+        sc, sc2 = np.empty(9), np.empty(9)
         H, H2 = np.empty((4, 4)), np.empty((4, 4))
         p2 = np.empty(4)
         s2 = np.empty(6)
@@ -282,11 +407,16 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         q = np.empty(6)
         WT = np.empty((4, 18))
         m = np.empty(4)
-        Xk = np.empty((6, 3))
+        Xc = np.empty((6, 3))  # the pair in its frame at C[k] (exact)
+        Q = np.empty((4, 4))
+        B = np.empty((6, 4))
+        Xk = np.empty(
+            (6, 3)
+        )  # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
         lo = c * K // nchunks
         hi = (c + 1) * K // nchunks
         for k in range(lo, hi):
-            _frame(X[k], C[k], Xk)
+            _frame(X[k], C[k], Xc)
             warm_k = has0.shape[0] > 0 and has0[k] != 0
             e = math.inf
             e_res = 0.0
@@ -301,12 +431,13 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                     for i in range(4):
                         p[i] = P0[k, i]
                     p[3] += P0[k, 0] * C[k, 0] + P0[k, 1] * C[k, 1] + P0[k, 2] * C[k, 2]
+                    _contact_frame(Xc, p, half_delta, O[k], Xk)
                     e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
                     if e == math.inf:
                         continue
                 else:
                     # ---- strictly feasible start from the exact closest points (SPEC section 2)
-                    dist = math.sqrt(tri_tri_closest_nb(Xk[0:3], Xk[3:6], q))
+                    dist = math.sqrt(tri_tri_closest_nb(Xc[0:3], Xc[3:6], q))
                     if dist > delta:
                         alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
                         d = 0.0
@@ -315,8 +446,10 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                             p[i] = ni
                             d -= ni * 0.5 * (q[i] + q[3 + i])
                         p[3] = d
+                        _contact_frame(Xc, p, half_delta, O[k], Xk)
                         e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
-                        if e == math.inf and _sat_start(Xk, delta, p) > delta:
+                        if e == math.inf and _sat_start(Xc, delta, p) > delta:
+                            _contact_frame(Xc, p, half_delta, O[k], Xk)
                             e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
                     if e == math.inf:
                         break
@@ -348,12 +481,13 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                             _chol_solve4(L, Li, m, step)
                             dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
                             if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
-                                for i in range(4):  # m = L^-1 (eps sc): noise2 = |m|^2
-                                    acc = _GRAD_EPS * sc[i]
+                                for i in range(4):  # m = L^-1 (eps sc_plain): the sums' own rounding
+                                    acc = _GRAD_EPS * sc[4 + i]
                                     for t in range(i):
                                         acc -= L[i, t] * m[t]
                                     m[i] = acc * Li[i]
-                                noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]
+                                # + the gaps' rounding (sc[8], see _eval)
+                                noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3] + sc[8]
                                 if dec2 <= tol * tol * e or dec2 <= noise2:
                                     done = True
                                     break
@@ -428,6 +562,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             val[k] = mu * e
             for i in range(4):
                 P[k, i] = p[i]
+            P[k, 3] -= p[0] * O[k, 0] + p[1] * O[k, 1] + p[2] * O[k, 2]  # back to the frame at C[k]
             if not (want_grad or want_hess):
                 continue
             n = (p[0], p[1], p[2])
@@ -441,7 +576,16 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             if want_hess:
                 # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
                 # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
-                _cholesky4(H, L, Li, 0.0)
+                rot = not _cholesky4(H, L, Li, 0.0)
+                if not rot:
+                    dmax = max(max(H[0, 0], H[1, 1]), max(H[2, 2], H[3, 3]))
+                    pmin = min(min(L[0, 0], L[1, 1]), min(L[2, 2], L[3, 3]))
+                    rot = pmin * pmin < _ROT_COND * dmax
+                if rot:  # ill-conditioned: E_pp and E_px in E_pp's eigenbasis (_rotated_epp)
+                    _rotated_epp(Xk, s, p, lam, H, Q, B, H2)
+                    shift = 0.0
+                    while not _cholesky4(H2, L, Li, shift) and shift < 1.0:
+                        shift = 16 * 2.220446049250313e-16 if shift == 0.0 else shift * 16.0
                 il0, il1, il2, il3 = Li[0], Li[1], Li[2], Li[3]
                 for kk in range(6):
                     sg = 1.0 if kk < 3 else -1.0
@@ -454,7 +598,12 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                         # E_xp row: -sg e_j^T [I|0] / s^2 + 2 n_j [x^T | 1] / s^3
                         nw = n[j] * w2
                         m0, m1, m2, m3 = nw * xa, nw * xb, nw * xc, nw
-                        if j == 0:
+                        if rot:  # Q^T (2 n_j [x; 1] / s^3 - sg e_j / s^2), from B = Q^T [x; 1]
+                            m0 = nw * B[kk, 0] - sg * w1 * Q[j, 0]
+                            m1 = nw * B[kk, 1] - sg * w1 * Q[j, 1]
+                            m2 = nw * B[kk, 2] - sg * w1 * Q[j, 2]
+                            m3 = nw * B[kk, 3] - sg * w1 * Q[j, 3]
+                        elif j == 0:
                             m0 -= sg * w1
                         elif j == 1:
                             m1 -= sg * w1

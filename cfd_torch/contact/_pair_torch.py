@@ -63,12 +63,35 @@ def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: fl
     e_res = _EPS_RES * (
         lam / om.squeeze(-1) + (mag * w1).sum(-1)
     )  # rounding resolution of E (see _pair_numba)
+    # the Newton decrement that the gaps' own rounding (eps mag_k each) gives: see _pair_numba._eval
+    gap_noise2 = 2.0 * _GRAD_EPS**2 * (mag * mag * w1 / s).sum(-1)
     H = torch.einsum("kv,kvi,kvj->kij", 2.0 * w1 / s, abar, abar)
     eye = torch.eye(3, dtype=X.dtype, device=X.device)
     uu = u[:, :, None] * u[:, None, :]
     Hn = (2.0 / om**3)[..., None] * uu + (eye - uu) / (om * om * r)[..., None]
     H[:, :3, :3] += lam * Hn
-    return g, H, scale, s, e_res, plain
+    return g, H, scale, s, e_res, plain, gap_noise2
+
+
+def contact_frame(X: torch.Tensor, P: torch.Tensor, half_delta: float):
+    """(X - o (K, 6, 3), P in the frame at o (K, 4), o (K, 3)): o is the vertices' centroid weighted by
+    (min_j |s_j| / |s_k|)^3 at the planes P (K, 4) (the weights of the gaps in E_pp, 2 / s_k^3, normalised), a point
+    in the contact region.
+
+    The solve and the derivatives are formed there: a gap n.x + d of a pair in contact at a distance R from the
+    origin is a difference of terms of size R (absolute rounding eps R), and the plane's tilt about the contact,
+    set by the far vertices and the regulariser, is lost in E_pp's entries R^2 / s^3 at the rounding of the
+    closest ones; about o, the close vertices' lever arms (and their gaps' rounding) are the size of the contact.
+    o itself need not be exact: X - o rounds to eps |X - o|, a backward error of one ulp of the geometry."""
+    sg = _sign(X)
+    s = sg * (torch.einsum("kvc,kc->kv", X, P[:, :3]) + P[:, 3:]) - half_delta
+    a = s.abs()
+    m = a.amin(-1, keepdim=True)
+    w = torch.where(a <= m, torch.ones_like(a), (m / a) ** 3)
+    o = (w[..., None] * X).sum(1) / w.sum(-1, keepdim=True)
+    o = torch.where(torch.isfinite(o), o, torch.zeros_like(o))
+    d = P[:, 3] + (P[:, :3] * o).sum(-1)
+    return X - o[:, None, :], torch.cat([P[:, :3], d[:, None]], -1), o
 
 
 def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,11 +157,13 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         X: (K, 6, 3) float64 vertices a0, a1, a2, b0, b1, b2.
 
     Returns:
-        P (K, 4) planes, E (K,) energies (+inf where infeasible), status (K,) int8, resid (K,) relative gradients.
+        P (K, 4) planes in the frame at o, E (K,) energies (+inf where infeasible), status (K,) int8, resid (K,)
+        relative gradients, o (K, 3) the contact frame's origins (:func:`contact_frame`) and X - o (K, 6, 3).
     """
     half_delta = 0.5 * delta
     K = X.shape[0]
     P, dist = start_planes(X, delta)
+    X, P, o = contact_frame(X, P, half_delta)
     E = energy(X, P, half_delta, lam)
     E = torch.where(dist > delta, E, torch.full_like(E, float("inf")))
     status = torch.full((K,), NOT_CONVERGED, dtype=torch.int8, device=X.device)
@@ -152,7 +177,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         if act.numel() == 0:
             break
         Xa, Pa, Ea = X[act], P[act], E[act]
-        g, H, scale, _, e_res, plain = plane_grad_hess(Xa, Pa, half_delta, lam)
+        g, H, scale, _, e_res, plain, gap_noise2 = plane_grad_hess(Xa, Pa, half_delta, lam)
         rel = torch.where(scale > 0, g.abs() / scale, torch.zeros_like(g)).amax(-1)  # 0/0: an exact zero
         rel_plain = torch.where(plain > 0, g.abs() / plain, torch.zeros_like(g)).amax(-1)
         resid[act] = rel
@@ -162,8 +187,8 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         L = torch.where(spd[:, None, None], L, eye4)
         step = torch.cholesky_solve(-g[..., None], L).squeeze(-1)
         dec2 = -(g * step).sum(-1)
-        y = torch.linalg.solve_triangular(L, (_GRAD_EPS * scale)[..., None], upper=False).squeeze(-1)
-        noise2 = (y * y).sum(-1)
+        y = torch.linalg.solve_triangular(L, (_GRAD_EPS * plain)[..., None], upper=False).squeeze(-1)
+        noise2 = (y * y).sum(-1) + gap_noise2
         # the stopping rules of _pair_numba.solve_pairs
         done = (rel_plain <= tol) | (spd & (damp == 0) & ((dec2 <= tol * tol * Ea) | (dec2 <= noise2)))
         stalled = damp > _MAX_DAMP
@@ -199,7 +224,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
     conv = torch.nonzero(status == CONVERGED).squeeze(-1)
     if conv.numel():
         Xc, Pc, Ec = X[conv], P[conv], E[conv]
-        g, H, _, _, e_res, _ = plane_grad_hess(Xc, Pc, half_delta, lam)
+        g, H, _, _, e_res, _, _ = plane_grad_hess(Xc, Pc, half_delta, lam)
         L, info = torch.linalg.cholesky_ex(H)
         spd = info == 0
         step = torch.cholesky_solve(-g[..., None], torch.where(spd[:, None, None], L, eye4)).squeeze(-1)
@@ -208,7 +233,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         take = spd & (Et <= Ec + e_res)
         P[conv] = torch.where(take[:, None], trial, Pc)
         E[conv] = torch.where(take, Et, Ec)
-    return P, E, status, resid
+    return P, E, status, resid, o, X
 
 
 def pair_vertex_grad(X: torch.Tensor, P: torch.Tensor, half_delta: float) -> torch.Tensor:
@@ -224,7 +249,7 @@ def pair_derivative_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, l
     d2E/dx_k2  = 2 n n^T / s_k^3            (block diagonal)
     d2E/dx_k dp = -sg_k [I3 | 0] / s_k^2 + 2 n [x_k^T | 1] / s_k^3
     """
-    _, Epp, _, s, _, _ = plane_grad_hess(X, P, half_delta, lam)
+    _, Epp, _, s, _, _, _ = plane_grad_hess(X, P, half_delta, lam)
     n = P[:, :3]
     sg = _sign(X)
     w1 = 1.0 / (s * s)
@@ -252,13 +277,59 @@ def _cholesky(A: torch.Tensor) -> torch.Tensor:
     return L
 
 
+_ROT_COND = 1e-8  # see _pair_numba
+
+
+def _schur_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
+    """Gaps s (K, 6), E_px (K, 18, 4) and the Cholesky factor of E_pp (K, 4, 4), where E_pp is ill-conditioned
+    (a pivot below _ROT_COND of its largest diagonal entry) both in E_pp's eigenbasis Q instead: E_px Q and
+    Q^T E_pp Q formed from B_k = Q^T [x_k; 1] (``_pair_numba._rotated_epp``: in (n, d) coordinates E_pp's weak
+    directions round away). The Schur complement E_xp E_pp^-1 E_px does not depend on the basis."""
+    s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
+    L, info = torch.linalg.cholesky_ex(Epp)
+    piv = torch.diagonal(L, dim1=-2, dim2=-1).amin(-1) ** 2
+    dmax = torch.diagonal(Epp, dim1=-2, dim2=-1).amax(-1)
+    bad = (info != 0) | ~(piv >= _ROT_COND * dmax)
+    if bool(bad.any()):
+        Xb, Pb, sb = X[bad], P[bad], s[bad]
+        _, Q = torch.linalg.eigh(Epp[bad])  # (B, 4, 4)
+        xh = torch.cat([Xb, torch.ones_like(Xb[..., :1])], -1)  # (B, 6, 4)
+        Bk = torch.einsum("kvi,kia->kva", xh, Q)
+        w1 = 1.0 / (sb * sb)
+        w2 = 2.0 * w1 / sb
+        n = Pb[:, :3]
+        r = torch.linalg.vector_norm(n, dim=-1)
+        om = 1.0 - r
+        gl = lam / (om * om)
+        c2 = gl / r
+        c12 = 2.0 * gl / om - c2
+        Q3 = Q[:, :3, :]
+        uq = torch.einsum("ki,kia->ka", n, Q3) / r[:, None]
+        Eq = torch.einsum("kv,kva,kvb->kab", w2, Bk, Bk)
+        Eq = (
+            Eq
+            + c12[:, None, None] * uq[:, :, None] * uq[:, None, :]
+            + c2[:, None, None] * (Q3.transpose(1, 2) @ Q3)
+        )
+        sg = _sign(Xb)
+        # rows (k, j): Q^T (2 n_j [x_k; 1] / s^3 - sg e_j / s^2)
+        Eb = (
+            w2[..., None, None] * n[:, None, :, None] * Bk[:, :, None, :]
+            - (sg * w1)[..., None, None] * Q3[:, None]
+        )
+        Exp = Exp.clone()
+        Exp[bad] = Eb.reshape(-1, 18, 4)
+        Epp = Epp.clone()
+        Epp[bad] = Eq
+    return s, Exp, _cholesky(Epp)
+
+
 def pair_hessian_torch(
     X: torch.Tensor, P: torch.Tensor, mu: float, half_delta: float, lam: float
 ) -> torch.Tensor:
     """(K, 18, 18) hess_x P = mu (E_xx - E_xp E_pp^-1 E_px) (implicit function theorem)."""
-    s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
+    s, Exp, L = _schur_parts(X, P, half_delta, lam)
     n = P[:, :3]
-    L = _cholesky(Epp)
     W = torch.linalg.solve_triangular(L, Exp.transpose(1, 2), upper=False)  # (K, 4, 18) = L^-1 E_px
     Hs = -W.transpose(1, 2) @ W
     blocks = (2.0 / s**3)[..., None, None] * n[:, None, :, None] * n[:, None, None, :]  # (K, 6, 3, 3)
@@ -270,10 +341,10 @@ def pair_hessian_vjp(
     X: torch.Tensor, P: torch.Tensor, v: torch.Tensor, mu: float, half_delta: float, lam: float
 ):
     """(K, 18) v^T hess_x P without forming the 18 x 18 Hessian: mu (v^T E_xx - (v^T E_xp) E_pp^-1 E_px)."""
-    s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
+    s, Exp, L = _schur_parts(X, P, half_delta, lam)
     n = P[:, :3]
     v6 = v.reshape(-1, 6, 3)
     direct = (2.0 / s**3 * (v6 * n[:, None, :]).sum(-1))[..., None] * n[:, None, :]  # (K, 6, 3)
     y = torch.einsum("ki,kij->kj", v, Exp)  # (K, 4)
-    z = torch.cholesky_solve(y[..., None], _cholesky(Epp)).squeeze(-1)
+    z = torch.cholesky_solve(y[..., None], L).squeeze(-1)
     return mu * (direct.reshape(-1, 18) - torch.einsum("kij,kj->ki", Exp, z))

@@ -128,6 +128,8 @@ class _Solved(NamedTuple):
     centre: torch.Tensor
     grad: torch.Tensor | None
     hess: object
+    offset: torch.Tensor | None = None  # (K, 3) the contact frames' origins o, relative to ``centre``
+    local_plane: torch.Tensor | None = None  # (K, 4) the planes in the frames at centre + offset
 
     def world_plane(self) -> torch.Tensor:
         """The planes in the input's frame: d - n.c (rounded there, like any plane of a pair far from the origin)."""
@@ -170,6 +172,7 @@ def _solve(
         hess = _empty_cpu((K, 18, 18) if want_hess and not lowrank else (0, 18, 18), X.dtype)
         WT = torch.empty((K, 4, 18) if lowrank else (0, 4, 18), dtype=X.dtype)
         gaps = torch.empty((K, 6) if lowrank else (0, 6), dtype=X.dtype)
+        O = torch.zeros(K, 3, dtype=X.dtype)  # contact-frame origins relative to C, written by the kernel
         if start is None:
             P0, has0 = torch.empty(0, 4, dtype=X.dtype), torch.empty(0, dtype=torch.int8)
         else:
@@ -179,20 +182,24 @@ def _solve(
             solve_pairs(
                 Xc.numpy(), C.numpy(), float(mu), float(margin), LAMBDA, float(tol), int(max_iter), bool(want_grad),
                 bool(want_hess), P.numpy(), val.numpy(), grad.numpy(), hess.numpy(), status.numpy(), resid.numpy(),
-                lowrank, WT.numpy(), gaps.numpy(), P0.numpy(), has0.numpy(),
+                lowrank, WT.numpy(), gaps.numpy(), P0.numpy(), has0.numpy(), O.numpy(),
             )  # fmt: skip
         _raise_unconverged(status, resid, max_iter, tol)
         if lowrank:
             hess = (WT, gaps)
-        return _Solved(val, P, C, (grad if want_grad else None), (hess if want_hess else None))
+        feasible = torch.isfinite(val)
+        O = torch.where(feasible[:, None], O, torch.zeros_like(O))
+        local = torch.where(feasible[:, None], to_world(P, -O), torch.zeros_like(P))
+        return _Solved(val, P, C, (grad if want_grad else None), (hess if want_hess else None), O, local)
     if start is not None:
         raise ValueError("warm-start planes need the numba backend (CPU float64)")
     C = frame_origin(X)
     Xc = X - C[:, None, :]
-    P, E, status, resid = _pair_torch.solve_pairs_torch(Xc, margin, LAMBDA, tol, max_iter)
+    P, E, status, resid, O, Xc = _pair_torch.solve_pairs_torch(Xc, margin, LAMBDA, tol, max_iter)
     _raise_unconverged(status, resid, max_iter, tol)
     feasible = status == _pair_torch.CONVERGED
     P = torch.where(feasible[:, None], P, torch.zeros_like(P))
+    O = torch.where(feasible[:, None], O, torch.zeros_like(O))
     grad = hess = None
     zero = torch.zeros((), dtype=X.dtype, device=X.device)
     if want_grad or want_hess:
@@ -203,7 +210,7 @@ def _solve(
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
             hess = torch.where(feasible[:, None, None], hess, zero)
-    return _Solved(mu * E, P, C, grad, hess)
+    return _Solved(mu * E, to_world(P, O), C, grad, hess, O, P)
 
 
 def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -217,37 +224,46 @@ def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tupl
     return Xs, Ps
 
 
+def _local(X: torch.Tensor, C: torch.Tensor, O: torch.Tensor | None) -> torch.Tensor:
+    """X (K, 6, 3) in the frames at C (K, 3) (exact), and then at C + O (the contact frames, rounded) if O is given."""
+    X = X - C[:, None, :]
+    return X if O is None else X - O[:, None, :]
+
+
 class _PairGradFn(torch.autograd.Function):
     """grad_x P at the optimal plane; its backward is the IFT Hessian-vector product (second order).
 
-    X (K, 6, 3), P (K, 4) the optimal planes in the frames centred at C (K, 3) (as ``_solve`` returns them), feasible
-    (K,) bool; the formulas are evaluated at X - C (exact near C), so they keep their digits far from the origin."""
+    X (K, 6, 3), P (K, 4) the optimal planes in the contact frames at C + O (C (K, 3) near the pair, X - C exact,
+    O (K, 3) in the contact region: ``_Solved.local_plane``), feasible (K,) bool; the formulas are evaluated at
+    (X - C) - O, so they keep their digits far from the origin and near the margin."""
 
     @staticmethod
-    def forward(X, P, C, feasible, mu, margin):
-        Xs, Ps = _safe_rows(X - C[:, None, :], P, feasible)
+    def forward(X, P, C, feasible, mu, margin, O=None):
+        Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
         Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        X, P, C, feasible, mu, margin = inputs
-        ctx.save_for_backward(X, P, C, feasible)
+        X, P, C, feasible, mu, margin = inputs[:6]
+        O = inputs[6] if len(inputs) > 6 else None
+        ctx.save_for_backward(X, P, C, feasible, O)
         ctx.params = (mu, margin)
+        ctx.has_offset = len(inputs) > 6
 
     @staticmethod
     def backward(ctx, v):
         # d/dx (v . grad_x P) = v^T hess_x P; with p*(x) implicit: hess = mu (E_xx - E_xp E_pp^-1 E_px).
-        X, P, C, feasible = ctx.saved_tensors
+        X, P, C, feasible, O = ctx.saved_tensors
         mu, margin = ctx.params
         with torch.no_grad():
-            Xs, Ps = _safe_rows(X - C[:, None, :], P, feasible)
+            Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
             hv = _pair_torch.pair_hessian_vjp(Xs, Ps, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
             hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
         hv = hv.reshape(-1, 6, 3)
         if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
             hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
-        return hv, None, None, None, None, None
+        return (hv, None, None, None, None, None) + ((None,) if ctx.has_offset else ())
 
     @staticmethod
     def vmap(info, in_dims, *args):
@@ -259,30 +275,31 @@ class _PairGradFn(torch.autograd.Function):
 
 
 class _PairPotentialFn(torch.autograd.Function):
-    """(P(X) (K,), optimal planes (K, 4) in the frames centred at C (K, 3), C, feasible (K,) bool) for X (K, 6, 3)
-    float64; only P is differentiable. Backward via the envelope theorem, double backward via _PairGradFn."""
+    """(P(X) (K,), optimal planes (K, 4) in the contact frames at C + O, C (K, 3), O (K, 3), feasible (K,) bool) for
+    X (K, 6, 3) float64; only P is differentiable. Backward via the envelope theorem, double backward via
+    _PairGradFn."""
 
     @staticmethod
     def forward(X, mu, margin, tol, max_iter, backend):
         sol = _solve(X, mu=mu, margin=margin, tol=tol, max_iter=max_iter, want_grad=False, want_hess=False,
                      backend=backend)  # fmt: skip
-        return sol.value, sol.plane, sol.centre, torch.isfinite(sol.value)
+        return sol.value, sol.local_plane, sol.centre, sol.offset, torch.isfinite(sol.value)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
         X, mu, margin = inputs[:3]
-        _, P, C, feasible = output
-        ctx.mark_non_differentiable(P, C, feasible)
-        ctx.save_for_backward(X, P, C, feasible)
+        _, P, C, O, feasible = output
+        ctx.mark_non_differentiable(P, C, O, feasible)
+        ctx.save_for_backward(X, P, C, O, feasible)
         ctx.params = (mu, margin)
 
     @staticmethod
-    def backward(ctx, gout, _gP, _gC, _gfeasible):
+    def backward(ctx, gout, _gP, _gC, _gO, _gfeasible):
         # dP/dx = mu dE/dx at p* (envelope theorem: dE/dp = 0 there). Computed by a differentiable Function so
         # that create_graph=True gives the exact implicit Hessian on the second pass.
-        X, P, C, feasible = ctx.saved_tensors
+        X, P, C, O, feasible = ctx.saved_tensors
         mu, margin = ctx.params
-        g = _PairGradFn.apply(X, P, C, feasible, mu, margin)
+        g = _PairGradFn.apply(X, P, C, feasible, mu, margin, O)
         return gout[:, None, None] * g, None, None, None, None, None
 
     @staticmethod
