@@ -121,8 +121,8 @@ def test_known_grad_potential_gradcheck_gradgradcheck_and_refused_third_order(kn
 
 
 def test_pair_grad_fn_gradcheck_and_refused_second_backward():
-    # _PairGradFn(X, P, C, feasible) is grad_x P at the optimal plane P = p*(X); its backward is the implicit Hessian,
-    # the derivative of the whole map X -> grad_x P(X, p*(X)), so the check re-solves the plane at every X
+    # _PairGradFn(X, P, C, O, feasible) is grad_x P at the optimal plane P = p*(X); its backward is the implicit
+    # Hessian, the derivative of the whole map X -> grad_x P(X, p*(X)), so the check re-solves the plane at every X
     a, b = _pairs()
     X0 = torch.cat([a, b], -2)  # (K, 6, 3)
 
@@ -132,7 +132,8 @@ def test_pair_grad_fn_gradcheck_and_refused_second_backward():
                 X.detach(), mu=1.0, margin=1e-3, tol=1e-14, max_iter=100, want_grad=False, want_hess=False,
                 backend="numba",
             )  # fmt: skip
-        return pair_module._PairGradFn.apply(X, sol.plane, sol.centre, torch.isfinite(sol.value), 1.0, 1e-3)
+        feasible = torch.isfinite(sol.value)
+        return pair_module._PairGradFn.apply(X, sol.local_plane, sol.centre, sol.offset, feasible, 1.0, 1e-3)
 
     X = X0.clone().requires_grad_(True)
     assert f(X).abs().max() > 0

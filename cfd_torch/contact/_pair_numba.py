@@ -368,9 +368,11 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 lowrank, WTo, So, P0, has0, O):  # fmt: skip
     """Solve K pair problems and write their value / plane / derivatives in place.
 
-    Each pair is solved in the frame centred at its C[k] (``_geometry.frame_origin``, computed here: x - C[k] is
+    Each pair is moved to the frame centred at its C[k] (``_geometry.frame_origin``, computed here: x - C[k] is
     exact), so the gaps n.x + d carry no cancellation against a large offset and the result does not depend on
-    where the pair is. Output planes are in that frame; the derivatives in x do not depend on the frame.
+    where the pair is, and then solved in its contact frame at C[k] + O[k] (``_contact_frame``: about a point of
+    the contact, the gaps of a pair near the margin keep the digits of the contact's own geometry). Output planes
+    are in the contact frame; the derivatives in x do not depend on the frame.
 
     Args:
         X: (K, 6, 3) float64 vertices a0, a1, a2, b0, b1, b2.
@@ -379,7 +381,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         tol: relative gradient tolerance: max_i |dE/dp_i| / (sum of |terms| of dE/dp_i) <= tol.
         max_iter: Newton iteration cap.
         want_grad, want_hess: whether to fill ``grad`` (K, 18) and ``hess`` (K, 18, 18).
-        P: (K, 4) out: optimal plane (n, d) in the pair's frame; val: (K,) out: mu E(p*) or +inf;
+        P: (K, 4) out: optimal plane (n, d) in the pair's contact frame; val: (K,) out: mu E(p*) or +inf;
         status: (K,) int8 out; resid: (K,) out: final relative gradient.
         lowrank: with ``want_hess``, write the Hessian's factors instead of ``hess``: hess = mu (D - W W^T) with
             W^T = L^-1 E_px into ``WTo`` (K, 4, 18) (E_pp = L L^T) and the vertex gaps s_k into ``So`` (K, 6)
@@ -388,7 +390,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             the pair's optimum at nearby vertices) and the plane is strictly feasible; the closest-point start
             otherwise. Empty (0, 4) and (0,) for none. The optimum does not depend on the start (to the tolerance).
         O: (K, 3) out: the contact frame's origin (``_contact_frame``) relative to C[k], where the pair was solved
-            and its derivatives formed (P is converted back to the frame at C[k]).
+            and its derivatives formed (arbitrary where infeasible).
     """
     K = X.shape[0]
     half_delta = 0.5 * delta
@@ -410,9 +412,8 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         Xc = np.empty((6, 3))  # the pair in its frame at C[k] (exact)
         Q = np.empty((4, 4))
         B = np.empty((6, 4))
-        Xk = np.empty(
-            (6, 3)
-        )  # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
+        # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
+        Xk = np.empty((6, 3))
         lo = c * K // nchunks
         hi = (c + 1) * K // nchunks
         for k in range(lo, hi):
@@ -562,7 +563,6 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             val[k] = mu * e
             for i in range(4):
                 P[k, i] = p[i]
-            P[k, 3] -= p[0] * O[k, 0] + p[1] * O[k, 1] + p[2] * O[k, 2]  # back to the frame at C[k]
             if not (want_grad or want_hess):
                 continue
             n = (p[0], p[1], p[2])

@@ -120,16 +120,18 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
 
 class _Solved(NamedTuple):
     """The solve of K pairs: value (K,), optimal planes (K, 4) in the frame centred at ``centre`` (K, 3) (near the
-    pair, see ``_geometry.frame_origin``), grad (K, 18) | None, hess (K, 18, 18) | None (or its low-rank
+    pair, see ``_geometry.frame_origin``), the contact frames' origins ``offset`` (K, 3) relative to ``centre``
+    (where each pair was solved, see ``_pair_numba._contact_frame``) and the planes there, ``local_plane`` (K, 4)
+    (as solved; ``plane`` is rounded from them), grad (K, 18) | None, hess (K, 18, 18) | None (or its low-rank
     factors)."""
 
     value: torch.Tensor
     plane: torch.Tensor
     centre: torch.Tensor
+    offset: torch.Tensor
+    local_plane: torch.Tensor
     grad: torch.Tensor | None
     hess: object
-    offset: torch.Tensor | None = None  # (K, 3) the contact frames' origins o, relative to ``centre``
-    local_plane: torch.Tensor | None = None  # (K, 4) the planes in the frames at centre + offset
 
     def world_plane(self) -> torch.Tensor:
         """The planes in the input's frame: d - n.c (rounded there, like any plane of a pair far from the origin)."""
@@ -187,10 +189,10 @@ def _solve(
         _raise_unconverged(status, resid, max_iter, tol)
         if lowrank:
             hess = (WT, gaps)
-        feasible = torch.isfinite(val)
-        O = torch.where(feasible[:, None], O, torch.zeros_like(O))
-        local = torch.where(feasible[:, None], to_world(P, -O), torch.zeros_like(P))
-        return _Solved(val, P, C, (grad if want_grad else None), (hess if want_hess else None), O, local)
+        O = torch.where(torch.isfinite(val)[:, None], O, torch.zeros_like(O))
+        return _Solved(
+            val, to_world(P, O), C, O, P, (grad if want_grad else None), (hess if want_hess else None)
+        )
     if start is not None:
         raise ValueError("warm-start planes need the numba backend (CPU float64)")
     C = frame_origin(X)
@@ -210,7 +212,7 @@ def _solve(
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
             hess = torch.where(feasible[:, None, None], hess, zero)
-    return _Solved(mu * E, to_world(P, O), C, grad, hess, O, P)
+    return _Solved(mu * E, to_world(P, O), C, O, P, grad, hess)
 
 
 def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -224,10 +226,10 @@ def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tupl
     return Xs, Ps
 
 
-def _local(X: torch.Tensor, C: torch.Tensor, O: torch.Tensor | None) -> torch.Tensor:
-    """X (K, 6, 3) in the frames at C (K, 3) (exact), and then at C + O (the contact frames, rounded) if O is given."""
-    X = X - C[:, None, :]
-    return X if O is None else X - O[:, None, :]
+def _local(X: torch.Tensor, C: torch.Tensor, O: torch.Tensor) -> torch.Tensor:
+    """X (K, 6, 3) in the frames at C (K, 3) (exact), then at C + O (K, 3), the contact frames (rounded as in the
+    solve, which formed the same differences)."""
+    return (X - C[:, None, :]) - O[:, None, :]
 
 
 class _PairGradFn(torch.autograd.Function):
@@ -238,23 +240,21 @@ class _PairGradFn(torch.autograd.Function):
     (X - C) - O, so they keep their digits far from the origin and near the margin."""
 
     @staticmethod
-    def forward(X, P, C, feasible, mu, margin, O=None):
+    def forward(X, P, C, O, feasible, mu, margin):
         Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
         Ex = _pair_torch.pair_vertex_grad(Xs, Ps, 0.5 * margin)
         return torch.where(feasible[:, None, None], mu * Ex, torch.zeros((), dtype=X.dtype, device=X.device))
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        X, P, C, feasible, mu, margin = inputs[:6]
-        O = inputs[6] if len(inputs) > 6 else None
-        ctx.save_for_backward(X, P, C, feasible, O)
+        X, P, C, O, feasible, mu, margin = inputs
+        ctx.save_for_backward(X, P, C, O, feasible)
         ctx.params = (mu, margin)
-        ctx.has_offset = len(inputs) > 6
 
     @staticmethod
     def backward(ctx, v):
         # d/dx (v . grad_x P) = v^T hess_x P; with p*(x) implicit: hess = mu (E_xx - E_xp E_pp^-1 E_px).
-        X, P, C, feasible, O = ctx.saved_tensors
+        X, P, C, O, feasible = ctx.saved_tensors
         mu, margin = ctx.params
         with torch.no_grad():
             Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
@@ -263,7 +263,7 @@ class _PairGradFn(torch.autograd.Function):
         hv = hv.reshape(-1, 6, 3)
         if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
             hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
-        return (hv, None, None, None, None, None) + ((None,) if ctx.has_offset else ())
+        return hv, None, None, None, None, None, None
 
     @staticmethod
     def vmap(info, in_dims, *args):
@@ -299,7 +299,7 @@ class _PairPotentialFn(torch.autograd.Function):
         # that create_graph=True gives the exact implicit Hessian on the second pass.
         X, P, C, O, feasible = ctx.saved_tensors
         mu, margin = ctx.params
-        g = _PairGradFn.apply(X, P, C, feasible, mu, margin, O)
+        g = _PairGradFn.apply(X, P, C, O, feasible, mu, margin)
         return gout[:, None, None] * g, None, None, None, None, None
 
     @staticmethod
