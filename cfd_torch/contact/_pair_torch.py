@@ -16,6 +16,7 @@ _STALL_TOL = 1e-8  # see _pair_numba
 _EPS_RES = 16 * torch.finfo(torch.float64).eps
 _GRAD_EPS = 16 * torch.finfo(torch.float64).eps
 _MAX_DAMP = 1e30
+_ROT_COND = 1e-8  # see _pair_numba
 
 
 def _sign(X: torch.Tensor) -> torch.Tensor:
@@ -38,8 +39,9 @@ def energy(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float) -> t
 
 def plane_grad_hess(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
     """dE/dp (K, 4), d2E/dp2 (K, 4, 4), rounding scale of each gradient component (K, 4), gaps (K, 6), the
-    rounding resolution of E (K,) and the plain scale of each gradient component (K, 4) (the sum of the magnitudes
-    it is computed from, which the convergence test measures it against; see ``_pair_numba._eval``).
+    rounding resolution of E (K,), the plain scale of each gradient component (K, 4) (the sum of the magnitudes
+    it is computed from, which the convergence test measures it against) and the Newton decrement that the gaps'
+    own rounding gives (K,) (see ``_pair_numba._eval``).
 
     grad_p E = lam/(1-r)^2 [u; 0] - sum_k abar_k / s_k^2,  abar_k = sg_k [x_k; 1]
     hess_pp E = sum_k 2 abar_k abar_k^T / s_k^3 + lam [[Hn, 0], [0, 0]],
@@ -277,14 +279,11 @@ def _cholesky(A: torch.Tensor) -> torch.Tensor:
     return L
 
 
-_ROT_COND = 1e-8  # see _pair_numba
-
-
 def _schur_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
-    """Gaps s (K, 6), E_px (K, 18, 4) and the Cholesky factor of E_pp (K, 4, 4), where E_pp is ill-conditioned
-    (a pivot below _ROT_COND of its largest diagonal entry) both in E_pp's eigenbasis Q instead: E_px Q and
-    Q^T E_pp Q formed from B_k = Q^T [x_k; 1] (``_pair_numba._rotated_epp``: in (n, d) coordinates E_pp's weak
-    directions round away). The Schur complement E_xp E_pp^-1 E_px does not depend on the basis."""
+    """Gaps s (K, 6), E_px (K, 18, 4) and the Cholesky factor of E_pp (K, 4, 4). Where E_pp is ill-conditioned
+    (a pivot below _ROT_COND of its largest diagonal entry) both are expressed in E_pp's eigenbasis Q instead:
+    E_px Q and Q^T E_pp Q, formed from B_k = Q^T [x_k; 1] (``_pair_numba._rotated_epp``: in (n, d) coordinates
+    E_pp's weak directions round away). The Schur complement E_xp E_pp^-1 E_px does not depend on the basis."""
     s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
     L, info = torch.linalg.cholesky_ex(Epp)
     piv = torch.diagonal(L, dim1=-2, dim2=-1).amin(-1) ** 2
