@@ -35,6 +35,7 @@ class CubesCore(TaskCore):
         max_speed: float = 1.0,
         friction: float = 0.5,
         action_cost: float = 1e-3,
+        potential: str = "cfd",
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -45,7 +46,8 @@ class CubesCore(TaskCore):
         self.spread = spread
         self.action_cost = action_cost
         bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(6.0)]
-        super().__init__(Scene(bodies, dt=dt, friction=friction, substeps=8), device=device, dtype=dtype)
+        scene = Scene(bodies, dt=dt, friction=friction, substeps=8, potential=potential)
+        super().__init__(scene, device=device, dtype=dtype)
 
     def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:
         """(n, 2) centres uniform in [-spread, spread]^2 whose footprints (circles of the cube's half diagonal)

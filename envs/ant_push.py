@@ -60,6 +60,7 @@ class AntPushCore(BoxToTargetCore):
         success_radius: float = 0.1,
         actuation: str = "torque",
         servo_gains: tuple[float, float] = (100.0, 5.0),
+        potential: str = "cfd",
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -71,7 +72,9 @@ class AntPushCore(BoxToTargetCore):
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
         # the floor is refined to the Ant's capsule edges: keep it no larger than the task needs
         floor = floor_body(distance + 5.0, centre=((1.0 + distance) / 2, 0.0))
-        scene = Scene([box, floor], articulations=[self.ant], dt=dt, friction=1.0, substeps=8)
+        scene = Scene(
+            [box, floor], articulations=[self.ant], dt=dt, friction=1.0, substeps=8, potential=potential
+        )
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance
         self.action_cost = action_cost

@@ -69,6 +69,7 @@ class BilliardsCore(TaskCore):
         pocket_radius: float = 0.08,
         target_ball: int | None = None,
         pocket: int | None = None,
+        potential: str = "cfd",
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -84,7 +85,9 @@ class BilliardsCore(TaskCore):
                 raise ValueError(f"{name} must be positive, got {v}")
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=ball_radius)
         ball = rigid_body(mesh, density=ball_mass / mesh.volume)
-        scene = Scene([ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8, planar=True)
+        scene = Scene(
+            [ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8, planar=True, potential=potential
+        )
         super().__init__(scene, device=device, dtype=dtype)
         self.ball_radius = ball_radius
         self.max_force = max_force

@@ -132,6 +132,9 @@ class StepOut(NamedTuple):
 class TaskCore(abc.ABC):
     """A task over the differentiable simulator: subclasses build ``self.scene`` and define the abstract methods.
 
+    Every task's constructor takes ``potential`` ("cfd" default, "ipc" or "sdrs": ``ContactConfig.potential``), so
+    the same task runs on the locally supported baselines' contact for comparisons.
+
     Attributes:
         scene: the :class:`cfd_torch.Scene` (bodies, dt, contact and friction settings).
         action_dim: A, the size of an action (every component in [-1, 1], scaled inside).

@@ -55,6 +55,7 @@ class PushCore(BoxToTargetCore):
         box_density: float = 200.0,
         action_cost: float = 1e-3,
         success_radius: float = 0.1,
+        potential: str = "cfd",
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -62,8 +63,9 @@ class PushCore(BoxToTargetCore):
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
         self.pusher = Pusher((0.1, 0.1, 0.8), density=500.0, max_speed=max_speed)
         scene = Scene(
-            [box, self.pusher.body, floor_body(2 * distance + 4.0)], dt=dt, friction=friction, substeps=8
-        )
+            [box, self.pusher.body, floor_body(2 * distance + 4.0)], dt=dt, friction=friction, substeps=8,
+            potential=potential,
+        )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance
         self.angle_range = angle_range

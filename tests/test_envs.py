@@ -179,6 +179,32 @@ def test_gradient_from_the_trivial_start_is_nonzero_and_matches_finite_differenc
     torch.testing.assert_close(g, fd, rtol=2e-2, atol=0)
 
 
+@pytest.mark.parametrize(
+    ("env_id", "kwargs"),
+    [
+        pytest.param("cfd_torch/Billiards-v0", {"target_ball": 0, "pocket": 0}, marks=pytest.mark.slow),
+        ("cfd_torch/Push-v0", {}),
+        pytest.param("cfd_torch/Sort-v0", {}, marks=pytest.mark.slow),
+        pytest.param("cfd_torch/Gather-v0", {}, marks=pytest.mark.slow),
+    ],
+)
+@pytest.mark.parametrize("potential", ["ipc", "sdrs"])
+def test_locally_supported_models_give_no_gradient_from_the_trivial_start(env_id, kwargs, potential):
+    """The test above with the baselines' contact (``potential="ipc"`` or ``"sdrs"``, dhat 1 cm): the task loss
+    after 3 steps does not depend on the first action at all, its gradient is exactly zero (bodies within dhat of
+    each other have active contacts, so the models do act)."""
+    from cfd_torch.sim.energy import scene_pairs
+
+    core = make_core(env_id, potential=potential, **kwargs)
+    s0 = core.reset(3, 1)
+    active = core.scene.contact_model.evaluate(s0.q, scene_pairs(core.scene, 1), 0).value
+    assert float(active.sum()) > 0  # bodies within dhat of each other: the rack's balls, boxes on the floor
+    U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
+    loss = _loss(core, s0, U)
+    (g,) = torch.autograd.grad(loss, U)
+    assert torch.isfinite(loss) and float(g.abs().max()) == 0.0
+
+
 def test_rollout_checkpointed_and_truncated_gradients():
     """Push, 4 steps of a closed-loop linear policy: checkpointing chunks of 2 steps gives the plain gradients; cutting
     the graph every 2 steps keeps a window's own gradients and zeroes those across the cut."""

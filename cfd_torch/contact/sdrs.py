@@ -149,7 +149,9 @@ class SdrsContact:
             if order >= 2:
                 Hz = torch.func.vmap(torch.func.hessian(f))(z)
                 Hpp, Hpx, Hxx = Hz[:, :4, :4], Hz[:, :4, 4:], Hz[:, 4:, 4:]
-                Hx = (Hxx - Hpx.transpose(1, 2) @ torch.linalg.solve(Hpp, Hpx)).reshape(C, 6, 3, 6, 3)
+                # (a pseudo-inverse: where few barrier terms are active the energy is flat along some planes)
+                Hinv = torch.linalg.pinv(Hpp, hermitian=True, rtol=1e-12)
+                Hx = (Hxx - Hpx.transpose(1, 2) @ Hinv @ Hpx).reshape(C, 6, 3, 6, 3)
             N = poses.shape[1]
             side = _SIDE.to(poses.device).expand(C, 6)
             rows = pairs[pair][:, :1] * N + pairs[pair][:, 1:].gather(1, side)
@@ -182,13 +184,11 @@ class SdrsContact:
             def fp(q, v):
                 return sdrs_energy(q[None], v[None], h, dl)[0]
 
-            Hpp = torch.func.vmap(torch.func.hessian(fp))(p, xd)
-            gp = torch.func.vmap(torch.func.grad(fp))(p, x)
-            p = (
-                p
-                - torch.linalg.solve(Hpp, gp[..., None])[..., 0]
-                + torch.linalg.solve(Hpp, gp.detach()[..., None])[..., 0]
+            Hinv = torch.linalg.pinv(
+                torch.func.vmap(torch.func.hessian(fp))(p, xd), hermitian=True, rtol=1e-12
             )
+            gp = torch.func.vmap(torch.func.grad(fp))(p, x)
+            p = p - (Hinv @ (gp - gp.detach())[..., None])[..., 0]
         n = p[:, :3]
         sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=x.dtype, device=x.device)
         s = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
