@@ -141,9 +141,13 @@ def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -
     def total(q: torch.Tensor) -> torch.Tensor:
         return sdrs_energy(q, Xd, dhat, margin).sum()
 
+    done = torch.zeros(
+        p.shape[0], dtype=torch.bool, device=p.device
+    )  # each pair stops at its own convergence
     for _ in range(iters):
         e = sdrs_energy(p, Xd, dhat, margin)
-        if bool((e == 0).all()):
+        done = done | (e == 0)
+        if bool(done.all()):
             break
         g = torch.func.grad(total)(p)
         H = torch.func.vmap(torch.func.hessian(lambda q, x: sdrs_energy(q[None], x[None], dhat, margin)[0]))(
@@ -165,12 +169,13 @@ def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -
             if not bool(bad.any()):
                 break
             a = torch.where(bad, 0.5 * a, a)
-        ok = e_new <= e
+        ok = (e_new <= e) & ~done
         p = torch.where(ok[:, None], p + a[:, None] * step, p)
-        # converged: Newton steps at rounding level, or no pair's energy falls any more (the value and its vertex
-        # gradient are stationary in the plane, so a plane off by 1e-10 changes them at that order)
+        # converged: Newton steps at rounding level, or the energy falls no more (the value and its vertex gradient
+        # are stationary in the plane, so a plane off by 1e-10 changes them at that order); a converged pair's
+        # plane is kept, so that its result does not depend on the other pairs of the batch
         small = step.abs().amax(-1) <= 1e-10 * (1.0 + p.abs().amax(-1))
-        stalled = ~ok | (e - e_new <= 1e-15 * e.abs())
-        if bool((small | stalled | (e == 0)).all()):
+        done = done | small | ~ok | (e - e_new <= 1e-15 * e.abs())
+        if bool(done.all()):
             break
     return p

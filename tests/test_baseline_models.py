@@ -227,3 +227,42 @@ def test_sdrs_box_rests_on_a_floor():
     gap = traj.q[:, 0, 2] - 0.1
     assert float(gap.min()) > 1e-3
     assert float(gap[-5:].max()) < 0.021 and float((gap[-5:] - gap[-1]).abs().max()) < 1e-3
+
+
+@pytest.mark.parametrize("potential", ["ipc", "sdrs"])
+def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(potential):
+    """Two pose sets of an icosphere and a box, each within reach, plus a far pair: evaluating the rows together
+    equals evaluating each alone, bit for bit; lagged contacts are finite even with active = 0; and just beyond the
+    infeasible boundary the value is finite, just inside it +inf."""
+    from cfd_torch.contact.sdrs import SdrsContact
+
+    a, b = trimesh.creation.icosphere(1, 0.1), trimesh.creation.box((0.2, 0.15, 0.1))
+    bshes = (BSH.from_trimesh(a), BSH.from_trimesh(b), BSH.from_trimesh(a))
+    model = IpcContact(bshes, dhat=0.02) if potential == "ipc" else SdrsContact(bshes, dhat=0.02)
+    gen = torch.Generator().manual_seed(2)
+    sets = []
+    for _ in range(2):
+        q = torch.zeros(3, 6, dtype=F64)
+        q[:, 3:] = torch.randn(3, 3, generator=gen, dtype=F64)
+        d = torch.randn(3, generator=gen, dtype=F64)
+        q[2, 0] = 5.0
+        sets.append(_touching_at(model, q, d / d.norm(), 0.008))
+    poses = torch.stack(sets)
+    rows = torch.tensor([[0, 0, 1], [1, 0, 1], [0, 0, 2]])
+    together = model.evaluate(poses, rows, 2)
+    assert bool((together.value[:2] > 0).all()) and float(together.value[2]) == 0.0
+    for r in range(3):
+        alone = model.evaluate(poses, rows[r : r + 1], 2)
+        assert torch.equal(alone.value[0], together.value[r])
+        assert torch.equal(alone.grad[0], together.grad[r]) and torch.equal(alone.hess[0], together.hess[r])
+    lag = model.lagged(poses, rows, 0.0)
+    assert len(lag.pair) > 0 and all(bool(torch.isfinite(x).all()) for x in lag[1:])
+    d = torch.randn(3, generator=gen, dtype=F64)
+    edge = _touching_at(model, sets[0], d / d.norm(), 0.0)  # the first pose the query calls feasible
+    inside = edge.clone()
+    inside[1, :3] *= 1.0 - 1e-9
+    assert not bool(model.infeasible(edge[None], PAIR)[0])
+    assert bool(torch.isfinite(model.evaluate(edge[None], PAIR, 1).value[0]))
+    assert bool(model.infeasible(inside[None], PAIR)[0]) == bool(
+        torch.isinf(model.evaluate(inside[None], PAIR, 0).value[0])
+    )

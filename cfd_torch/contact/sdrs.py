@@ -9,7 +9,8 @@ summed over the triangle pairs of two bodies with no hierarchy, no blend and no 
 A triangle pair contributes exactly zero once some plane with |n| <= 1 - dhat leaves its six vertices dhat + delta / 2
 away, in particular whenever the triangles are farther apart than 2 (dhat + delta / 2) / (1 - dhat): only pairs closer
 than that are evaluated (the bodies' boxes, then the triangles' distances), and no force or gradient reaches bodies
-farther apart. A pair within the margin delta (or intersecting) is +inf, as for this library's potential.
+farther apart. A pair within the margin delta (or intersecting) is +inf, as for this library's potential (the margin
+widened by 1e-6 of itself: at the margin the optimal plane's gaps round to zero).
 
 Derivatives by the implicit function theorem at each pair's optimal plane p*(x) (x: its 18 vertex coordinates):
 grad = f_x and Hessian f_xx - f_xp f_pp^-1 f_px of f(p, x), from ``torch.func``, chained to the two bodies' poses.
@@ -61,6 +62,9 @@ class SdrsContact:
         if not dhat < 1.0:
             raise ValueError(f"dhat must be below 1 (the plane's normal has |n| <= 1 - dhat), got {dhat}")
         self.dhat, self.stiffness, self.margin = float(dhat), float(stiffness), float(margin)
+        # pairs closer than this are infeasible: the margin, widened by 1e-6 of it so that every feasible pair's
+        # optimal plane keeps its gaps positive in float64 (at the margin itself they round to 0: +inf)
+        self._infeasible_within = self.margin * (1.0 + 1e-6)
         self.num_bodies = len(bshes)
         self._meshes = Meshes.build(bshes)
         uniq: dict[int, int] = {}
@@ -90,7 +94,7 @@ class SdrsContact:
         sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
         out = penetrating(
             forest, p[:, :1] * N + p[:, 1:], roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6),
-            margin=self.margin, eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
+            margin=self._infeasible_within, eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
         )  # fmt: skip
         return out.to(poses.device)
 
@@ -108,7 +112,7 @@ class SdrsContact:
         ids = torch.cat([Fv[fa[ia]], Fv[fb[ib]]], 1)  # (C, 6)
         x = near.W[near.s[g][:, None], ids]
         dist = triangle_closest_points(x[:, :3], x[:, 3:]).dist if len(g) else x.new_zeros(0)
-        keep = (dist < self.reach) & (dist > self.margin)
+        keep = (dist < self.reach) & (dist > self._infeasible_within)
         return near.pair, near.pair[g[keep]], m.X.to(dev)[ids[keep]], x[keep]
 
     def evaluate(
@@ -206,19 +210,23 @@ class SdrsContact:
             self.stiffness * dB.abs() * torch.linalg.vector_norm(n, dim=-1, keepdim=True)
         )  # (C, 6) vertex forces
         fa, fb = f[:, :3], f[:, 3:]
+        sa, sb = fa.sum(1, keepdim=True), fb.sum(1, keepdim=True)
+        # a contact needs force on both triangles (one side's terms may vanish or underflow): the others are
+        # dropped below, and divide by 1 here so that no NaN enters the graph
+        loaded = (sa[:, 0] > 0) & (sb[:, 0] > 0)
         lam = fa.sum(1)
-        Xa = (fa[..., None] * X[:, :3]).sum(1) / fa.sum(1, keepdim=True)
-        Xb = (fb[..., None] * X[:, 3:]).sum(1) / fb.sum(1, keepdim=True)
+        Xa = (fa[..., None] * X[:, :3]).sum(1) / torch.where(sa > 0, sa, torch.ones_like(sa))
+        Xb = (fb[..., None] * X[:, 3:]).sum(1) / torch.where(sb > 0, sb, torch.ones_like(sb))
         pc = pairs[pair]
         bi, bj = pc[:, 0] * N + pc[:, 1], pc[:, 0] * N + pc[:, 2]
         xa = torch.einsum("cij,cj->ci", R[bi], Xa) + table[bi, :3]
         xb = torch.einsum("cij,cj->ci", R[bj], Xb) + table[bj, :3]
         u = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
         T = torch.eye(3, dtype=u.dtype, device=u.device) - u[:, :, None] * u[:, None, :]
-        keep = torch.ones_like(lam, dtype=torch.bool)
+        keep = loaded
         if active > 0 and len(lam):
             top = lam.new_zeros(pairs.shape[0]).scatter_reduce(0, pair, lam.detach(), "amax")
-            keep = lam.detach() >= active * top[pair]
+            keep = keep & (lam.detach() >= active * top[pair])
         return LaggedContacts(
             pair[keep], torch.stack([Xa, Xb], 1)[keep], torch.stack([xa, xb], 1)[keep], T[keep], lam[keep]
         )
