@@ -266,3 +266,32 @@ def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(poten
     assert bool(model.infeasible(inside[None], PAIR)[0]) == bool(
         torch.isinf(model.evaluate(inside[None], PAIR, 0).value[0])
     )
+
+
+def test_ipc_friction_rollout_gradient_matches_finite_differences():
+    """A box sliding on a floor under 60 N with friction 0.5 and potential="ipc", 10 steps: the gradient of its
+    final pose in the force and in its initial velocity (through the lagged friction contacts' dependence on the
+    previous poses) matches central differences to 1e-6."""
+    floor = trimesh.creation.box((2.0, 2.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    scene = Scene([_box(0.2), rigid_body(floor, kind="static")], potential="ipc", friction=0.5)
+    q0 = torch.zeros(2, 6, dtype=F64)
+    q0[0, 2] = 0.105
+    w = torch.tensor([1.0, 0.3, 0.7, 0.2, 0.1, 0.5], dtype=F64)
+
+    def final(theta: torch.Tensor) -> torch.Tensor:  # theta: x force [N], initial x velocity [m/s], yaw rate
+        qp = q0 - scene.dt * torch.stack([
+            torch.stack([theta[1], *[0 * theta[1]] * 4, theta[2]]), torch.zeros(6, dtype=F64)
+        ])  # fmt: skip
+        force = torch.stack([torch.stack([theta[0], 0 * theta[0], 0 * theta[0]]), torch.zeros(3, dtype=F64)])
+        return rollout(scene, State(q0, qp), [Action(force=force)] * 10).q[-1, 0] @ w
+
+    theta = torch.tensor([60.0, 0.3, 0.5], dtype=F64, requires_grad=True)
+    (g,) = torch.autograd.grad(final(theta), theta)
+    assert float(g.abs().min()) > 1e-4
+    for k, h in enumerate((1e-4, 1e-6, 1e-6)):
+        e = torch.zeros(3, dtype=F64)
+        e[k] = h
+        with torch.no_grad():
+            fd = (final(theta + e) - final(theta - e)) / (2 * h)
+        assert float(g[k]) == pytest.approx(float(fd), rel=1e-6), k
