@@ -1,5 +1,6 @@
 """Shared machinery of the locally supported baseline models (IPC, SDRS): which primitives of two rigid bodies can
-be within reach of each other, and the chain rule from the primitives' world points to the bodies' poses.
+be within reach of each other, the chain rule from the primitives' world points to the bodies' poses, and the
+hierarchies' collision query at a fixed margin (their +inf).
 
 Broad phase, for body pairs (s, i, j) of pose sets s: the bodies' world bounding boxes; pairs whose boxes come
 within ``reach`` are near, and only primitives (vertices, edges, faces) touching the overlap of the two boxes grown
@@ -14,6 +15,7 @@ from typing import NamedTuple
 import torch
 
 from ..rotation import rotation_matrix
+from ._traverse import build_forest, penetrating
 
 
 class Meshes(NamedTuple):
@@ -47,6 +49,40 @@ class Meshes(NamedTuple):
             torch.cat(X), torch.cat(F), torch.cat(E), torch.cat(vb), torch.tensor(vs), torch.tensor(fs),
             torch.tensor(es),
         )  # fmt: skip
+
+
+class CollisionQuery:
+    """The hierarchies' collision query at a fixed ``margin``: (P,) bool, the body pairs (rows (s, i, j)) with two
+    triangles within ``margin`` of each other or intersecting, at poses (S, N, 6); ``scale`` (N,) scales each body
+    about its origin first. Runs on the CPU (numba), the hierarchies concatenated on first use."""
+
+    def __init__(self, bshes, margin: float) -> None:
+        uniq: dict[int, int] = {}
+        for b in bshes:
+            uniq.setdefault(id(b), len(uniq))
+        self._bshes = tuple({id(b): b for b in bshes}.values())
+        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self.margin = float(margin)
+        self._forest = None
+
+    def __call__(
+        self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        if pairs.shape[0] == 0:
+            return torch.zeros(0, dtype=torch.bool, device=poses.device)
+        if self._forest is None:
+            forest = build_forest(self._bshes, torch.float64, torch.device("cpu"))
+            self._forest = (forest, forest.roots[self._which])
+        forest, roots = self._forest
+        cpu = torch.device("cpu")
+        S, N = poses.shape[:2]
+        p = pairs.to(cpu)
+        sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
+        out = penetrating(
+            forest, p[:, :1] * N + p[:, 1:], roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6),
+            margin=self.margin, eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
+        )  # fmt: skip
+        return out.to(poses.device)
 
 
 class Near(NamedTuple):

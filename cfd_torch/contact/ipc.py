@@ -33,8 +33,7 @@ import torch
 
 from .._validate import check_positive
 from ..rotation import rotation_matrix
-from ._primitives import Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
-from ._traverse import Forest, build_forest, penetrating
+from ._primitives import CollisionQuery, Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
 from .bsh import BSH
 from .model import ContactEval, LaggedContacts
 
@@ -242,33 +241,13 @@ class IpcContact:
         self.dhat, self.stiffness = float(dhat), float(stiffness)
         self.num_bodies = len(bshes)
         self._meshes = Meshes.build(bshes)
-        uniq: dict[int, int] = {}
-        for b in bshes:
-            uniq.setdefault(id(b), len(uniq))
-        self._bshes = tuple({id(b): b for b in bshes}.values())
-        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
-        self._forest: tuple[Forest, torch.Tensor] | None = None
+        self._query = CollisionQuery(bshes, 0.0)
 
     # -- the collision query: triangles touching or intersecting
     def infeasible(
         self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
     ) -> torch.Tensor:
-        if pairs.shape[0] == 0:
-            return torch.zeros(0, dtype=torch.bool, device=poses.device)
-        if self._forest is None:
-            forest = build_forest(self._bshes, torch.float64, torch.device("cpu"))
-            self._forest = (forest, forest.roots[self._which])
-        forest, roots = self._forest
-        cpu = torch.device("cpu")
-        S, N = poses.shape[:2]
-        p = pairs.to(cpu)
-        rows = p[:, :1] * N + p[:, 1:]
-        sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
-        out = penetrating(
-            forest, rows, roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6), margin=0.0,
-            eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
-        )  # fmt: skip
-        return out.to(poses.device)
+        return self._query(poses, pairs, scale)
 
     # -- the primitive pairs within dhat
     def _collisions(self, poses: torch.Tensor, pairs: torch.Tensor) -> _Collisions:
