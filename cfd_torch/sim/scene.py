@@ -209,6 +209,13 @@ class Scene:
         """U, the actuators of the simulated (not kinematic) robots: ``Action.ctrl``'s length."""
         return self.kinematics.num_actuators if self.simulates_joints else 0
 
+    def servo_gains(self, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(U,) kp and (U,) kv of the simulated robots' actuators as the MJCF gives them (``Params.kp`` / ``kv``'s
+        default; empty without robots)."""
+        if self.simulates_joints:
+            return self.kinematics.servo_gains(dtype, device)
+        return (torch.zeros(0, dtype=dtype, device=device),) * 2
+
     @property
     def num_kinematic_coords(self) -> int:
         """The coordinates of the kinematic robots: ``Action.joints``'s length."""
@@ -252,15 +259,11 @@ class Scene:
         """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one
         row per body the kinematics map moves."""
         d = self.kinematics.bodies.tolist()
-        gains = (
-            self.kinematics.servo_gains(dtype, device) if self.simulates_joints
-            else (torch.zeros(0, dtype=dtype, device=device),) * 2
-        )  # fmt: skip
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
             torch.stack([self.bodies[i].second_moment for i in d]).to(dtype=dtype, device=device),
             torch.tensor(float(self.friction.coefficient), dtype=dtype, device=device),
-            *gains,
+            *self.servo_gains(dtype, device),
         )
 
     def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:

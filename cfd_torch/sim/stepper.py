@@ -215,7 +215,7 @@ def step(
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else 1, state.q)
-    gains = scene.kinematics.servo_gains(f64, dev) if scene.simulates_joints else (state.q.new_zeros(0),) * 2
+    gains = scene.servo_gains(f64, dev)
     params = scene.params(f64, dev) if params is None else params
     params = check_params(params, B, len(scene.kinematics.bodies), dev, batched, gains)
     target = _batch(target, B)
