@@ -268,6 +268,7 @@ def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(poten
     )
 
 
+@pytest.mark.slow
 def test_ipc_friction_rollout_gradient_matches_finite_differences():
     """A box sliding on a floor under 60 N with friction 0.5 and potential="ipc", 10 steps: the gradient of its
     final pose in the force and in its initial velocity (through the lagged friction contacts' dependence on the
