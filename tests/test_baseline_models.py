@@ -108,6 +108,7 @@ def _box(extent: float, **kw):
     return rigid_body(trimesh.creation.box((extent,) * 3), **kw)
 
 
+@pytest.mark.slow
 def test_ipc_box_rests_holds_and_slides():
     """A 0.2 m box dropped 3 cm onto a floor with potential="ipc" (dhat 1 cm, kappa 1e6): it settles above the
     floor within dhat and stays; pushed with 10 N (friction 0.5: mu m g = 39 N) it holds to a millimetre over
