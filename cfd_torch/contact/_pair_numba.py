@@ -260,38 +260,80 @@ def _contact_frame(Xc, p, half_delta, o, Xo):
     p[3] += p[0] * o[0] + p[1] * o[1] + p[2] * o[2]
 
 
+# Dekker's splitter for float64 (2^27 + 1): x = hi + lo exactly, each half with at most 26 significant bits
+_SPLIT = 134217729.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _dot2(a, b, c, d):
+    """a b - c d to about an ulp of the result (products split exactly, Dekker), however much the two products
+    cancel. No FMA contraction here: the error terms must be rounded as written."""
+    t = _SPLIT * a
+    ah = t - (t - a)
+    al = a - ah
+    t = _SPLIT * b
+    bh = t - (t - b)
+    bl = b - bh
+    p = a * b
+    ep = ((ah * bh - p) + ah * bl + al * bh) + al * bl  # a b = p + ep exactly
+    t = _SPLIT * c
+    ch = t - (t - c)
+    cl = c - ch
+    t = _SPLIT * d
+    dh = t - (t - d)
+    dl = d - dh
+    q = c * d
+    eq = ((ch * dh - q) + ch * dl + cl * dh) + cl * dl
+    return (p - q) + (ep - eq)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _cross2(ax, ay, az, bx, by, bz):
+    """a x b, each component to about an ulp of itself (nearly parallel a and b included)."""
+    return _dot2(ay, bz, az, by), _dot2(az, bx, ax, bz), _dot2(ax, by, ay, bx)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _sat_start(X, delta, p):
-    """The mid-gap plane along the separating axis (of the 17 of two triangles: their normals, the 9 cross
-    products of their edges and the 6 in-plane edge normals, which separate coplanar triangles) with the largest
-    separation, scaled like the closest-point start; returns that
-    separation. Computed from projections of the vertices, it keeps its digits where the closest points' difference
-    does not (large triangles a few margins apart: the closest-point direction, a difference of two nearly equal
-    points, tilts the plane by more than the gap)."""
+    """The mid-gap plane along the separating axis with the largest separation, scaled like the closest-point
+    start; returns that separation. Axes (26): the triangles' normals, the 9 cross products of their edges, the 6
+    in-plane edge normals (which separate coplanar triangles) and, for each edge of a and vertex of b, the
+    perpendicular from the edge's line to the vertex (the separating axis of parallel edges, whose cross product
+    is rounding). Cross products are formed to an ulp of their components, so nearly parallel edges keep their
+    common perpendicular. Computed from projections of the vertices, the plane keeps its digits where the closest
+    points' difference does not (large triangles a few margins apart: the closest-point direction, a difference of
+    two nearly equal points, tilts the plane by more than the gap)."""
     best = -math.inf
-    for c in range(17):
+    for c in range(26):
         if c < 2:  # face normals
             o = 3 * c
             ax, ay, az = X[o + 1, 0] - X[o, 0], X[o + 1, 1] - X[o, 1], X[o + 1, 2] - X[o, 2]
             bx, by, bz = X[o + 2, 0] - X[o, 0], X[o + 2, 1] - X[o, 1], X[o + 2, 2] - X[o, 2]
-        elif c >= 11:  # a face normal x one of its edges: the in-plane axes that separate coplanar triangles
+        elif (
+            11 <= c < 17
+        ):  # a face normal x one of its edges: the in-plane axes that separate coplanar triangles
             o, i = 3 * ((c - 11) // 3), (c - 11) % 3
             px, py, pz = X[o + 1, 0] - X[o, 0], X[o + 1, 1] - X[o, 1], X[o + 1, 2] - X[o, 2]
             qx, qy, qz = X[o + 2, 0] - X[o, 0], X[o + 2, 1] - X[o, 1], X[o + 2, 2] - X[o, 2]
-            ax, ay, az = py * qz - pz * qy, pz * qx - px * qz, px * qy - py * qx  # the face's normal
+            ax, ay, az = _cross2(px, py, pz, qx, qy, qz)  # the face's normal
             j = o + (i + 1) % 3
             bx, by, bz = X[j, 0] - X[o + i, 0], X[j, 1] - X[o + i, 1], X[j, 2] - X[o + i, 2]
-        else:  # edge i of a x edge j of b
-            i, j = (c - 2) // 3, (c - 2) % 3
+        else:  # edge i of a with edge j of b (2..10), or with vertex j of b (17..25)
+            i, j = ((c - 2) // 3, (c - 2) % 3) if c < 11 else ((c - 17) // 3, (c - 17) % 3)
             ax, ay, az = (
                 X[(i + 1) % 3, 0] - X[i, 0],
                 X[(i + 1) % 3, 1] - X[i, 1],
                 X[(i + 1) % 3, 2] - X[i, 2],
             )
-            bx = X[3 + (j + 1) % 3, 0] - X[3 + j, 0]
-            by = X[3 + (j + 1) % 3, 1] - X[3 + j, 1]
-            bz = X[3 + (j + 1) % 3, 2] - X[3 + j, 2]
-        ux, uy, uz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            if c < 11:
+                bx = X[3 + (j + 1) % 3, 0] - X[3 + j, 0]
+                by = X[3 + (j + 1) % 3, 1] - X[3 + j, 1]
+                bz = X[3 + (j + 1) % 3, 2] - X[3 + j, 2]
+            else:  # edge x (vertex - edge start) x edge: the vertex's offset perpendicular to the edge
+                wx, wy, wz = X[3 + j, 0] - X[i, 0], X[3 + j, 1] - X[i, 1], X[3 + j, 2] - X[i, 2]
+                vx, vy, vz = _cross2(wx, wy, wz, ax, ay, az)
+                ax, ay, az, bx, by, bz = vx, vy, vz, ax, ay, az
+        ux, uy, uz = _cross2(ax, ay, az, bx, by, bz)
         norm = math.sqrt(ux * ux + uy * uy + uz * uz)
         if not norm > 0.0:
             continue

@@ -117,29 +117,55 @@ def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Ten
     return P, dist
 
 
+_SPLIT = 134217729.0  # Dekker's splitter for float64: x = hi + lo exactly, each half with at most 26 bits
+
+
+def _two_prod(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """a b = p + e exactly (Dekker's product; float64)."""
+    t = _SPLIT * a
+    ah = t - (t - a)
+    al = a - ah
+    t = _SPLIT * b
+    bh = t - (t - b)
+    bl = b - bh
+    p = a * b
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _cross2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a x b (..., 3), each component to about an ulp of itself, however nearly parallel a and b are
+    (``_pair_numba._cross2``)."""
+    i, j = [1, 2, 0], [2, 0, 1]
+    p, ep = _two_prod(a[..., i], b[..., j])
+    q, eq = _two_prod(a[..., j], b[..., i])
+    return (p - q) + (ep - eq)
+
+
 def sat_planes(X: torch.Tensor, delta: float) -> torch.Tensor:
-    """(K, 4) the mid-gap plane along the separating axis with the largest separation (of the 17 of two
-    triangles: their normals, the 9 cross products of their edges and the 6 in-plane edge normals), scaled like
-    the closest-point start (``_pair_numba._sat_start``)."""
+    """(K, 4) the mid-gap plane along the separating axis with the largest separation (of 26: the triangles'
+    normals, the 9 cross products of their edges, the 6 in-plane edge normals and, for each edge of a and vertex of
+    b, the perpendicular from the edge's line to the vertex; cross products to an ulp of their components), scaled
+    like the closest-point start (``_pair_numba._sat_start``)."""
     ea = X[:, [1, 2, 0]] - X[:, :3]  # (K, 3, 3) edges of a
     eb = X[:, [4, 5, 3]] - X[:, 3:]
-    na = torch.linalg.cross(ea[:, 0], -ea[:, 2])  # normal of a
-    nb = torch.linalg.cross(eb[:, 0], -eb[:, 2])
+    na = _cross2(ea[:, 0], -ea[:, 2])  # normal of a
+    nb = _cross2(eb[:, 0], -eb[:, 2])
+    E = ea[:, :, None, :].expand(-1, 3, 3, 3)  # (K, i, j, 3): edge i of a
+    w = X[:, None, 3:, :] - X[:, :3, None, :]  # (K, i, j, 3): vertex j of b - start of edge i of a
     axes = torch.cat(
         [
             na[:, None],
             nb[:, None],
-            torch.linalg.cross(
-                ea[:, :, None, :].expand(-1, 3, 3, 3), eb[:, None].expand(-1, 3, 3, 3)
-            ).flatten(1, 2),
-            torch.linalg.cross(na[:, None].expand(-1, 3, 3), ea),  # in-plane edge normals: coplanar triangles
-            torch.linalg.cross(nb[:, None].expand(-1, 3, 3), eb),
+            _cross2(E, eb[:, None].expand(-1, 3, 3, 3)).flatten(1, 2),
+            _cross2(na[:, None].expand(-1, 3, 3), ea),  # in-plane edge normals: coplanar triangles
+            _cross2(nb[:, None].expand(-1, 3, 3), eb),
+            _cross2(_cross2(w, E), E).flatten(1, 2),  # perpendiculars from a's edge lines: parallel edges
         ],
         1,
-    )  # (K, 17, 3)
+    )  # (K, 26, 3)
     norm = axes.norm(dim=-1, keepdim=True)
     u = axes / torch.where(norm > 0, norm, torch.ones_like(norm))
-    t = torch.einsum("kcj,kvj->kcv", u, X)  # (K, 17, 6) projections
+    t = torch.einsum("kcj,kvj->kcv", u, X)  # (K, 26, 6) projections
     amin, amax = t[..., :3].amin(-1), t[..., :3].amax(-1)
     bmin, bmax = t[..., 3:].amin(-1), t[..., 3:].amax(-1)
     up, down = amin - bmax, bmin - amax  # a above, a below
