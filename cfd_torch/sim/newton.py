@@ -19,7 +19,9 @@ Scenes that converged or failed stop costing: each evaluation covers only the sc
 scene, bodies stop costing too (with ``pair_bodies``): a body whose Newton step is within ``tol`` while every
 body its Hessian couples it to (contact within the blend band; the far field's coupling is below 1e-6 of their own
 curvature) is also within ``tol`` is frozen, and the evaluations that follow cover only the terms of the bodies
-still iterating (their own terms and their pairs). A scene converges only at an evaluation of all its bodies: when
+still iterating (their own terms and their pairs). Nothing freezes in a scene expected to converge in its next
+iteration (largest step^3 <= tol x previous largest step^2, Newton's quadratic rate): there a freeze would only add
+the two whole evaluations that end it. A scene converges only at an evaluation of all its bodies: when
 the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
 iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
 """
@@ -179,6 +181,7 @@ def newton(
     elif majorize is None:
         majorize = torch.ones(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
+    last_step = torch.full((B,), torch.inf, dtype=q.dtype, device=dev)  # each scene's previous largest step
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
@@ -219,7 +222,12 @@ def newton(
             floor = torch.maximum(cur.h_floor[idx][bad], 1e-12 * ev.abs().amax(1))
             mag = torch.maximum(ev.abs(), floor[:, None])
             p[bad] = -(V @ ((V.transpose(1, 2) @ g[bad][:, :, None])[:, :, 0] / mag)[:, :, None])[:, :, 0]
-        small = pd & ~maj & (p.abs().amax(1) <= tol)
+        p_max = p.abs().amax(1)
+        small = pd & ~maj & (p_max <= tol)
+        # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
+        # converge in its next iteration does not freeze bodies, which would cost it two whole evaluations more
+        soon = pd & ~maj & (p_max**3 <= tol * last_step[idx] ** 2)
+        last_step[idx] = p_max
         # the first whole evaluation after freezing: the frozen bodies' steps, up to tol each, are taken by one
         # more iteration instead of as an unchecked final step, so that the solve ends at (nearly) the point of
         # its last evaluation, whose Hessian the adjoint uses
@@ -254,6 +262,7 @@ def newton(
             moving = act[idx[k]] & (pb > tol)
             frz = act[idx[k]] & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[idx[k], None]
             frz = frz & (act[idx[k]] & ~frz).any(1, keepdim=True)  # never the last body still iterating
+            frz = frz & ~soon[k, None]
             if bool(frz.any()):
                 sc = idx[k]
                 act[sc] = act[sc] & ~frz
