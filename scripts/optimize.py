@@ -13,17 +13,27 @@ unit gradient: per-coordinate steps of about ``--lr``, which bends the direction
 changes below the solver's tolerance, as in Push's far field, stop it).
 Each iteration costs one rollout and its backward.
 
+Models (``--model``; the optimiser, its settings and the loss are the same for every one): ``cfd`` (this library's
+contact, the default), ``ipc`` and ``sdrs`` (the baselines' local barriers in the same stepper,
+``make_core(..., potential=...)``, dhat and kappa at their model defaults): gradients by autograd; ``gb``
+(randomised smoothing, Suh et al. 2022, the zeroth-order "bundled" gradient of this library's simulator): with
+``--gb-samples`` N perturbations eps_i ~ N(0, I) of the action parameters, g = sum_i (L(theta + sigma eps_i) -
+L(theta)) eps_i / (N sigma), sigma = ``--gb-sigma``; the N rollouts run as one batch of N scenes, forward only.
+Every log row counts the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
+
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
 ``--iters`` iterations on the window of the next ``--horizon`` actions from the current state, then the first
 action is executed and the window shifts (its last action repeats); the logged loss is the executed trajectory's,
 next to the same loss with zero actions (the trivial start's).
 
-Writes ``log.json`` (the arguments, the commit, and per iteration or control step: loss, gradient norm, wall times,
-Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout with the smallest final distance; MPC: the
-executed trajectory) under ``--out``.
+Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
+times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout with the smallest final
+distance; MPC: the executed trajectory) under ``--out``. :func:`run_experiment` (a config dict in, a JSON-able dict
+out) is the whole experiment; ``scripts/sweep.py`` runs it over a grid.
 
     python scripts/optimize.py --task Billiards --optimizer ngd-ls --lr 0.5 --iters 20 --horizon 100 --out X
     python scripts/optimize.py --task Push --mpc --dt 0.02 --horizon 48 --steps 100 --iters 3 --out X
+    python scripts/optimize.py --task Billiards --model gb --gb-samples 16 --iters 20 --out X
 """
 
 from __future__ import annotations
@@ -48,6 +58,14 @@ from cfd_torch.envs.render import write_gif  # noqa: E402
 TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
 TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 OPTIMISERS = ("ngd", "adam", "ngd-ls")
+MODELS = ("cfd", "ipc", "sdrs", "gb")
+
+# every key run_experiment reads, with its default (the command line's defaults are these)
+DEFAULTS = {
+    "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
+    "knots": None, "dt": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1, "threads": None,
+    "out": None, "gif": True,
+}  # fmt: skip
 
 
 class Optimiser:
@@ -91,90 +109,144 @@ class Optimiser:
         return self.current
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", default="Billiards", choices=TASKS)
-    ap.add_argument("--iters", type=int, default=30, help="iterations (MPC: per control step)")
-    ap.add_argument("--horizon", type=int, default=40, help="actions optimised (MPC: the window)")
-    ap.add_argument(
-        "--mpc", action="store_true", help="receding-horizon control instead of one open-loop plan"
-    )
-    ap.add_argument("--steps", type=int, default=100, help="MPC: control steps executed")
-    ap.add_argument("--knots", type=int, default=None,
-                    help="hold actions over this many equal parts of the horizon (default: one per step)")  # fmt: skip
-    ap.add_argument("--dt", type=float, default=None, help="the task's time step [s] (default: the task's)")
-    ap.add_argument("--lr", type=float, default=0.1)
-    ap.add_argument("--optimizer", default="ngd", choices=OPTIMISERS,
-                    help="ngd (momentum on the unit gradient), adam or ngd-ls (with backtracking)")  # fmt: skip
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=Path("results/optimize"))
-    ap.add_argument("--no-gif", action="store_true")
-    args = ap.parse_args()
-    torch.manual_seed(args.seed)
-    args.out.mkdir(parents=True, exist_ok=True)
+def _gradient_fn(core, model: str, config: dict, actions):
+    """evaluate_from(state) -> evaluate(theta) -> (loss, rollout, gradient, forward s, gradient s, rollouts,
+    backward rollouts) of the task loss (module docstring) with ``model``'s gradient."""
 
-    kwargs = dict(TASK_KWARGS.get(args.task, {}))
-    if args.dt is not None:
-        kwargs["dt"] = args.dt
-    core = make_core(f"cfd_torch/{args.task}-v0", **kwargs)
-    s0 = core.reset(args.seed, 1)
+    def loss_of(out) -> torch.Tensor:
+        return -(out.info["reward_distance"] * out.alive).sum(0)  # (B,)
+
+    if model != "gb":
+
+        def evaluate_from(state):
+            def evaluate(th: torch.Tensor):
+                th = th.detach().requires_grad_(True)
+                t0 = time.perf_counter()
+                out = rollout(core, state, actions(th))
+                loss = loss_of(out).sum()
+                t1 = time.perf_counter()
+                (g,) = torch.autograd.grad(loss, th)
+                return float(loss.detach()), out, g, t1 - t0, time.perf_counter() - t1, 1, 1
+
+            return evaluate
+
+        return evaluate_from
+    n, sigma = int(config["gb_samples"]), float(config["gb_sigma"])
+    if n < 1 or not sigma > 0:
+        raise ValueError(f"gb_samples must be >= 1 and gb_sigma > 0, got {n} and {sigma}")
+    gen = torch.Generator().manual_seed(int(config["seed"]))
 
     def evaluate_from(state):
+        many = state.select(torch.zeros(n, dtype=torch.long))
+
         def evaluate(th: torch.Tensor):
-            """Loss, gradient, rollout and wall times at the parameters th."""
-            th = th.detach().requires_grad_(True)
+            th = th.detach()
             t0 = time.perf_counter()
-            out = rollout(core, state, actions(th))
-            loss = -(out.info["reward_distance"] * out.alive).sum()
-            t1 = time.perf_counter()
-            (g,) = torch.autograd.grad(loss, th)
-            return float(loss.detach()), out, g, t1 - t0, time.perf_counter() - t1
+            with torch.no_grad():
+                out = rollout(core, state, actions(th))
+                loss = float(loss_of(out).sum())
+                t1 = time.perf_counter()
+                eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
+                # th (K, 1, A) -> the N perturbed plans as one batch (T, N, A)
+                acts = torch.cat([actions(th + sigma * e) for e in eps], 1)
+                losses = loss_of(rollout(core, many, acts))
+                g = ((losses - loss)[:, None, None, None] * eps).mean(0) / sigma
+            return loss, out, g, t1 - t0, time.perf_counter() - t1, 1 + n, 0
 
         return evaluate
 
-    def record(cur, **extra):
-        loss, out, g, t_fwd, t_bwd = cur
-        return {
-            "loss": loss, "final_distance": float(-out.info["reward_distance"][-1].sum()), "forward_s": t_fwd,
-            "backward_s": t_bwd, "grad_norm": float(g.norm()), "newton_iters": int(out.info["newton_iters"].sum()),
-        } | extra  # fmt: skip
+    return evaluate_from
 
-    knots = args.horizon if args.knots is None else args.knots
-    if not 1 <= knots <= args.horizon:
-        raise SystemExit(f"--knots must be in [1, --horizon], got {knots}")
-    segment = torch.arange(args.horizon) * knots // args.horizon  # the knot each step's action comes from
+
+def run_experiment(config: dict) -> dict:
+    """One optimisation run (module docstring) from ``config`` (keys of :data:`DEFAULTS`; missing ones take their
+    default): returns {"config", "commit", "summary", "log"} (JSON-able) and, with ``config["out"]``, writes
+    log.json, loss.png and (with ``gif``) best.gif there."""
+    unknown = set(config) - set(DEFAULTS)
+    if unknown:
+        raise ValueError(f"config: unknown keys {sorted(unknown)}")
+    cfg = {**DEFAULTS, **config}
+    if cfg["task"] not in TASKS:
+        raise ValueError(f"config['task'] must be one of {TASKS}, got {cfg['task']!r}")
+    if cfg["model"] not in MODELS:
+        raise ValueError(f"config['model'] must be one of {MODELS}, got {cfg['model']!r}")
+    if cfg["threads"]:
+        torch.set_num_threads(int(cfg["threads"]))
+    torch.manual_seed(cfg["seed"])
+    out_dir = Path(cfg["out"]) if cfg["out"] is not None else None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    task, model = cfg["task"], cfg["model"]
+    kwargs = dict(TASK_KWARGS.get(task, {}))
+    if cfg["dt"] is not None:
+        kwargs["dt"] = cfg["dt"]
+    if model in ("ipc", "sdrs"):
+        kwargs["potential"] = model
+    core = make_core(f"cfd_torch/{task}-v0", **kwargs)
+    s0 = core.reset(cfg["seed"], 1)
+    horizon = cfg["horizon"]
+    knots = horizon if cfg["knots"] is None else cfg["knots"]
+    if not 1 <= knots <= horizon:
+        raise ValueError(f"config['knots'] must be in [1, horizon], got {knots}")
+    segment = torch.arange(horizon) * knots // horizon  # the knot each step's action comes from
 
     def actions(th: torch.Tensor) -> torch.Tensor:
         """(horizon, 1, A) actions in [-1, 1] from the knot parameters th (knots, 1, A)."""
         return torch.tanh(th)[segment]
 
+    spent = {"rollouts": 0, "backward": 0, "wall_s": 0.0}  # over every evaluation, rejected trials included
+    gradient_from = _gradient_fn(core, model, cfg, actions)
+
+    def evaluate_from(state):
+        evaluate = gradient_from(state)
+
+        def counted(th: torch.Tensor):
+            cur = evaluate(th)
+            spent["rollouts"] += cur[5]
+            spent["backward"] += cur[6]
+            spent["wall_s"] += cur[3] + cur[4]
+            return cur
+
+        return counted
+
+    def record(cur, **extra):
+        loss, out, g, t_fwd, t_grad = cur[:5]
+        return {
+            "loss": loss, "final_distance": float(-out.info["reward_distance"][-1].detach().sum()), "forward_s": t_fwd,
+            "gradient_s": t_grad, "grad_norm": float(g.norm()), "newton_iters": int(out.info["newton_iters"].sum()),
+            "rollouts": spent["rollouts"], "backward": spent["backward"], "wall_s": spent["wall_s"],
+        } | extra  # fmt: skip
+
     theta = torch.zeros(knots, 1, core.action_dim, dtype=torch.float64)
     log = []
-    if not args.mpc:
-        opt = Optimiser(args.optimizer, args.lr)
+    name = f"{task} {model} {cfg['optimizer']} seed {cfg['seed']}"
+    if not cfg["mpc"]:
+        opt = Optimiser(cfg["optimizer"], cfg["lr"])
         cur = opt.start(theta, evaluate_from(s0))
         best = None
-        for it in tqdm(range(args.iters + 1), desc=f"{args.task} {args.optimizer}"):
+        for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             rec = record(cur, iter=it, step=opt.step_size)
             if best is None or rec["final_distance"] < best[0]:
                 best = (rec["final_distance"], cur[1].q.detach()[:, 0])
             log.append(rec)
-            tqdm.write(f"iter {it}: loss {rec['loss']:.10g} final distance {rec['final_distance']:.6f} m")
-            if it < args.iters:
+            if it < cfg["iters"]:
                 cur = opt.step()
         first, last = log[0], log[-1]
-        summary = {"loss_start": first["loss"], "loss_end": last["loss"], "best_final_distance": best[0]}
+        summary = {"loss_start": first["loss"], "loss_end": last["loss"], "best_final_distance": best[0],
+                   "final_distance_start": first["final_distance"], "final_distance_end": last["final_distance"],
+                   "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = best[1]
     else:
+        steps = cfg["steps"]
         with torch.no_grad():
-            zero = rollout(core, s0, torch.zeros(args.steps, 1, core.action_dim, dtype=torch.float64))
+            zero = rollout(core, s0, torch.zeros(steps, 1, core.action_dim, dtype=torch.float64))
         zero_loss = float(-(zero.info["reward_distance"] * zero.alive).sum())
         state, executed, qs = s0, [], [s0.q[0]]
-        opt = Optimiser(args.optimizer, args.lr)
-        for t in tqdm(range(args.steps), desc=f"{args.task} MPC {args.optimizer}"):
+        opt = Optimiser(cfg["optimizer"], cfg["lr"])
+        for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
             cur = opt.start(theta, evaluate_from(state))
             window0 = cur[0]
-            for _ in range(args.iters):
+            for _ in range(cfg["iters"]):
                 cur = opt.step()
             theta = opt.theta.detach()
             with torch.no_grad():
@@ -183,38 +255,85 @@ def main() -> None:
             executed.append(float(-out.info["reward_distance"].sum()))
             qs.append(state.q[0])
             log.append(record(cur, step=t, window_loss_start=window0, executed_distance=executed[-1]))
-            tqdm.write(
-                f"step {t}: window loss {window0:.10g} -> {cur[0]:.10g}; distance {executed[-1]:.6f} m"
-            )
             # shift the window, repeating its last action (with knots the plan's segments stay)
-            if knots == args.horizon:
+            if knots == horizon:
                 theta = torch.cat([theta[1:], theta[-1:]])
             if bool(out.terminated.all()):
                 break
         summary = {"loss_zero_actions": zero_loss, "loss_executed": sum(executed), "steps_run": len(executed),
                    "final_distance": executed[-1], "final_distance_zero_actions":
-                   float(-zero.info["reward_distance"][len(executed) - 1].sum())}  # fmt: skip
+                   float(-zero.info["reward_distance"][len(executed) - 1].sum()),
+                   "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = torch.stack(qs)
-    meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-            "commit": git_revision(), "summary": summary, "log": log}  # fmt: skip
-    (args.out / "log.json").write_text(json.dumps(meta, indent=1))
+    result = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in cfg.items()},
+              "commit": git_revision(), "summary": summary, "log": log}  # fmt: skip
+    if out_dir is not None:
+        (out_dir / "log.json").write_text(json.dumps(result, indent=1))
+        _plot(result, out_dir / "loss.png")
+        if cfg["gif"]:
+            r = core.renderer(320, 320)
+            frames = [core.draw(r, q, task_at(s0, 0)) for q in frames_q]
+            r.close()
+            write_gif(frames, out_dir / "best.gif", fps=round(1 / core.scene.dt))
+    return result
 
+
+def _plot(result: dict, path: Path) -> None:
+    cfg, log = result["config"], result["log"]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
-    x = "step" if args.mpc else "iter"
+    x = "step" if cfg["mpc"] else "iter"
     ax[0].plot([r[x] for r in log], [r["loss"] for r in log])
-    ax[0].set(xlabel=x, ylabel="loss (-return)" + (" of the window" if args.mpc else ""),
-              title=f"{args.task}: {'MPC ' if args.mpc else ''}{args.optimizer} lr {args.lr}")  # fmt: skip
-    key = "executed_distance" if args.mpc else "final_distance"
+    ax[0].set(xlabel=x, ylabel="loss (-return)" + (" of the window" if cfg["mpc"] else ""),
+              title=f"{cfg['task']} ({cfg['model']}): {'MPC ' if cfg['mpc'] else ''}{cfg['optimizer']} "
+              f"lr {cfg['lr']}")  # fmt: skip
+    key = "executed_distance" if cfg["mpc"] else "final_distance"
     ax[1].plot([r[x] for r in log], [r[key] for r in log])
-    ax[1].set(xlabel=x, ylabel="distance to goal [m]" if args.mpc else "final distance to goal [m]")
+    ax[1].set(xlabel=x, ylabel="distance to goal [m]" if cfg["mpc"] else "final distance to goal [m]")
     fig.tight_layout()
-    fig.savefig(args.out / "loss.png", dpi=120)
-    if not args.no_gif:
-        r = core.renderer(320, 320)
-        frames = [core.draw(r, q, task_at(s0, 0)) for q in frames_q]
-        r.close()
-        write_gif(frames, args.out / "best.gif", fps=round(1 / core.scene.dt))
-    print(json.dumps(summary, indent=1), f"\nwritten to {args.out}")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The optimisation's options (shared with scripts/sweep.py): every key of DEFAULTS but task, model, seed, out."""
+    d = DEFAULTS
+    ap.add_argument("--iters", type=int, default=d["iters"], help="iterations (MPC: per control step)")
+    ap.add_argument("--horizon", type=int, default=d["horizon"], help="actions optimised (MPC: the window)")
+    ap.add_argument(
+        "--mpc", action="store_true", help="receding-horizon control instead of one open-loop plan"
+    )
+    ap.add_argument("--steps", type=int, default=d["steps"], help="MPC: control steps executed")
+    ap.add_argument("--knots", type=int, default=d["knots"],
+                    help="hold actions over this many equal parts of the horizon (default: one per step)")  # fmt: skip
+    ap.add_argument(
+        "--dt", type=float, default=d["dt"], help="the task's time step [s] (default: the task's)"
+    )
+    ap.add_argument("--lr", type=float, default=d["lr"])
+    ap.add_argument("--optimizer", default=d["optimizer"], choices=OPTIMISERS,
+                    help="ngd (momentum on the unit gradient), adam or ngd-ls (with backtracking)")  # fmt: skip
+    ap.add_argument("--gb-samples", type=int, default=d["gb_samples"], help="gb: rollouts per gradient")
+    ap.add_argument(
+        "--gb-sigma", type=float, default=d["gb_sigma"], help="gb: smoothing scale of the parameters"
+    )
+    ap.add_argument("--threads", type=int, default=d["threads"], help="torch threads (default: torch's)")
+    ap.add_argument("--no-gif", dest="gif", action="store_false")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--task", default=DEFAULTS["task"], choices=TASKS)
+    ap.add_argument("--model", default=DEFAULTS["model"], choices=MODELS)
+    ap.add_argument("--seed", type=int, default=DEFAULTS["seed"])
+    ap.add_argument("--out", type=Path, default=Path("results/optimize"))
+    add_arguments(ap)
+    config = vars(ap.parse_args())
+    result = run_experiment(config)
+    for r in result["log"]:
+        x = f"step {r['step']}" if config["mpc"] else f"iter {r['iter']}"
+        print(
+            f"{x}: loss {r['loss']:.10g} final distance {r['final_distance']:.6f} m, {r['rollouts']} rollouts"
+        )
+    print(json.dumps(result["summary"], indent=1), f"\nwritten to {config['out']}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,116 @@
+"""Plots and the results table of a sweep (``scripts/sweep.py``'s ``sweep.json``).
+
+Per task, one figure with the loss, relative to each run's start (open loop: the first iteration's loss; MPC: the
+loss of zero actions), against iteration and against wall time (the time spent computing losses and gradients),
+for every model: the mean over seeds and its spread (min to max). The table gives per task and model: the loss
+decrease 1 - final / initial loss (mean and range over seeds), the best final distance to the goal, iterations, rollouts
+(forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
+
+Writes ``<dir>/<task>.png`` per task and ``<dir>/results.md`` (printed too).
+
+    python scripts/plot_results.py results/sweep
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x iteration or control step, wall s, loss / initial loss) of one run."""
+    cfg, log, s = run["config"], run["log"], run["summary"]
+    if cfg["mpc"]:
+        x = np.array([r["step"] for r in log], dtype=float)
+        executed = np.cumsum([r["executed_distance"] for r in log])
+        zero = s["loss_zero_actions"] * (np.arange(1, len(log) + 1) / s["steps_run"])
+        loss = executed / np.where(zero > 0, zero, 1.0)
+    else:
+        x = np.array([r["iter"] for r in log], dtype=float)
+        loss = np.array([r["loss"] for r in log]) / log[0]["loss"]
+    return x, np.array([r["wall_s"] for r in log]), loss
+
+
+def _ratio(run: dict) -> float:
+    s = run["summary"]
+    if run["config"]["mpc"]:
+        return s["loss_executed"] / s["loss_zero_actions"]
+    return s["loss_end"] / s["loss_start"]
+
+
+def table(runs: list[dict]) -> str:
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in runs:
+        groups[(r["config"]["task"], r["config"]["model"])].append(r)
+    lines = [
+        "| task | model | loss decrease 1 - final / initial: mean (min .. max) | best final distance [m] (mean) | "
+        "iterations | rollouts per run | wall s per run | seeds |",
+        "|---|---|---|---|---:|---:|---:|---|",
+    ]
+    for (task, model), rs in sorted(groups.items()):
+        drop = 1.0 - np.array([_ratio(r) for r in rs])
+        dist = np.mean(
+            [r["summary"].get("best_final_distance", r["summary"].get("final_distance")) for r in rs]
+        )
+        its = rs[0]["config"]["iters"] * (rs[0]["config"]["steps"] if rs[0]["config"]["mpc"] else 1)
+        lines.append(
+            f"| {task} | {model} | {drop.mean():.3g} ({drop.min():.3g} .. {drop.max():.3g}) | {dist:.4g} | "
+            f"{its} | {np.mean([r['summary']['rollouts'] for r in rs]):.0f} | "
+            f"{np.mean([r['summary']['wall_s'] for r in rs]):.0f} | "
+            f"{' '.join(str(r['config']['seed']) for r in sorted(rs, key=lambda r: r['config']['seed']))} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(runs: list[dict], out: Path) -> list[Path]:
+    by_task: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for r in runs:
+        by_task[r["config"]["task"]][r["config"]["model"]].append(r)
+    paths = []
+    for task, models in sorted(by_task.items()):
+        fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+        for model, rs in sorted(models.items()):
+            curves = [_curves(r) for r in rs]
+            n = min(len(c[0]) for c in curves)
+            x = curves[0][0][:n]
+            wall = np.mean([c[1][:n] for c in curves], 0)
+            L = np.array([c[2][:n] for c in curves])
+            for axis, xs in ((ax[0], x), (ax[1], wall)):
+                (line,) = axis.plot(xs, L.mean(0), label=f"{model} ({len(rs)} seeds)")
+                axis.fill_between(xs, L.min(0), L.max(0), color=line.get_color(), alpha=0.2)
+        mpc = next(iter(models.values()))[0]["config"]["mpc"]
+        ax[0].set(xlabel="control step" if mpc else "iteration", ylabel="loss / initial loss", title=task)
+        ax[1].set(xlabel="wall time [s]", ylabel="loss / initial loss", xscale="symlog")
+        ax[0].legend(fontsize=8)
+        fig.tight_layout()
+        path = out / f"{task}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sweep", type=Path, help="a folder with sweep.json (scripts/sweep.py --out)")
+    args = ap.parse_args()
+    runs = json.loads((args.sweep / "sweep.json").read_text())["runs"]
+    if not runs:
+        raise SystemExit(f"{args.sweep / 'sweep.json'} holds no runs")
+    md = table(runs)
+    (args.sweep / "results.md").write_text(md + "\n")
+    paths = plot(runs, args.sweep)
+    print(md)
+    print("wrote", args.sweep / "results.md", *paths)
+
+
+if __name__ == "__main__":
+    main()
