@@ -19,7 +19,13 @@ contact, the default), ``ipc`` and ``sdrs`` (the baselines' local barriers in th
 (randomised smoothing, Suh et al. 2022, the zeroth-order "bundled" gradient of this library's simulator): with
 ``--gb-samples`` N perturbations eps_i ~ N(0, I) of the action parameters, g = sum_i (L(theta + sigma eps_i) -
 L(theta)) eps_i / (N sigma), sigma = ``--gb-sigma``; the N rollouts run as one batch of N scenes, forward only.
-Every log row counts the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
+``mujoco-fd``: the same task in MuJoCo (:class:`cfd_torch.envs.mujoco_twin.MujocoTwin`: the scene's meshes, masses,
+friction and gravity, the task's own actions and reward, ``--mj-substeps`` MuJoCo steps per task step; not AntPush),
+its loss's gradient by central differences in every action parameter (2 K A + 1 rollouts for K knots and A action
+dimensions), with the step ``--fd-step``, or, by default, the step chosen at the start by a sweep over
+``FD_STEPS``: the one whose unit gradient, stepped by ``--lr``, lowers the loss most (recorded in the log's summary
+with every step's gradient norm and loss; the sweep's rollouts are counted); open loop only. Every log row counts
+the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
 
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
 ``--iters`` iterations on the window of the next ``--horizon`` actions from the current state, then the first
@@ -28,8 +34,8 @@ next to the same loss with zero actions (the trivial start's).
 
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout with the smallest final
-distance; MPC: the executed trajectory) under ``--out``. :func:`run_experiment` (a config dict in, a JSON-able dict
-out) is the whole experiment; ``scripts/sweep.py`` runs it over a grid.
+distance; MPC: the executed trajectory; none for mujoco-fd) under ``--out``. :func:`run_experiment` (a config
+dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs it over a grid.
 
     python scripts/optimize.py --task Billiards --optimizer ngd-ls --lr 0.5 --iters 20 --horizon 100 --out X
     python scripts/optimize.py --task Push --mpc --dt 0.02 --horizon 48 --steps 100 --iters 3 --out X
@@ -58,12 +64,14 @@ from cfd_torch.envs.render import write_gif  # noqa: E402
 TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
 TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 OPTIMISERS = ("ngd", "adam", "ngd-ls")
-MODELS = ("cfd", "ipc", "sdrs", "gb")
+MODELS = ("cfd", "ipc", "sdrs", "gb", "mujoco-fd")
+FD_STEPS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)  # mujoco-fd: the step sizes its sweep tries
 
 # every key run_experiment reads, with its default (the command line's defaults are these)
 DEFAULTS = {
     "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
-    "knots": None, "dt": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1, "threads": None,
+    "knots": None, "dt": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1, "fd_step": None,
+    "mj_substeps": 10, "threads": None,
     "out": None, "gif": True,
 }  # fmt: skip
 
@@ -116,6 +124,8 @@ def _gradient_fn(core, model: str, config: dict, actions):
     def loss_of(out) -> torch.Tensor:
         return -(out.info["reward_distance"] * out.alive).sum(0)  # (B,)
 
+    if model == "mujoco-fd":
+        return _mujoco_fd(core, config, actions)
     if model != "gb":
 
         def evaluate_from(state):
@@ -158,6 +168,65 @@ def _gradient_fn(core, model: str, config: dict, actions):
     return evaluate_from
 
 
+def _mujoco_fd(core, config: dict, actions):
+    """evaluate_from for ``mujoco-fd`` (module docstring); the chosen step and the sweep go to ``config["fd"]``."""
+    from cfd_torch.envs.mujoco_twin import MujocoTwin
+
+    twin = MujocoTwin(core, substeps=int(config["mj_substeps"]))
+    sweep = config.setdefault("fd", {})
+
+    def loss_at(state, th: torch.Tensor) -> tuple[float, torch.Tensor]:
+        d, alive = twin.rollout(state, actions(th))
+        return float((d * alive).sum()), d
+
+    def fd_gradient(state, th: torch.Tensor, h: float) -> torch.Tensor:
+        g = torch.zeros_like(th)
+        flat = g.view(-1)
+        for i in range(th.numel()):
+            e = torch.zeros_like(th).view(-1)
+            e[i] = h
+            e = e.view_as(th)
+            flat[i] = (loss_at(state, th + e)[0] - loss_at(state, th - e)[0]) / (2 * h)
+        return g
+
+    def evaluate_from(state):
+        def evaluate(th: torch.Tensor):
+            th = th.detach()
+            t0 = time.perf_counter()
+            loss, d = loss_at(state, th)
+            t1 = time.perf_counter()
+            n = 1  # rollouts: this loss, the gradient's, and (at the first evaluation) the step-size sweep's
+            if "step" not in sweep:  # the step-size sweep, once, at the first evaluation
+                rows, grads = [], {}
+                for h in FD_STEPS if config["fd_step"] is None else (float(config["fd_step"]),):
+                    grads[h] = g = fd_gradient(state, th, h)
+                    norm = float(g.norm())
+                    after = loss_at(state, th - config["lr"] * g / norm)[0] if norm > 0 else loss
+                    rows.append({"step": h, "grad_norm": norm, "loss_after_lr_step": after})
+                    n += 2 * th.numel() + (1 if norm > 0 else 0)
+                best = min(rows, key=lambda r: (r["loss_after_lr_step"], -r["step"]))
+                sweep.update({"step": best["step"], "sweep": rows})
+                g = grads[best["step"]]
+            else:
+                g = fd_gradient(state, th, sweep["step"])
+                n += 2 * th.numel()
+            out = _TwinRollout(d)
+            return loss, out, g, t1 - t0, time.perf_counter() - t1, n, 0
+
+        return evaluate
+
+    return evaluate_from
+
+
+class _TwinRollout:
+    """What run_experiment reads from a rollout, for MuJoCo's: ``info["reward_distance"]`` (T, 1), ``info
+    ["newton_iters"]`` (zeros: MuJoCo has none) and ``q`` (None: the GIF shows the simulator's rollouts only)."""
+
+    def __init__(self, distances: torch.Tensor) -> None:
+        self.info = {"reward_distance": -distances[:, None], "newton_iters": torch.zeros(1, dtype=torch.long)}
+        self.q = None
+
+
 def run_experiment(config: dict) -> dict:
     """One optimisation run (module docstring) from ``config`` (keys of :data:`DEFAULTS`; missing ones take their
     default): returns {"config", "commit", "summary", "log"} (JSON-able) and, with ``config["out"]``, writes
@@ -170,6 +239,8 @@ def run_experiment(config: dict) -> dict:
         raise ValueError(f"config['task'] must be one of {TASKS}, got {cfg['task']!r}")
     if cfg["model"] not in MODELS:
         raise ValueError(f"config['model'] must be one of {MODELS}, got {cfg['model']!r}")
+    if cfg["model"] == "mujoco-fd" and (cfg["mpc"] or cfg["task"] == "AntPush"):
+        raise ValueError("config: mujoco-fd runs open loop on Billiards, Push, Sort and Gather only")
     if cfg["threads"]:
         torch.set_num_threads(int(cfg["threads"]))
     torch.manual_seed(cfg["seed"])
@@ -227,7 +298,7 @@ def run_experiment(config: dict) -> dict:
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             rec = record(cur, iter=it, step=opt.step_size)
             if best is None or rec["final_distance"] < best[0]:
-                best = (rec["final_distance"], cur[1].q.detach()[:, 0])
+                best = (rec["final_distance"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
             log.append(rec)
             if it < cfg["iters"]:
                 cur = opt.step()
@@ -265,12 +336,15 @@ def run_experiment(config: dict) -> dict:
                    float(-zero.info["reward_distance"][len(executed) - 1].sum()),
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = torch.stack(qs)
+    fd = cfg.pop("fd", None)
+    if fd is not None:
+        summary["fd_step"], summary["fd_sweep"] = fd["step"], fd["sweep"]
     result = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in cfg.items()},
               "commit": git_revision(), "summary": summary, "log": log}  # fmt: skip
     if out_dir is not None:
         (out_dir / "log.json").write_text(json.dumps(result, indent=1))
         _plot(result, out_dir / "loss.png")
-        if cfg["gif"]:
+        if cfg["gif"] and frames_q is not None:
             r = core.renderer(320, 320)
             frames = [core.draw(r, q, task_at(s0, 0)) for q in frames_q]
             r.close()
@@ -314,6 +388,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--gb-samples", type=int, default=d["gb_samples"], help="gb: rollouts per gradient")
     ap.add_argument(
         "--gb-sigma", type=float, default=d["gb_sigma"], help="gb: smoothing scale of the parameters"
+    )
+    ap.add_argument("--fd-step", type=float, default=d["fd_step"],
+                    help="mujoco-fd: central-difference step (default: chosen by a sweep over FD_STEPS)")  # fmt: skip
+    ap.add_argument(
+        "--mj-substeps", type=int, default=d["mj_substeps"], help="mujoco-fd: MuJoCo steps per task step"
     )
     ap.add_argument("--threads", type=int, default=d["threads"], help="torch threads (default: torch's)")
     ap.add_argument("--no-gif", dest="gif", action="store_false")

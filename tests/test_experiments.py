@@ -14,7 +14,7 @@ import pytest
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
-    from optimize import MODELS, run_experiment
+    from optimize import FD_STEPS, MODELS, run_experiment
 finally:
     sys.path.pop(0)
 
@@ -24,8 +24,9 @@ finally:
 )
 def test_two_iterations_per_model(model, tmp_path):
     """Two ngd iterations on 3 actions from Push's trivial start: three evaluations logged, each one rollout and
-    its backward (gb: 1 + 2 sampled rollouts, no backward); the files written; the local barriers' gradient exactly
-    zero there and ours and gb's not."""
+    its backward (gb: 1 + 2 sampled rollouts, no backward; mujoco-fd: 1 + 2 x 6 central differences, after the
+    first evaluation's step-size sweep); the files written; the local barriers' and MuJoCo's gradient exactly zero
+    there (the pole is 0.5 m from the box) and ours and gb's not."""
     r = run_experiment(
         {
             "task": "Push",
@@ -39,11 +40,18 @@ def test_two_iterations_per_model(model, tmp_path):
     )
     log = r["log"]
     assert [row["iter"] for row in log] == [0, 1, 2]
-    per = 3 if model == "gb" else 1
-    assert [row["rollouts"] for row in log] == [per, 2 * per, 3 * per]
-    assert log[-1]["backward"] == (0 if model == "gb" else 3)
+    counts = [row["rollouts"] for row in log]
+    if model == "mujoco-fd":
+        sweep = r["summary"]["fd_sweep"]
+        assert [row["step"] for row in sweep] == list(FD_STEPS) and r["summary"]["fd_step"] in FD_STEPS
+        assert all(row["grad_norm"] == 0.0 for row in sweep)
+        assert counts[0] == 1 + len(FD_STEPS) * 12 and counts[1] - counts[0] == counts[2] - counts[1] == 13
+    else:
+        per = 3 if model == "gb" else 1
+        assert counts == [per, 2 * per, 3 * per]
+    assert log[-1]["backward"] == (0 if model in ("gb", "mujoco-fd") else 3)
     assert all(math.isfinite(row["loss"]) for row in log)
-    if model in ("ipc", "sdrs"):
+    if model in ("ipc", "sdrs", "mujoco-fd"):
         assert all(row["grad_norm"] == 0.0 for row in log)
     else:
         assert log[0]["grad_norm"] > 0.0
@@ -52,11 +60,37 @@ def test_two_iterations_per_model(model, tmp_path):
     assert (tmp_path / "loss.png").stat().st_size > 0
 
 
+def test_mujoco_twin_pushes_the_box_like_the_simulator():
+    """The MuJoCo twin of Push (its own meshes, masses, friction; the task's PD law and reward): at rest with zero
+    actions the box stays (distance to the target 3.0 m to 1e-6), and the pole driven at the box for 0.6 s moves
+    it toward the target by 0.3-3 times what this library's simulator gives."""
+    import torch
+
+    from cfd_torch.envs import make_core, rollout
+    from cfd_torch.envs.mujoco_twin import MujocoTwin
+
+    core = make_core("cfd_torch/Push-v0")
+    s = core.reset(0, 1)
+    twin = MujocoTwin(core)
+    d0, alive = twin.rollout(s, torch.zeros(60, 2, dtype=torch.float64))
+    assert float((d0 - 3.0).abs().max()) < 1e-6 and bool((alive == 1).all())
+    to_box = s.q[0, 0, :2] - s.q[0, 1, :2]
+    a = (to_box / to_box.norm()).expand(60, 2).clone()
+    d, _ = twin.rollout(s, a)
+    with torch.no_grad():
+        ours = -rollout(core, s, a[:, None, :]).info["reward_distance"][:, 0]
+    moved, moved_ours = 3.0 - float(d[-1]), 3.0 - float(ours[-1])
+    assert moved_ours > 1e-4
+    assert 0.3 * moved_ours < moved < 3.0 * moved_ours
+
+
 def test_run_experiment_refuses_unknown_keys_and_models():
     with pytest.raises(ValueError, match="unknown keys"):
         run_experiment({"task": "Push", "learning_rate": 0.1})
     with pytest.raises(ValueError, match="config\\['model'\\]"):
         run_experiment({"task": "Push", "model": "mujoco"})
+    with pytest.raises(ValueError, match="mujoco-fd runs open loop"):
+        run_experiment({"task": "Push", "model": "mujoco-fd", "mpc": True})
 
 
 def test_sweep_and_plot_results(tmp_path):
