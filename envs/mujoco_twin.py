@@ -8,7 +8,8 @@ rigid bodies (Billiards, Push, Sort, Gather; not AntPush's articulated Ant):
 - every body's own triangle mesh (its hierarchy's body-frame vertices and faces) as a collision mesh geom (MuJoCo
   collides the meshes' convex hulls; every mesh of these tasks is convex); dynamic bodies with their mass (MuJoCo
   takes the inertia of the mesh's volume, like the simulator) and a free joint, or, in a planar scene, slide joints
-  along x and y and a hinge about z; static bodies as mocap bodies placed at the state's poses;
+  along x and y and a hinge about z (in the horizontal plane of the state's pose); static bodies as mocap bodies
+  placed at the state's poses;
 - Coulomb friction ``scene.friction.coefficient`` on every geom (torsional and rolling friction off; ``condim`` 1,
   frictionless, when the coefficient is 0), the scene's gravity, MuJoCo's default soft contacts, several contact
   points per pair of meshes (``multiccd``);
@@ -121,6 +122,11 @@ class MujocoTwin:
             R, Rp = rotation_matrix(q[i, 3:]), rotation_matrix(qp[i, 3:])
             w = rotation_vector(_quat_of(R @ Rp.T)) / dt
             if self.planar:
+                if bool((q[i, 3:5] != 0).any()):
+                    raise ValueError(
+                        f"state.q: body {i} of a planar scene is tilted (rotation vector {q[i, 3:]})"
+                    )
+                self.model.body_pos[self._body_id[i], 2] = float(q[i, 2])  # the plane it moves in
                 d.qpos[qa : qa + 3] = [float(q[i, 0]), float(q[i, 1]), float(q[i, 5])]
                 d.qvel[va : va + 3] = [v[0], v[1], float(w[2])]
             else:
@@ -140,7 +146,8 @@ class MujocoTwin:
             qa = self._qadr[k]
             if self.planar:
                 x, y, yaw = d.qpos[qa : qa + 3]
-                q[0, i] = torch.tensor([x, y, 0.0, 0.0, 0.0, yaw], dtype=q.dtype)
+                z = self.model.body_pos[self._body_id[i], 2]
+                q[0, i] = torch.tensor([x, y, z, 0.0, 0.0, yaw], dtype=q.dtype)
             else:
                 q[0, i, :3] = torch.from_numpy(d.qpos[qa : qa + 3].copy())
                 q[0, i, 3:] = rotation_vector(torch.from_numpy(d.qpos[qa + 3 : qa + 7].copy()))

@@ -242,7 +242,10 @@ def run_experiment(config: dict) -> dict:
     if cfg["model"] == "mujoco-fd" and (cfg["mpc"] or cfg["task"] == "AntPush"):
         raise ValueError("config: mujoco-fd runs open loop on Billiards, Push, Sort and Gather only")
     if cfg["threads"]:
+        import numba
+
         torch.set_num_threads(int(cfg["threads"]))
+        numba.set_num_threads(min(int(cfg["threads"]), numba.config.NUMBA_NUM_THREADS))
     torch.manual_seed(cfg["seed"])
     out_dir = Path(cfg["out"]) if cfg["out"] is not None else None
     if out_dir is not None:
@@ -334,6 +337,7 @@ def run_experiment(config: dict) -> dict:
         summary = {"loss_zero_actions": zero_loss, "loss_executed": sum(executed), "steps_run": len(executed),
                    "final_distance": executed[-1], "final_distance_zero_actions":
                    float(-zero.info["reward_distance"][len(executed) - 1].sum()),
+                   "zero_distances": (-zero.info["reward_distance"][:, 0]).tolist(),
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = torch.stack(qs)
     fd = cfg.pop("fd", None)
@@ -394,7 +398,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--mj-substeps", type=int, default=d["mj_substeps"], help="mujoco-fd: MuJoCo steps per task step"
     )
-    ap.add_argument("--threads", type=int, default=d["threads"], help="torch threads (default: torch's)")
+    ap.add_argument(
+        "--threads", type=int, default=d["threads"], help="torch and numba threads (default: theirs)"
+    )
     ap.add_argument("--no-gif", dest="gif", action="store_false")
 
 

@@ -31,7 +31,7 @@ def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if cfg["mpc"]:
         x = np.array([r["step"] for r in log], dtype=float)
         executed = np.cumsum([r["executed_distance"] for r in log])
-        zero = s["loss_zero_actions"] * (np.arange(1, len(log) + 1) / s["steps_run"])
+        zero = np.cumsum(s["zero_distances"][: len(log)])  # the zero-action trajectory's loss up to each step
         loss = executed / np.where(zero > 0, zero, 1.0)
     else:
         x = np.array([r["iter"] for r in log], dtype=float)
@@ -42,7 +42,7 @@ def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _ratio(run: dict) -> float:
     s = run["summary"]
     if run["config"]["mpc"]:
-        return s["loss_executed"] / s["loss_zero_actions"]
+        return s["loss_executed"] / sum(s["zero_distances"][: s["steps_run"]])
     return s["loss_end"] / s["loss_start"]
 
 

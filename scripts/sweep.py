@@ -8,7 +8,10 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 ``--workers`` CPUs; each run is a ``@ray.remote(num_cpus=1)`` task. Each run writes its own folder
 ``<out>/<task>/<model>/seed<k>/`` (log.json, loss.png, best.gif with ``--gif``) on the machine that ran it; the
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
-as runs finish, so an interrupted sweep keeps what it finished (``--resume`` skips the cells already in it).
+as runs finish, so an interrupted sweep keeps what it finished (``--resume`` skips the cells already in it); a run
+that raises is reported and kept in ``<out>/failed.json``, and the sweep goes on. Cells no model can run are left
+out of the grid (mujoco-fd on AntPush or with ``--mpc``). On Ray, the scripts folder travels with the job
+(``runtime_env`` working_dir), so cluster nodes need cfd_torch installed but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
 
     python scripts/sweep.py --tasks Billiards Push --models cfd ipc sdrs gb --seeds 0 1 2 --iters 20 \\
@@ -33,14 +36,23 @@ from optimize import DEFAULTS, MODELS, TASKS, add_arguments, run_experiment  # n
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
-    """The grid's configs, task-major."""
+    """The grid's configs, task-major, without the cells no model can run (mujoco-fd: AntPush, MPC)."""
     shared = {k: getattr(args, k) for k in DEFAULTS if k not in ("task", "model", "seed", "out")}
     return [
         {**shared, "task": t, "model": m, "seed": s, "out": str(args.out / t / m / f"seed{s}")}
         for t in args.tasks
         for m in args.models
         for s in args.seeds
+        if not (m == "mujoco-fd" and (t == "AntPush" or args.mpc))
     ]
+
+
+def run_one(config: dict) -> dict:
+    """run_experiment(config), or, if it raises, {"config", "error"}: one failed cell does not stop the sweep."""
+    try:
+        return run_experiment(config)
+    except Exception as e:  # noqa: BLE001 (a failed run is a result of the sweep)
+        return {"config": config, "error": f"{type(e).__name__}: {e}"}
 
 
 def _key(config: dict) -> tuple:
@@ -50,11 +62,11 @@ def _key(config: dict) -> tuple:
 def _run_local(todo: list[dict], workers: int):
     if workers <= 1:
         for c in todo:
-            yield run_experiment(c)
+            yield run_one(c)
         return
     # spawn, not fork: a forked child of a process whose torch / numba thread pools have started can hang
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(run_experiment, c) for c in todo]
+        futures = [pool.submit(run_one, c) for c in todo]
         for f in as_completed(futures):
             yield f.result()
 
@@ -62,15 +74,20 @@ def _run_local(todo: list[dict], workers: int):
 def _run_ray(todo: list[dict], workers: int):
     import ray
 
-    ray.init(**({} if os.environ.get("RAY_ADDRESS") else {"num_cpus": workers}), include_dashboard=False)
-    script_dir = str(Path(__file__).resolve().parent)
+    # the scripts travel with the job (working_dir), so nodes without this checkout can import them
+    ray.init(
+        **({} if os.environ.get("RAY_ADDRESS") else {"num_cpus": workers}),
+        include_dashboard=False,
+        runtime_env={"working_dir": str(Path(__file__).resolve().parent)},
+    )
+    script_dir = "."  # the job's working_dir: this scripts folder
 
     @ray.remote(num_cpus=1)
     def remote(config: dict) -> dict:
         sys.path.insert(0, script_dir)
-        from optimize import run_experiment as run
+        from sweep import run_one
 
-        return run(config)
+        return run_one(config)
 
     pending = [remote.remote(c) for c in todo]
     while pending:
@@ -97,16 +114,26 @@ def main() -> None:
     done = {_key(r["config"]) for r in runs}
     todo = [c for c in configs(args) if _key(c) not in done]
     results = (_run_ray if args.ray else _run_local)(todo, args.workers)
+    failed = []
     for r in tqdm(results, total=len(todo), desc="sweep"):
+        c = r["config"]
+        if "error" in r:
+            failed.append(r)
+            tqdm.write(f"{c['task']} {c['model']} seed {c['seed']}: FAILED {r['error']}")
+            (args.out / "failed.json").write_text(json.dumps(failed, indent=1))
+            continue
         runs.append(r)
         path.write_text(json.dumps({"runs": runs}, indent=1))
-        s, c = r["summary"], r["config"]
+        s = r["summary"]
         end = s.get("loss_end", s.get("loss_executed"))
         start = s.get("loss_start", s.get("loss_zero_actions"))
         tqdm.write(
             f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
         )
-    print(f"{len(runs)} runs in {path}")
+    print(
+        f"{len(runs)} runs in {path}"
+        + (f"; {len(failed)} failed, in {args.out / 'failed.json'}" if failed else "")
+    )
 
 
 if __name__ == "__main__":
