@@ -226,7 +226,8 @@ def newton(
         small = pd & ~maj & (p_max <= tol)
         # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
         # converge in its next iteration does not freeze bodies, which would cost it two whole evaluations more
-        soon = pd & ~maj & (p_max**3 <= tol * last_step[idx] ** 2)
+        # (in its first iteration there is no rate to go by, and bodies freeze as before)
+        soon = pd & ~maj & torch.isfinite(last_step[idx]) & (p_max**3 <= tol * last_step[idx] ** 2)
         last_step[idx] = p_max
         # the first whole evaluation after freezing: the frozen bodies' steps, up to tol each, are taken by one
         # more iteration instead of as an unchecked final step, so that the solve ends at (nearly) the point of
