@@ -6,9 +6,10 @@ for every model: the mean over seeds and its spread (min to max). The table give
 decrease 1 - final / initial loss (mean and range over seeds), the best final distance to the goal, iterations, rollouts
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
 
-Writes ``<dir>/<task>.png`` per task and ``<dir>/results.md`` (printed too).
+Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged.
 
     python scripts/plot_results.py results/sweep
+    python scripts/plot_results.py results/sweep/billiards results/sweep/push --out docs/experiments
 """
 
 from __future__ import annotations
@@ -100,16 +101,19 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("sweep", type=Path, help="a folder with sweep.json (scripts/sweep.py --out)")
+    ap.add_argument("sweeps", type=Path, nargs="+", help="folders with a sweep.json (scripts/sweep.py --out)")
+    ap.add_argument("--out", type=Path, default=None, help="where to write (default: the first folder)")
     args = ap.parse_args()
-    runs = json.loads((args.sweep / "sweep.json").read_text())["runs"]
+    runs = [r for d in args.sweeps for r in json.loads((d / "sweep.json").read_text())["runs"]]
     if not runs:
-        raise SystemExit(f"{args.sweep / 'sweep.json'} holds no runs")
+        raise SystemExit(f"no runs in {[str(d / 'sweep.json') for d in args.sweeps]}")
+    out = args.out or args.sweeps[0]
+    out.mkdir(parents=True, exist_ok=True)
     md = table(runs)
-    (args.sweep / "results.md").write_text(md + "\n")
-    paths = plot(runs, args.sweep)
+    (out / "results.md").write_text(md + "\n")
+    paths = plot(runs, out)
     print(md)
-    print("wrote", args.sweep / "results.md", *paths)
+    print("wrote", out / "results.md", *paths)
 
 
 if __name__ == "__main__":
