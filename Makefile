@@ -16,6 +16,9 @@ $(BIN)/.installed: pyproject.toml
 demo: $(BIN)/.installed
 	$(BIN)/python scripts/demo_billiards.py --out results/demo
 	$(BIN)/python scripts/demo_pair.py --out results/demo
+	# the Billiards environment (15-ball rack) from its trivial start: 12 iterations, plot and GIF
+	$(BIN)/python scripts/optimize.py --task Billiards --seed 2 --iters 12 --horizon 60 --lr 0.5 \
+		--optimizer ngd-ls --threads 1 --out results/demo/billiards_env
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q
