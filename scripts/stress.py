@@ -29,8 +29,9 @@ rad), near-coplanar and shared-plane (exactly coplanar, side by side) pairs, ran
 margins, rotations, translations up to 1e5 m, mu, dtypes and backends. Properties: the value is finite and at least
 12 mu when the triangles are separated beyond the margin (distance of the rounded input from the library's exact
 closest points, ``cfd_torch._geometry``, and an edge-piercing test) and +inf within it; gradient and Hessian finite;
-the gradient sums to zero over the six vertices per axis (translation invariance); value, gradient and Hessian agree
-with the centred tight-tolerance reference; no exception but ValueError for degenerate triangles.
+the gradient sums to zero over the six vertices per axis (translation invariance; within 1e-9 + 4 eps kappa of the
+rows' magnitudes); value, gradient and Hessian agree with the centred tight-tolerance reference; no exception but
+ValueError for degenerate triangles.
 
 **mesh**: ``mesh_potential_derivatives`` (value, 12-gradient, 12 x 12 Hessian) of two icospheres (320 faces) and of a
 ball above a box (refined), scaled by 1e-3..1e2 m, margin 1e-3 x scale, gaps 1.5 x margin, 0.01, 0.3 and 3 x scale,
@@ -115,8 +116,12 @@ F32_TOL = 4 * EPS32
 MP_TOL = {"value": 1e-10, "grad": 1e-7, "hess": 1e-6}
 MP_KAPPA = {"value": 64.0, "grad": 256.0, "hess": 4096.0}
 # The gradient sums to zero over the six vertices at the optimum (dE/dd = 0): a residual is the solve's tolerance
-# (1e-12 of the sum of the magnitudes of dE/dd's terms) times |n|; 1e-9 of sum |g_k| leaves room for rounding.
+# (1e-12 of the sum of the magnitudes of dE/dd's terms) times |n|; 1e-9 of sum |g_k| leaves room for rounding. On
+# top of it, like every other threshold here, the problem's conditioning: each vertex's row carries its gap's
+# rounding, eps x kappa relative, and those errors do not cancel in the sum (measured up to 0.4 eps kappa, in pairs
+# whose rows match the tight reference's to 1e-16).
 SUM_TOL = 1e-9
+SUM_KAPPA = 4.0
 # mesh potential shifted to the origin (same relative geometry, exact shift): every leaf pair is solved in a frame
 # centred near it and the traversal runs in body a's frame, so only rounding in different places differs
 MESH_TOL = {"value": 1e-10, "grad": 1e-7, "hess": 1e-6}
@@ -721,7 +726,7 @@ def fuzz_section(cfg: dict, seed: int) -> list[dict]:
         if outcome == "ok" and feasible:
             gs = g[0].reshape(6, 3)
             row["err_sum"] = float(gs.sum(0).abs().max() / gs.abs().sum(0).max().clamp_min(1e-300))
-            if not row["err_sum"] <= SUM_TOL + (F32_TOL if dtype == F32 else 0.0):
+            if not row["err_sum"] <= SUM_TOL + SUM_KAPPA * EPS64 * kappa + (F32_TOL if dtype == F32 else 0.0):
                 outcome = "error_sum"
         row["outcome"] = outcome
         if outcome in ("ok", "rejected"):
@@ -1113,6 +1118,7 @@ def main(argv: list[str] | None = None) -> int:
             "mpmath": MP_TOL,
             "mpmath_per_eps_kappa": MP_KAPPA,
             "vertex_sum": SUM_TOL,
+            "vertex_sum_per_eps_kappa": SUM_KAPPA,
             "mesh": MESH_TOL,
             "step_translation": STEP_TOL,
         },  # fmt: skip
