@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 import torch
 
-from cfd_torch.rotation import quaternion, rotation_matrix, rotation_vector
+from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 
 from .core import EnvState, TaskCore
 
@@ -119,8 +119,9 @@ class MujocoTwin:
             qa, va = self._qadr[k], self._vadr[k]
             v = ((q[i, :3] - qp[i, :3]) / dt).numpy()
             # angular velocity of the rotation from the previous pose to this one, world frame
-            R, Rp = rotation_matrix(q[i, 3:]), rotation_matrix(qp[i, 3:])
-            w = rotation_vector(_quat_of(R @ Rp.T)) / dt
+            R = rotation_matrix(q[i, 3:])
+            conj = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+            w = rotation_vector(quaternion_multiply(quaternion(q[i, 3:]), conj * quaternion(qp[i, 3:]))) / dt
             if self.planar:
                 if bool((q[i, 3:5] != 0).any()):
                     raise ValueError(
@@ -191,22 +192,3 @@ class MujocoTwin:
             done = done or bool(core.terminated(nxt)[0])
             cur = nxt
         return out, alive
-
-
-def _quat_of(R: torch.Tensor) -> torch.Tensor:
-    """(4,) unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
-    m = R
-    tr = float(m[0, 0] + m[1, 1] + m[2, 2])
-    if tr > 0:
-        s = 2.0 * (tr + 1.0) ** 0.5
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    else:
-        i = int(torch.argmax(torch.diagonal(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * float(1.0 + m[i, i] - m[j, j] - m[k, k]) ** 0.5
-        v = [0.0, 0.0, 0.0]
-        v[i] = 0.25 * s
-        v[j] = float(m[j, i] + m[i, j]) / s
-        v[k] = float(m[k, i] + m[i, k]) / s
-        q = [float(m[k, j] - m[j, k]) / s, *v]
-    return torch.tensor([float(x) for x in q], dtype=torch.float64)

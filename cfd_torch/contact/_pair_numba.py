@@ -265,9 +265,9 @@ _SPLIT = 134217729.0
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _dot2(a, b, c, d):
-    """a b - c d to about an ulp of the result (products split exactly, Dekker), however much the two products
-    cancel. No FMA contraction here: the error terms must be rounded as written."""
+def _two_prod(a, b):
+    """a b = p + e exactly (Dekker's product; no FMA contraction here: the error term must be rounded as
+    written)."""
     t = _SPLIT * a
     ah = t - (t - a)
     al = a - ah
@@ -275,15 +275,14 @@ def _dot2(a, b, c, d):
     bh = t - (t - b)
     bl = b - bh
     p = a * b
-    ep = ((ah * bh - p) + ah * bl + al * bh) + al * bl  # a b = p + ep exactly
-    t = _SPLIT * c
-    ch = t - (t - c)
-    cl = c - ch
-    t = _SPLIT * d
-    dh = t - (t - d)
-    dl = d - dh
-    q = c * d
-    eq = ((ch * dh - q) + ch * dl + cl * dh) + cl * dl
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _dot2(a, b, c, d):
+    """a b - c d to about an ulp of the result, however much the two products cancel."""
+    p, ep = _two_prod(a, b)
+    q, eq = _two_prod(c, d)
     return (p - q) + (ep - eq)
 
 

@@ -16,6 +16,7 @@ import torch
 
 from ..rotation import rotation_matrix
 from ._traverse import build_forest, penetrating
+from .bsh import unique_hierarchies
 
 
 class Meshes(NamedTuple):
@@ -57,11 +58,7 @@ class CollisionQuery:
     about its origin first. Runs on the CPU (numba), the hierarchies concatenated on first use."""
 
     def __init__(self, bshes, margin: float) -> None:
-        uniq: dict[int, int] = {}
-        for b in bshes:
-            uniq.setdefault(id(b), len(uniq))
-        self._bshes = tuple({id(b): b for b in bshes}.values())
-        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self._bshes, self._which = unique_hierarchies(bshes)
         self.margin = float(margin)
         self._forest = None
 

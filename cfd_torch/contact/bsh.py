@@ -145,3 +145,14 @@ def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:
         "tri": torch.from_numpy(tri),
         "depth": torch.from_numpy(depth),
     }
+
+
+def unique_hierarchies(bshes) -> tuple[tuple[BSH, ...], torch.Tensor]:
+    """The distinct hierarchies of ``bshes`` (by identity, first-seen order) and (len(bshes),) the index of each
+    body's among them: bodies sharing a mesh share one hierarchy in a forest."""
+    uniq: dict[int, int] = {}
+    for b in bshes:
+        uniq.setdefault(id(b), len(uniq))
+    return tuple({id(b): b for b in bshes}.values()), torch.tensor(
+        [uniq[id(b)] for b in bshes], dtype=torch.long
+    )

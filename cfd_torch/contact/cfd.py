@@ -24,7 +24,7 @@ import torch
 from ..config import ContactConfig
 from ..rotation import rotation_matrix
 from ._traverse import Forest, build_forest, penetrating, traverse
-from .bsh import BSH
+from .bsh import BSH, unique_hierarchies
 from .model import ContactEval, LaggedContacts
 from .pair import pair_potential, pair_potential_derivatives
 
@@ -45,11 +45,7 @@ class CfdContact:
         if not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a sequence of cfd_torch.BSH")
         self.config = ContactConfig() if config is None else config
-        uniq: dict[int, int] = {}
-        for b in bshes:
-            uniq.setdefault(id(b), len(uniq))
-        self._bshes = tuple({id(b): b for b in bshes}.values())
-        self._which = torch.tensor([uniq[id(b)] for b in bshes], dtype=torch.long)
+        self._bshes, self._which = unique_hierarchies(bshes)
         self.num_bodies = len(bshes)
         self._forests: dict[torch.device, tuple[Forest, torch.Tensor]] = {}  # built once per device
 
