@@ -25,11 +25,15 @@ def floor_body(size: float, centre: tuple[float, float] = (0.0, 0.0)) -> RigidBo
 class Pusher:
     """A dynamic box driven toward planar velocity targets by a PD law, hovering at a fixed height, kept upright.
 
-    Each step the law acts as a world-frame force and torque computed from the state at the start of the step:
-    horizontal ``m k_v (v* - v)`` (v* = ``max_speed`` x action), vertical ``m g + m (k_p (z* - z) - k_d v_z)``
-    (gravity compensated: the pusher hovers ``GAP`` above the floor and feels no floor friction), and an upright and
-    heading hold ``I (-k_p theta - k_d omega)`` on its rotation vector theta. Gains: k_v = 20 1/s, k_p = 900
-    1/s^2, k_d = 60 1/s (critically damped at 30 rad/s; explicit in the step, k_d dt = 0.6 at dt = 0.01).
+    Each step the law acts as a world-frame force and torque computed from the state at the start of the step, in
+    the stable-PD form (Tan, Liu and Turk 2011): the accelerations the law gives when it is applied to the velocity
+    and pose at the end of the step, so the hold is unconditionally stable in dt (an explicit law with these gains
+    diverges beyond dt = 2 / k_d = 0.033 s: the pole bounced off the floor with a growing amplitude at dt = 0.04).
+    With v the velocity at the start of the step, horizontal ``m k_v (v* - v) / (1 + k_v dt)`` (v* = ``max_speed``
+    x action), vertical ``m g + m (k_p (z* - z) - (k_d + k_p dt) v_z) / (1 + k_d dt + k_p dt^2)`` (gravity
+    compensated: the pusher hovers ``GAP`` above the floor and feels no floor friction), and an upright and heading
+    hold ``I (-k_p theta - (k_d + k_p dt) omega) / (1 + k_d dt + k_p dt^2)`` on its rotation vector theta. Gains:
+    k_v = 20 1/s, k_p = 900 1/s^2, k_d = 60 1/s (critically damped at 30 rad/s).
 
     Args:
         size: (3,) box size [m].
@@ -57,11 +61,13 @@ class Pusher:
         v = (q - qp) / dt
         m = self.body.mass
         B = state.batch_size
-        fxy = m * self.K_V * (self.max_speed * action - v[:, :2])
-        fz = m * (gravity + self.K_P * (self.height - q[:, 2]) - self.K_D * v[:, 2])
+        kp, kd = self.K_P, self.K_D + self.K_P * dt  # the hold's gains on the start-of-step state
+        den = 1.0 + self.K_D * dt + self.K_P * dt * dt
+        fxy = m * self.K_V * (self.max_speed * action - v[:, :2]) / (1.0 + self.K_V * dt)
+        fz = m * (gravity + (kp * (self.height - q[:, 2]) - kd * v[:, 2]) / den)
         force = torch.cat([fxy, fz[:, None]], 1)
         inertia = self.inertia.to(q)
-        torque = (-(self.K_P * q[:, 3:] + self.K_D * v[:, 3:])) @ inertia.T
+        torque = (-(kp * q[:, 3:] + kd * v[:, 3:]) / den) @ inertia.T
         rows = torch.arange(n, device=q.device) == index  # (n,)
         F = torch.where(rows[None, :, None], force[:, None, :], q.new_zeros(B, n, 3))
         T = torch.where(rows[None, :, None], torque[:, None, :], q.new_zeros(B, n, 3))

@@ -20,7 +20,8 @@ scene, bodies stop costing too (with ``pair_bodies``): a body whose Newton step 
 body its Hessian couples it to (contact within the blend band; the far field's coupling is below 1e-6 of their own
 curvature) is also within ``tol`` is frozen, and the evaluations that follow cover only the terms of the bodies
 still iterating (their own terms and their pairs). Nothing freezes in a scene expected to converge in its next
-iteration (largest step^3 <= tol x previous largest step^2, Newton's quadratic rate): there a freeze would only add
+iteration (largest step^3 <= tol x previous largest step^2, Newton's quadratic rate; in the first iteration, a
+largest step within 100 tol): there a freeze would only add
 the two whole evaluations that end it. A scene converges only at an evaluation of all its bodies: when
 the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
 iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
@@ -181,7 +182,9 @@ def newton(
     elif majorize is None:
         majorize = torch.ones(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    last_step = torch.full((B,), torch.inf, dtype=q.dtype, device=dev)  # each scene's previous largest step
+    # each scene's previous largest step; before the first, a notional 1000 tol: a first step within 100 tol (a
+    # scene at rest, a warm start nearly right) is expected to converge in the next iteration
+    last_step = torch.full((B,), 1e3 * tol, dtype=q.dtype, device=dev)
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
@@ -226,8 +229,7 @@ def newton(
         small = pd & ~maj & (p_max <= tol)
         # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
         # converge in its next iteration does not freeze bodies, which would cost it two whole evaluations more
-        # (in its first iteration there is no rate to go by, and bodies freeze as before)
-        soon = pd & ~maj & torch.isfinite(last_step[idx]) & (p_max**3 <= tol * last_step[idx] ** 2)
+        soon = pd & ~maj & (p_max**3 <= tol * last_step[idx] ** 2)
         last_step[idx] = p_max
         # the first whole evaluation after freezing: the frozen bodies' steps, up to tol each, are taken by one
         # more iteration instead of as an unchecked final step, so that the solve ends at (nearly) the point of
