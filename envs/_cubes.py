@@ -36,6 +36,7 @@ class CubesCore(TaskCore):
         friction: float = 0.5,
         action_cost: float = 1e-3,
         potential: str = "cfd",
+        eps: float = 1.0,
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -46,7 +47,10 @@ class CubesCore(TaskCore):
         self.spread = spread
         self.action_cost = action_cost
         bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(6.0)]
-        scene = Scene(bodies, dt=dt, friction=friction, substeps=8, potential=potential)
+        scene = Scene(
+            bodies, dt=dt, friction=friction, substeps=8, potential=potential,
+            pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)},
+        )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
 
     def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:

@@ -61,6 +61,7 @@ class AntPushCore(BoxToTargetCore):
         actuation: str = "torque",
         servo_gains: tuple[float, float] = (100.0, 5.0),
         potential: str = "cfd",
+        eps: float = 1.0,
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -73,7 +74,13 @@ class AntPushCore(BoxToTargetCore):
         # the floor is refined to the Ant's capsule edges: keep it no larger than the task needs
         floor = floor_body(distance + 5.0, centre=((1.0 + distance) / 2, 0.0))
         scene = Scene(
-            [box, floor], articulations=[self.ant], dt=dt, friction=1.0, substeps=8, potential=potential
+            [box, floor],
+            articulations=[self.ant],
+            dt=dt,
+            friction=1.0,
+            substeps=8,
+            potential=potential,
+            pair_eps={(0, 2 + k): eps for k in range(self.ant.num_links)},
         )
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance

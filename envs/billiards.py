@@ -70,6 +70,7 @@ class BilliardsCore(TaskCore):
         target_ball: int | None = None,
         pocket: int | None = None,
         potential: str = "cfd",
+        eps: float = 0.01,
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -86,7 +87,13 @@ class BilliardsCore(TaskCore):
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=ball_radius)
         ball = rigid_body(mesh, density=ball_mass / mesh.volume)
         scene = Scene(
-            [ball] * 16, dt=dt, gravity=(0.0, 0.0, 0.0), substeps=8, planar=True, potential=potential
+            [ball] * 16,
+            dt=dt,
+            gravity=(0.0, 0.0, 0.0),
+            substeps=8,
+            planar=True,
+            potential=potential,
+            pair_eps={(15, k): eps for k in range(15)},
         )
         super().__init__(scene, device=device, dtype=dtype)
         self.ball_radius = ball_radius

@@ -133,7 +133,15 @@ class TaskCore(abc.ABC):
     """A task over the differentiable simulator: subclasses build ``self.scene`` and define the abstract methods.
 
     Every task's constructor takes ``potential`` ("cfd" default, "ipc" or "sdrs": ``ContactConfig.potential``), so
-    the same task runs on the locally supported baselines' contact for comparisons.
+    the same task runs on the locally supported baselines' contact for comparisons, and ``eps``, the blend width of
+    this library's potential between the actuated body and the objects it should find (``Scene(pair_eps=...)``;
+    every other pair keeps the library's ``ContactConfig.eps``, 0.01; the baselines ignore it). The far field is a
+    staircase: a node pair's central term (one 12 mu) gives way to its children's sum (many such terms) inside a
+    band eps times the pair's radii wide, so between bands the gradient is the faint central one and inside a band
+    it is up to 1e5 times larger. At 0.01 the bands are millimetres wide and an optimiser's rollouts cross them
+    hit-or-miss: on Push (seed 0, 30 iterations of normalised momentum) the pole never reached the box; at 1.0 the
+    bands overlap into one slope and the same run brought the pole into contact at iteration 9. So the pushing tasks
+    default to 1.0. Billiards keeps 0.01 for its cue ball (its loss already falls there; not measured at 1.0).
 
     Attributes:
         scene: the :class:`cfd_torch.Scene` (bodies, dt, contact and friction settings).

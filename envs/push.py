@@ -56,6 +56,7 @@ class PushCore(BoxToTargetCore):
         action_cost: float = 1e-3,
         success_radius: float = 0.1,
         potential: str = "cfd",
+        eps: float = 1.0,
         dt: float = 0.01,
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
@@ -64,7 +65,7 @@ class PushCore(BoxToTargetCore):
         self.pusher = Pusher((0.1, 0.1, 0.8), density=500.0, max_speed=max_speed)
         scene = Scene(
             [box, self.pusher.body, floor_body(2 * distance + 4.0)], dt=dt, friction=friction, substeps=8,
-            potential=potential,
+            potential=potential, pair_eps={(0, 1): eps},
         )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance

@@ -3,7 +3,8 @@
 Per task, one figure with the loss, relative to each run's start (open loop: the first iteration's loss; MPC: the
 loss of zero actions), against iteration and against wall time (the time spent computing losses and gradients),
 for every model: the mean over seeds and its spread (min to max). The table gives per task and model: the loss
-decrease 1 - final / initial loss (mean and range over seeds), the best final distance to the goal, iterations, rollouts
+decrease 1 - best / initial loss (open loop: the best iterate's loss, the optimiser's answer; MPC: the executed
+trajectory's; mean and range over seeds), the best final distance to the goal, iterations, rollouts
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
 
 Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged.
@@ -44,7 +45,7 @@ def _ratio(run: dict) -> float:
     s = run["summary"]
     if run["config"]["mpc"]:
         return s["loss_executed"] / sum(s["zero_distances"][: s["steps_run"]])
-    return s["loss_end"] / s["loss_start"]
+    return s.get("loss_best", s["loss_end"]) / s["loss_start"]
 
 
 def table(runs: list[dict]) -> str:
@@ -52,7 +53,7 @@ def table(runs: list[dict]) -> str:
     for r in runs:
         groups[(r["config"]["task"], r["config"]["model"])].append(r)
     lines = [
-        "| task | model | loss decrease 1 - final / initial: mean (min .. max) | best final distance [m] (mean) | "
+        "| task | model | loss decrease 1 - best / initial: mean (min .. max) | best final distance [m] (mean) | "
         "iterations | rollouts per run | wall s per run | seeds |",
         "|---|---|---|---|---:|---:|---:|---|",
     ]

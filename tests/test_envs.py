@@ -156,9 +156,10 @@ def _loss(core, s0: EnvState, U: torch.Tensor) -> torch.Tensor:
     [
         ("cfd_torch/Billiards-v0", {"target_ball": 0, "pocket": 0}, 1e-2),
         ("cfd_torch/Push-v0", {}, 1e-3),
-        # (the cubes' loss moves by ~1e-14 at h = 1e-3: rounding; at h = 0.1 it is still linear to 1 %)
-        ("cfd_torch/Sort-v0", {}, 0.1),
-        ("cfd_torch/Gather-v0", {}, 0.1),
+        # (the pusher and the cubes 0.2-0.5 m apart, inside their wide blend band: the loss is linear to 0.1 % at
+        # h = 1e-2, to 15 % at 0.1)
+        ("cfd_torch/Sort-v0", {}, 1e-2),
+        ("cfd_torch/Gather-v0", {}, 1e-2),
     ],
 )
 def test_gradient_from_the_trivial_start_is_nonzero_and_matches_finite_differences(env_id, kwargs, h):

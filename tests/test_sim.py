@@ -366,6 +366,32 @@ def test_torch_backend_step_matches_numba(bodies):
     torch.testing.assert_close(out["torch"][1], out["auto"][1], rtol=1e-6, atol=1e-8)
 
 
+def test_pair_eps_sets_one_body_pairs_blend_width_and_leaves_the_others(bodies):
+    """``Scene(pair_eps=...)``: the named pair's potential is the one a scene-wide eps gives, every other pair's is
+    the default's, on both backends, for values, gradients and the feasibility query."""
+    cube, ground, _, ball = bodies
+    q = torch.tensor([[_pose(0.0, 0.0, 0.1015), _pose(), _pose(0.45, 0.1, 0.15)]], dtype=F64)
+    pairs = torch.tensor([[0, 0, 1], [0, 0, 2], [0, 1, 2]])
+    for backend in ("auto", "torch"):
+        plain = Scene((cube, ground, ball), backend=backend).contact_model.evaluate(q, pairs, 2)
+        wide = Scene((cube, ground, ball), backend=backend, eps=1.0).contact_model.evaluate(q, pairs, 2)
+        mixed_scene = Scene((cube, ground, ball), backend=backend, pair_eps={(2, 0): 1.0})
+        mixed = mixed_scene.contact_model.evaluate(q, pairs, 2)
+        # the ball is 0.46 m from the cube: inside the wide band of their root pair, beyond the narrow one
+        assert float((wide.grad[1] - plain.grad[1]).abs().max()) > 10 * float(plain.grad[1].abs().max())
+        for k, ref in ((0, plain), (1, wide), (2, plain)):
+            torch.testing.assert_close(mixed.value[k], ref.value[k], rtol=1e-12, atol=0)
+            torch.testing.assert_close(mixed.grad[k], ref.grad[k], rtol=1e-10, atol=1e-18)
+            torch.testing.assert_close(mixed.hess[k], ref.hess[k], rtol=1e-9, atol=1e-15)
+        assert not bool(mixed_scene.contact_model.infeasible(q, pairs).any())
+    sunk = q.clone()
+    sunk[0, 2, 0] = 0.2  # the ball into the cube
+    assert mixed_scene.contact_model.infeasible(sunk, pairs).tolist() == [False, True, False]
+    for bad, match in (({(0, 3): 1.0}, "pair of two body indices"), ({(0, 2): 0.0}, "positive number")):
+        with pytest.raises(ValueError, match=match):
+            Scene((cube, ground, ball), pair_eps=bad)
+
+
 # ================================================================================================ coarse obstacles
 def _ball_on_box_scene(**kw):
     ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))

@@ -192,13 +192,12 @@ def _traverse_cpu(
         d2Rn,
         t.contiguous().numpy(),
         float(mu),
-        float(eps),
-        float(min_width),
     )
     P = pair_body.shape[0]
 
     def run(rows: torch.Tensor | None):
         pb, pr = (pair_body, pair_root) if rows is None else (pair_body[rows], pair_root[rows])
+        ep = eps if rows is None else eps[rows]
         n = pb.shape[0]
         v = value if rows is None else torch.zeros(n, dtype=dt)
         # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
@@ -210,8 +209,8 @@ def _traverse_cpu(
         )
         out = traverse_nodes(
             forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pb.numpy(),
-            pr.contiguous().numpy(), *common[:4], *common[4:], split == "both", int(order), v.numpy(), g.numpy(),
-            h.numpy(),
+            pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
+            int(order), v.numpy(), g.numpy(), h.numpy(),
         )  # fmt: skip
         return out, v, g, h
 
@@ -252,6 +251,16 @@ def _traverse_cpu(
     return leaves, n_pairs, -1, table
 
 
+def _pair_eps(eps: float | torch.Tensor, P: int, device: torch.device) -> torch.Tensor:
+    """(P,) float64 blend widths, one per body pair, from one for all (a number) or one each (a (P,) tensor)."""
+    e = torch.as_tensor(eps, dtype=torch.float64, device=device)
+    if e.dim() == 0:
+        return e.expand(P).contiguous()
+    if e.shape != (P,):
+        raise ValueError(f"eps must be a number or one per body pair ({P},), got shape {tuple(e.shape)}")
+    return e.contiguous()
+
+
 def traverse(
     forest: Forest,
     pair_body: torch.Tensor,
@@ -260,7 +269,7 @@ def traverse(
     *,
     mu: float,
     margin: float,
-    eps: float,
+    eps: float | torch.Tensor,
     split: str,
     order: int,
     tol: float,
@@ -308,6 +317,7 @@ def traverse(
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
     eye = torch.eye(3, dtype=dt, device=dev)
     min_width = BAND_MARGINS * float(margin)
+    eps = _pair_eps(eps, P, dev)
 
     if dev.type == "cpu" and backend != "torch":
         leaves, n_pairs, levels, wtable = _traverse_cpu(
@@ -330,7 +340,7 @@ def traverse(
         d = torch.einsum("eij,ej->ei", R[ba], CI) + t[ba] - torch.einsum("eij,ej->ei", R[bb], CJ) - t[bb]
         r = torch.linalg.vector_norm(d, dim=-1)
         d1 = forest.radius[I] + forest.radius[J]
-        width = torch.clamp(eps * d1, min=min_width)
+        width = torch.clamp(eps[pid] * d1, min=min_width)
         s = (r - d1) / width
         dr = d2r = None
         if order >= 1:
@@ -524,7 +534,7 @@ def penetrating(
     pose: torch.Tensor,
     *,
     margin: float,
-    eps: float,
+    eps: float | torch.Tensor,
     split: str,
     tol: float,
     max_iter: int,
@@ -548,7 +558,8 @@ def penetrating(
             forest.centre.to(torch.float64).numpy(), forest.radius.to(torch.float64).numpy(),
             forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
-            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin), float(eps),
+            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin),
+            _pair_eps(eps, pair_body.shape[0], torch.device("cpu")).numpy(),
             BAND_MARGINS * float(margin), split == "both", out.numpy(),
         )  # fmt: skip
         return out.bool()

@@ -100,7 +100,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
             r = math.sqrt(r2)
             inv_r = 1.0 / r
             d1 = radius[I] + radius[J]
-            width = max(eps * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
+            width = max(eps[p] * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
             s = (r - d1) / width
             tt = min(max(s, 0.0), 1.0)
             phi = tt * tt * tt * (tt * (6.0 * tt - 15.0) + 10.0)
@@ -287,7 +287,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                 r2 += dx * dx
             d1 = sa * radius[I] + sb * radius[J]
             r = math.sqrt(r2)
-            if r - d1 >= max(eps * d1, min_width):  # the potential's far field: central term only, finite
+            if r - d1 >= max(eps[p] * d1, min_width):  # the potential's far field: central term only, finite
                 continue
             # (a relative slack of 1e-9 covers the rounding of the world centres)
             if r - d1 > margin + 1e-9 * (r + d1):

@@ -17,7 +17,8 @@ previous state; only the discrete leaf set is fixed.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import torch
 
@@ -37,17 +38,45 @@ class CfdContact:
     Args:
         bshes: the N bodies' hierarchies, in body order (one BSH may serve several bodies).
         config: the potential's settings (default ``ContactConfig()``).
+        pair_eps: body pairs (i, j) whose blend width is not ``config.eps``, with their own (a positive number):
+            e.g. a wide band between a pusher and the objects it should find, a narrow one between the objects
+            and the floor they rest on.
     """
 
     warm_start = True  # evaluate() takes ids / warm: the leaf pairs' plane solves start from earlier planes
 
-    def __init__(self, bshes: Sequence[BSH], config: ContactConfig | None = None) -> None:
+    def __init__(
+        self,
+        bshes: Sequence[BSH],
+        config: ContactConfig | None = None,
+        pair_eps: Mapping[tuple[int, int], float] | None = None,
+    ) -> None:
         if not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a sequence of cfd_torch.BSH")
         self.config = ContactConfig() if config is None else config
         self._bshes, self._which = unique_hierarchies(bshes)
-        self.num_bodies = len(bshes)
+        self.num_bodies = N = len(bshes)
         self._forests: dict[torch.device, tuple[Forest, torch.Tensor]] = {}  # built once per device
+        self._eps = None  # (N, N) blend width of each body pair, when some pair has its own
+        if pair_eps:
+            table = torch.full((N, N), float(self.config.eps), dtype=torch.float64)
+            for key, e in pair_eps.items():
+                i, j = key
+                if not (0 <= i < N and 0 <= j < N and i != j):
+                    raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {N})")
+                if not (isinstance(e, (int, float)) and not isinstance(e, bool) and 0 < e < math.inf):
+                    raise ValueError(
+                        f"pair_eps: the blend width of {key!r} must be a positive number, got {e!r}"
+                    )
+                table[i, j] = table[j, i] = float(e)
+            self._eps = table
+
+    def _pair_eps(self, pairs: torch.Tensor) -> float | torch.Tensor:
+        """The blend width of each pair row (s, i, j): ``config.eps`` for all, or (P,) from ``pair_eps``."""
+        if self._eps is None:
+            return self.config.eps
+        eps = self._eps.to(pairs.device)
+        return eps[pairs[:, 1], pairs[:, 2]]
 
     def _forest(self, device: torch.device) -> tuple[Forest, torch.Tensor]:
         """The concatenated float64 hierarchies on ``device`` and each body's root node (N,)."""
@@ -89,7 +118,8 @@ class CfdContact:
         if use_warm:
             keys, planes = warm if warm is not None else (ids.new_zeros(0), poses.new_zeros(0, 4))
         out = traverse(
-            forest, rows, roots, table.detach(), mu=c.stiffness, margin=c.margin, eps=c.eps, split=c.split,
+            forest, rows, roots, table.detach(), mu=c.stiffness, margin=c.margin, eps=self._pair_eps(pairs),
+            split=c.split,
             order=order, tol=c.pair_tol, max_iter=c.pair_max_iter, backend=c.backend,
             warm=(ids, keys, planes) if use_warm else None,
         )  # fmt: skip
@@ -106,7 +136,8 @@ class CfdContact:
         forest, table, rows, roots = self._rows(poses.detach().to(cpu, torch.float64), pairs.to(cpu))
         sc = None if scale is None else scale.to(cpu, torch.float64).repeat(poses.shape[0])
         out = penetrating(
-            forest, rows, roots, table, margin=c.margin, eps=c.eps, split=c.split, tol=c.pair_tol,
+            forest, rows, roots, table, margin=c.margin, eps=self._pair_eps(pairs.to(cpu)), split=c.split,
+            tol=c.pair_tol,
             max_iter=c.pair_max_iter, scale=sc,
         )  # fmt: skip
         return out.to(poses.device)
@@ -119,7 +150,8 @@ class CfdContact:
         forest, table, rows, roots = self._rows(poses, pairs)
         with torch.no_grad():
             LI, LJ, lp, lw, dlw = traverse(
-                forest, rows, roots, table.detach(), eps=c.eps, split=c.split, order=1 if create_graph else 0,
+                forest, rows, roots, table.detach(), eps=self._pair_eps(pairs), split=c.split,
+                order=1 if create_graph else 0,
                 leaves_only=True, backend=c.backend, **kw,
             )  # fmt: skip
             ba, bb = rows[lp, 0], rows[lp, 1]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 
@@ -58,6 +58,10 @@ class Scene:
         friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off).
         solver: the Newton solve's settings (default ``SolverConfig()``).
         exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
+        pair_eps: body pairs (i, j) whose blend width (``ContactConfig.eps``) is their own, {(i, j): eps}: e.g. a
+            wide band between a pusher and the boxes it should find, whose far field is then one smooth slope,
+            while the boxes' contact with the floor keeps the narrow default (a wide band there only costs leaf
+            pairs). This library's potential only (the baselines have no blend).
         articulations: robots (:func:`cfd_torch.sim.articulation.articulation`); their links are the state rows
             after ``bodies``, each robot's consecutive (``articulation_rows``), with no contact between two links
             of one robot.
@@ -90,6 +94,7 @@ class Scene:
         friction: FrictionConfig | float | None = None,
         solver: SolverConfig | None = None,
         exclude: Sequence[tuple[int, int]] = (),
+        pair_eps: Mapping[tuple[int, int], float] | None = None,
         contact_model: ContactModel | None = None,
         articulations: Sequence[Articulation] = (),
         planar: bool = False,
@@ -146,6 +151,7 @@ class Scene:
         self.friction: FrictionConfig = cfg["friction"]
         self.solver: SolverConfig = cfg["solver"]
         self.exclude = tuple((int(a), int(b)) for a, b in exclude)
+        self.pair_eps = {(int(a), int(b)): e for (a, b), e in (pair_eps or {}).items()}
         N = len(bodies)
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
@@ -189,7 +195,7 @@ class Scene:
                 else SdrsContact(bshes, c.dhat, margin=c.margin, **kappa)
             )  # fmt: skip
         else:
-            self.contact_model = CfdContact([b.bsh for b in bodies], self.contact)
+            self.contact_model = CfdContact([b.bsh for b in bodies], self.contact, self.pair_eps)
         # farthest vertex of each body from its frame origin: bounds vertex displacements
         self.extent = torch.tensor(
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
@@ -248,7 +254,8 @@ class Scene:
         """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand)."""
         kw = {
             "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
-            "solver": self.solver, "exclude": self.exclude, "contact_model": self._given_contact_model,
+            "solver": self.solver, "exclude": self.exclude, "pair_eps": self.pair_eps,
+            "contact_model": self._given_contact_model,
             "articulations": self.articulations, "planar": self.planar,
         }  # fmt: skip
         kw.update(changes)
