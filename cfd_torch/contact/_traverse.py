@@ -11,7 +11,8 @@ recursion of SPEC section 4, started at the two roots::
     F(I, J) = P_exact(tri_I, tri_J)                   if both are leaves
             = sum of P over the child pairs           otherwise (split both, or the larger)
 
-with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / w, w = max(eps d1, 2 delta): the band is
+with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / w, w = max(eps d1, 2 delta) (eps one number,
+or one per body pair: ``Scene(pair_eps=...)``): the band is
 never narrower than twice the margin delta (:func:`cfd_torch.contact.central.band_width`), so that a far pair
 (s >= 1, central term only, finite) has its spheres at least 2 delta apart and no triangle pair below it within
 the margin; a narrower band (eps d1 < delta: d1 < 0.1 m at the defaults) left the potential finite and flat up to
@@ -285,6 +286,7 @@ def traverse(
         pair_body: (P, 2) indices into ``pose`` of each pair's bodies a and b.
         pair_root: (P, 2) root node ids of each pair's hierarchies.
         pose: (Nb, 6) body poses (float64).
+        eps: the blend width, one for all pairs or (P,) one per pair.
         order: 0 value, 1 value + gradient, 2 value + gradient + Hessian.
         backend: "auto" (numba depth-first kernel on CPU, breadth-first tensors elsewhere) or "torch".
         leaves_only: only traverse the nodes and return the exact leaf pairs instead (with the gradient of their
