@@ -4,9 +4,9 @@ The potential of a body pair is a staircase: a node pair far apart is one centra
 its blend band, between the spheres' touching distance d1 and d1 + eps d1, it gives way to its children's sum, which
 holds many such terms. So the force between bands is the faint pull of the central terms' slope, and inside a band it
 is the step's height over the band's width. This script places the pole beside the box (as Push's trivial start
-does: on the side, at the box's height) at distances from 0.21 to 1.5 m (0.2: touching) and evaluates the pair's potential and the
-force on the box, for each eps, with the library's contact model. Writes ``staircase.json`` and ``staircase.png``
-under ``--out``.
+does: on the side, at the box's height) at distances from 0.21 to 1.5 m (0.2: touching) and evaluates the pair's
+potential and the force on the box, for each eps, with the library's contact model. Writes ``staircase.json`` and
+``staircase.png`` under ``--out``.
 
     python scripts/far_field_staircase.py --out results/far_field_staircase
 """
