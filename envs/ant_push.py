@@ -69,7 +69,8 @@ class AntPushCore(BoxToTargetCore):
         if actuation not in ("torque", "position"):
             raise ValueError(f"actuation must be 'torque' or 'position', got {actuation!r}")
         self.actuation = actuation
-        self.ant = articulation(gymnasium_ant_xml(servos=servo_gains if actuation == "position" else None))
+        self.mjcf = (gymnasium_ant_xml(servos=servo_gains if actuation == "position" else None),)
+        self.ant = articulation(self.mjcf[0])
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
         # the floor is refined to the Ant's capsule edges: keep it no larger than the task needs
         floor = floor_body(distance + 5.0, centre=((1.0 + distance) / 2, 0.0))

@@ -151,8 +151,11 @@ class TaskCore(abc.ABC):
         obs_dim: O, the size of an observation.
         horizon: the episode length the task is designed for (the Gymnasium id's ``max_episode_steps``).
         device, dtype: of every tensor the core makes (float64 by default: the simulator's reference path).
+        mjcf: the MJCF (text) of each of the scene's articulations, in scene order (empty without articulations):
+            what :class:`~cfd_torch.envs.mujoco_twin.MujocoTwin` rebuilds them from.
     """
 
+    mjcf: tuple[str, ...] = ()
     action_dim: int
     action_body: int
     action_cost: float

@@ -2,21 +2,25 @@
 
 The baseline "MuJoCo with finite differences" of the paper's experiments needs the same task in MuJoCo: same meshes,
 masses, friction, gravity and action semantics, with only the contact model (and integrator) different.
-:class:`MujocoTwin` builds that model from a :class:`~cfd_torch.envs.core.TaskCore`'s scene, for the tasks made of
-rigid bodies (Billiards, Push, Sort, Gather; not AntPush's articulated Ant):
+:class:`MujocoTwin` builds that model from a :class:`~cfd_torch.envs.core.TaskCore`'s scene, for every task:
 
 - every body's own triangle mesh (its hierarchy's body-frame vertices and faces) as a collision mesh geom (MuJoCo
   collides the meshes' convex hulls; every mesh of these tasks is convex); dynamic bodies with their mass (MuJoCo
   takes the inertia of the mesh's volume, like the simulator) and a free joint, or, in a planar scene, slide joints
   along x and y and a hinge about z (in the horizontal plane of the state's pose); static bodies as mocap bodies
   placed at the state's poses;
+- an articulated robot (AntPush's Ant; at most one per scene, on a floating base) from the MJCF the core built it
+  from (``core.mjcf``) as MuJoCo reads it: its joints, limits, damping, armature, actuators (motors or position
+  servos), geoms (MuJoCo's own capsules, not the simulator's meshes of them), contact filters, margins, friction
+  and integrator (Gymnasium's Ant: RK4); the MJCF's worldbody geoms (the Ant's floor plane) are switched off, the
+  scene's own static bodies take their place; the robot's state goes over as its base pose and joint angles;
 - Coulomb friction ``scene.friction.coefficient`` on every geom (torsional and rolling friction off; ``condim`` 1,
   frictionless, when the coefficient is 0), the scene's gravity, MuJoCo's default soft contacts, several contact
   points per pair of meshes (``multiccd``);
-- the time step: each task step is ``substeps`` MuJoCo steps of dt / substeps (semi-implicit Euler), during
-  which the task's action holds: the core's own ``_action`` (forces and torques at the centres of mass, computed
-  from the poses at the start of the step and one step earlier, e.g. the pushers' PD law) goes to
-  ``data.xfrc_applied``;
+- the time step: each task step is ``substeps`` MuJoCo steps of dt / substeps (semi-implicit Euler unless the
+  robot's MJCF says otherwise), during which the task's action holds: the core's own ``_action`` (forces and
+  torques at the centres of mass, computed from the poses at the start of the step and one step earlier, e.g. the
+  pushers' PD law) goes to ``data.xfrc_applied``, its actuator controls (``Action.ctrl``) to ``data.ctrl``;
 - the score: the core's ``reward_terms`` on the MuJoCo poses after each step.
 
     twin = MujocoTwin(make_core("cfd_torch/Push-v0"))
@@ -42,18 +46,26 @@ class MujocoTwin:
     """MuJoCo model of ``core``'s scene (module docstring).
 
     Args:
-        core: a task core whose scene has only rigid bodies (dynamic or static).
+        core: a task core whose scene has dynamic and static rigid bodies and at most one articulation, a floating
+            robot that is not kinematic (its MJCF in ``core.mjcf``).
         substeps: MuJoCo steps per task step (default 10: 1 ms at the tasks' dt = 0.01 s).
 
     Raises:
-        ValueError: an articulated or kinematic body in the scene, or substeps < 1.
+        ValueError: a kinematic body, more than one articulation or one that is kinematic or has a fixed base, a
+            missing MJCF, or substeps < 1.
     """
 
     def __init__(self, core: TaskCore, substeps: int = 10) -> None:
         scene = core.scene
-        if scene.articulations:
+        arts = scene.articulations
+        if len(arts) > 1 or any(a.kinematic or not a.floating for a in arts):
             raise ValueError(
-                "core: MujocoTwin takes scenes of rigid bodies only (this one has articulations)"
+                "core: MujocoTwin takes at most one articulation, a floating robot that is not kinematic"
+            )
+        if len(core.mjcf) != len(arts):
+            raise ValueError(
+                f"core.mjcf must hold the MJCF of each of the scene's {len(arts)} articulations, got "
+                f"{len(core.mjcf)}"
             )
         if any(b.kind == "kinematic" for b in scene.bodies):
             raise ValueError(
@@ -64,13 +76,21 @@ class MujocoTwin:
         self.core, self.substeps = core, substeps
         self.planar = bool(scene.planar)
         mu = float(scene.friction.coefficient)
-        spec = mujoco.MjSpec()
+        spec = mujoco.MjSpec.from_string(core.mjcf[0]) if arts else mujoco.MjSpec()
+        # the robot's own world geoms (a floor plane) give way to the scene's static bodies
+        for g in spec.worldbody.geoms:
+            g.contype, g.conaffinity, g.rgba = 0, 0, [0.0, 0.0, 0.0, 0.0]
         spec.option.timestep = scene.dt / substeps
         spec.option.gravity = list(scene.gravity)
         # several contact points per pair of convex meshes (one, by default, lets a box on a floor rock and sink)
         spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_MULTICCD
-        self._bodies = []  # MuJoCo body id of each scene body
+        # the articulation's state rows [first, first + L)
+        self._art = arts[0] if arts else None
+        first = scene.articulation_rows[0] if arts else 0
+        self._art_rows = range(first, first + arts[0].num_links) if arts else range(0)
         for i, body in enumerate(scene.bodies):
+            if i in self._art_rows:
+                continue
             mesh = spec.add_mesh()
             mesh.name = f"mesh{i}"
             mesh.uservert = body.bsh.vertices.double().numpy().ravel().tolist()
@@ -87,14 +107,31 @@ class MujocoTwin:
                 b.add_freejoint(name=f"body{i}_free")
             geom = b.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name, condim=3 if mu > 0 else 1)
             geom.friction = [mu, 0.0, 0.0]
+            # MuJoCo's defaults, whatever the robot's MJCF sets as its own (the Ant's: conaffinity 0, margin 1 cm)
+            geom.contype, geom.conaffinity, geom.margin = 1, 1, 0.0
             if not static:
                 geom.mass = float(body.mass)
         self.spec = spec
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
-        self._dynamic = [i for i, b in enumerate(scene.bodies) if b.kind != "static"]
-        self._static = [i for i, b in enumerate(scene.bodies) if b.kind == "static"]
-        self._body_id = [self.model.body(f"body{i}").id for i in range(len(scene.bodies))]
+        rigid = [i for i in range(len(scene.bodies)) if i not in self._art_rows]
+        self._dynamic = [i for i in rigid if scene.bodies[i].kind != "static"]
+        self._static = [i for i in rigid if scene.bodies[i].kind == "static"]
+        names = {i: f"body{i}" for i in rigid}
+        if arts:
+            names.update(zip(self._art_rows, arts[0].names, strict=True))
+        self._body_id = [self.model.body(names[i]).id for i in range(len(scene.bodies))]
+        if arts:
+            m = self.model
+            root = m.body(arts[0].names[0]).id
+            self._root_q = int(m.jnt_qposadr[m.body_jntadr[root]])
+            self._root_v = int(m.jnt_dofadr[m.body_jntadr[root]])
+            self._joint_q = np.array([m.joint(n).qposadr[0] for n in arts[0].joint_names])
+            self._joint_v = np.array([m.joint(n).dofadr[0] for n in arts[0].joint_names])
+            if m.nu != scene.num_actuators:
+                raise ValueError(
+                    f"core.mjcf: MuJoCo reads {m.nu} actuators, the scene has {scene.num_actuators}"
+                )
         self._qadr = [
             int(self.model.jnt_qposadr[self.model.body_jntadr[self._body_id[i]]]) for i in self._dynamic
         ]
@@ -118,10 +155,7 @@ class MujocoTwin:
         for k, i in enumerate(self._dynamic):
             qa, va = self._qadr[k], self._vadr[k]
             v = ((q[i, :3] - qp[i, :3]) / dt).numpy()
-            # angular velocity of the rotation from the previous pose to this one, world frame
-            R = rotation_matrix(q[i, 3:])
-            conj = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
-            w = rotation_vector(quaternion_multiply(quaternion(q[i, 3:]), conj * quaternion(qp[i, 3:]))) / dt
+            w = _angular_velocity(q[i, 3:], qp[i, 3:], dt)
             if self.planar:
                 if bool((q[i, 3:5] != 0).any()):
                     raise ValueError(
@@ -134,9 +168,23 @@ class MujocoTwin:
                 d.qpos[qa : qa + 3] = q[i, :3].numpy()
                 d.qpos[qa + 3 : qa + 7] = quaternion(q[i, 3:]).numpy()
                 d.qvel[va : va + 3] = v
-                d.qvel[va + 3 : va + 6] = (
-                    R.T @ w
-                ).numpy()  # MuJoCo: a free joint's angular velocity is local
+                # MuJoCo: a free joint's angular velocity is local
+                d.qvel[va + 3 : va + 6] = (rotation_matrix(q[i, 3:]).T @ w).numpy()
+        if self._art is not None:
+            rows = list(self._art_rows)
+            c, cp = self._art.coords(q[None, rows])[0], self._art.coords(qp[None, rows])[0]
+            qa, va = self._root_q, self._root_v
+            d.qpos[qa : qa + 3] = c[:3].numpy()
+            d.qpos[qa + 3 : qa + 7] = quaternion(c[3:6]).numpy()
+            d.qpos[self._joint_q] = c[6:].numpy()
+            d.qvel[va : va + 3] = ((c[:3] - cp[:3]) / dt).numpy()
+            d.qvel[va + 3 : va + 6] = (
+                rotation_matrix(c[3:6]).T @ _angular_velocity(c[3:6], cp[3:6], dt)
+            ).numpy()
+            turn = (
+                torch.remainder(c[6:] - cp[6:] + torch.pi, 2 * torch.pi) - torch.pi
+            )  # hinge angles wrap at pi
+            d.qvel[self._joint_v] = (turn / dt).numpy()
         mujoco.mj_forward(self.model, d)
 
     def _poses(self, like: torch.Tensor) -> torch.Tensor:
@@ -152,6 +200,16 @@ class MujocoTwin:
             else:
                 q[0, i, :3] = torch.from_numpy(d.qpos[qa : qa + 3].copy())
                 q[0, i, 3:] = rotation_vector(torch.from_numpy(d.qpos[qa + 3 : qa + 7].copy()))
+        if self._art is not None:
+            qa = self._root_q
+            base = torch.cat(
+                [
+                    torch.from_numpy(d.qpos[qa : qa + 3].copy()),
+                    rotation_vector(torch.from_numpy(d.qpos[qa + 3 : qa + 7].copy())),
+                ]
+            )
+            joints = torch.from_numpy(d.qpos[self._joint_q].copy())
+            q[0, list(self._art_rows)] = self._art.poses(joints, base).to(q.dtype)
         return q
 
     # ------------------------------------------------------------------------------------------------- rollout
@@ -184,6 +242,8 @@ class MujocoTwin:
                 d.xfrc_applied[ids, :3] = act.force[0].numpy()
             if act.torque is not None:
                 d.xfrc_applied[ids, 3:] = act.torque[0].numpy()
+            if act.ctrl is not None:
+                d.ctrl[:] = act.ctrl.detach().reshape(-1, self.model.nu)[0].double().numpy()
             for _ in range(self.substeps):
                 mujoco.mj_step(self.model, d)
             nxt = EnvState(self._poses(cur.q), cur.q, cur.t + 1, cur.task)
@@ -192,3 +252,9 @@ class MujocoTwin:
             done = done or bool(core.terminated(nxt)[0])
             cur = nxt
         return out, alive
+
+
+def _angular_velocity(r: torch.Tensor, r_prev: torch.Tensor, dt: float) -> torch.Tensor:
+    """(3,) world-frame angular velocity of the rotation from rotation vector ``r_prev`` to ``r`` over ``dt``."""
+    conj = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=r.dtype)
+    return rotation_vector(quaternion_multiply(quaternion(r), conj * quaternion(r_prev))) / dt

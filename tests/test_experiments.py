@@ -84,12 +84,50 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
     assert 0.3 * moved_ours < moved < 3.0 * moved_ours
 
 
+def test_mujoco_twin_of_the_ant_takes_its_state_and_stands_on_the_floor():
+    """AntPush's MuJoCo twin (the Ant from the core's own MJCF, the scene's box and floor): the state's link poses
+    arrive as MuJoCo's bodies (centre of mass, frame orientation) to 1e-12 and come back to 1e-12; with zero torques the Ant stands
+    on the floor for 0.5 s (torso between 0.3 and 0.8 m, the box in place to 1e-6 of its landing), and its box,
+    struck by the Ant sliding into it, moves."""
+    import numpy as np
+    import torch
+
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.mujoco_twin import MujocoTwin
+    from cfd_torch.rotation import rotation_matrix
+
+    core = make_core("cfd_torch/AntPush-v0")
+    s = core.reset(0, 1)
+    twin = MujocoTwin(core)
+    twin._set_state(s)
+    d, q = twin.data, s.q[0]
+    for row in range(2, 2 + core.ant.num_links):
+        bid = twin._body_id[row]
+        assert np.abs(d.xipos[bid] - q[row, :3].numpy()).max() < 1e-12
+        assert np.abs(d.xmat[bid].reshape(3, 3) - rotation_matrix(q[row, 3:]).numpy()).max() < 1e-12
+    assert float((twin._poses(s.q) - s.q).abs().max()) < 1e-12
+    dist, alive = twin.rollout(s, torch.zeros(50, 8, dtype=torch.float64))
+    assert float((dist - 2.0).abs().max()) < 1e-5 and bool((alive == 1).all())
+    assert 0.3 < float(twin.data.qpos[twin._root_q + 2]) < 0.8
+    # the Ant sliding at 3 m/s toward the box (+x; friction stops it after about 0.45 m), with the box moved to
+    # 0.2 m ahead of its torso's sphere, runs into it (its diagonal legs straddle the box)
+    s_fast = type(s)(s.q.clone(), s.q_prev.clone(), s.t, s.task)
+    s_fast.q[0, 0, 0] = s_fast.q_prev[0, 0, 0] = 0.6
+    s_fast.q_prev[0, 2:, 0] -= 0.01 * 3.0
+    hit, _ = twin.rollout(s_fast, torch.zeros(80, 8, dtype=torch.float64))
+    assert float(hit[-1]) < 2.4 - 5e-4  # the box's distance to the target, 2.4 m at 0.6 (it moved 1.4 mm)
+    with pytest.raises(ValueError, match="core.mjcf"):
+        core_bad = make_core("cfd_torch/AntPush-v0")
+        core_bad.mjcf = ()
+        MujocoTwin(core_bad)
+
+
 def test_run_experiment_refuses_unknown_keys_and_models():
     with pytest.raises(ValueError, match="unknown keys"):
         run_experiment({"task": "Push", "learning_rate": 0.1})
     with pytest.raises(ValueError, match="config\\['model'\\]"):
         run_experiment({"task": "Push", "model": "mujoco"})
-    with pytest.raises(ValueError, match="mujoco-fd runs open loop"):
+    with pytest.raises(ValueError, match="mujoco-fd runs open loop only"):
         run_experiment({"task": "Push", "model": "mujoco-fd", "mpc": True})
 
 
@@ -109,3 +147,16 @@ def test_sweep_and_plot_results(tmp_path):
     table = (tmp_path / "results.md").read_text().splitlines()
     assert len(table) == 4 and "| Push | cfd |" in table[2] and "| Push | gb |" in table[3]
     assert (tmp_path / "Push.png").stat().st_size > 0
+
+
+def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
+    """mujoco-fd runs on AntPush (the Ant's MuJoCo twin): one iteration on 2 actions, every finite-difference step
+    of the sweep finds a gradient of exactly zero (the box is 1 m from the Ant), and the rollouts are counted."""
+    r = run_experiment(
+        {"task": "AntPush", "model": "mujoco-fd", "iters": 1, "horizon": 2, "gif": False, "out": tmp_path}
+    )
+    sweep = r["summary"]["fd_sweep"]
+    assert [row["step"] for row in sweep] == list(FD_STEPS)
+    assert all(row["grad_norm"] == 0.0 for row in sweep)
+    assert [row["rollouts"] for row in r["log"]] == [1 + len(FD_STEPS) * 32, 2 + len(FD_STEPS) * 32 + 32]
+    assert all(row["grad_norm"] == 0.0 for row in r["log"])
