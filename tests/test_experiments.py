@@ -86,9 +86,9 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
 
 def test_mujoco_twin_of_the_ant_takes_its_state_and_stands_on_the_floor():
     """AntPush's MuJoCo twin (the Ant from the core's own MJCF, the scene's box and floor): the state's link poses
-    arrive as MuJoCo's bodies (centre of mass, frame orientation) to 1e-12 and come back to 1e-12; with zero torques the Ant stands
-    on the floor for 0.5 s (torso between 0.3 and 0.8 m, the box in place to 1e-6 of its landing), and its box,
-    struck by the Ant sliding into it, moves."""
+    arrive as MuJoCo's bodies (centre of mass, frame orientation) to 1e-12 and come back to 1e-12; with zero
+    torques the Ant stands on the floor for 0.5 s (torso between 0.3 and 0.8 m, the box in place to 1e-5 of its
+    landing), and its box, struck by the Ant sliding into it, moves."""
     import numpy as np
     import torch
 
