@@ -10,7 +10,7 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
 as runs finish, so an interrupted sweep keeps what it finished (``--resume`` skips the cells already in it); a run
 that raises is reported and kept in ``<out>/failed.json``, and the sweep goes on. Cells no model can run are left
-out of the grid (mujoco-fd on AntPush or with ``--mpc``). On Ray, the scripts folder travels with the job
+out of the grid (mujoco-fd with ``--mpc``). On Ray, the scripts folder travels with the job
 (``runtime_env`` working_dir), so cluster nodes need cfd_torch installed but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
 
@@ -36,14 +36,14 @@ from optimize import DEFAULTS, MODELS, TASKS, add_arguments, run_experiment  # n
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
-    """The grid's configs, task-major, without the cells no model can run (mujoco-fd: AntPush, MPC)."""
+    """The grid's configs, task-major, without the cells no model can run (mujoco-fd with MPC)."""
     shared = {k: getattr(args, k) for k in DEFAULTS if k not in ("task", "model", "seed", "out")}
     return [
         {**shared, "task": t, "model": m, "seed": s, "out": str(args.out / t / m / f"seed{s}")}
         for t in args.tasks
         for m in args.models
         for s in args.seeds
-        if not (m == "mujoco-fd" and (t == "AntPush" or args.mpc))
+        if not (m == "mujoco-fd" and args.mpc)
     ]
 
 
