@@ -35,6 +35,58 @@ def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
     return si, not si
 
 
+@numba.njit(nogil=True, **_JIT)
+def _far_hessian(hess, p, dd, dr, d, inv_r, g1, g2, dR, d2R, ba, bb, CI, CJ):
+    """hess[p] += the upper triangle of the Hessian of f(r), r = |d|, d = x_a - x_b, in the body pair's 12 pose
+    coordinates, from f' = g1, f'' = g2, dr (12,) and the Jacobian dd = [I, A, -I, -B] (3, 12) of d.
+
+    Hess f = g2 dr dr^T + g1 d2r with d2r = (dd^T dd - dr dr^T) / r + u . d2d, u = d / r, so
+    Hess f = (g2 - g1 / r) dr dr^T + (g1 / r) dd^T dd + g1 u . d2d: of dd^T dd only the blocks A^T A, A^T B, B^T B
+    need products (the others are I, A, B and their transposes), and of u . d2d only the rotation blocks' upper
+    triangles (d2R is symmetric in its last two indices)."""
+    al = g2 - g1 * inv_r
+    be = g1 * inv_r
+    for a in range(12):
+        ga = al * dr[a]
+        for c in range(a, 12):
+            hess[p, a, c] += ga * dr[c]
+    for i in range(3):
+        hess[p, i, i] += be  # t_a t_a: I
+        hess[p, 6 + i, 6 + i] += be  # t_b t_b: I
+        hess[p, i, 6 + i] -= be  # t_a t_b: -I
+        for k in range(3):
+            hess[p, i, 3 + k] += be * dd[i, 3 + k]  # t_a omega_a: A
+            hess[p, i, 9 + k] += be * dd[i, 9 + k]  # t_a omega_b: -B
+            hess[p, 3 + k, 6 + i] -= be * dd[i, 3 + k]  # omega_a t_b: -A^T
+            hess[p, 6 + i, 9 + k] -= be * dd[i, 9 + k]  # t_b omega_b: B
+    for k in range(3):
+        for l in range(3):
+            if l >= k:  # omega_a omega_a: A^T A, and omega_b omega_b: B^T B (upper triangles)
+                hess[p, 3 + k, 3 + l] += be * (
+                    dd[0, 3 + k] * dd[0, 3 + l] + dd[1, 3 + k] * dd[1, 3 + l] + dd[2, 3 + k] * dd[2, 3 + l]
+                )
+                hess[p, 9 + k, 9 + l] += be * (
+                    dd[0, 9 + k] * dd[0, 9 + l] + dd[1, 9 + k] * dd[1, 9 + l] + dd[2, 9 + k] * dd[2, 9 + l]
+                )
+            hess[p, 3 + k, 9 + l] += be * (  # omega_a omega_b: -A^T B
+                dd[0, 3 + k] * dd[0, 9 + l] + dd[1, 3 + k] * dd[1, 9 + l] + dd[2, 3 + k] * dd[2, 9 + l]
+            )
+    u0, u1, u2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
+    for kk in range(3):
+        for ll in range(kk, 3):
+            acc_a = 0.0
+            acc_b = 0.0
+            for m in range(3):
+                acc_a += (
+                    u0 * d2R[ba, 0, m, kk, ll] + u1 * d2R[ba, 1, m, kk, ll] + u2 * d2R[ba, 2, m, kk, ll]
+                ) * CI[m]
+                acc_b += (
+                    u0 * d2R[bb, 0, m, kk, ll] + u1 * d2R[bb, 1, m, kk, ll] + u2 * d2R[bb, 2, m, kk, ll]
+                ) * CJ[m]
+            hess[p, 3 + kk, 3 + ll] += g1 * acc_a
+            hess[p, 9 + kk, 9 + ll] -= g1 * acc_b
+
+
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split_both,
                    order, value, grad, hess):  # fmt: skip
@@ -108,6 +160,9 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
             phi2 = 60.0 * tt * (tt - 1.0) * (2.0 * tt - 1.0) / (width * width)
             # s <= 0 (spheres overlap): phi = phi' = phi'' = 0, no central term and an unchanged weight, so the
             # distance's derivatives are not needed (most node pairs near contact)
+            # far (phi = 1, phi' = phi'' = 0): the term is W P_c(r), whose Hessian is formed from its blocks below,
+            # without d2r
+            plain = s >= 1.0
             if order >= 1 and s > 0.0:
                 u0, u1, u2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
                 for i in range(3):
@@ -120,7 +175,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                         )
                 for c in range(12):
                     dr[c] = u0 * dd[0, c] + u1 * dd[1, c] + u2 * dd[2, c]
-                if order >= 2:
+                if order >= 2 and not plain:
                     for a in range(12):
                         for c in range(a, 12):
                             v = (
@@ -158,7 +213,15 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                         grad[p, a] += g * W1[a] + W * g1 * dr[a]
                     if order >= 2:  # the upper triangle (mirrored when the body pair is done)
                         g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
-                        if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
+                        if plain:
+                            _far_hessian(hess, p, dd, dr, d, inv_r, W * g1, W * g2, dR, d2R, ba, bb, CI, CJ)
+                            if wid != 0:  # an ancestor in the band: the weight's derivatives
+                                W1 = wd1[wid]
+                                W2 = wd2[wid]
+                                for a in range(12):
+                                    for c in range(a, 12):
+                                        hess[p, a, c] += g * W2[a, c] + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
+                        elif wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
                             for a in range(12):
                                 ga = g2 * dr[a]
                                 for c in range(a, 12):
@@ -188,13 +251,15 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     W1 = wd1[wid]
                     W2 = wd2[wid]
                     N2 = wd2[nw]
-                    for a in range(12):
-                        for c in range(12):
-                            N2[a, c] = (
+                    for a in range(12):  # symmetric: the upper triangle, mirrored
+                        for c in range(a, 12):
+                            v = (
                                 h * W2[a, c]
                                 - phi1 * (W1[a] * dr[c] + dr[a] * W1[c])
                                 - W * (phi2 * dr[a] * dr[c] + phi1 * d2r[a, c])
                             )
+                            N2[a, c] = v
+                            N2[c, a] = v
                 if order >= 1:
                     W1 = wd1[wid]
                     N1 = wd1[nw]
