@@ -409,6 +409,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     U = np.empty((12, 4))
     dv = np.empty(6)
     G = np.empty((3, 3))
+    touched = np.zeros(hess.shape[0], np.bool_)  # the body pairs whose Hessian rows received a leaf
     for e in range(L):
         p = lp[e]
         wid = lwid[e]
@@ -452,7 +453,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
             for k in range(3):
                 dv[3 + k] = A[v, 0, k] * n0 + A[v, 1, k] * n1 + A[v, 2, k] * n2
             for a in range(6):
-                for c in range(6):
+                for c in range(a, 6):
                     hq[o + a, o + c] += cv * dv[a] * dv[c]
             for m in range(4):
                 w0, w1, w2 = WT[e, m, 3 * v], WT[e, m, 3 * v + 1], WT[e, m, 3 * v + 2]
@@ -465,8 +466,6 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
             for c in range(a, 12):
                 acc = U[a, 0] * U[c, 0] + U[a, 1] * U[c, 1] + U[a, 2] * U[c, 2] + U[a, 3] * U[c, 3]
                 hq[a, c] -= mu * acc
-                if c != a:
-                    hq[c, a] -= mu * acc
         for side in range(2):
             body = ba[e] if side == 0 else bb[e]
             o = 3 if side == 0 else 9
@@ -478,12 +477,19 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                         acc += gx[e, 3 * v + i] * X[m]
                     G[i, m] = acc
             for k in range(3):
-                for l2 in range(3):
+                for l2 in range(k, 3):
                     acc = 0.0
                     for i in range(3):
                         for m in range(3):
                             acc += G[i, m] * d2R[body, i, m, k, l2]
                     hq[o + k, o + l2] += acc
-        for a in range(12):
-            for c in range(12):
+        for a in range(12):  # the upper triangle (mirrored below)
+            for c in range(a, 12):
                 hess[p, a, c] += P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
+        touched[p] = True
+    if order >= 2:  # hq and the leaf terms were added to the upper triangles: mirror them
+        for p in range(hess.shape[0]):
+            if touched[p]:
+                for a in range(12):
+                    for c in range(a + 1, 12):
+                        hess[p, c, a] = hess[p, a, c]
