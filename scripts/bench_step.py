@@ -402,9 +402,9 @@ def backward_pass(case: Case, state: State, t0: int, steps: int, w: torch.Tensor
         q = state.q.clone().requires_grad_()
         out, fwd = timed_step(case.scene, State(q, state.q_prev), case.act(t0 + i, state))
         loss = (w * out.q).sum()
-        t0 = time.perf_counter()
+        tic = time.perf_counter()  # (t0 is the step index the actions are taken at)
         loss.backward()
-        bwd = {"total_s": time.perf_counter() - t0, "grad_norm": float(q.grad.norm())}
+        bwd = {"total_s": time.perf_counter() - tic, "grad_norm": float(q.grad.norm())}
         rows.append({"forward": fwd, "backward": bwd})
         state = _detach(out)
     return rows
