@@ -162,22 +162,31 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL
 
 
-# fewer body pairs are traversed by one thread (handing them to threads costs more than it saves)
-_THREAD_MIN_PAIRS = 8
+# Fewer body pairs than this are traversed by one thread, and so are body pairs whose earlier evaluation in the step
+# had fewer feasible leaf pairs than _THREAD_MIN_LEAVES: a woken pool thread competes with the OpenMP threads that
+# torch and numba leave spinning, so on this project's 2-core machine two threads made an Ant step (9 body pairs,
+# about 2,700 leaf pairs) 15 % slower (110 ms against 94), left ten cubes on a floor (66 body pairs, about 900) as
+# they were, and made a 16-ball rack step (136 body pairs, about 13,000) 11 % faster.
+_THREAD_MIN_PAIRS = 32
+_THREAD_MIN_LEAVES = 6000
 
 
-def _node_threads(P: int) -> int:
-    """How many threads traverse P body pairs: numba's thread count (at most 4), from _THREAD_MIN_PAIRS pairs."""
+def _node_threads(P: int, leaves: int | None = None) -> int:
+    """How many threads traverse P body pairs: numba's thread count (at most 4), from _THREAD_MIN_PAIRS pairs and,
+    when an earlier evaluation's count of leaf pairs is known (``leaves``), from _THREAD_MIN_LEAVES of them."""
     import numba
 
-    return 1 if P < _THREAD_MIN_PAIRS else min(numba.get_num_threads(), 4)
+    if P < _THREAD_MIN_PAIRS or (leaves is not None and leaves < _THREAD_MIN_LEAVES):
+        return 1
+    return min(numba.get_num_threads(), 4)
 
 
 def _traverse_cpu(
-    forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess
+    forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess, hint
 ):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
     weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2).
+    ``hint``: the leaf pairs of earlier evaluations of the same step, or None (see :func:`_node_threads`).
 
     Several body pairs are traversed by up to four threads, each taking every n-th pair (the kernel is serial
     within a body pair); the results are the same as one thread's, their leaves in another order."""
@@ -215,7 +224,7 @@ def _traverse_cpu(
         )  # fmt: skip
         return out, v, g, h
 
-    k = _node_threads(P)
+    k = _node_threads(P, hint)
     if k == 1:
         parts = [(None, run(None))]
     else:
@@ -322,9 +331,11 @@ def traverse(
     eps = _pair_eps(eps, P, dev)
 
     if dev.type == "cpu" and backend != "torch":
+        known = warm[1].numel() if warm is not None and warm[1].numel() else None  # the step's leaf pairs
         leaves, n_pairs, levels, wtable = _traverse_cpu(
-            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess
-        )
+            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess,
+            hint=known,
+        )  # fmt: skip
         I = pair_root[:0, 0]  # skip the tensor traversal below
     else:
         leaves, n_pairs, levels, wtable = [], 0, 0, None
