@@ -517,3 +517,45 @@ def test_head_on_impact_of_small_balls_meeting_vertex_to_vertex():
     torch.testing.assert_close(vel[:, :3].sum(0), v[:, :3].sum(0), rtol=0, atol=1e-9)
     # the balls glance off each other's vertices (they leave the line); centres stay about a diameter apart
     assert float((state.q[1, :3] - state.q[0, :3]).norm()) > 0.9 * 0.0572
+
+
+def test_friction_summed_per_pair_in_numba_equals_the_per_contact_terms():
+    """The CPU kernel that sums lagged friction per body pair (no autograd wanted) equals the per-contact closed form
+    summed with index_add, at every order, with the majorizer gap, in the slipping and the static regime."""
+    from cfd_torch.contact.model import LaggedContacts
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.friction import friction_by_pair, friction_terms
+
+    g = torch.Generator().manual_seed(3)
+    C, M, e = 400, 5, 1e-4
+    n = torch.nn.functional.normalize(torch.randn(C, 3, generator=g, dtype=F64), dim=1)
+    tangent = torch.eye(3, dtype=F64) - n[:, :, None] * n[:, None, :]
+    rows = torch.randint(0, M, (C, 2), generator=g)
+    rows[:, 1] = (rows[:, 0] + 1 + torch.randint(0, M - 1, (C,), generator=g)) % M  # two different bodies
+    poses = torch.cat(
+        [torch.randn(M, 3, generator=g, dtype=F64), 0.8 * torch.randn(M, 3, generator=g, dtype=F64)], 1
+    )
+    X = 0.1 * torch.randn(C, 2, 3, generator=g, dtype=F64)
+    R = rotation_matrix(poses[:, 3:])
+    x = torch.einsum("csij,csj->csi", R[rows], X) + poses[rows, :3]
+    # start-of-step points: slips from 0.01 e to 100 e, so both regimes of f0 occur
+    slip = torch.logspace(-2, 2, C, dtype=F64)[torch.randperm(C, generator=g)] * e
+    x_t = x.clone()
+    x_t[:, 0] -= slip[:, None] * torch.randn(C, 3, generator=g, dtype=F64)
+    data = LaggedContacts(
+        torch.randint(0, 7, (C,), generator=g), X, x_t, tangent, torch.rand(C, generator=g, dtype=F64) + 0.1
+    )
+    mu = torch.rand(C, generator=g, dtype=F64)
+    for order in (0, 1, 2):
+        pair, *fast = friction_by_pair(data, poses, rows, mu, e, order, majorizer_gap=True)
+        ref = friction_terms(data, poses, rows, mu, e, order, majorizer_gap=True)
+        assert torch.equal(pair, torch.unique(data.pair))
+        slot = torch.unique(data.pair, return_inverse=True)[1]
+        for k, got in enumerate(fast):
+            want = ref[k] if k < len(ref) else None
+            if want is None:
+                assert got is None
+                continue
+            want = want.new_zeros(len(pair), *want.shape[1:]).index_add_(0, slot, want)
+            assert float(want.abs().max()) > 0
+            assert torch.allclose(got, want, rtol=1e-12, atol=1e-12 * float(want.abs().max()))

@@ -27,7 +27,7 @@ import torch
 
 from ..contact.model import LaggedContacts, sum_pairs
 from ..rotation import rotation_derivatives, rotation_matrix
-from .friction import friction_terms
+from .friction import friction_by_pair
 
 __all__ = [
     "StepProblem",
@@ -299,15 +299,16 @@ def incremental_potential(
     Gf = Hf = gap = None
     lag = prob.lagged
     if lag is not None:
-        cp = pairs[lag.pair]  # (C, 3)
-        frows = cp[:, :1] * N + cp[:, 1:]
-        vf, gf, hf, *gap_c = friction_terms(
-            lag, poses.reshape(B * N, 6), frows, prob.friction[cp[:, 0]], scene.friction.eps_v * scene.dt, order,
+        cc = pairs[lag.pair]  # (C, 3) each contact's scene and bodies
+        frows = cc[:, :1] * N + cc[:, 1:]
+        fp, vf, gf, hf, *gap_c = friction_by_pair(
+            lag, poses.reshape(B * N, 6), frows, prob.friction[cc[:, 0]], scene.friction.eps_v * scene.dt, order,
             majorizer_gap=order >= 2,
         )  # fmt: skip
+        cp = pairs[fp]  # (F, 3) the body pairs with contacts, each one's terms summed over its contacts
         if on is not None:  # the contacts of pairs without an active body do not count
-            vf = torch.where(on[lag.pair], vf, torch.zeros_like(vf))
-        pair_value = pair_value.index_add(0, lag.pair, vf)
+            vf = torch.where(on[fp], vf, torch.zeros_like(vf))
+        pair_value = pair_value.index_add(0, fp, vf)
         local.index_put_((cp[:, 0], cp[:, 1]), vf, accumulate=True)
         local.index_put_((cp[:, 0], cp[:, 2]), vf, accumulate=True)
         value = value + torch.zeros_like(value).index_add_(0, cp[:, 0], vf)

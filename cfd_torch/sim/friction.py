@@ -21,7 +21,7 @@ import torch
 from ..contact.model import LaggedContacts
 from ..rotation import rotation_derivatives
 
-__all__ = ["friction_terms"]
+__all__ = ["friction_terms", "friction_by_pair"]
 
 # positions in a flattened 12 x 12 Hessian over [q_a, q_b] of entry (k, l) of its rotation-rotation block of body a,
 # then b, for each (k, l) in turn
@@ -142,3 +142,59 @@ def friction_terms(
         v = pullback(u)  # (C, 12) J_c^T u
         return value, grad, hess, (-w * c2)[:, None, None] * v[:, :, None] * v[:, None, :]
     return value, grad, hess
+
+
+def friction_by_pair(
+    data: LaggedContacts,
+    poses: torch.Tensor,
+    rows: torch.Tensor,
+    mu_f: torch.Tensor,
+    e: float,
+    order: int,
+    majorizer_gap: bool = False,
+):
+    """:func:`friction_terms` summed over the contacts of each body pair.
+
+    Returns:
+        (F,) the body pairs with contacts (the distinct ``data.pair``, ascending), their values (F,), gradients
+        (F, 12) and Hessians (F, 12, 12) (None below the order), and with ``majorizer_gap`` the gaps (F, 12, 12).
+
+    On the CPU in float64 with no autograd wanted, one numba loop adds each contact to its pair (the per-contact
+    Hessians are never formed); otherwise :func:`friction_terms`, then sums.
+    """
+    pair, slot = torch.unique(data.pair, return_inverse=True)
+    F = pair.shape[0]
+    mu = torch.as_tensor(mu_f, dtype=poses.dtype, device=poses.device).expand(data.pair.shape[0])
+    inputs = (poses, mu, data.X, data.x_t, data.tangent, data.normal_force)
+    graph = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
+    if poses.device.type == "cpu" and poses.dtype == torch.float64 and not graph:
+        from ._friction_numba import friction_by_pair as kernel
+
+        R, dR, d2R = rotation_derivatives(poses[:, 3:], order)
+        if dR is None:  # (typed placeholders: the kernel reads them only at the orders that need them)
+            dR = poses.new_zeros(1, 3, 3, 3)
+        if d2R is None:
+            d2R = poses.new_zeros(1, 3, 3, 3, 3)
+        np_ = lambda x: x.contiguous().numpy()  # noqa: E731
+        value, grad, hess, gap = kernel(
+            np_(slot), F, np_(R), np_(dR), np_(d2R),
+            np_(poses[:, :3]), np_(rows), np_(data.X), np_(data.x_t), np_(data.tangent), np_(data.normal_force),
+            np_(mu), float(e), int(order), bool(majorizer_gap and order >= 2),
+        )  # fmt: skip
+        out = [pair, torch.from_numpy(value)]
+        out += [
+            torch.from_numpy(grad) if order >= 1 else None,
+            torch.from_numpy(hess) if order >= 2 else None,
+        ]
+        if majorizer_gap:
+            out.append(torch.from_numpy(gap) if order >= 2 else None)
+        return tuple(out)
+    v, g, h, *gap = friction_terms(data, poses, rows, mu_f, e, order, majorizer_gap=majorizer_gap)
+
+    def per_pair(x):
+        return None if x is None else x.new_zeros(F, *x.shape[1:]).index_add_(0, slot, x)
+
+    out = [pair, per_pair(v), per_pair(g), per_pair(h)]
+    if majorizer_gap:
+        out.append(per_pair(gap[0]) if gap else None)
+    return tuple(out)

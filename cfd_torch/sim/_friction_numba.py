@@ -1,0 +1,119 @@
+"""CPU kernel of the lagged friction potential, summed per body pair (the closed form of
+:func:`cfd_torch.sim.friction.friction_terms`, whose docstring defines every quantity).
+
+One loop over the contacts; each contact's value, gradient and Hessian over [q_a, q_b] is added to its body pair's
+slot, so the (C, 12, 12) per-contact Hessians are never stored (on a foot resting on a floor C is a few thousand
+and the body pairs a handful).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, error_model="numpy")
+def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order, want_gap):
+    """Per body pair f < F: the sums over its contacts c (``slot[c] == f``) of the friction potential's value (F,),
+    gradient (F, 12) and Hessian (F, 12, 12) over [q_a, q_b], and with ``want_gap`` the majorizer gap (F, 12, 12).
+
+    R (M, 3, 3), dR (M, 3, 3, 3), d2R (M, 3, 3, 3, 3): rotations of the pose rows and their derivatives, [i, m, k(, l)]
+    = d(R_im) / d omega_k (d omega_l); t (M, 3) translations; rows (C, 2) each contact's pose rows; X, x_t (C, 2, 3)
+    body-frame points and their start-of-step world positions; T (C, 3, 3) tangent projectors; lam, mu (C,) normal
+    forces and friction coefficients; e the slip threshold eps_v dt; order 0, 1 or 2.
+    """
+    C = slot.shape[0]
+    value = np.zeros(F)
+    grad = np.zeros((F if order >= 1 else 0, 12))
+    hess = np.zeros((F if order >= 2 else 0, 12, 12))
+    gap = np.zeros((F if order >= 2 and want_gap else 0, 12, 12))
+    J = np.zeros((2, 3, 3))  # d x_s / d omega_s of each side's point
+    Jc = np.zeros((3, 12))  # d rel / d [q_a, q_b] = [I, J_a, -I, -J_b]
+    M = np.zeros((3, 12))  # Hu Jc
+    g = np.zeros(3)
+    rel = np.zeros(3)
+    u = np.zeros(3)
+    v = np.zeros(12)
+    for i in range(3):
+        Jc[i, i] = 1.0
+        Jc[i, 6 + i] = -1.0
+    for c in range(C):
+        f = slot[c]
+        for i in range(3):
+            rel[i] = 0.0
+        for s in range(2):
+            r = rows[c, s]
+            sign = 1.0 if s == 0 else -1.0
+            for i in range(3):
+                x = R[r, i, 0] * X[c, s, 0] + R[r, i, 1] * X[c, s, 1] + R[r, i, 2] * X[c, s, 2] + t[r, i]
+                rel[i] += sign * (x - x_t[c, s, i])
+        for i in range(3):
+            u[i] = T[c, i, 0] * rel[0] + T[c, i, 1] * rel[1] + T[c, i, 2] * rel[2]
+        y = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        slip = y >= e
+        w = mu[c] * lam[c]
+        if slip:
+            value[f] += w * y
+        else:
+            value[f] += w * (-(y * y * y) / (3.0 * e * e) + y * y / e + e / 3.0)
+        if order < 1:
+            continue
+        f1_y = 1.0 / y if slip else -y / (e * e) + 2.0 / e
+        for i in range(3):
+            g[i] = w * f1_y * u[i]  # dD / d rel
+        for s in range(2):
+            r = rows[c, s]
+            for i in range(3):
+                for k in range(3):
+                    J[s, i, k] = (
+                        dR[r, i, 0, k] * X[c, s, 0]
+                        + dR[r, i, 1, k] * X[c, s, 1]
+                        + dR[r, i, 2, k] * X[c, s, 2]
+                    )
+        for k in range(3):
+            grad[f, k] += g[k]
+            grad[f, 6 + k] -= g[k]
+            grad[f, 3 + k] += J[0, 0, k] * g[0] + J[0, 1, k] * g[1] + J[0, 2, k] * g[2]
+            grad[f, 9 + k] -= J[1, 0, k] * g[0] + J[1, 1, k] * g[1] + J[1, 2, k] * g[2]
+        if order < 2:
+            continue
+        for i in range(3):
+            for k in range(3):
+                Jc[i, 3 + k] = J[0, i, k]
+                Jc[i, 9 + k] = -J[1, i, k]
+        yq = y if y > 0.0 else 1.0
+        c2 = -1.0 / (y * y * y) if slip else -1.0 / (e * e * yq)
+        a = w * f1_y
+        b = w * c2
+        # Hu = a T + b u u^T (3 x 3, symmetric); M = Hu Jc; hess += Jc^T M
+        for i in range(3):
+            for col in range(12):
+                acc = 0.0
+                for j in range(3):
+                    acc += (a * T[c, i, j] + b * u[i] * u[j]) * Jc[j, col]
+                M[i, col] = acc
+        for p in range(12):
+            for q in range(12):
+                hess[f, p, q] += Jc[0, p] * M[0, q] + Jc[1, p] * M[1, q] + Jc[2, p] * M[2, q]
+        # second-order rotation terms: sum_m X_m sum_i g_i d2R[i, m, k, l], g at a's point and -g at b's
+        for s in range(2):
+            r = rows[c, s]
+            o = 3 if s == 0 else 9
+            sign = 1.0 if s == 0 else -1.0
+            for k in range(3):
+                for l in range(3):
+                    acc = 0.0
+                    for m in range(3):
+                        acc += X[c, s, m] * (
+                            g[0] * d2R[r, 0, m, k, l] + g[1] * d2R[r, 1, m, k, l] + g[2] * d2R[r, 2, m, k, l]
+                        )
+                    hess[f, o + k, o + l] += sign * acc
+        if want_gap:  # (-w c2) v v^T, v = Jc^T u
+            for p in range(12):
+                v[p] = Jc[0, p] * u[0] + Jc[1, p] * u[1] + Jc[2, p] * u[2]
+            for p in range(12):
+                for q in range(12):
+                    gap[f, p, q] -= b * v[p] * v[q]
+    return value, grad, hess, gap
