@@ -229,6 +229,7 @@ class Articulation:
                     self.frame_parent[j + 1] = j
         self._groups = _joint_groups(self)  # links by joint pattern, for recovering joint values
         self._levels, self._level_back = _levels(self)  # the frame tree by depth, for the forward kinematics
+        self._fk_table = _fk_table(self)  # the same flattened, for the numba kernel of the link rows
 
     def poses(self, joints: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
@@ -336,6 +337,34 @@ def _levels(art: Articulation) -> tuple[tuple[_Level, ...], torch.Tensor]:
         order += list(frames)
         above = frames
     return tuple(levels), torch.from_numpy(np.argsort(order))
+
+
+def _fk_table(art: Articulation) -> tuple[np.ndarray, ...]:
+    """The frame tree in level order as flat arrays for :func:`cfd_torch.sim._kinematics_numba.fk_rows`: each frame's
+    parent (its level-order index; frame 0, the base, is its own), joint, Ro, po, K, K2, anchor, slide, ref, then
+    each link's frame (level-order index) and centre of mass."""
+    F = art.num_joints + 1
+    parent, joint = np.zeros(F, dtype=np.int64), np.zeros(F, dtype=np.int64)
+    ref = np.zeros(F)
+    mats = {name: np.zeros((F, 3, 3)) for name in ("Ro", "K", "K2")}
+    vecs = {name: np.zeros((F, 3)) for name in ("po", "anchor", "slide")}
+    above, at = 0, 1  # level-order index of the level above's first frame, and of the next frame
+    for lv in art._levels:
+        n = len(lv.frames)
+        sl = slice(at, at + n)
+        parent[sl] = above + lv.parent.numpy()
+        joint[sl] = lv.joint.numpy()
+        ref[sl] = lv.ref.numpy()
+        for name in mats:
+            mats[name][sl] = getattr(lv, name).numpy()
+        for name in vecs:
+            vecs[name][sl] = getattr(lv, name).numpy()
+        above, at = at, at + n
+    link = art._level_back.numpy()[np.asarray(art.link_frame)]
+    return (
+        parent, joint, mats["Ro"], vecs["po"], mats["K"], mats["K2"], vecs["anchor"], vecs["slide"], ref, link,
+        np.ascontiguousarray(art.com, dtype=np.float64),
+    )  # fmt: skip
 
 
 def _quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
@@ -466,7 +495,28 @@ def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
 
 
 def _fk_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor | None) -> torch.Tensor:
-    """(A, L, 6) the links' centre-of-mass poses (translation, rotation vector)."""
+    """(A, L, 6) the links' centre-of-mass poses (translation, rotation vector). On the CPU in float64 with no
+    autograd wanted, one numba loop (the step's many evaluations and checks call this; the torch form below costs
+    a few dozen small tensor operations)."""
+    graph = torch.is_grad_enabled() and (q.requires_grad or (root is not None and root.requires_grad))
+    if q.device.type == "cpu" and q.dtype == torch.float64 and not graph:
+        from ._kinematics_numba import fk_rows
+
+        A = q.shape[0]
+        if art.floating:
+            base, th = q[:, :6], q[:, 6:]
+        else:
+            base = torch.as_tensor(art.mount, dtype=q.dtype).expand(A, 6) if art.root_moves else root
+            th = q
+        R0 = rotation_matrix(base[:, 3:])
+        return torch.from_numpy(
+            fk_rows(
+                R0.contiguous().numpy(),
+                base[:, :3].contiguous().numpy(),
+                th.contiguous().numpy(),
+                *art._fk_table,
+            )
+        )
     R, p = _fk_frames(art, q, root)
     A, L = R.shape[:2]
     com = torch.as_tensor(art.com, dtype=q.dtype, device=q.device)

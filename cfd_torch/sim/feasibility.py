@@ -65,7 +65,9 @@ def displacement(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: 
     kin = scene.kinematics
     dyn = kin.bodies.to(q0.device)
     fixed = prob.fixed[scenes]
-    d = kin.poses(q1, fixed)[:, dyn] - kin.poses(q0, fixed)[:, dyn]  # (A, Nd, 6)
+    A = q0.shape[0]
+    ends = kin.poses(torch.cat([q0, q1]), torch.cat([fixed, fixed]))[:, dyn]  # both ends in one map
+    d = ends[A:] - ends[:A]  # (A, Nd, 6)
     r = scene.extent.to(q0)[dyn]
     return (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
 
