@@ -858,11 +858,11 @@ def test_ant_pushing_a_box_rollout_gradient_matches_finite_differences():
 
 @pytest.mark.parametrize("asset,root", GYM_ASSETS, ids=[a for a, _ in GYM_ASSETS])
 def test_numba_link_rows_equal_the_torch_forward_kinematics(asset, root):
-    """The link rows of the numba kernel (CPU, float64, no autograd wanted) equal those of the differentiable torch
-    form, floating bases turned up to near pi included."""
+    """The link rows and the frames' first and second derivatives from the numba kernels (CPU, float64, no autograd
+    wanted) equal those of the differentiable torch form, floating bases turned up to near pi included."""
     import importlib.resources
 
-    from cfd_torch.sim.articulation import _fk_rows
+    from cfd_torch.sim.articulation import _chain, _fk_rows
     from cfd_torch.sim.mjcf import load_mjcf
 
     path = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / asset
@@ -881,3 +881,30 @@ def test_numba_link_rows_equal_the_torch_forward_kinematics(asset, root):
         ref = _fk_rows(art, q.clone().requires_grad_(), base).detach()
     assert fast.shape == (A, art.num_links, 6)
     assert float((fast - ref).abs().max()) < 1e-12
+    fast = _chain(art, q, base, 2)
+    with torch.enable_grad():
+        ref = [x.detach() for x in _chain(art, q.clone().requires_grad_(), base, 2)]
+    assert len(fast) == len(ref) == 6
+    assert float(fast[4].abs().max()) > 0  # second derivatives present
+    for x, y in zip(fast, ref, strict=True):
+        assert x.shape == y.shape
+        assert float((x - y).abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("which", ["branchy", "multi"])
+def test_numba_frames_equal_the_torch_chain_on_trees_with_anchors_and_refs(which):
+    """The numba frames and derivatives on a branching tree of hinges and slides with anchors, and on links with
+    several joints, refs and a mounted root that has joints (where an anchor or a slide enters every term)."""
+    from cfd_torch.sim.articulation import _chain, _fk_rows
+
+    art = _branchy_chain() if which == "branchy" else _multi_chain()
+    g = torch.Generator().manual_seed(11)
+    q = torch.randn(4, art.num_coords, generator=g, dtype=F64)
+    root = torch.randn(4, 6, generator=g, dtype=F64)
+    with torch.enable_grad():
+        ref = [x.detach() for x in _chain(art, q.clone().requires_grad_(), root, 2)]
+        ref_rows = _fk_rows(art, q.clone().requires_grad_(), root).detach()
+    assert float(ref[3].abs().max()) > 0.1 and float(ref[5].abs().max()) > 0.1
+    for x, y in zip(_chain(art, q, root, 2), ref, strict=True):
+        assert float((x - y).abs().max()) < 1e-12
+    assert float((_fk_rows(art, q, root) - ref_rows).abs().max()) < 1e-12

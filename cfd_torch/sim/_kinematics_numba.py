@@ -107,3 +107,151 @@ def fk_rows(R0, p0, th, parent, joint, Ro, po, K, K2, anchor, slide, ref, link, 
             out[e, n, 4] = k * y
             out[e, n, 5] = k * z
     return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def chain(R0, p0, dR0, d2R0, th, first, parent, joint, Ro, po, K, K2, anchor, slide, ref, link, order):
+    """The link frames and their derivatives in the Q coordinates (the recursion of :func:`_chain`): R (A, L, 3, 3),
+    p (A, L, 3), dR (A, L, Q, 3, 3), dp (A, L, Q, 3) and, at order 2, d2R (A, L, Q, Q, 3, 3), d2p (A, L, Q, Q, 3).
+
+    The base: R0 (A, 3, 3), p0 (A, 3) and its derivatives dR0 (A, Q, 3, 3), d2R0 (A, Q, Q, 3, 3) (zero for a fixed
+    base; a floating base's translation coordinates are 0..2, so dp0 is their identity); ``first`` the coordinate
+    of joint 0 (6 for a floating base, else 0). Frame tables as in :func:`fk_rows`."""
+    A, Q = th.shape[0], dR0.shape[1]
+    F, L = parent.shape[0], link.shape[0]
+    q2 = Q if order >= 2 else 0
+    R = np.zeros((F, 3, 3))
+    p = np.zeros((F, 3))
+    dR = np.zeros((F, Q, 3, 3))
+    dp = np.zeros((F, Q, 3))
+    d2R = np.zeros((F, q2, q2, 3, 3))
+    d2p = np.zeros((F, q2, q2, 3))
+    oR = np.empty((A, L, 3, 3))
+    op = np.empty((A, L, 3))
+    odR = np.empty((A, L, Q, 3, 3))
+    odp = np.empty((A, L, Q, 3))
+    od2R = np.empty((A, L, q2, q2, 3, 3))
+    od2p = np.empty((A, L, q2, q2, 3))
+    Rl = np.empty((3, 3))
+    Rl1 = np.empty((3, 3))
+    Rl2 = np.empty((3, 3))
+    Rj = np.empty((3, 3))
+    Rj1 = np.empty((3, 3))
+    Rj2 = np.empty((3, 3))
+    pl = np.empty(3)
+    pl1 = np.empty(3)
+    pl2 = np.empty(3)
+    RpRl1 = np.empty((3, 3))
+    Rppl1 = np.empty(3)
+    RpRl2 = np.empty((3, 3))
+    Rppl2 = np.empty(3)
+    a = np.empty(3)
+    for e in range(A):
+        R[0] = R0[e]
+        p[0] = p0[e]
+        dR[0] = dR0[e]
+        dp[0] = 0.0
+        if first == 6:
+            for k in range(3):
+                dp[0, k, k] = 1.0
+        if order >= 2:
+            d2R[0] = d2R0[e]
+            d2p[0] = 0.0
+        for f in range(1, F):
+            b = parent[f]
+            jq = first + joint[f]  # this frame's own coordinate
+            t = th[e, joint[f]] - ref[f]
+            s, c = math.sin(t), math.cos(t)
+            for i in range(3):
+                for k in range(3):
+                    Rj[i, k] = (1.0 if i == k else 0.0) + s * K[f, i, k] + (1.0 - c) * K2[f, i, k]
+                    Rj1[i, k] = c * K[f, i, k] + s * K2[f, i, k]
+                    Rj2[i, k] = c * K2[f, i, k] - s * K[f, i, k]
+            for i in range(3):
+                a[i] = anchor[f, i] - (
+                    Rj[i, 0] * anchor[f, 0] + Rj[i, 1] * anchor[f, 1] + Rj[i, 2] * anchor[f, 2]
+                )
+                a[i] += t * slide[f, i]
+            for i in range(3):
+                pl[i] = po[f, i] + Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
+            for i in range(3):  # pl' = Ro (slide - Rj' anchor)
+                a[i] = slide[f, i] - (
+                    Rj1[i, 0] * anchor[f, 0] + Rj1[i, 1] * anchor[f, 1] + Rj1[i, 2] * anchor[f, 2]
+                )
+            for i in range(3):
+                pl1[i] = Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
+            for i in range(3):
+                a[i] = -(Rj2[i, 0] * anchor[f, 0] + Rj2[i, 1] * anchor[f, 1] + Rj2[i, 2] * anchor[f, 2])
+            for i in range(3):
+                pl2[i] = Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
+                for k in range(3):
+                    Rl[i, k] = Ro[f, i, 0] * Rj[0, k] + Ro[f, i, 1] * Rj[1, k] + Ro[f, i, 2] * Rj[2, k]
+                    Rl1[i, k] = Ro[f, i, 0] * Rj1[0, k] + Ro[f, i, 1] * Rj1[1, k] + Ro[f, i, 2] * Rj1[2, k]
+                    Rl2[i, k] = Ro[f, i, 0] * Rj2[0, k] + Ro[f, i, 1] * Rj2[1, k] + Ro[f, i, 2] * Rj2[2, k]
+            for i in range(3):
+                p[f, i] = p[b, i] + R[b, i, 0] * pl[0] + R[b, i, 1] * pl[1] + R[b, i, 2] * pl[2]
+                Rppl1[i] = R[b, i, 0] * pl1[0] + R[b, i, 1] * pl1[1] + R[b, i, 2] * pl1[2]
+                Rppl2[i] = R[b, i, 0] * pl2[0] + R[b, i, 1] * pl2[1] + R[b, i, 2] * pl2[2]
+                for k in range(3):
+                    R[f, i, k] = R[b, i, 0] * Rl[0, k] + R[b, i, 1] * Rl[1, k] + R[b, i, 2] * Rl[2, k]
+                    RpRl1[i, k] = R[b, i, 0] * Rl1[0, k] + R[b, i, 1] * Rl1[1, k] + R[b, i, 2] * Rl1[2, k]
+                    RpRl2[i, k] = R[b, i, 0] * Rl2[0, k] + R[b, i, 1] * Rl2[1, k] + R[b, i, 2] * Rl2[2, k]
+            # dR_a = dRp_a Rl + E_a Rp Rl',  dp_a = dpp_a + dRp_a pl + E_a Rp pl'
+            for q in range(Q):
+                for i in range(3):
+                    dp[f, q, i] = (
+                        dp[b, q, i] + dR[b, q, i, 0] * pl[0] + dR[b, q, i, 1] * pl[1] + dR[b, q, i, 2] * pl[2]
+                    )
+                    for k in range(3):
+                        dR[f, q, i, k] = (
+                            dR[b, q, i, 0] * Rl[0, k] + dR[b, q, i, 1] * Rl[1, k] + dR[b, q, i, 2] * Rl[2, k]
+                        )
+            for i in range(3):
+                dp[f, jq, i] += Rppl1[i]
+                for k in range(3):
+                    dR[f, jq, i, k] += RpRl1[i, k]
+            if order < 2:
+                continue
+            # d2R_ab = d2Rp_ab Rl + E_b dRp_a Rl' + E_a dRp_b Rl' + E_a E_b Rp Rl''  (d2p alike)
+            for q in range(Q):
+                for r in range(Q):
+                    for i in range(3):
+                        d2p[f, q, r, i] = (
+                            d2p[b, q, r, i]
+                            + d2R[b, q, r, i, 0] * pl[0]
+                            + d2R[b, q, r, i, 1] * pl[1]
+                            + d2R[b, q, r, i, 2] * pl[2]
+                        )
+                        for k in range(3):
+                            d2R[f, q, r, i, k] = (
+                                d2R[b, q, r, i, 0] * Rl[0, k]
+                                + d2R[b, q, r, i, 1] * Rl[1, k]
+                                + d2R[b, q, r, i, 2] * Rl[2, k]
+                            )
+            for q in range(Q):
+                for i in range(3):
+                    x = dR[b, q, i, 0] * pl1[0] + dR[b, q, i, 1] * pl1[1] + dR[b, q, i, 2] * pl1[2]
+                    d2p[f, q, jq, i] += x
+                    d2p[f, jq, q, i] += x
+                    for k in range(3):
+                        X = (
+                            dR[b, q, i, 0] * Rl1[0, k]
+                            + dR[b, q, i, 1] * Rl1[1, k]
+                            + dR[b, q, i, 2] * Rl1[2, k]
+                        )
+                        d2R[f, q, jq, i, k] += X
+                        d2R[f, jq, q, i, k] += X
+            for i in range(3):
+                d2p[f, jq, jq, i] += Rppl2[i]
+                for k in range(3):
+                    d2R[f, jq, jq, i, k] += RpRl2[i, k]
+        for n in range(L):
+            g = link[n]
+            oR[e, n] = R[g]
+            op[e, n] = p[g]
+            odR[e, n] = dR[g]
+            odp[e, n] = dp[g]
+            if order >= 2:
+                od2R[e, n] = d2R[g]
+                od2p[e, n] = d2p[g]
+    return oR, op, odR, odp, od2R, od2p

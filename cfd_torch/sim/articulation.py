@@ -413,6 +413,9 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
     A floating root is [exp(w), t]: its derivatives are those of :func:`cfd_torch.rotation.rotation_derivatives`
     and the identity; a fixed root has none.
     """
+    graph = torch.is_grad_enabled() and (q.requires_grad or (root is not None and root.requires_grad))
+    if order and q.device.type == "cpu" and q.dtype == torch.float64 and not graph:
+        return _chain_numba(art, q, root, order)
     levels = [lv.to(q.dtype, q.device) for lv in art._levels]
     back = art._level_back.to(q.device)
     A, Q = q.shape
@@ -484,6 +487,36 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
         )
     link = torch.as_tensor(art.link_frame, device=q.device)
     return [torch.cat(parts, 1)[:, back][:, link] for parts in out]
+
+
+def _chain_numba(
+    art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order: int
+) -> list[torch.Tensor]:
+    """:func:`_chain` at order 1 or 2 by the numba kernel (CPU, float64, no autograd)."""
+    from ._kinematics_numba import chain
+
+    A, Q = q.shape
+    if art.floating:
+        base, th = q[:, :6], q[:, 6:]
+    else:
+        base = torch.as_tensor(art.mount, dtype=q.dtype).expand(A, 6) if art.root_moves else root
+        th = q
+    dR0 = q.new_zeros(A, Q, 3, 3)
+    d2R0 = q.new_zeros(A, Q if order >= 2 else 0, Q if order >= 2 else 0, 3, 3)
+    if art.floating:
+        R0, dE, d2E = rotation_derivatives(base[:, 3:], order)
+        dR0[:, 3:6] = dE.permute(0, 3, 1, 2)
+        if order >= 2:
+            d2R0[:, 3:6, 3:6] = d2E.permute(0, 3, 4, 1, 2)
+    else:
+        R0 = rotation_matrix(base[:, 3:])
+    parent, joint, Ro, po, K, K2, anchor, slide, ref, link, _ = art._fk_table
+    out = chain(
+        R0.contiguous().numpy(), base[:, :3].contiguous().numpy(), dR0.numpy(), d2R0.numpy(),
+        th.contiguous().numpy(), 6 if art.floating else 0, parent, joint, Ro, po, K, K2, anchor, slide, ref, link,
+        int(order),
+    )  # fmt: skip
+    return [torch.from_numpy(x) for x in out[: 4 if order < 2 else 6]]
 
 
 def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
