@@ -300,6 +300,34 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
 
 
 @numba.njit(**_JIT)
+def _plane_separated(A, B, margin) -> bool:
+    """Whether every vertex of triangle B lies more than ``margin`` to one side of triangle A's plane (then their
+    distance exceeds the margin: a cheap exact rejection before the closest-feature distance). The comparison
+    allows 1e-9 of the coordinates' extent for the rounding of the plane (a degenerate A: no rejection)."""
+    e1 = (A[1, 0] - A[0, 0], A[1, 1] - A[0, 1], A[1, 2] - A[0, 2])
+    e2 = (A[2, 0] - A[0, 0], A[2, 1] - A[0, 1], A[2, 2] - A[0, 2])
+    n0 = e1[1] * e2[2] - e1[2] * e2[1]
+    n1 = e1[2] * e2[0] - e1[0] * e2[2]
+    n2 = e1[0] * e2[1] - e1[1] * e2[0]
+    norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    if not norm > 0.0:
+        return False
+    lo = math.inf
+    hi = -math.inf
+    extent = 0.0
+    for v in range(3):
+        d0, d1, d2 = B[v, 0] - A[0, 0], B[v, 1] - A[0, 1], B[v, 2] - A[0, 2]
+        h = (n0 * d0 + n1 * d1 + n2 * d2) / norm
+        lo = min(lo, h)
+        hi = max(hi, h)
+        extent = max(extent, abs(d0) + abs(d1) + abs(d2))
+    for v in range(1, 3):
+        extent = max(extent, abs(A[v, 0] - A[0, 0]) + abs(A[v, 1] - A[0, 1]) + abs(A[v, 2] - A[0, 2]))
+    bound = margin + 1e-9 * extent
+    return lo > bound or hi < -bound
+
+
+@numba.njit(**_JIT)
 def _triangles_intersect(A, B) -> bool:
     """Whether an edge of one triangle pierces the other (two intersecting triangles always have one that does,
     unless they are coplanar, when their distance is 0)."""
@@ -372,6 +400,8 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
                             sb * (R[bb, i, 0] * TB[v, 0] + R[bb, i, 1] * TB[v, 1] + R[bb, i, 2] * TB[v, 2])
                             + t[bb, i]
                         )
+                if _plane_separated(A, B, margin) or _plane_separated(B, A, margin):
+                    continue  # one triangle lies beyond the other's plane by more than the margin (most resting pairs)
                 # (the closest-feature distance is positive when an edge pierces the other triangle's interior)
                 if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin or _triangles_intersect(A, B):
                     out[p] = 1

@@ -32,6 +32,7 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
     J = np.zeros((2, 3, 3))  # d x_s / d omega_s of each side's point
     Jc = np.zeros((3, 12))  # d rel / d [q_a, q_b] = [I, J_a, -I, -J_b]
     M = np.zeros((3, 12))  # Hu Jc
+    Hu = np.zeros((3, 3))
     g = np.zeros(3)
     rel = np.zeros(3)
     u = np.zeros(3)
@@ -87,16 +88,23 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
         c2 = -1.0 / (y * y * y) if slip else -1.0 / (e * e * yq)
         a = w * f1_y
         b = w * c2
-        # Hu = a T + b u u^T (3 x 3, symmetric); M = Hu Jc; hess += Jc^T M
+        # Hu = a T + b u u^T (3 x 3, symmetric); hess += Jc^T Hu Jc with Jc = [I, J_a, -I, -J_b]: the rows of
+        # M = Hu Jc are [Hu, Hu J_a, -Hu, -Hu J_b], those of Jc^T M are [M, J_a^T M, -M, -J_b^T M]
         for i in range(3):
-            for col in range(12):
-                acc = 0.0
-                for j in range(3):
-                    acc += (a * T[c, i, j] + b * u[i] * u[j]) * Jc[j, col]
-                M[i, col] = acc
-        for p in range(12):
-            for q in range(12):
-                hess[f, p, q] += Jc[0, p] * M[0, q] + Jc[1, p] * M[1, q] + Jc[2, p] * M[2, q]
+            for j in range(3):
+                Hu[i, j] = a * T[c, i, j] + b * u[i] * u[j]
+        for i in range(3):
+            for k in range(3):
+                M[i, k] = Hu[i, k]
+                M[i, 6 + k] = -Hu[i, k]
+                M[i, 3 + k] = Hu[i, 0] * J[0, 0, k] + Hu[i, 1] * J[0, 1, k] + Hu[i, 2] * J[0, 2, k]
+                M[i, 9 + k] = -(Hu[i, 0] * J[1, 0, k] + Hu[i, 1] * J[1, 1, k] + Hu[i, 2] * J[1, 2, k])
+        for q in range(12):
+            for i in range(3):
+                hess[f, i, q] += M[i, q]
+                hess[f, 6 + i, q] -= M[i, q]
+                hess[f, 3 + i, q] += J[0, 0, i] * M[0, q] + J[0, 1, i] * M[1, q] + J[0, 2, i] * M[2, q]
+                hess[f, 9 + i, q] -= J[1, 0, i] * M[0, q] + J[1, 1, i] * M[1, q] + J[1, 2, i] * M[2, q]
         # second-order rotation terms: sum_m X_m sum_i g_i d2R[i, m, k, l], g at a's point and -g at b's
         for s in range(2):
             r = rows[c, s]
