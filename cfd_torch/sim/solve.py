@@ -77,6 +77,15 @@ def _energy(prob: StepProblem, warm: WarmStarts | None = None):
     return energy
 
 
+def _coords(prob: StepProblem) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coordinates (B, Q) of the start-of-step poses and of those one step earlier: the joint inputs' where the
+    scene has them (recovering joint values from link rows costs a few dozen tensor operations), else mapped."""
+    if prob.joint is not None:
+        return prob.joint.q_t, prob.joint.q_p
+    kin = prob.scene.kinematics
+    return kin.coords(prob.q_t), kin.coords(prob.q_p)
+
+
 def _pair_bodies(scene) -> torch.Tensor:
     """(P, 2) each interacting pair's bodies as indices into the moving bodies (-1: a body that does not move)."""
     pos = torch.full((scene.num_bodies,), -1, dtype=torch.long)
@@ -149,8 +158,8 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     work spent (``warm``: the step's warm starts, updated by the evaluation of the usual start)."""
     scene = prob.scene
     kin = scene.kinematics
-    q_t = kin.coords(prob.q_t)
-    extrap = kin.extrapolate(q_t, kin.coords(prob.q_p))
+    q_t, q_p = _coords(prob)
+    extrap = kin.extrapolate(q_t, q_p)
     B = q_t.shape[0]
     dev = q_t.device
     ok_t = feasible(scene, kin.poses(q_t, prob.fixed))
@@ -221,7 +230,7 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
             f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {gmax:.3e}, last line search step "
             f"{float(res.alpha[b]):.1e}; try a smaller dt or a larger max_newton_iter"
         )
-    q_t = prob.scene.kinematics.coords(prob.q_t)
+    q_t = _coords(prob)[0]
     ok = reachable(prob, q_t, res.q)
     if not bool(ok.all()):
         b = int(torch.nonzero(~ok)[0, 0])
