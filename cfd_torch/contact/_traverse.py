@@ -448,9 +448,9 @@ def traverse(
         fused = dev.type == "cpu" and backend != "torch"
         if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
             from ._traverse_numba import accumulate_leaves_lowrank
-            from .pair import _prepare, _solve, to_world
+            from .pair import _solve, to_world
 
-            X, _ = _prepare(wa, wb, mu, margin, tol, max_iter)
+            X = torch.cat([wa, wb], 1)  # (L, 6, 3) (from the library's own meshes: no input checks)
             start = None
             if warm is not None:  # each leaf pair's plane from an earlier evaluation, where there is one
                 M = forest.centre.shape[0]
