@@ -751,3 +751,27 @@ def test_collision_query_follows_the_potentials_blend_band():
             torch.isfinite(value[3:]).all()
         )  # within the margin: inf
         assert torch.equal(flags, torch.isinf(value))
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threaded_node_traversal_equals_one_thread(monkeypatch, threads):
+    """Body pairs dealt to several threads (the kernel is serial within a body pair) give one thread's value,
+    gradient and Hessian: the same terms, summed per body pair in the same order."""
+    from cfd_torch.contact.cfd import CfdContact
+
+    n = 9  # 36 body pairs, above the threads' threshold
+    bshes = [_bsh("ico1")] * n
+    reach = float(_bsh("ico1").vertices[:, 0].max())
+    poses = torch.zeros(1, n, 6, dtype=F64)
+    poses[0, :, 0] = (2.0 * reach + 5e-3) * torch.arange(n, dtype=F64)  # a row, neighbours 5 mm apart
+    pairs = torch.tensor([[0, i, j] for i in range(n) for j in range(i + 1, n)])
+    model = CfdContact(bshes)
+    out = {}
+    for k in (1, threads):
+        monkeypatch.setattr(_traverse, "_node_threads", lambda P, leaves=None, k=k: k)
+        out[k] = model.evaluate(poses, pairs, 2)
+    one, many = out[1], out[threads]
+    assert one.leaf_pairs > 0 and one.node_pairs == many.node_pairs and one.leaf_pairs == many.leaf_pairs
+    assert float(one.grad.abs().max()) > 0
+    for a, b in ((one.value, many.value), (one.grad, many.grad), (one.hess, many.hess)):
+        torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12 * float(a.abs().max()))
