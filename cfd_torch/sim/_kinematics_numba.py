@@ -11,6 +11,33 @@ import numpy as np
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _joint_transform(f, t, Ro, po, K, K2, anchor, slide, Rj, Rl, pl):
+    """Frame f's local transform at joint value t (already minus ref): Rj = I + sin t K + (1 - cos t) K2, Rl = Ro Rj,
+    pl = po + Ro (anchor - Rj anchor + t slide), written into Rj, Rl (3, 3) and pl (3,)."""
+    s, c = math.sin(t), math.cos(t)
+    for i in range(3):
+        for k in range(3):
+            Rj[i, k] = (1.0 if i == k else 0.0) + s * K[f, i, k] + (1.0 - c) * K2[f, i, k]
+    a0, a1, a2 = anchor[f, 0], anchor[f, 1], anchor[f, 2]
+    x0 = a0 - (Rj[0, 0] * a0 + Rj[0, 1] * a1 + Rj[0, 2] * a2) + t * slide[f, 0]
+    x1 = a1 - (Rj[1, 0] * a0 + Rj[1, 1] * a1 + Rj[1, 2] * a2) + t * slide[f, 1]
+    x2 = a2 - (Rj[2, 0] * a0 + Rj[2, 1] * a1 + Rj[2, 2] * a2) + t * slide[f, 2]
+    for i in range(3):
+        pl[i] = po[f, i] + Ro[f, i, 0] * x0 + Ro[f, i, 1] * x1 + Ro[f, i, 2] * x2
+        for k in range(3):
+            Rl[i, k] = Ro[f, i, 0] * Rj[0, k] + Ro[f, i, 1] * Rj[1, k] + Ro[f, i, 2] * Rj[2, k]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _attach(R, p, b, f, Rl, pl):
+    """Frame f from its parent b: R[f] = R[b] Rl, p[f] = p[b] + R[b] pl."""
+    for i in range(3):
+        p[f, i] = p[b, i] + R[b, i, 0] * pl[0] + R[b, i, 1] * pl[1] + R[b, i, 2] * pl[2]
+        for k in range(3):
+            R[f, i, k] = R[b, i, 0] * Rl[0, k] + R[b, i, 1] * Rl[1, k] + R[b, i, 2] * Rl[2, k]
+
+
+@numba.njit(cache=True, error_model="numpy")
 def fk_rows(R0, p0, th, parent, joint, Ro, po, K, K2, anchor, slide, ref, link, com):
     """(A, L, 6) link rows [centre of mass, rotation vector] of A configurations.
 
@@ -28,32 +55,13 @@ def fk_rows(R0, p0, th, parent, joint, Ro, po, K, K2, anchor, slide, ref, link, 
     Rl = np.empty((3, 3))
     Rj = np.empty((3, 3))
     pl = np.empty(3)
-    a = np.empty(3)
     out = np.empty((A, L, 6))
     for e in range(A):
         R[0] = R0[e]
         p[0] = p0[e]
         for f in range(1, F):
-            j = joint[f]
-            t = th[e, j] - ref[f]
-            s, c = math.sin(t), math.cos(t)
-            for i in range(3):
-                for k in range(3):
-                    Rj[i, k] = (1.0 if i == k else 0.0) + s * K[f, i, k] + (1.0 - c) * K2[f, i, k]
-            for i in range(3):
-                a[i] = anchor[f, i] - (
-                    Rj[i, 0] * anchor[f, 0] + Rj[i, 1] * anchor[f, 1] + Rj[i, 2] * anchor[f, 2]
-                )
-                a[i] += t * slide[f, i]
-            for i in range(3):
-                pl[i] = po[f, i] + Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
-                for k in range(3):
-                    Rl[i, k] = Ro[f, i, 0] * Rj[0, k] + Ro[f, i, 1] * Rj[1, k] + Ro[f, i, 2] * Rj[2, k]
-            b = parent[f]
-            for i in range(3):
-                p[f, i] = p[b, i] + R[b, i, 0] * pl[0] + R[b, i, 1] * pl[1] + R[b, i, 2] * pl[2]
-                for k in range(3):
-                    R[f, i, k] = R[b, i, 0] * Rl[0, k] + R[b, i, 1] * Rl[1, k] + R[b, i, 2] * Rl[2, k]
+            _joint_transform(f, th[e, joint[f]] - ref[f], Ro, po, K, K2, anchor, slide, Rj, Rl, pl)
+            _attach(R, p, parent[f], f, Rl, pl)
         for n in range(L):
             M = R[link[n]]
             for i in range(3):
@@ -161,19 +169,12 @@ def chain(R0, p0, dR0, d2R0, th, first, parent, joint, Ro, po, K, K2, anchor, sl
             b = parent[f]
             jq = first + joint[f]  # this frame's own coordinate
             t = th[e, joint[f]] - ref[f]
+            _joint_transform(f, t, Ro, po, K, K2, anchor, slide, Rj, Rl, pl)
             s, c = math.sin(t), math.cos(t)
             for i in range(3):
                 for k in range(3):
-                    Rj[i, k] = (1.0 if i == k else 0.0) + s * K[f, i, k] + (1.0 - c) * K2[f, i, k]
                     Rj1[i, k] = c * K[f, i, k] + s * K2[f, i, k]
                     Rj2[i, k] = c * K2[f, i, k] - s * K[f, i, k]
-            for i in range(3):
-                a[i] = anchor[f, i] - (
-                    Rj[i, 0] * anchor[f, 0] + Rj[i, 1] * anchor[f, 1] + Rj[i, 2] * anchor[f, 2]
-                )
-                a[i] += t * slide[f, i]
-            for i in range(3):
-                pl[i] = po[f, i] + Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
             for i in range(3):  # pl' = Ro (slide - Rj' anchor)
                 a[i] = slide[f, i] - (
                     Rj1[i, 0] * anchor[f, 0] + Rj1[i, 1] * anchor[f, 1] + Rj1[i, 2] * anchor[f, 2]
@@ -185,15 +186,13 @@ def chain(R0, p0, dR0, d2R0, th, first, parent, joint, Ro, po, K, K2, anchor, sl
             for i in range(3):
                 pl2[i] = Ro[f, i, 0] * a[0] + Ro[f, i, 1] * a[1] + Ro[f, i, 2] * a[2]
                 for k in range(3):
-                    Rl[i, k] = Ro[f, i, 0] * Rj[0, k] + Ro[f, i, 1] * Rj[1, k] + Ro[f, i, 2] * Rj[2, k]
                     Rl1[i, k] = Ro[f, i, 0] * Rj1[0, k] + Ro[f, i, 1] * Rj1[1, k] + Ro[f, i, 2] * Rj1[2, k]
                     Rl2[i, k] = Ro[f, i, 0] * Rj2[0, k] + Ro[f, i, 1] * Rj2[1, k] + Ro[f, i, 2] * Rj2[2, k]
+            _attach(R, p, b, f, Rl, pl)
             for i in range(3):
-                p[f, i] = p[b, i] + R[b, i, 0] * pl[0] + R[b, i, 1] * pl[1] + R[b, i, 2] * pl[2]
                 Rppl1[i] = R[b, i, 0] * pl1[0] + R[b, i, 1] * pl1[1] + R[b, i, 2] * pl1[2]
                 Rppl2[i] = R[b, i, 0] * pl2[0] + R[b, i, 1] * pl2[1] + R[b, i, 2] * pl2[2]
                 for k in range(3):
-                    R[f, i, k] = R[b, i, 0] * Rl[0, k] + R[b, i, 1] * Rl[1, k] + R[b, i, 2] * Rl[2, k]
                     RpRl1[i, k] = R[b, i, 0] * Rl1[0, k] + R[b, i, 1] * Rl1[1, k] + R[b, i, 2] * Rl1[2, k]
                     RpRl2[i, k] = R[b, i, 0] * Rl2[0, k] + R[b, i, 1] * Rl2[1, k] + R[b, i, 2] * Rl2[2, k]
             # dR_a = dRp_a Rl + E_a Rp Rl',  dp_a = dpp_a + dRp_a pl + E_a Rp pl'

@@ -396,6 +396,22 @@ def _vee(S: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _base_and_joints(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
+    """The base frame's pose (A, 6) (a floating base's coordinates, the mount of a root with joints, else ``root``)
+    and the joint values (A, J) of coordinates q (A, Qa)."""
+    if art.floating:
+        return q[:, :6], q[:, 6:]
+    if art.root_moves:
+        return torch.as_tensor(art.mount, dtype=q.dtype, device=q.device).expand(q.shape[0], 6), q
+    return root, q
+
+
+def _numba_path(q: torch.Tensor, root: torch.Tensor | None) -> bool:
+    """Whether the numba kinematics may serve: CPU float64 inputs of which no autograd graph is wanted."""
+    graph = torch.is_grad_enabled() and (q.requires_grad or (root is not None and root.requires_grad))
+    return q.device.type == "cpu" and q.dtype == torch.float64 and not graph
+
+
 def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order: int) -> list[torch.Tensor]:
     """The link frames and, up to ``order``, their derivatives in the coordinates q (A, Q) (base pose first if
     floating; a fixed base's frame 0 is root (A, 6), or the mount if its root has joints): R (A, L, 3, 3),
@@ -413,19 +429,12 @@ def _chain(art: Articulation, q: torch.Tensor, root: torch.Tensor | None, order:
     A floating root is [exp(w), t]: its derivatives are those of :func:`cfd_torch.rotation.rotation_derivatives`
     and the identity; a fixed root has none.
     """
-    graph = torch.is_grad_enabled() and (q.requires_grad or (root is not None and root.requires_grad))
-    if order and q.device.type == "cpu" and q.dtype == torch.float64 and not graph:
+    if order and _numba_path(q, root):
         return _chain_numba(art, q, root, order)
     levels = [lv.to(q.dtype, q.device) for lv in art._levels]
     back = art._level_back.to(q.device)
     A, Q = q.shape
-    if art.floating:
-        base = q[:, :6]
-    elif art.root_moves:
-        base = torch.as_tensor(art.mount, dtype=q.dtype, device=q.device).expand(A, 6)
-    else:
-        base = root
-    th = q[:, 6:] if art.floating else q
+    base, th = _base_and_joints(art, q, root)
     if order and art.floating:
         R0, dE, d2E = rotation_derivatives(base[:, 3:], order)
     else:
@@ -496,11 +505,7 @@ def _chain_numba(
     from ._kinematics_numba import chain
 
     A, Q = q.shape
-    if art.floating:
-        base, th = q[:, :6], q[:, 6:]
-    else:
-        base = torch.as_tensor(art.mount, dtype=q.dtype).expand(A, 6) if art.root_moves else root
-        th = q
+    base, th = _base_and_joints(art, q, root)
     dR0 = q.new_zeros(A, Q, 3, 3)
     d2R0 = q.new_zeros(A, Q if order >= 2 else 0, Q if order >= 2 else 0, 3, 3)
     if art.floating:
@@ -531,16 +536,10 @@ def _fk_rows(art: Articulation, q: torch.Tensor, root: torch.Tensor | None) -> t
     """(A, L, 6) the links' centre-of-mass poses (translation, rotation vector). On the CPU in float64 with no
     autograd wanted, one numba loop (the step's many evaluations and checks call this; the torch form below costs
     a few dozen small tensor operations)."""
-    graph = torch.is_grad_enabled() and (q.requires_grad or (root is not None and root.requires_grad))
-    if q.device.type == "cpu" and q.dtype == torch.float64 and not graph:
+    if _numba_path(q, root):
         from ._kinematics_numba import fk_rows
 
-        A = q.shape[0]
-        if art.floating:
-            base, th = q[:, :6], q[:, 6:]
-        else:
-            base = torch.as_tensor(art.mount, dtype=q.dtype).expand(A, 6) if art.root_moves else root
-            th = q
+        base, th = _base_and_joints(art, q, root)
         R0 = rotation_matrix(base[:, 3:])
         return torch.from_numpy(
             fk_rows(
