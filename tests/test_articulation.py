@@ -862,7 +862,7 @@ def test_numba_link_rows_equal_the_torch_forward_kinematics(asset, root):
     wanted) equal those of the differentiable torch form, floating bases turned up to near pi included."""
     import importlib.resources
 
-    from cfd_torch.sim.articulation import _chain, _fk_rows
+    from cfd_torch.sim.articulation import _chain, _fk_derivatives, _fk_rows
     from cfd_torch.sim.mjcf import load_mjcf
 
     path = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets" / asset
@@ -889,13 +889,23 @@ def test_numba_link_rows_equal_the_torch_forward_kinematics(asset, root):
     for x, y in zip(fast, ref, strict=True):
         assert x.shape == y.shape
         assert float((x - y).abs().max()) < 1e-12
+    # the rows' Jacobian and second-derivative contraction (the step's pull-back), from the numba loop
+    lo = art.first_moving
+    rg = torch.randn(A, art.num_links - lo, 6, generator=g, dtype=F64)
+    J, S = _fk_derivatives(art, q, base, lo, rg)
+    with torch.enable_grad():
+        Jr, Sr = (x.detach() for x in _fk_derivatives(art, q.clone().requires_grad_(), base, lo, rg))
+    assert J.shape == Jr.shape == (A, 6 * (art.num_links - lo), art.num_coords) and S.shape == Sr.shape
+    assert float(Sr.abs().max()) > 1e-3  # a second-derivative term present
+    assert float((J - Jr).abs().max()) < 1e-12 and float((S - Sr).abs().max()) < 1e-11
+    assert torch.equal(_fk_derivatives(art, q, base, lo, None)[0], J)
 
 
 @pytest.mark.parametrize("which", ["branchy", "multi"])
 def test_numba_frames_equal_the_torch_chain_on_trees_with_anchors_and_refs(which):
     """The numba frames and derivatives on a branching tree of hinges and slides with anchors, and on links with
     several joints, refs and a mounted root that has joints (where an anchor or a slide enters every term)."""
-    from cfd_torch.sim.articulation import _chain, _fk_rows
+    from cfd_torch.sim.articulation import _chain, _fk_derivatives, _fk_rows
 
     art = _branchy_chain() if which == "branchy" else _multi_chain()
     g = torch.Generator().manual_seed(11)
@@ -908,3 +918,9 @@ def test_numba_frames_equal_the_torch_chain_on_trees_with_anchors_and_refs(which
     for x, y in zip(_chain(art, q, root, 2), ref, strict=True):
         assert float((x - y).abs().max()) < 1e-12
     assert float((_fk_rows(art, q, root) - ref_rows).abs().max()) < 1e-12
+    rg = torch.randn(4, art.num_links - art.first_moving, 6, generator=g, dtype=F64)
+    J, S = _fk_derivatives(art, q, root, art.first_moving, rg)
+    with torch.enable_grad():
+        Jr, Sr = (x.detach() for x in _fk_derivatives(art, q.clone().requires_grad_(), root, art.first_moving, rg))
+    assert float(Sr.abs().max()) > 0.1
+    assert float((J - Jr).abs().max()) < 1e-12 and float((S - Sr).abs().max()) < 1e-11

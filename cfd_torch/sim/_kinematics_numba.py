@@ -9,6 +9,8 @@ import math
 import numba
 import numpy as np
 
+from .._rotation_numba import rotation_derivatives_kernel
+
 
 @numba.njit(cache=True, error_model="numpy")
 def _joint_transform(f, t, Ro, po, K, K2, anchor, slide, Rj, Rl, pl):
@@ -35,6 +37,61 @@ def _attach(R, p, b, f, Rl, pl):
         p[f, i] = p[b, i] + R[b, i, 0] * pl[0] + R[b, i, 1] * pl[1] + R[b, i, 2] * pl[2]
         for k in range(3):
             R[f, i, k] = R[b, i, 0] * Rl[0, k] + R[b, i, 1] * Rl[1, k] + R[b, i, 2] * Rl[2, k]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _rotvec(M, w_out):
+    """The rotation vector of the rotation M (3, 3) into w_out (3,): Shepperd's quaternion, then
+    2 atan2(|v|, w) v / |v| (as :func:`cfd_torch.sim.articulation._quat_from_matrix` and
+    :func:`cfd_torch.rotation.rotation_vector`)."""
+    r00, r11, r22 = M[0, 0], M[1, 1], M[2, 2]
+    tr = r00 + r11 + r22
+    best, kk = tr, 0
+    if r00 > best:
+        best, kk = r00, 1
+    if r11 > best:
+        best, kk = r11, 2
+    if r22 > best:
+        kk = 3
+    if kk == 0:
+        s0 = math.sqrt(max(1.0 + tr, 1e-20)) * 2.0
+        w, x, y, z = (
+            0.25 * s0,
+            (M[2, 1] - M[1, 2]) / s0,
+            (M[0, 2] - M[2, 0]) / s0,
+            (M[1, 0] - M[0, 1]) / s0,
+        )
+    elif kk == 1:
+        s1 = math.sqrt(max(1.0 + r00 - r11 - r22, 1e-20)) * 2.0
+        w, x, y, z = (
+            (M[2, 1] - M[1, 2]) / s1,
+            0.25 * s1,
+            (M[0, 1] + M[1, 0]) / s1,
+            (M[0, 2] + M[2, 0]) / s1,
+        )
+    elif kk == 2:
+        s2 = math.sqrt(max(1.0 - r00 + r11 - r22, 1e-20)) * 2.0
+        w, x, y, z = (
+            (M[0, 2] - M[2, 0]) / s2,
+            (M[0, 1] + M[1, 0]) / s2,
+            0.25 * s2,
+            (M[1, 2] + M[2, 1]) / s2,
+        )
+    else:
+        s3 = math.sqrt(max(1.0 - r00 - r11 + r22, 1e-20)) * 2.0
+        w, x, y, z = (
+            (M[1, 0] - M[0, 1]) / s3,
+            (M[0, 2] + M[2, 0]) / s3,
+            (M[1, 2] + M[2, 1]) / s3,
+            0.25 * s3,
+        )
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    sv = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 * math.atan2(sv, w) / sv if sv > 1e-12 else 2.0 / w
+    w_out[0] = k * x
+    w_out[1] = k * y
+    w_out[2] = k * z
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -66,54 +123,7 @@ def fk_rows(R0, p0, th, parent, joint, Ro, po, K, K2, anchor, slide, ref, link, 
             M = R[link[n]]
             for i in range(3):
                 out[e, n, i] = p[link[n], i] + M[i, 0] * com[n, 0] + M[i, 1] * com[n, 1] + M[i, 2] * com[n, 2]
-            r00, r11, r22 = M[0, 0], M[1, 1], M[2, 2]
-            tr = r00 + r11 + r22
-            best, kk = tr, 0
-            if r00 > best:
-                best, kk = r00, 1
-            if r11 > best:
-                best, kk = r11, 2
-            if r22 > best:
-                kk = 3
-            if kk == 0:
-                s0 = math.sqrt(max(1.0 + tr, 1e-20)) * 2.0
-                w, x, y, z = (
-                    0.25 * s0,
-                    (M[2, 1] - M[1, 2]) / s0,
-                    (M[0, 2] - M[2, 0]) / s0,
-                    (M[1, 0] - M[0, 1]) / s0,
-                )
-            elif kk == 1:
-                s1 = math.sqrt(max(1.0 + r00 - r11 - r22, 1e-20)) * 2.0
-                w, x, y, z = (
-                    (M[2, 1] - M[1, 2]) / s1,
-                    0.25 * s1,
-                    (M[0, 1] + M[1, 0]) / s1,
-                    (M[0, 2] + M[2, 0]) / s1,
-                )
-            elif kk == 2:
-                s2 = math.sqrt(max(1.0 - r00 + r11 - r22, 1e-20)) * 2.0
-                w, x, y, z = (
-                    (M[0, 2] - M[2, 0]) / s2,
-                    (M[0, 1] + M[1, 0]) / s2,
-                    0.25 * s2,
-                    (M[1, 2] + M[2, 1]) / s2,
-                )
-            else:
-                s3 = math.sqrt(max(1.0 - r00 - r11 + r22, 1e-20)) * 2.0
-                w, x, y, z = (
-                    (M[1, 0] - M[0, 1]) / s3,
-                    (M[0, 2] + M[2, 0]) / s3,
-                    (M[1, 2] + M[2, 1]) / s3,
-                    0.25 * s3,
-                )
-            if w < 0.0:
-                w, x, y, z = -w, -x, -y, -z
-            sv = math.sqrt(x * x + y * y + z * z)
-            k = 2.0 * math.atan2(sv, w) / sv if sv > 1e-12 else 2.0 / w
-            out[e, n, 3] = k * x
-            out[e, n, 4] = k * y
-            out[e, n, 5] = k * z
+            _rotvec(M, out[e, n, 3:])
     return out
 
 
@@ -254,3 +264,127 @@ def chain(R0, p0, dR0, d2R0, th, first, parent, joint, Ro, po, K, K2, anchor, sl
                 od2R[e, n] = d2R[g]
                 od2p[e, n] = d2p[g]
     return oR, op, odR, odp, od2R, od2p
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _solve3(M, b, transpose, x):
+    """x (3,) = M^-1 b, or M^-T b with ``transpose`` (M (3, 3)): Gaussian elimination with partial pivoting."""
+    a = np.empty((3, 4))
+    for i in range(3):
+        for k in range(3):
+            a[i, k] = M[k, i] if transpose else M[i, k]
+        a[i, 3] = b[i]
+    for c in range(3):
+        piv = c
+        for r in range(c + 1, 3):
+            if abs(a[r, c]) > abs(a[piv, c]):
+                piv = r
+        if piv != c:
+            for k in range(4):
+                a[c, k], a[piv, k] = a[piv, k], a[c, k]
+        for r in range(c + 1, 3):
+            f = a[r, c] / a[c, c]
+            for k in range(c, 4):
+                a[r, k] -= f * a[c, k]
+    for r in range(2, -1, -1):
+        s = a[r, 3]
+        for k in range(r + 1, 3):
+            s -= a[r, k] * x[k]
+        x[r] = s / a[r, r]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def row_derivatives(R, dR, dp, d2R, d2p, com, g, lo, ca, cb, want_second):
+    """The Jacobian J (A, 6 (L - lo), Q) of the link rows [R com + p, log R] of links lo.. in the coordinates and,
+    with ``want_second``, the contraction sum_k g_k d2 row_k / dq dq (A, Q, Q) for row gradients g (A, L - lo, 6):
+    the formulas of :func:`cfd_torch.sim.articulation._fk_derivatives`, from :func:`chain`'s frames R (A, L, 3, 3)
+    and derivatives dR (A, L, Q, 3, 3), dp (A, L, Q, 3), d2R (A, L, Q, Q, 3, 3), d2p (A, L, Q, Q, 3); com (L, 3);
+    ``ca``, ``cb`` the exponential's series coefficients (``cfd_torch._rotation_numba``)."""
+    A, L, Q = dR.shape[0], dR.shape[1], dR.shape[2]
+    La = L - lo
+    order = 2 if want_second else 1
+    w = np.empty((A * La, 3))
+    for e in range(A):
+        for n in range(La):
+            _rotvec(R[e, lo + n], w[e * La + n])
+    Re = np.empty((A * La, 3, 3))
+    dE = np.empty((A * La, 3, 3, 3))
+    d2E = np.empty((A * La if want_second else 0, 3, 3, 3, 3))
+    rotation_derivatives_kernel(w, ca, cb, Re, dE, d2E, order)
+    J = np.zeros((A, 6 * La, Q))
+    second = np.zeros((A, Q if want_second else 0, Q if want_second else 0))
+    G = np.empty((3, 3))
+    Om = np.empty((3, Q))
+    v = np.empty(3)
+    x = np.empty(3)
+    P = np.empty((3, 3))
+    C = np.empty((3, 3))
+    N = np.empty((3, 3))
+    ON = np.empty((Q, 3))
+    S = np.empty((3, 3))
+    for e in range(A):
+        for n in range(La):
+            m = e * La + n
+            k = lo + n
+            M = R[e, k]
+            # G e_i = vee(E_i Re^T), vee(S) = (S21 - S12, S02 - S20, S10 - S01) / 2
+            for i in range(3):
+                for r in range(3):
+                    for c in range(3):
+                        S[r, c] = (
+                            dE[m, r, 0, i] * Re[m, c, 0] + dE[m, r, 1, i] * Re[m, c, 1] + dE[m, r, 2, i] * Re[m, c, 2]
+                        )
+                G[0, i] = 0.5 * (S[2, 1] - S[1, 2])
+                G[1, i] = 0.5 * (S[0, 2] - S[2, 0])
+                G[2, i] = 0.5 * (S[1, 0] - S[0, 1])
+            for q in range(Q):
+                D = dR[e, k, q]
+                # V = vee(dR_q R^T): the world angular velocity of coordinate q; dw/dq = G^-1 V
+                s21 = D[2, 0] * M[1, 0] + D[2, 1] * M[1, 1] + D[2, 2] * M[1, 2]
+                s12 = D[1, 0] * M[2, 0] + D[1, 1] * M[2, 1] + D[1, 2] * M[2, 2]
+                s02 = D[0, 0] * M[2, 0] + D[0, 1] * M[2, 1] + D[0, 2] * M[2, 2]
+                s20 = D[2, 0] * M[0, 0] + D[2, 1] * M[0, 1] + D[2, 2] * M[0, 2]
+                s10 = D[1, 0] * M[0, 0] + D[1, 1] * M[0, 1] + D[1, 2] * M[0, 2]
+                s01 = D[0, 0] * M[1, 0] + D[0, 1] * M[1, 1] + D[0, 2] * M[1, 2]
+                v[0], v[1], v[2] = 0.5 * (s21 - s12), 0.5 * (s02 - s20), 0.5 * (s10 - s01)
+                _solve3(G, v, False, x)
+                for i in range(3):
+                    Om[i, q] = x[i]
+                    J[e, 6 * n + i, q] = (
+                        dp[e, k, q, i] + D[i, 0] * com[k, 0] + D[i, 1] * com[k, 1] + D[i, 2] * com[k, 2]
+                    )
+                    J[e, 6 * n + 3 + i, q] = x[i]
+            if not want_second:
+                continue
+            gx0, gx1, gx2 = g[e, n, 0], g[e, n, 1], g[e, n, 2]
+            v[0], v[1], v[2] = g[e, n, 3], g[e, n, 4], g[e, n, 5]
+            _solve3(G, v, True, x)  # h = G^-T g_w
+            h0, h1, h2 = x[0], x[1], x[2]
+            # P = [h]_x R / 2, C = P + g_x com^T
+            for c in range(3):
+                P[0, c] = 0.5 * (-h2 * M[1, c] + h1 * M[2, c])
+                P[1, c] = 0.5 * (h2 * M[0, c] - h0 * M[2, c])
+                P[2, c] = 0.5 * (-h1 * M[0, c] + h0 * M[1, c])
+            for c in range(3):
+                C[0, c] = P[0, c] + gx0 * com[k, c]
+                C[1, c] = P[1, c] + gx1 * com[k, c]
+                C[2, c] = P[2, c] + gx2 * com[k, c]
+            for i in range(3):
+                for j in range(3):
+                    s = 0.0
+                    for r in range(3):
+                        for c in range(3):
+                            s += d2E[m, r, c, i, j] * P[r, c]
+                    N[i, j] = s
+            for a in range(Q):  # ON = Om^T N
+                for j in range(3):
+                    ON[a, j] = Om[0, a] * N[0, j] + Om[1, a] * N[1, j] + Om[2, a] * N[2, j]
+            for a in range(Q):
+                for b in range(Q):
+                    B = d2R[e, k, a, b]
+                    s = -(ON[a, 0] * Om[0, b] + ON[a, 1] * Om[1, b] + ON[a, 2] * Om[2, b])
+                    for r in range(3):
+                        s += B[r, 0] * C[r, 0] + B[r, 1] * C[r, 1] + B[r, 2] * C[r, 2]
+                    s += d2p[e, k, a, b, 0] * gx0 + d2p[e, k, a, b, 1] * gx1 + d2p[e, k, a, b, 2] * gx2
+                    second[e, a, b] += s
+    return J, second

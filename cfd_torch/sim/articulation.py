@@ -573,8 +573,20 @@ def _fk_derivatives(
 
     (G: the left Jacobian of exp, invertible for |w| <= pi; E_i R^T and M_ab R^T are skew). Contracted with
     g_w and h = G^-T g_w: g_w . w_ab = h . vee(M_ab R^T) = <M_ab, P> with P = [h]_x R / 2.
+
+    Where the numba kinematics serve (:func:`_numba_path`, and g wants no graph), one numba loop
+    (``_kinematics_numba.row_derivatives``) evaluates these formulas; else the tensor form below.
     """
     chain = _chain(art, q, root, 1 if g is None else 2)
+    if _numba_path(q, root) and (g is None or not (torch.is_grad_enabled() and g.requires_grad)):
+        from .._rotation_numba import _CA, _CB
+        from ._kinematics_numba import row_derivatives
+
+        R, _, dR, dp, *second = (x.contiguous().numpy() for x in chain)
+        gn = g.contiguous().numpy() if g is not None else np.zeros((0, 0, 6))
+        d2R, d2p = second if g is not None else (np.zeros((0,) * 6), np.zeros((0,) * 5))
+        J, S = row_derivatives(R, dR, dp, d2R, d2p, art._fk_table[-1], gn, lo, _CA, _CB, g is not None)
+        return torch.from_numpy(J), (torch.from_numpy(S) if g is not None else None)
     R, p, dR, dp = (x[:, lo:] for x in chain[:4])
     A, La, Q = dR.shape[:3]
     com = torch.as_tensor(art.com[lo:], dtype=q.dtype, device=q.device)  # (La, 3)
