@@ -921,6 +921,8 @@ def test_numba_frames_equal_the_torch_chain_on_trees_with_anchors_and_refs(which
     rg = torch.randn(4, art.num_links - art.first_moving, 6, generator=g, dtype=F64)
     J, S = _fk_derivatives(art, q, root, art.first_moving, rg)
     with torch.enable_grad():
-        Jr, Sr = (x.detach() for x in _fk_derivatives(art, q.clone().requires_grad_(), root, art.first_moving, rg))
+        Jr, Sr = (
+            x.detach() for x in _fk_derivatives(art, q.clone().requires_grad_(), root, art.first_moving, rg)
+        )
     assert float(Sr.abs().max()) > 0.1
     assert float((J - Jr).abs().max()) < 1e-12 and float((S - Sr).abs().max()) < 1e-11

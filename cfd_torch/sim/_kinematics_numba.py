@@ -332,7 +332,9 @@ def row_derivatives(R, dR, dp, d2R, d2p, com, g, lo, ca, cb, want_second):
                 for r in range(3):
                     for c in range(3):
                         S[r, c] = (
-                            dE[m, r, 0, i] * Re[m, c, 0] + dE[m, r, 1, i] * Re[m, c, 1] + dE[m, r, 2, i] * Re[m, c, 2]
+                            dE[m, r, 0, i] * Re[m, c, 0]
+                            + dE[m, r, 1, i] * Re[m, c, 1]
+                            + dE[m, r, 2, i] * Re[m, c, 2]
                         )
                 G[0, i] = 0.5 * (S[2, 1] - S[1, 2])
                 G[1, i] = 0.5 * (S[0, 2] - S[2, 0])
