@@ -257,7 +257,7 @@ def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(poten
         assert torch.equal(alone.value[0], together.value[r])
         assert torch.equal(alone.grad[0], together.grad[r]) and torch.equal(alone.hess[0], together.hess[r])
     lag = model.lagged(poses, rows, 0.0)
-    assert len(lag.pair) > 0 and all(bool(torch.isfinite(x).all()) for x in lag[1:])
+    assert len(lag.pair) > 0 and all(bool(torch.isfinite(x).all()) for x in lag[1:5])
     d = torch.randn(3, generator=gen, dtype=F64)
     edge = _touching_at(model, sets[0], d / d.norm(), 0.0)  # the first pose the query calls feasible
     inside = edge.clone()

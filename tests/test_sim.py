@@ -559,3 +559,26 @@ def test_friction_summed_per_pair_in_numba_equals_the_per_contact_terms():
             want = want.new_zeros(len(pair), *want.shape[1:]).index_add_(0, slot, want)
             assert float(want.abs().max()) > 0
             assert torch.allclose(got, want, rtol=1e-12, atol=1e-12 * float(want.abs().max()))
+
+
+def test_lagged_contacts_carry_the_planes_the_evaluation_would_find(bodies):
+    """With pair ids, CfdContact.lagged also returns warm-start data (the step's first evaluation starts its plane
+    solves from it): the same leaf-pair keys as an evaluation at the same poses and the same optimal planes, in the
+    pair frames that evaluate() uses; and its friction contacts are those of the call without ids."""
+    scene, state, _, _ = _scene_batch(bodies)
+    model = scene.contact_model
+    poses = state.q.detach()
+    from cfd_torch.sim.energy import scene_pairs
+
+    pairs = scene_pairs(scene, poses.shape[0])
+    ids = torch.arange(pairs.shape[0]) + 7
+    lag = model.lagged(poses, pairs, scene.friction.active, ids=ids)
+    plain = model.lagged(poses, pairs, scene.friction.active)
+    assert plain.warm is None and lag.warm is not None
+    for a, b in zip(lag[:5], plain[:5], strict=True):
+        assert torch.equal(a, b)
+    ev = model.evaluate(poses, pairs, 2, ids=ids, warm=None)
+    keys, planes = lag.warm
+    assert keys.numel() > 10 and torch.equal(keys, ev.warm[0])
+    assert bool((keys[1:] > keys[:-1]).all())
+    torch.testing.assert_close(planes, ev.warm[1], rtol=0.0, atol=1e-8)

@@ -441,33 +441,35 @@ def traverse(
     if leaves:
         LI, LJ, lp, lw, ldw, ld2w = (_cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True))
         n_leaf = LI.numel()
-        ba, bb = pair_body[lp, 0], pair_body[lp, 1]
-        Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
-        wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
-        wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
         fused = dev.type == "cpu" and backend != "torch"
         if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
-            from ._traverse_numba import accumulate_leaves_lowrank
-            from .pair import _solve, to_world
+            from ._traverse_numba import accumulate_leaves_lowrank, leaf_inputs, warm_table
+            from .pair import _solve
 
-            X = torch.cat([wa, wb], 1)  # (L, 6, 3) (from the library's own meshes: no input checks)
-            start = None
-            if warm is not None:  # each leaf pair's plane from an earlier evaluation, where there is one
-                M = forest.centre.shape[0]
-                keys = (warm[0][lp] * M + LI) * M + LJ
-                if warm[1].numel():
-                    at = torch.searchsorted(warm[1], keys).clamp(max=warm[1].numel() - 1)
-                    start = (warm[2][at], warm[1][at] == keys)
+            z = torch.zeros(0, dtype=dt)
+            M = forest.centre.shape[0]
+            ids, wkeys, wplanes = warm if warm is not None else (lp[:0], lp[:0], z.reshape(0, 4))
+            Xa, Xb, X, keys, P0, has0 = (
+                torch.from_numpy(x)
+                for x in leaf_inputs(
+                    forest.tris.numpy(), forest.tri.numpy(), LI.numpy(), LJ.numpy(), lp.numpy(), pair_body.numpy(),
+                    R.contiguous().numpy(), t.contiguous().numpy(), ids.contiguous().numpy(),
+                    wkeys.contiguous().numpy(), wplanes.contiguous().numpy(), M,
+                )
+            )  # fmt: skip
+            ba, bb = 2 * lp, 2 * lp + 1  # (pair_body: body pair p's rows 2 p, 2 p + 1)
+            # (X from the library's own meshes: no input checks)
             sol = _solve(
                 X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter),
-                want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True, start=start,
+                want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True,
+                start=(P0, has0) if warm is not None and wkeys.numel() else None,
             )  # fmt: skip
             pv, Pl, gx, fac = sol.value, sol.plane, sol.grad, sol.hess
             if warm is not None:
-                fin = torch.isfinite(pv)
-                k_sorted, perm = torch.sort(keys[fin])
-                warm_out = (k_sorted, to_world(Pl[fin][perm], sol.centre[fin][perm]))
-            z = torch.zeros(0, dtype=dt)
+                warm_out = tuple(
+                    torch.from_numpy(x)
+                    for x in warm_table(keys.numpy(), pv.numpy(), Pl.contiguous().numpy(), sol.centre.numpy())
+                )
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
             lwid, wv, wd1, wd2, bounds = wtable
             gx = gx if gx is not None else z.reshape(0, 18)
@@ -492,33 +494,47 @@ def traverse(
             elif parts:
                 accumulate(parts[0])
             pv = None
-        elif order == 0:
-            from .pair import pair_potential
-
-            with torch.no_grad():
-                pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter, backend=backend)
-            gq = hq = None
         else:
-            der = pair_potential_derivatives(
-                wa, wb, mu=mu, margin=margin, hessian=order >= 2, tol=tol, max_iter=max_iter, backend=backend
-            )
-            pv = der.value
-            # J (L, 18, 12): x_k = R X_k + t
-            L_ = n_leaf
-            Jx = torch.zeros(L_, 6, 3, 12, dtype=dt, device=dev)
-            Jx[:, :3, :, 0:3] = eye
-            Jx[:, 3:, :, 6:9] = eye
-            Jx[:, :3, :, 3:6] = torch.einsum("eimk,evm->evik", dR[ba], Xa)
-            Jx[:, 3:, :, 9:12] = torch.einsum("eimk,evm->evik", dR[bb], Xb)
-            Jx = Jx.reshape(L_, 18, 12)
-            gx = der.grad  # (L, 18)
-            gq = torch.einsum("ei,eik->ek", gx, Jx)
-            hq = None
-            if order >= 2:
-                hq = Jx.transpose(1, 2) @ der.hessian @ Jx
-                g6 = gx.reshape(L_, 6, 3)
-                hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
-                hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
+            ba, bb = pair_body[lp, 0], pair_body[lp, 1]
+            Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
+            wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
+            wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+            if order == 0:
+                from .pair import pair_potential
+
+                with torch.no_grad():
+                    pv = pair_potential(
+                        wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter, backend=backend
+                    )
+                gq = hq = None
+            else:
+                der = pair_potential_derivatives(
+                    wa,
+                    wb,
+                    mu=mu,
+                    margin=margin,
+                    hessian=order >= 2,
+                    tol=tol,
+                    max_iter=max_iter,
+                    backend=backend,
+                )
+                pv = der.value
+                # J (L, 18, 12): x_k = R X_k + t
+                L_ = n_leaf
+                Jx = torch.zeros(L_, 6, 3, 12, dtype=dt, device=dev)
+                Jx[:, :3, :, 0:3] = eye
+                Jx[:, 3:, :, 6:9] = eye
+                Jx[:, :3, :, 3:6] = torch.einsum("eimk,evm->evik", dR[ba], Xa)
+                Jx[:, 3:, :, 9:12] = torch.einsum("eimk,evm->evik", dR[bb], Xb)
+                Jx = Jx.reshape(L_, 18, 12)
+                gx = der.grad  # (L, 18)
+                gq = torch.einsum("ei,eik->ek", gx, Jx)
+                hq = None
+                if order >= 2:
+                    hq = Jx.transpose(1, 2) @ der.hessian @ Jx
+                    g6 = gx.reshape(L_, 6, 3)
+                    hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
+                    hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
     if leaves and pv is not None:
         v, gv, hv = _product(lw, ldw, ld2w, pv, gq, hq)
         _segment_add(value, lp, v, P)

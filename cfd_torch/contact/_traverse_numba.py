@@ -523,3 +523,69 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                 for a in range(12):
                     for c in range(a + 1, 12):
                         hess[p, c, a] = hess[p, a, c]
+
+
+@numba.njit(**_JIT)
+def leaf_inputs(tris, tri, LI, LJ, lp, pair_body, R, t, ids, wkeys, wplanes, M):
+    """The inputs of L leaf pairs' plane solves, in one pass.
+
+    Leaf pair l joins node LI[l] of body pair lp[l]'s body a and node LJ[l] of its body b (rows pair_body[lp] of
+    the rotations R (2 P, 3, 3) and translations t (2 P, 3)). Returns the body-frame triangles Xa, Xb (L, 3, 3)
+    (``tris[tri[node]]``), the six vertices X (L, 6, 3) at the poses (R X + t) and, where ``ids`` (P,) is not empty,
+    each leaf pair's warm-start key (ids[lp] M + LI) M + LJ (L,) with the plane (L, 4) stored under that key in
+    ``wkeys`` (W,) sorted / ``wplanes`` (W, 4), and whether there is one (L,) int8."""
+    L = LI.shape[0]
+    Xa = np.empty((L, 3, 3))
+    Xb = np.empty((L, 3, 3))
+    X = np.empty((L, 6, 3))
+    warm = ids.shape[0] > 0
+    keys = np.empty(L if warm else 0, dtype=np.int64)
+    P0 = np.zeros((L if warm else 0, 4))
+    has0 = np.zeros(L if warm else 0, dtype=np.int8)
+    W = wkeys.shape[0]
+    for l in range(L):
+        p = lp[l]
+        for side in range(2):
+            b = pair_body[p, side]
+            T = tris[tri[LI[l]]] if side == 0 else tris[tri[LJ[l]]]
+            for v in range(3):
+                x0, x1, x2 = T[v, 0], T[v, 1], T[v, 2]
+                if side == 0:
+                    Xa[l, v, 0], Xa[l, v, 1], Xa[l, v, 2] = x0, x1, x2
+                else:
+                    Xb[l, v, 0], Xb[l, v, 1], Xb[l, v, 2] = x0, x1, x2
+                for i in range(3):
+                    X[l, 3 * side + v, i] = R[b, i, 0] * x0 + R[b, i, 1] * x1 + R[b, i, 2] * x2 + t[b, i]
+        if warm:
+            k = (ids[p] * M + LI[l]) * M + LJ[l]
+            keys[l] = k
+            lo, hi = 0, W
+            while lo < hi:  # the first stored key >= k
+                mid = (lo + hi) // 2
+                if wkeys[mid] < k:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo < W and wkeys[lo] == k:
+                has0[l] = 1
+                for i in range(4):
+                    P0[l, i] = wplanes[lo, i]
+    return Xa, Xb, X, keys, P0, has0
+
+
+@numba.njit(**_JIT)
+def warm_table(keys, value, plane, centre):
+    """The warm-start table of solved leaf pairs: the keys (K,) of those with a finite value, sorted, and their
+    planes (K, 4) moved from frames centred at ``centre`` (L, 3) to the frame of the solve's input (n, d - n.c)."""
+    idx = np.nonzero(np.isfinite(value))[0]
+    order = idx[np.argsort(keys[idx], kind="mergesort")]
+    K = order.shape[0]
+    out_k = np.empty(K, dtype=np.int64)
+    out_p = np.empty((K, 4))
+    for m in range(K):
+        l = order[m]
+        out_k[m] = keys[l]
+        n0, n1, n2 = plane[l, 0], plane[l, 1], plane[l, 2]
+        out_p[m, 0], out_p[m, 1], out_p[m, 2] = n0, n1, n2
+        out_p[m, 3] = plane[l, 3] - (n0 * centre[l, 0] + n1 * centre[l, 1] + n2 * centre[l, 2])
+    return out_k, out_p

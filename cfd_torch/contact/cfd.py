@@ -143,11 +143,21 @@ class CfdContact:
         return out.to(poses.device)
 
     def lagged(
-        self, poses: torch.Tensor, pairs: torch.Tensor, active: float, create_graph: bool = False
+        self,
+        poses: torch.Tensor,
+        pairs: torch.Tensor,
+        active: float,
+        create_graph: bool = False,
+        ids: torch.Tensor | None = None,
     ) -> LaggedContacts:
+        """The lagged friction contacts (see ``ContactModel``); with ``ids`` (P,), on the numba kernels, also the
+        warm-start data of every feasible leaf pair (keys of (id, leaf, leaf) and planes in the pair's frame, as
+        :meth:`evaluate` makes them)."""
         c = self.config
         kw = {"mu": c.stiffness, "margin": c.margin, "tol": c.pair_tol, "max_iter": c.pair_max_iter}
         forest, table, rows, roots = self._rows(poses, pairs)
+        fused = poses.device.type == "cpu" and c.backend != "torch"
+        warm = None
         with torch.no_grad():
             LI, LJ, lp, lw, dlw = traverse(
                 forest, rows, roots, table.detach(), eps=self._pair_eps(pairs), split=c.split,
@@ -155,7 +165,6 @@ class CfdContact:
                 leaves_only=True, backend=c.backend, **kw,
             )  # fmt: skip
             ba, bb = rows[lp, 0], rows[lp, 1]
-            Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
 
             def world(q):  # the contacts' triangles at poses q (S N, 6), and the rotations
                 R = rotation_matrix(q[:, 3:])
@@ -165,11 +174,42 @@ class CfdContact:
                     R,
                 )
 
-            wa, wb, R = world(table.detach())
-            # vertex forces in closed form (envelope theorem; no autograd)
-            g = pair_potential_derivatives(wa, wb, hessian=False, backend=c.backend, **kw).grad.reshape(
-                -1, 2, 3, 3
-            )
+            if fused:  # the numba kernels: leaf inputs in one pass, the plane solves without input checks
+                from ._traverse_numba import leaf_inputs, warm_table
+                from .pair import _solve
+
+                R = rotation_matrix(table[:, 3:].detach())
+                e = lp[:0]
+                Xa, Xb, X, *_ = (
+                    torch.from_numpy(x)
+                    for x in leaf_inputs(
+                        forest.tris.numpy(), forest.tri.numpy(), LI.numpy(), LJ.numpy(), lp.numpy(),
+                        rows.contiguous().numpy(), R.contiguous().numpy(),
+                        table[:, :3].detach().contiguous().numpy(), e.numpy(), e.numpy(),
+                        table.new_zeros(0, 4).numpy(), 0,
+                    )
+                )  # fmt: skip
+                sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **kw)
+                g = sol.grad.reshape(-1, 2, 3, 3)
+                if (
+                    ids is not None
+                ):  # the planes (in frames at the solve's centres C) in the frames at body a: d - n.(C - t_a)
+                    M = forest.centre.shape[0]
+                    keys = (ids.to(lp.device)[lp] * M + LI) * M + LJ
+                    warm = tuple(
+                        torch.from_numpy(x)
+                        for x in warm_table(
+                            keys.numpy(), sol.value.numpy(), sol.plane.contiguous().numpy(),
+                            (sol.centre - table[ba, :3].detach()).contiguous().numpy(),
+                        )
+                    )  # fmt: skip
+            else:
+                Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
+                wa, wb, R = world(table.detach())
+                # vertex forces in closed form (envelope theorem; no autograd)
+                g = pair_potential_derivatives(wa, wb, hessian=False, backend=c.backend, **kw).grad.reshape(
+                    -1, 2, 3, 3
+                )
             ga, gb = g[:, 0], g[:, 1]
             if active > 0 and lp.numel():
                 lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)
@@ -201,4 +241,4 @@ class CfdContact:
         t = table[:, :3] if create_graph else table[:, :3].detach()
         xa = torch.einsum("cij,cj->ci", R[ba], pa) + t[ba]
         xb = torch.einsum("cij,cj->ci", R[bb], pb) + t[bb]
-        return LaggedContacts(lp, torch.stack([pa, pb], 1), torch.stack([xa, xb], 1), T, lam)
+        return LaggedContacts(lp, torch.stack([pa, pb], 1), torch.stack([xa, xb], 1), T, lam, warm)

@@ -44,6 +44,8 @@ class LaggedContacts(NamedTuple):
         x_t: (C, 2, 3) their world positions at the start-of-step poses.
         tangent: (C, 3, 3) projector I - n n^T onto the contact plane.
         normal_force: (C,) lambda_c, the lagged normal force magnitude [N].
+        warm: with ``ids``, the model's warm-start data of the start-of-step poses (as ``ContactEval.warm``), for
+            the step's first evaluation at nearby poses; else None.
     """
 
     pair: torch.Tensor
@@ -51,6 +53,7 @@ class LaggedContacts(NamedTuple):
     x_t: torch.Tensor
     tangent: torch.Tensor
     normal_force: torch.Tensor
+    warm: object | None = None
 
 
 @runtime_checkable
@@ -67,10 +70,11 @@ class ContactModel(Protocol):
     each body about its frame origin first (the reachability check shrinks moving bodies). Must agree exactly with
     ``evaluate``'s +inf.
 
-    ``lagged(poses, pairs, active, create_graph=False)``: the lagged friction contacts at ``poses``; with
+    ``lagged(poses, pairs, active, create_graph=False[, ids])``: the lagged friction contacts at ``poses``; with
     ``create_graph`` the returned tensors are differentiable functions of ``poses`` (the step's adjoint needs how
     friction depends on the previous state); ``active`` in [0, 1) drops contacts carrying less than that fraction
-    of their pair's largest normal force.
+    of their pair's largest normal force. ``ids`` (P,), passed (as to ``evaluate``) only to a model whose
+    ``warm_start`` is True: the result's ``warm`` carries warm-start data for the step's first evaluation.
     """
 
     def evaluate(

@@ -208,6 +208,10 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
     """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
     pairs, leaf pairs); raises StepError saying why it failed."""
     warm = WarmStarts() if prob.scene.solver.fast else None
+    if (
+        warm is not None and prob.lagged is not None
+    ):  # the lagged contacts' planes at q_t, where the model made them
+        warm.update(prob.lagged.warm)
     q0, first, work = start(prob, warm)
     s = prob.scene.solver
     res, w = _newton(prob, q0, first, s.newton_tol, warm)
