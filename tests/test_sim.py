@@ -582,3 +582,24 @@ def test_lagged_contacts_carry_the_planes_the_evaluation_would_find(bodies):
     assert keys.numel() > 10 and torch.equal(keys, ev.warm[0])
     assert bool((keys[1:] > keys[:-1]).all())
     torch.testing.assert_close(planes, ev.warm[1], rtol=0.0, atol=1e-8)
+
+
+@pytest.mark.parametrize("active", [0.0, 0.2])
+def test_lagged_contacts_from_the_numba_pass_equal_the_differentiable_form(bodies, active):
+    """The forward's lagged contacts (one numba pass over the leaf pairs' vertex forces) equal the differentiable
+    tensor form the adjoint uses (create_graph=True), with and without dropping weak contacts."""
+    from cfd_torch.sim.energy import scene_pairs
+
+    scene, state, _, _ = _scene_batch(bodies)
+    model = scene.contact_model
+    poses = state.q.detach()
+    pairs = scene_pairs(scene, poses.shape[0])
+    fast = model.lagged(poses, pairs, active)
+    ref = model.lagged(poses.clone().requires_grad_(), pairs, active, create_graph=True)
+    n_all = model.lagged(poses, pairs, 0.0).pair.numel()
+    assert fast.pair.numel() > 10 and (
+        fast.pair.numel() < n_all if active > 0 else fast.pair.numel() == n_all
+    )
+    assert torch.equal(fast.pair, ref.pair)
+    for a, b in zip(fast[1:5], ref[1:5], strict=True):
+        torch.testing.assert_close(a, b.detach(), rtol=1e-12, atol=1e-12 * float(b.abs().max()))

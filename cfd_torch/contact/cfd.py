@@ -210,6 +210,18 @@ class CfdContact:
                 g = pair_potential_derivatives(wa, wb, hessian=False, backend=c.backend, **kw).grad.reshape(
                     -1, 2, 3, 3
                 )
+            if fused and not create_graph:  # the contact data in one numba pass
+                from ._lagged_numba import lagged_contacts
+
+                keep, X, x, T, lam = (
+                    torch.from_numpy(v)
+                    for v in lagged_contacts(
+                        g.contiguous().numpy(), lw.contiguous().numpy(), lp.numpy(), Xa.numpy(), Xb.numpy(),
+                        R.contiguous().numpy(), table[:, :3].detach().contiguous().numpy(), ba.contiguous().numpy(),
+                        bb.contiguous().numpy(), float(active), pairs.shape[0],
+                    )
+                )  # fmt: skip
+                return LaggedContacts(lp[keep], X, x, T, lam, warm)
             ga, gb = g[:, 0], g[:, 1]
             if active > 0 and lp.numel():
                 lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)
