@@ -603,3 +603,33 @@ def test_lagged_contacts_from_the_numba_pass_equal_the_differentiable_form(bodie
     assert torch.equal(fast.pair, ref.pair)
     for a, b in zip(fast[1:5], ref[1:5], strict=True):
         torch.testing.assert_close(a, b.detach(), rtol=1e-12, atol=1e-12 * float(b.abs().max()))
+
+
+def test_pair_sums_in_numba_equal_the_tensor_scatter():
+    """sum_pairs' CPU loop (no autograd wanted) equals its tensor form (taken when an input needs a graph), with
+    repeated rows, several pose sets and either input alone."""
+    from cfd_torch.contact.model import sum_pairs
+
+    g = torch.Generator().manual_seed(4)
+    S, N, P = 3, 5, 40
+    rows = torch.stack(
+        [
+            torch.randint(0, S, (P,), generator=g),
+            torch.randint(0, N, (P,), generator=g),
+            torch.zeros(P, dtype=torch.long),
+        ],
+        1,
+    )
+    rows[:, 2] = (rows[:, 1] + 1 + torch.randint(0, N - 1, (P,), generator=g)) % N
+    rows[P // 2 :] = rows[: P // 2]  # every pair twice
+    gr = torch.randn(P, 12, generator=g, dtype=F64)
+    hs = torch.randn(P, 12, 12, generator=g, dtype=F64)
+    for a, b in ((gr, hs), (gr, None), (None, hs)):
+        fast = sum_pairs(S, N, rows, a, b)
+        with torch.enable_grad():
+            ref = sum_pairs(S, N, rows, *(None if x is None else x.clone().requires_grad_() for x in (a, b)))
+        for x, y in zip(fast, ref, strict=True):
+            assert (x is None) == (y is None)
+            if x is not None:
+                assert float(x.abs().max()) > 0
+                torch.testing.assert_close(x, y.detach(), rtol=0.0, atol=1e-13)

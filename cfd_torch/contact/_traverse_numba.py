@@ -470,9 +470,14 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         if order < 2:
             continue
         n0, n1, n2 = Pl[e, 0], Pl[e, 1], Pl[e, 2]
+        # weight 1 without derivatives (no ancestor in the blend band: most leaves near contact): the leaf's
+        # Hessian goes straight into its pair's upper triangle
+        hl = hess[p] if wid == 0 else hq
+        if wid != 0:
+            for a in range(12):
+                for c in range(12):
+                    hq[a, c] = 0.0
         for a in range(12):
-            for c in range(12):
-                hq[a, c] = 0.0
             for m in range(4):
                 U[a, m] = 0.0
         for v in range(6):
@@ -484,7 +489,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                 dv[3 + k] = A[v, 0, k] * n0 + A[v, 1, k] * n1 + A[v, 2, k] * n2
             for a in range(6):
                 for c in range(a, 6):
-                    hq[o + a, o + c] += cv * dv[a] * dv[c]
+                    hl[o + a, o + c] += cv * dv[a] * dv[c]
             for m in range(4):
                 w0, w1, w2 = WT[e, m, 3 * v], WT[e, m, 3 * v + 1], WT[e, m, 3 * v + 2]
                 U[o, m] += w0
@@ -495,7 +500,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         for a in range(12):
             for c in range(a, 12):
                 acc = U[a, 0] * U[c, 0] + U[a, 1] * U[c, 1] + U[a, 2] * U[c, 2] + U[a, 3] * U[c, 3]
-                hq[a, c] -= mu * acc
+                hl[a, c] -= mu * acc
         for side in range(2):
             body = ba[e] if side == 0 else bb[e]
             o = 3 if side == 0 else 9
@@ -512,10 +517,13 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                     for i in range(3):
                         for m in range(3):
                             acc += G[i, m] * d2R[body, i, m, k, l2]
-                    hq[o + k, o + l2] += acc
-        for a in range(12):  # the upper triangle (mirrored below)
-            for c in range(a, 12):
-                hess[p, a, c] += P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
+                    hl[o + k, o + l2] += acc
+        if wid != 0:
+            for a in range(12):  # the upper triangle (mirrored below)
+                for c in range(a, 12):
+                    hess[p, a, c] += (
+                        P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
+                    )
         touched[p] = True
     if order >= 2:  # hq and the leaf terms were added to the upper triangles: mirror them
         for p in range(hess.shape[0]):

@@ -114,11 +114,25 @@ def sum_pairs(
     sums them in another order than a row-by-row scatter: the same up to rounding). The U distinct rows are then
     scattered: gradients as rows of 6, Hessians as (4U, 36) blocks by one ``index_add_`` into the (S N N, 36)
     blocks (s, a, b) of the result, all (i, i) blocks first, then (i, j), (j, i), (j, j) (with distinct pairs,
-    the sums of a block-by-block scatter, bit for bit).
+    the sums of a block-by-block scatter, bit for bit). On the CPU in float64 with no autograd wanted, one numba loop
+    adds the rows in order instead (``_scatter_numba.scatter_pairs``; equal up to rounding).
     """
     if g is None and h is None:
         return None, None
     S, N, P = num_sets, num_bodies, pairs.shape[0]
+    x = g if g is not None else h
+    graph = torch.is_grad_enabled() and any(y is not None and y.requires_grad for y in (g, h))
+    if x.device.type == "cpu" and x.dtype == torch.float64 and not graph:
+        from ._scatter_numba import scatter_pairs
+
+        z = x.new_zeros(0, 12, 12)
+        G, H = scatter_pairs(
+            S, N, pairs.contiguous().numpy(), (g if g is not None else z[:, 0]).contiguous().numpy(),
+            (h if h is not None else z).contiguous().numpy(), g is not None, h is not None,
+        )  # fmt: skip
+        return (torch.from_numpy(G) if g is not None else None), (
+            torch.from_numpy(H) if h is not None else None
+        )
     row = pairs[:, :1] * N + pairs[:, 1:]  # (P, 2) rows of bodies i and j among the S N poses
     key, inverse = torch.unique(row[:, 0] * N + pairs[:, 2], return_inverse=True)  # block (s, i, j) of each
     U = key.shape[0]

@@ -715,8 +715,8 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     dt, dev = rows.dtype, rows.device
     as_t = lambda x: torch.as_tensor(x, dtype=dt, device=dev)  # noqa: E731
     mv = lambda M, x: (M @ x[..., None])[..., 0]  # noqa: E731
-    A = rows.shape[0]
-    R = rotation_matrix(rows[..., 3:])
+    A, L = rows.shape[:2]
+    R = rotation_matrix(rows[..., 3:].reshape(A * L, 3)).reshape(A, L, 3, 3)  # (2-D: the numba kernel serves)
     p = rows[..., :3] - mv(R, as_t(art.com)[None])
     # the frame each link hangs from: its parent link's, the root's the mount (a root without joints: unused)
     par = torch.as_tensor(np.maximum(art.parent, 0), device=dev)
