@@ -207,10 +207,15 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
             d1 = radius[I] + radius[J]
             width = max(eps[p] * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
             s = (r - d1) / width
-            tt = min(max(s, 0.0), 1.0)
-            phi = tt * tt * tt * (tt * (6.0 * tt - 15.0) + 10.0)
-            phi1 = 30.0 * tt * tt * (tt - 1.0) ** 2 / width
-            phi2 = 60.0 * tt * (tt - 1.0) * (2.0 * tt - 1.0) / (width * width)
+            if s <= 0.0:
+                phi = phi1 = phi2 = 0.0
+            elif s >= 1.0:
+                phi, phi1, phi2 = 1.0, 0.0, 0.0
+            else:
+                iw = 1.0 / width
+                phi = s * s * s * (s * (6.0 * s - 15.0) + 10.0)
+                phi1 = 30.0 * s * s * (s - 1.0) ** 2 * iw
+                phi2 = 60.0 * s * (s - 1.0) * (2.0 * s - 1.0) * iw * iw
             # s <= 0 (spheres overlap): phi = phi' = phi'' = 0, no central term and an unchanged weight, so the
             # distance's derivatives are not needed (most node pairs near contact)
             # far (phi = 1, phi' = phi'' = 0): the term is W P_c(r), whose Hessian is formed from its blocks below,
