@@ -633,3 +633,27 @@ def test_pair_sums_in_numba_equal_the_tensor_scatter():
             if x is not None:
                 assert float(x.abs().max()) > 0
                 torch.testing.assert_close(x, y.detach(), rtol=0.0, atol=1e-13)
+
+
+def test_warm_start_tables_merge_with_the_newer_plane_winning():
+    """The step's warm-start table merges each evaluation's sorted (key, plane) table into its own: every key of
+    both once, sorted, with the newer plane where both have it."""
+    from cfd_torch.sim.solve import WarmStarts
+
+    g = torch.Generator().manual_seed(2)
+    old_k = torch.unique(torch.randint(0, 500, (200,), generator=g))
+    new_k = torch.unique(torch.randint(0, 500, (150,), generator=g))
+    old_p, new_p = (
+        torch.randn(len(old_k), 4, generator=g, dtype=F64),
+        torch.randn(len(new_k), 4, generator=g, dtype=F64),
+    )
+    w = WarmStarts()
+    w.update((old_k, old_p))
+    w.update((new_k, new_p))
+    keys, planes = w.data
+    want = torch.unique(torch.cat([old_k, new_k]))
+    assert torch.equal(keys, want) and len(set(old_k.tolist()) & set(new_k.tolist())) > 10
+    table = {int(k): p for k, p in zip(old_k, old_p, strict=True)} | {
+        int(k): p for k, p in zip(new_k, new_p, strict=True)
+    }
+    assert torch.equal(planes, torch.stack([table[int(k)] for k in keys]))

@@ -658,3 +658,26 @@ def warm_table(keys, value, plane, centre):
         out_p[m, 0], out_p[m, 1], out_p[m, 2] = n0, n1, n2
         out_p[m, 3] = plane[l, 3] - (n0 * centre[l, 0] + n1 * centre[l, 1] + n2 * centre[l, 2])
     return out_k, out_p
+
+
+@numba.njit(**_JIT)
+def warm_merge(new_keys, new_planes, old_keys, old_planes):
+    """Two warm-start tables (sorted distinct keys (W,), planes (W, 4)) merged into one, sorted, where a key in
+    both keeps the new plane."""
+    n, m = new_keys.shape[0], old_keys.shape[0]
+    keys = np.empty(n + m, dtype=np.int64)
+    planes = np.empty((n + m, 4))
+    i = j = k = 0
+    while i < n or j < m:
+        if j == m or (i < n and new_keys[i] <= old_keys[j]):
+            if j < m and new_keys[i] == old_keys[j]:
+                j += 1  # the old entry of the same key is dropped
+            keys[k] = new_keys[i]
+            planes[k] = new_planes[i]
+            i += 1
+        else:
+            keys[k] = old_keys[j]
+            planes[k] = old_planes[j]
+            j += 1
+        k += 1
+    return keys[:k], planes[:k]

@@ -48,6 +48,17 @@ class WarmStarts:
         if self.data is None:
             self.data = new
             return
+        if new[0].device.type == "cpu":  # both tables are sorted: a linear merge (numba)
+            from ..contact._traverse_numba import warm_merge
+
+            self.data = tuple(
+                torch.from_numpy(x)
+                for x in warm_merge(
+                    new[0].contiguous().numpy(), new[1].contiguous().numpy(), self.data[0].contiguous().numpy(),
+                    self.data[1].contiguous().numpy(),
+                )
+            )  # fmt: skip
+            return
         keys = torch.cat([new[0], self.data[0]])
         planes = torch.cat([new[1], self.data[1]])
         keys, order = torch.sort(keys, stable=True)  # the new entry first among equal keys
