@@ -521,7 +521,8 @@ def test_head_on_impact_of_small_balls_meeting_vertex_to_vertex():
 
 def test_friction_summed_per_pair_in_numba_equals_the_per_contact_terms():
     """The CPU kernel that sums lagged friction per body pair (no autograd wanted) equals the per-contact closed form
-    summed with index_add, at every order, with the majorizer gap, in the slipping and the static regime."""
+    summed with index_add, at every order, with the majorizer gap, in the slipping and the static regime; for
+    contacts whose pair has one pair of pose rows (body pairs: pairs 0-3 here) and ones whose rows vary."""
     from cfd_torch.contact.model import LaggedContacts
     from cfd_torch.rotation import rotation_matrix
     from cfd_torch.sim.friction import friction_by_pair, friction_terms
@@ -532,6 +533,8 @@ def test_friction_summed_per_pair_in_numba_equals_the_per_contact_terms():
     tangent = torch.eye(3, dtype=F64) - n[:, :, None] * n[:, None, :]
     rows = torch.randint(0, M, (C, 2), generator=g)
     rows[:, 1] = (rows[:, 0] + 1 + torch.randint(0, M - 1, (C,), generator=g)) % M  # two different bodies
+    pair = torch.randint(0, 7, (C,), generator=g)
+    rows = torch.where((pair < 4)[:, None], rows[torch.arange(4)][pair.clamp(max=3)], rows)
     poses = torch.cat(
         [torch.randn(M, 3, generator=g, dtype=F64), 0.8 * torch.randn(M, 3, generator=g, dtype=F64)], 1
     )
@@ -542,9 +545,7 @@ def test_friction_summed_per_pair_in_numba_equals_the_per_contact_terms():
     slip = torch.logspace(-2, 2, C, dtype=F64)[torch.randperm(C, generator=g)] * e
     x_t = x.clone()
     x_t[:, 0] -= slip[:, None] * torch.randn(C, 3, generator=g, dtype=F64)
-    data = LaggedContacts(
-        torch.randint(0, 7, (C,), generator=g), X, x_t, tangent, torch.rand(C, generator=g, dtype=F64) + 0.1
-    )
+    data = LaggedContacts(pair, X, x_t, tangent, torch.rand(C, generator=g, dtype=F64) + 0.1)
     mu = torch.rand(C, generator=g, dtype=F64)
     for order in (0, 1, 2):
         pair, *fast = friction_by_pair(data, poses, rows, mu, e, order, majorizer_gap=True)

@@ -491,7 +491,8 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     hess_x = mu (D - W W^T) (``_pair_numba.solve_pairs`` with ``lowrank``): D is block diagonal, 2 n n^T / s_v^3
     per vertex v, and W (18, 4). With J_v = [I | A_v] (A_v = dR X_v) the vertex's rows of the (18, 12) pose
     Jacobian, J^T hess_x J = sum_v (2 mu / s_v^3) d_v d_v^T - mu U U^T with d_v = J_v^T n and U = J^T W (12, 4):
-    about a fifth of the work of the dense products. The second-order rotation term uses G = sum_v g_v X_v^T per side.
+    about a fifth of the work of the dense products. The second-order rotation term uses G = sum_v g_v X_v^T per side,
+    summed (weighted) over the body pair's leaves and contracted with its d2R once.
     """
     L = lp.shape[0]
     A = np.empty((6, 3, 3))
@@ -499,8 +500,9 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     hq = np.empty((12, 12))
     U = np.empty((12, 4))
     dv = np.empty(6)
-    G = np.empty((3, 3))
     touched = np.zeros(hess.shape[0], np.bool_)  # the body pairs whose Hessian rows received a leaf
+    G2 = np.zeros((hess.shape[0], 2, 3, 3))  # per body pair and side: sum of w G_s (below)
+    sides = np.zeros((hess.shape[0], 2), np.int64)  # each body pair's rows of dR / d2R
     for e in range(L):
         p = lp[e]
         wid = lwid[e]
@@ -562,23 +564,17 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
             for c in range(a, 12):
                 acc = U[a, 0] * U[c, 0] + U[a, 1] * U[c, 1] + U[a, 2] * U[c, 2] + U[a, 3] * U[c, 3]
                 hl[a, c] -= mu * acc
+        # the second-order rotation terms: the body pair's d2R are shared by its leaves, so only w G_s,
+        # G_s = sum_v g_v X_v^T (3 x 3) per side, is summed here and contracted once per pair below
+        sides[p, 0], sides[p, 1] = ba[e], bb[e]
         for side in range(2):
-            body = ba[e] if side == 0 else bb[e]
-            o = 3 if side == 0 else 9
             for i in range(3):
                 for m in range(3):
                     acc = 0.0
                     for v in range(3 * side, 3 * side + 3):
                         X = Xa[e, v] if side == 0 else Xb[e, v - 3]
                         acc += gx[e, 3 * v + i] * X[m]
-                    G[i, m] = acc
-            for k in range(3):
-                for l2 in range(k, 3):
-                    acc = 0.0
-                    for i in range(3):
-                        for m in range(3):
-                            acc += G[i, m] * d2R[body, i, m, k, l2]
-                    hl[o + k, o + l2] += acc
+                    G2[p, side, i, m] += w * acc
         if wid != 0:
             for a in range(12):  # the upper triangle (mirrored below)
                 for c in range(a, 12):
@@ -586,9 +582,19 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                         P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
                     )
         touched[p] = True
-    if order >= 2:  # hq and the leaf terms were added to the upper triangles: mirror them
+    if order >= 2:  # the rotation terms; hq and the leaf terms were added to the upper triangles: mirror them
         for p in range(hess.shape[0]):
             if touched[p]:
+                for side in range(2):
+                    body = sides[p, side]
+                    o = 3 if side == 0 else 9
+                    for k in range(3):
+                        for l2 in range(k, 3):
+                            acc = 0.0
+                            for i in range(3):
+                                for m in range(3):
+                                    acc += G2[p, side, i, m] * d2R[body, i, m, k, l2]
+                            hess[p, o + k, o + l2] += acc
                 for a in range(12):
                     for c in range(a + 1, 12):
                         hess[p, c, a] = hess[p, a, c]

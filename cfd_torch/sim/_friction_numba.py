@@ -37,11 +37,15 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
     rel = np.zeros(3)
     u = np.zeros(3)
     v = np.zeros(12)
+    G2 = np.zeros((F if order >= 2 else 0, 2, 3, 3))  # per pair and side: sum of +-g X^T
+    first = np.full(F, -1)  # a contact of each pair (its pose rows are the pair's)
     for i in range(3):
         Jc[i, i] = 1.0
         Jc[i, 6 + i] = -1.0
     for c in range(C):
         f = slot[c]
+        if first[f] < 0:
+            first[f] = c
         for i in range(3):
             rel[i] = 0.0
         for s in range(2):
@@ -99,19 +103,32 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
                 M[i, 6 + k] = -Hu[i, k]
                 M[i, 3 + k] = Hu[i, 0] * J[0, 0, k] + Hu[i, 1] * J[0, 1, k] + Hu[i, 2] * J[0, 2, k]
                 M[i, 9 + k] = -(Hu[i, 0] * J[1, 0, k] + Hu[i, 1] * J[1, 1, k] + Hu[i, 2] * J[1, 2, k])
+        # (the upper triangles, mirrored at the end)
         for q in range(12):
             for i in range(3):
-                hess[f, i, q] += M[i, q]
-                hess[f, 6 + i, q] -= M[i, q]
-                hess[f, 3 + i, q] += J[0, 0, i] * M[0, q] + J[0, 1, i] * M[1, q] + J[0, 2, i] * M[2, q]
-                hess[f, 9 + i, q] -= J[1, 0, i] * M[0, q] + J[1, 1, i] * M[1, q] + J[1, 2, i] * M[2, q]
-        # second-order rotation terms: sum_m X_m sum_i g_i d2R[i, m, k, l], g at a's point and -g at b's
+                if q >= i:
+                    hess[f, i, q] += M[i, q]
+                if q >= 6 + i:
+                    hess[f, 6 + i, q] -= M[i, q]
+                if q >= 3 + i:
+                    hess[f, 3 + i, q] += J[0, 0, i] * M[0, q] + J[0, 1, i] * M[1, q] + J[0, 2, i] * M[2, q]
+                if q >= 9 + i:
+                    hess[f, 9 + i, q] -= J[1, 0, i] * M[0, q] + J[1, 1, i] * M[1, q] + J[1, 2, i] * M[2, q]
+        # second-order rotation terms sum_m X_m sum_i g_i d2R[i, m, k, l] (g at a's point, -g at b's): where the
+        # contact's pose rows are its pair's first contact's (always, for body pairs), only G_s = sum_c (+-g) X^T
+        # (3 x 3) is summed per contact and contracted with d2R once per pair
+        shared = rows[c, 0] == rows[first[f], 0] and rows[c, 1] == rows[first[f], 1]
         for s in range(2):
+            sign = 1.0 if s == 0 else -1.0
+            if shared:
+                for i in range(3):
+                    for m in range(3):
+                        G2[f, s, i, m] += sign * g[i] * X[c, s, m]
+                continue
             r = rows[c, s]
             o = 3 if s == 0 else 9
-            sign = 1.0 if s == 0 else -1.0
             for k in range(3):
-                for l in range(3):
+                for l in range(k, 3):
                     acc = 0.0
                     for m in range(3):
                         acc += X[c, s, m] * (
@@ -122,6 +139,25 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
             for p in range(12):
                 v[p] = Jc[0, p] * u[0] + Jc[1, p] * u[1] + Jc[2, p] * u[2]
             for p in range(12):
-                for q in range(12):
-                    gap[f, p, q] -= b * v[p] * v[q]
+                bp = b * v[p]
+                for q in range(p, 12):
+                    gap[f, p, q] -= bp * v[q]
+    if order >= 2:
+        for f in range(F):  # each pair's rotation terms, then the lower triangles
+            c = first[f]
+            for s in range(2):
+                r = rows[c, s]
+                o = 3 if s == 0 else 9
+                for k in range(3):
+                    for l in range(k, 3):
+                        acc = 0.0
+                        for i in range(3):
+                            for m in range(3):
+                                acc += G2[f, s, i, m] * d2R[r, i, m, k, l]
+                        hess[f, o + k, o + l] += acc
+            for p in range(12):
+                for q in range(p + 1, 12):
+                    hess[f, q, p] = hess[f, p, q]
+                    if want_gap:
+                        gap[f, q, p] = gap[f, p, q]
     return value, grad, hess, gap
