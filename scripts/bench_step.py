@@ -592,8 +592,8 @@ def compare(head: dict, base: dict) -> dict:
     def fwd(r: dict) -> float:
         return r["forward"].get("call_s", r["forward"]["total_s"])
 
-    qa, qb = torch.tensor(head["q_end"]), torch.tensor(base["q_end"])
-    ga, gb = torch.tensor(head["grad_norms"]), torch.tensor(base["grad_norms"])
+    qa, qb = torch.tensor(head["q_end"], dtype=F64), torch.tensor(base["q_end"], dtype=F64)
+    ga, gb = torch.tensor(head["grad_norms"], dtype=F64), torch.tensor(base["grad_norms"], dtype=F64)
     return {
         "forward_s": fwd(head),
         "forward_baseline_s": fwd(base),
