@@ -114,11 +114,16 @@ def _call(energy, q, scenes, order, active):
 
 
 def _restricted(
-    ev: EnergyEval, act: torch.Tensor, pair_bodies: torch.Tensor, others: torch.Tensor | None = None
+    ev: EnergyEval,
+    rows: torch.Tensor,
+    act: torch.Tensor,
+    pair_bodies: torch.Tensor,
+    others: torch.Tensor | None = None,
 ):
-    """The value and rounding scale of the terms of ``ev`` (A scenes, evaluated over a superset of bodies) that
-    involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of ``others``
-    (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move)."""
+    """The value and rounding scale of the terms of ``ev``'s scenes ``rows`` (A,) (evaluated over a superset of
+    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of
+    ``others`` (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move).
+    Only the per-body and per-pair values are read (not the rows of the whole evaluation)."""
     A, M = act.shape
     ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
     pb = torch.where(pair_bodies >= 0, pair_bodies, M)
@@ -127,8 +132,8 @@ def _restricted(
         oth = torch.cat([others, others.new_zeros(A, 1)], 1)
         on = on & ~(oth[:, pb[:, 0]] | oth[:, pb[:, 1]])
     zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
-    own = torch.where(act, ev.body_value, zero)
-    pv = torch.where(on, ev.pair_value, zero)
+    own = torch.where(act, ev.body_value[rows], zero)
+    pv = torch.where(on, ev.pair_value[rows], zero)
     value = own.sum(1) + pv.sum(1)
     return value, value.abs() + own.abs().sum(1) + 2.0 * pv.abs().sum(1)
 
@@ -271,7 +276,7 @@ def newton(
                 act[sc] = act[sc] & ~frz
                 whole[sc] = whole[sc] & ~frz.any(1)
                 p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
-                value, scale = _restricted(_rows(cur, sc), act[sc], pair_bodies)
+                value, scale = _restricted(cur, sc, act[sc], pair_bodies)
                 cur.value[sc], cur.scale[sc] = value, scale
                 L = L.clone()
                 L[k] = value
@@ -296,9 +301,9 @@ def newton(
         slope = (g[gs] * gp).sum(1)
         if freeze:
             others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
-            L0, scale0 = _restricted(_rows(cur, idx[gs]), gm, pair_bodies, others)
+            L0, scale0 = _restricted(cur, idx[gs], gm, pair_bodies, others)
             cross0 = (
-                _restricted(_rows(cur, idx[gs]), gm, pair_bodies)[0] - L0
+                _restricted(cur, idx[gs], gm, pair_bodies)[0] - L0
             )  # its pairs with the other islands
         else:
             L0, scale0 = L, cur.scale[idx]
@@ -328,9 +333,8 @@ def newton(
             if k == 0:
                 full = ev
             if freeze:
-                rows_ev = _rows(ev, pos[gs[sub]])
-                L_try = _restricted(rows_ev, gm[sub], pair_bodies, others[sub])[0]
-                with_others = _restricted(rows_ev, gm[sub], pair_bodies)[0]
+                L_try = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies, others[sub])[0]
+                with_others = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies)[0]
                 # feasible: all its pairs finite, those with the other islands too
                 feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
