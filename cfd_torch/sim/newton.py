@@ -302,9 +302,7 @@ def newton(
         if freeze:
             others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
             L0, scale0 = _restricted(cur, idx[gs], gm, pair_bodies, others)
-            cross0 = (
-                _restricted(cur, idx[gs], gm, pair_bodies)[0] - L0
-            )  # its pairs with the other islands
+            cross0 = _restricted(cur, idx[gs], gm, pair_bodies)[0] - L0  # its pairs with the other islands
         else:
             L0, scale0 = L, cur.scale[idx]
         noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
