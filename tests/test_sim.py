@@ -658,3 +658,43 @@ def test_warm_start_tables_merge_with_the_newer_plane_winning():
         int(k): p for k, p in zip(new_k, new_p, strict=True)
     }
     assert torch.equal(planes, torch.stack([table[int(k)] for k in keys]))
+
+
+def test_differentiable_lagged_contacts_reuse_the_solved_planes(bodies):
+    """The adjoint's lagged contacts (create_graph=True) take their vertex forces from the gradient Function at the
+    planes the forward pass solved (no second solve): their values and their derivatives in the poses equal those
+    of the pair potential's own double backward (the torch backend, which solves again), to rounding."""
+    import dataclasses
+
+    import numpy as np
+
+    from cfd_torch.sim.energy import scene_pairs
+
+    scene, state, _, _ = _scene_batch(bodies)
+    model = scene.contact_model
+    other = CfdContact(
+        [model._bshes[int(i)] for i in model._which], dataclasses.replace(model.config, backend="torch")
+    )
+    pairs = scene_pairs(scene, state.q.shape[0])
+    outs = []
+    for m in (model, other):
+        poses = state.q.detach().clone().requires_grad_()
+        lag = m.lagged(poses, pairs, 0.0, create_graph=True)
+        assert lag.pair.numel() > 10
+        # a function of each contact's own data only (the backends list the contacts in different orders)
+        s = (lag.normal_force**2).sum() + (lag.x_t * lag.X.detach()).sum()
+        s = s + (lag.tangent[:, 0, 1] * lag.normal_force).sum()
+        (g,) = torch.autograd.grad(s, poses)
+        outs.append((lag, g))
+    (a, ga), (b, gb) = outs
+
+    def order(lag):  # the backends traverse in different orders: contacts by pair, then force centres
+        key = torch.cat([lag.pair[:, None].to(F64), lag.X.detach().reshape(-1, 6)], 1).numpy().round(9)
+        return torch.from_numpy(np.lexsort(key.T[::-1]).copy())
+
+    ia, ib = order(a), order(b)
+    assert bool(torch.equal(a.pair[ia], b.pair[ib])) and float(ga.abs().max()) > 0
+    for x, y in zip(a[1:5], b[1:5], strict=True):
+        x, y = x.detach()[ia], y.detach()[ib]
+        torch.testing.assert_close(x, y, rtol=1e-8, atol=1e-8 * float(y.abs().max()))
+    torch.testing.assert_close(ga, gb, rtol=1e-7, atol=1e-7 * float(gb.abs().max()))

@@ -191,9 +191,9 @@ class CfdContact:
                 )  # fmt: skip
                 sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **kw)
                 g = sol.grad.reshape(-1, 2, 3, 3)
-                if (
-                    ids is not None
-                ):  # the planes (in frames at the solve's centres C) in the frames at body a: d - n.(C - t_a)
+                planes = (sol.local_plane, sol.centre, sol.offset, torch.isfinite(sol.value))
+                # with ids, the planes (in frames at the solve's centres C) in the frames at body a: d - n.(C - t_a)
+                if ids is not None:
                     M = forest.centre.shape[0]
                     keys = (ids.to(lp.device)[lp] * M + LI) * M + LJ
                     warm = tuple(
@@ -204,6 +204,7 @@ class CfdContact:
                         )
                     )  # fmt: skip
             else:
+                planes = None
                 Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (C, 3, 3) body frame
                 wa, wb, R = world(table.detach())
                 # vertex forces in closed form (envelope theorem; no autograd)
@@ -232,6 +233,7 @@ class CfdContact:
                     x[keep] for x in (LI, LJ, lp, lw, ba, bb, Xa, Xb, ga, gb)
                 )
                 dlw = dlw[keep] if dlw is not None else None
+                planes = None if planes is None else tuple(x[keep] for x in planes)
         if create_graph:
             # the same data as differentiable functions of the poses: blend weights to first order (exact gradient,
             # as the adjoint needs), vertex forces by the pair potential's implicit second-order autograd
@@ -239,8 +241,18 @@ class CfdContact:
             lw = lw + ((dq - dq.detach()) * dlw).sum(1)
             with torch.enable_grad():
                 wa, wb, R = world(table)
-                P = pair_potential(wa, wb, backend=c.backend, **kw)
-                ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=True)
+                if (
+                    planes is not None
+                ):  # at the optimal planes solved above: the gradient Function, no second solve
+                    from .pair import _PairGradFn
+
+                    gv = _PairGradFn.apply(
+                        torch.cat([wa, wb], 1), *planes, float(c.stiffness), float(c.margin)
+                    )
+                    ga, gb = gv[:, :3], gv[:, 3:]
+                else:
+                    P = pair_potential(wa, wb, backend=c.backend, **kw)
+                    ga, gb = torch.autograd.grad(P.sum(), (wa, wb), create_graph=True)
         fa = torch.linalg.vector_norm(ga, dim=-1)  # (C, 3)
         fb = torch.linalg.vector_norm(gb, dim=-1)
         sa, sb = fa.sum(1), fb.sum(1)
