@@ -156,7 +156,7 @@ class CfdContact:
         c = self.config
         kw = {"mu": c.stiffness, "margin": c.margin, "tol": c.pair_tol, "max_iter": c.pair_max_iter}
         forest, table, rows, roots = self._rows(poses, pairs)
-        fused = poses.device.type == "cpu" and c.backend != "torch"
+        fused = poses.device.type == "cpu" and poses.dtype == torch.float64 and c.backend != "torch"
         warm = None
         with torch.no_grad():
             LI, LJ, lp, lw, dlw = traverse(
