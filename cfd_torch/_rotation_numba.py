@@ -121,3 +121,17 @@ def rotation_derivatives_cpu(omega: np.ndarray, order: int = 2):
     d2R = np.empty((N, 3, 3, 3, 3)) if order >= 2 else np.empty((0, 3, 3, 3, 3))
     rotation_derivatives_kernel(np.ascontiguousarray(omega, dtype=np.float64), _CA, _CB, R, dR, d2R, order)
     return R, (dR if order >= 1 else None), (d2R if order >= 2 else None)
+
+
+@numba.njit(cache=True, nogil=True)
+def add_rotation_terms(hess, p, o, G, d2R, body, sign):
+    """The second-order rotation terms of a gradient on body-frame points: hess[p, o + k, o + l] += sign
+    sum_{i,m} G[i, m] d2R[body, i, m, k, l] for l >= k (the upper triangle of the rotation block at ``o``), where
+    G (3, 3) = sum over the points of (world-frame gradient) (body-frame point)^T."""
+    for k in range(3):
+        for l in range(k, 3):
+            acc = 0.0
+            for i in range(3):
+                for m in range(3):
+                    acc += G[i, m] * d2R[body, i, m, k, l]
+            hess[p, o + k, o + l] += sign * acc

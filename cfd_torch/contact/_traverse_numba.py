@@ -15,6 +15,7 @@ import numba
 import numpy as np
 
 from .._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
+from .._rotation_numba import add_rotation_terms
 
 _JIT = {"cache": True, "error_model": "numpy"}
 
@@ -122,16 +123,8 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
                 hess[p, 3 + k, 3 + l] += aa
                 hess[p, 9 + k, 9 + l] += bb2
     # g1 u . d2d: + sum_i,m d2R_a[i, m, k, l] (g1 u C_I^T)[i, m] on omega_a omega_a, - the same of b
-    for k in range(3):
-        for l in range(k, 3):
-            acc_a = 0.0
-            acc_b = 0.0
-            for i in range(3):
-                for m in range(3):
-                    acc_a += d2R[ba, i, m, k, l] * M[34 + 3 * i + m]
-                    acc_b += d2R[bb, i, m, k, l] * M[43 + 3 * i + m]
-            hess[p, 3 + k, 3 + l] += acc_a
-            hess[p, 9 + k, 9 + l] -= acc_b
+    add_rotation_terms(hess, p, 3, M[34:43].reshape((3, 3)), d2R, ba, 1.0)
+    add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
 
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
@@ -586,15 +579,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         for p in range(hess.shape[0]):
             if touched[p]:
                 for side in range(2):
-                    body = sides[p, side]
-                    o = 3 if side == 0 else 9
-                    for k in range(3):
-                        for l2 in range(k, 3):
-                            acc = 0.0
-                            for i in range(3):
-                                for m in range(3):
-                                    acc += G2[p, side, i, m] * d2R[body, i, m, k, l2]
-                            hess[p, o + k, o + l2] += acc
+                    add_rotation_terms(hess, p, 3 if side == 0 else 9, G2[p, side], d2R, sides[p, side], 1.0)
                 for a in range(12):
                     for c in range(a + 1, 12):
                         hess[p, c, a] = hess[p, a, c]

@@ -13,6 +13,8 @@ import math
 import numba
 import numpy as np
 
+from .._rotation_numba import add_rotation_terms
+
 
 @numba.njit(cache=True, error_model="numpy")
 def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order, want_gap):
@@ -38,6 +40,7 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
     u = np.zeros(3)
     v = np.zeros(12)
     G2 = np.zeros((F if order >= 2 else 0, 2, 3, 3))  # per pair and side: sum of +-g X^T
+    Gc = np.zeros((3, 3))  # one contact's +-g X^T
     first = np.full(F, -1)  # a contact of each pair (its pose rows are the pair's)
     for i in range(3):
         Jc[i, i] = 1.0
@@ -120,21 +123,13 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
         shared = rows[c, 0] == rows[first[f], 0] and rows[c, 1] == rows[first[f], 1]
         for s in range(2):
             sign = 1.0 if s == 0 else -1.0
+            for i in range(3):
+                for m in range(3):
+                    Gc[i, m] = sign * g[i] * X[c, s, m]
             if shared:
-                for i in range(3):
-                    for m in range(3):
-                        G2[f, s, i, m] += sign * g[i] * X[c, s, m]
-                continue
-            r = rows[c, s]
-            o = 3 if s == 0 else 9
-            for k in range(3):
-                for l in range(k, 3):
-                    acc = 0.0
-                    for m in range(3):
-                        acc += X[c, s, m] * (
-                            g[0] * d2R[r, 0, m, k, l] + g[1] * d2R[r, 1, m, k, l] + g[2] * d2R[r, 2, m, k, l]
-                        )
-                    hess[f, o + k, o + l] += sign * acc
+                G2[f, s] += Gc
+            else:
+                add_rotation_terms(hess, f, 3 if s == 0 else 9, Gc, d2R, rows[c, s], 1.0)
         if want_gap:  # (-w c2) v v^T, v = Jc^T u
             for p in range(12):
                 v[p] = Jc[0, p] * u[0] + Jc[1, p] * u[1] + Jc[2, p] * u[2]
@@ -144,17 +139,8 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
                     gap[f, p, q] -= bp * v[q]
     if order >= 2:
         for f in range(F):  # each pair's rotation terms, then the lower triangles
-            c = first[f]
             for s in range(2):
-                r = rows[c, s]
-                o = 3 if s == 0 else 9
-                for k in range(3):
-                    for l in range(k, 3):
-                        acc = 0.0
-                        for i in range(3):
-                            for m in range(3):
-                                acc += G2[f, s, i, m] * d2R[r, i, m, k, l]
-                        hess[f, o + k, o + l] += acc
+                add_rotation_terms(hess, f, 3 if s == 0 else 9, G2[f, s], d2R, rows[first[f], s], 1.0)
             for p in range(12):
                 for q in range(p + 1, 12):
                     hess[f, q, p] = hess[f, p, q]

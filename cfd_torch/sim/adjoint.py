@@ -47,14 +47,13 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
     idx = torch.nonzero(on)[:, 0]
     pairs = scene_pairs(scene, len(idx)).to(q_t.device)
     model = scene.contact_model
+    kw = {}
     if scene.solver.fast and getattr(model, "warm_start", False) and not create_graph:
         # the leaf pairs' planes at q_t start the plane solves of the step's first evaluation (the pairs' ids as
         # in the step's evaluations: scene * P + pair)
         rows = torch.arange(pairs.shape[0], device=q_t.device)
-        ids = idx[rows // P] * P + rows % P
-        lag = model.lagged(q_t[idx], pairs, scene.friction.active, create_graph=False, ids=ids)
-    else:
-        lag = model.lagged(q_t[idx], pairs, scene.friction.active, create_graph=create_graph)
+        kw["ids"] = idx[rows // P] * P + rows % P
+    lag = model.lagged(q_t[idx], pairs, scene.friction.active, create_graph=create_graph, **kw)
     if len(idx) < B and P:  # renumber into the pairs of all B scenes
         lag = lag._replace(pair=idx[lag.pair // P] * P + lag.pair % P)
     return lag
