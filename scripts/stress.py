@@ -54,7 +54,7 @@ one (``finite_infeasible`` / ``inf_feasible``), a value is below 12 mu (``wrong_
 threshold (``error_value`` / ``error_grad`` / ``error_hess`` / ``translation``; the thresholds are the constants
 below, each with its reason), a rollout penetrates (``penetration``) or any other exception (``exception``).
 
-    python scripts/stress.py --out results/stress            # full run, about 15 min on 2 cores
+    python scripts/stress.py --out results/stress            # full run, about 2 min on 2 cores
     python scripts/stress.py --quick --out results/stress    # smoke run, 1-2 min
     python scripts/stress.py --sections pair fuzz --quick    # some sections only
     python scripts/stress.py --tiny --out /tmp/stress         # seconds: tests/test_stress_script.py

@@ -306,6 +306,37 @@ STRESS_ROWS = {
          [-24.49249202135955, 105.88822257202472, -74.5442831181165]],
         10000001361.367083,
     ),
+    # 10 km triangles (offset 0), the solve's plane off along E_pp's weak directions until the eigenbasis refinement
+    # (``_pair_numba._refine``): near-parallel edges at 1.5 margins, gradient 1.4e4 eps kappa off (both backends)
+    "near-parallel-edges-10km": (
+        [[3985.9921050964217, 1401.6616579450636, -1374.0452572151835],
+         [-3985.9921050964217, -1401.6616579450636, 1374.0452572151835],
+         [-6932.846674857088, -3428.441230636138, -8819.985718388014],
+         [5082.431080392701, 1787.2209968505954, -1752.0080665788735],
+         [-298.44093436843536, -104.9458207165402, 102.87811564900461],
+         [5320.164055817164, 12134.109410380393, 1433.3704871647208]],
+        20000001436.835094,
+    ),
+    # ... parallel edges at 10 margins: gradient 790 eps kappa off (numba), 257 (torch)
+    "parallel-edges-10km": (
+        [[-918.580294313709, 769.0693268513006, 2455.836322722688],
+         [918.580294313709, -769.0693268513006, -2455.836322722688],
+         [-3031.8813905170396, 7689.948937316164, -4621.6519437387815],
+         [-1027.8810167367424, 860.5799129255398, 2748.0532057958753],
+         [1866.8856734067365, -1563.0256048082274, -4991.143059864743],
+         [-6445.068604865088, -7414.391801124534, 1713.4214352070308]],
+        1111111109.421782,
+    ),
+    # ... coplanar side by side at 10 margins: gradient 1.7e3 eps kappa off (numba), 1.1e3 (torch)
+    "coplanar-10km": (
+        [[1665.1200395104245, 3002.6444240089018, -2181.0348429639016],
+         [-1665.1200395104245, -3002.6444240089018, 2181.0348429639016],
+         [4470.296047568469, -1031.42966666657, -4582.66445278245],
+         [1586.885444791669, 2861.5671225515484, -2078.5603251730317],
+         [-176.48528642680415, -318.2488474192465, 231.16685040105446],
+         [-2532.0050006361625, 1472.493853998174, 2471.316948390054]],
+        1111111107.4718585,
+    ),
 }  # fmt: skip
 
 
@@ -313,10 +344,10 @@ STRESS_ROWS = {
 @pytest.mark.parametrize("case", sorted(STRESS_ROWS))
 def test_near_margin_large_triangles_match_a_50_digit_solve(case, backend):
     """The stress rows above against scripts/stress.py's 50-digit solve (mpmath, about 1 s): value, gradient and
-    Hessian within 4 eps kappa (max-norm relative; measured <= 0.7, and a 1-ulp change of the input moves the true
+    Hessian within 4 eps kappa (max-norm relative; measured <= 0.8, and a 1-ulp change of the input moves the true
     value by ~0.1-1 eps kappa, so this is the problem's own conditioning). The autograd gradient and Hessian agree
-    with the closed form within 0.5 eps kappa: both are formed at the solve's plane about the same contact frame and
-    differ in the order of their sums only (measured <= 0.15; a plane moved to the pair's centre and back, one
+    with the closed form within 1 eps kappa: both are formed at the solve's plane about the same contact frame and
+    differ in the rounding of their gaps only (measured <= 0.55; a plane moved to the pair's centre and back, one
     rounding of its offset, put the vertex-vertex row's autograd gradient 2.8 eps kappa away)."""
     import sys
     from pathlib import Path
@@ -345,8 +376,8 @@ def test_near_margin_large_triangles_match_a_50_digit_solve(case, backend):
     )
     g = g.reshape(18)
     H = torch.stack([torch.autograd.grad(g[i], x, retain_graph=True)[0].reshape(18) for i in range(18)])
-    assert _rel(g.detach(), d.grad) < 0.5 * stress.EPS64 * kappa
-    assert _rel(H, d.hessian) < 0.5 * stress.EPS64 * kappa
+    assert _rel(g.detach(), d.grad) < stress.EPS64 * kappa
+    assert _rel(H, d.hessian) < stress.EPS64 * kappa
 
 
 # near-parallel 10 km edges, 1.01 margins of a 1e-4 m margin, offset 1e2 m (scripts/stress.py, pair section): +inf

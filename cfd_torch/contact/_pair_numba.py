@@ -33,6 +33,11 @@ _WARM_ITER = 30  # iterations a warm-started solve gets before the cold start is
 # edges, coplanar pairs, a vertex on a vertex, near the margin) is re-formed in its own eigenbasis for the Hessian
 # (``_rotated_epp``); below it, the plain one loses at most ~1e-8 of the Schur complement to rounding
 _ROT_COND = 1e-8
+_REFINE_STEPS = 8  # eigenbasis Newton steps after convergence of an ill-conditioned pair (``_refine``)
+_REFINE_HALVINGS = 20  # backtracking halvings of one such step
+# ... for pairs whose gaps cancel more than this (``_conditioning``): below it the plain solve's derivatives are
+# within a few eps kappa already (scripts/stress.py: 2.1 eps kappa at kappa 1e3-1e7)
+_REFINE_KAPPA = 1e6
 
 
 @numba.njit(**_JIT_INLINE)
@@ -222,6 +227,87 @@ def _rotated_epp(Xo, s, p, lam, H, Q, B, Hq):
                 acc += 2.0 * B[k, a] * B[k, b] / (s[k] * s[k] * s[k])
             Hq[a, b] = acc
             Hq[b, a] = acc
+
+
+@numba.njit(**_JIT_INLINE)
+def _conditioning(Xo, p, s):
+    """max_k |n| |x_k| / s_k (contact frame): how far a tilt of the plane by an ulp moves gap k, relative to the
+    gap; about the problem's kappa = (size + gap) / (gap - margin)."""
+    r = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+    c = 0.0
+    for k in range(6):
+        c = max(c, r * math.sqrt(Xo[k, 0] * Xo[k, 0] + Xo[k, 1] * Xo[k, 1] + Xo[k, 2] * Xo[k, 2]) / s[k])
+    return c
+
+
+@numba.njit(**_JIT_INLINE)
+def _ill_conditioned(H, L, Li):
+    """Whether E_pp = H has a Cholesky pivot below _ROT_COND of its largest diagonal entry (or none); L, Li are
+    overwritten with its factor."""
+    if not _cholesky4(H, L, Li, 0.0):
+        return True
+    dmax = max(max(H[0, 0], H[1, 1]), max(H[2, 2], H[3, 3]))
+    pmin = min(min(L[0, 0], L[1, 1]), min(L[2, 2], L[3, 3]))
+    return pmin * pmin < _ROT_COND * dmax
+
+
+@numba.njit(**_JIT_INLINE)
+def _refine(Xo, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, Q, B, Hq, L, Li, m, step):
+    """Newton steps in E_pp's eigenbasis from a converged plane p of an ill-conditioned pair (``_rotated_epp``);
+    returns the refined (e, e_res), with p, g, H, sc, s at the refined plane.
+
+    In (n, d) coordinates the gradient's component along E_pp's weak directions is a difference of terms
+    x_k / s_k^2 that cancel to far below their rounding, so the solve stops with the plane off along them: for
+    parallel edges or coplanar triangles of 10 km at a few um that left the derivatives 300-14,000 eps kappa off
+    (kappa = (size + gap) / (gap - margin), how much the input's rounding moves them). Projected on the eigenbasis
+    from B = Q^T [x_k; 1], whose weak components keep their digits, the gradient is accurate there, and one to
+    three such steps (at most _REFINE_STEPS, each backtracked until E does not rise beyond its rounding) bring
+    the derivatives to about eps kappa."""
+    for _it in range(_REFINE_STEPS):
+        _rotated_epp(Xo, s, p, lam, H, Q, B, Hq)
+        r = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+        gl = lam / ((1.0 - r) * (1.0 - r) * r)
+        for a in range(4):  # Q^T grad E, the regulariser's part plus - sum_k sg_k B_ka / s_k^2
+            acc = gl * (Q[0, a] * p[0] + Q[1, a] * p[1] + Q[2, a] * p[2])
+            for k in range(6):
+                sg = 1.0 if k < 3 else -1.0
+                acc -= sg * B[k, a] / (s[k] * s[k])
+            m[a] = -acc
+        shift = 0.0
+        while not _cholesky4(Hq, L, Li, shift) and shift < 1.0:
+            shift = 16 * 2.220446049250313e-16 if shift == 0.0 else shift * 16.0
+        _chol_solve4(L, Li, m, step)  # in the eigenbasis
+        big = 0.0
+        for i in range(4):  # the step in (n, d), into m
+            m[i] = Q[i, 0] * step[0] + Q[i, 1] * step[1] + Q[i, 2] * step[2] + Q[i, 3] * step[3]
+            big = max(big, abs(m[i]))
+        if not big > 4 * 2.220446049250313e-16 * r:  # the normal's direction is resolved to an ulp
+            break
+        t = 1.0
+        ok = False
+        for _half in range(
+            _REFINE_HALVINGS
+        ):  # backtrack to a feasible plane whose E stays within its rounding
+            for i in range(4):
+                p2[i] = p[i] + t * m[i]
+            e_new, e_res_new = _eval(Xo, p2, half_delta, lam, g2, H2, sc2, s2)
+            if e_new <= e + e_res:
+                ok = True
+                break
+            t *= 0.5
+        if not ok:
+            break
+        for i in range(4):
+            p[i] = p2[i]
+            g[i] = g2[i]
+            for j in range(4):
+                H[i, j] = H2[i, j]
+        for i in range(9):
+            sc[i] = sc2[i]
+        for i in range(6):
+            s[i] = s2[i]
+        e, e_res = e_new, e_res_new
+    return e, e_res
 
 
 @numba.njit(**_JIT_INLINE)
@@ -453,6 +539,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
         Xc = np.empty((6, 3))  # the pair in its frame at C[k] (exact)
         Q = np.empty((4, 4))
         B = np.empty((6, 4))
+        Hq2 = np.empty((4, 4))
         # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
         Xk = np.empty((6, 3))
         lo = c * K // nchunks
@@ -599,6 +686,9 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                         for j in range(18):
                             hess[k, i, j] = 0.0
                 continue
+            if st == CONVERGED and _conditioning(Xk, p, s) > _REFINE_KAPPA and _ill_conditioned(H, L, Li):
+                e, e_res = _refine(Xk, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, Q, B, Hq2, L,
+                                   Li, m, step)  # fmt: skip
             status[k] = st
             resid[k] = _rel_grad(g, sc)
             val[k] = mu * e
@@ -617,11 +707,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             if want_hess:
                 # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
                 # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
-                rot = not _cholesky4(H, L, Li, 0.0)
-                if not rot:
-                    dmax = max(max(H[0, 0], H[1, 1]), max(H[2, 2], H[3, 3]))
-                    pmin = min(min(L[0, 0], L[1, 1]), min(L[2, 2], L[3, 3]))
-                    rot = pmin * pmin < _ROT_COND * dmax
+                rot = _ill_conditioned(H, L, Li)
                 if rot:  # ill-conditioned: E_pp and E_px in E_pp's eigenbasis (_rotated_epp)
                     _rotated_epp(Xk, s, p, lam, H, Q, B, H2)
                     shift = 0.0

@@ -17,6 +17,9 @@ _EPS_RES = 16 * torch.finfo(torch.float64).eps
 _GRAD_EPS = 16 * torch.finfo(torch.float64).eps
 _MAX_DAMP = 1e30
 _ROT_COND = 1e-8  # see _pair_numba
+_REFINE_STEPS = 8  # see _pair_numba
+_REFINE_HALVINGS = 20
+_REFINE_KAPPA = 1e6
 
 
 def _sign(X: torch.Tensor) -> torch.Tensor:
@@ -259,8 +262,17 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         trial = Pc + step
         Et = energy(Xc, trial, half_delta, lam)
         take = spd & (Et <= Ec + e_res)
-        P[conv] = torch.where(take[:, None], trial, Pc)
-        E[conv] = torch.where(take, Et, Ec)
+        Pc = torch.where(take[:, None], trial, Pc)
+        Ec = torch.where(take, Et, Ec)
+        _, H, _, s, _, _, _ = plane_grad_hess(Xc, Pc, half_delta, lam)
+        # (_pair_numba._conditioning: max_k |n| |x_k| / s_k)
+        cond = (
+            torch.linalg.vector_norm(Pc[:, None, :3], dim=-1) * torch.linalg.vector_norm(Xc, dim=-1) / s
+        ).amax(-1)
+        ill = (cond > _REFINE_KAPPA) & _ill_conditioned(H)
+        if bool(ill.any()):
+            Pc[ill], Ec[ill] = _refine(Xc[ill], Pc[ill], Ec[ill], half_delta, lam)
+        P[conv], E[conv] = Pc, Ec
     return P, E, status, resid, o, X
 
 
@@ -305,37 +317,81 @@ def _cholesky(A: torch.Tensor) -> torch.Tensor:
     return L
 
 
+def _ill_conditioned(Epp: torch.Tensor) -> torch.Tensor:
+    """(K,) whether E_pp (K, 4, 4) has a Cholesky pivot below _ROT_COND of its largest diagonal entry (or none)."""
+    L, info = torch.linalg.cholesky_ex(Epp)
+    piv = torch.diagonal(L, dim1=-2, dim2=-1).amin(-1) ** 2
+    dmax = torch.diagonal(Epp, dim1=-2, dim2=-1).amax(-1)
+    return (info != 0) | ~(piv >= _ROT_COND * dmax)
+
+
+def _rotated(X: torch.Tensor, P: torch.Tensor, s: torch.Tensor, Epp: torch.Tensor, lam: float):
+    """E_pp's eigenbasis Q (K, 4, 4), B_k = Q^T [x_k; 1] (K, 6, 4), Q^T E_pp Q formed from B (K, 4, 4) and Q^T
+    grad_p E formed from B (K, 4) (``_pair_numba._rotated_epp`` and ``_refine``)."""
+    _, Q = torch.linalg.eigh(Epp)
+    xh = torch.cat([X, torch.ones_like(X[..., :1])], -1)  # (K, 6, 4)
+    Bk = torch.einsum("kvi,kia->kva", xh, Q)
+    w1 = 1.0 / (s * s)
+    w2 = 2.0 * w1 / s
+    n = P[:, :3]
+    r = torch.linalg.vector_norm(n, dim=-1)
+    om = 1.0 - r
+    gl = lam / (om * om)
+    c2 = gl / r
+    c12 = 2.0 * gl / om - c2
+    Q3 = Q[:, :3, :]
+    uq = torch.einsum("ki,kia->ka", n, Q3) / r[:, None]
+    Eq = torch.einsum("kv,kva,kvb->kab", w2, Bk, Bk)
+    Eq = (
+        Eq
+        + c12[:, None, None] * uq[:, :, None] * uq[:, None, :]
+        + c2[:, None, None] * (Q3.transpose(1, 2) @ Q3)
+    )
+    gq = gl[:, None] * uq - torch.einsum("kv,kva->ka", _sign(X) * w1, Bk)
+    return Q, Bk, Eq, gq
+
+
+def _refine(X: torch.Tensor, P: torch.Tensor, E: torch.Tensor, half_delta: float, lam: float):
+    """Newton steps in E_pp's eigenbasis from converged planes P of ill-conditioned pairs (``_pair_numba._refine``:
+    there the gradient's weak components keep their digits); returns the refined (P, E)."""
+    eps = torch.finfo(X.dtype).eps
+    for _ in range(_REFINE_STEPS):
+        _, Epp, _, s, e_res, _, _ = plane_grad_hess(X, P, half_delta, lam)
+        Q, _, Eq, gq = _rotated(X, P, s, Epp, lam)
+        dq = torch.cholesky_solve(-gq[..., None], _cholesky(Eq)).squeeze(-1)
+        dp = (Q @ dq[..., None]).squeeze(-1)
+        r = torch.linalg.vector_norm(P[:, :3], dim=-1)
+        moving = dp.abs().amax(-1) > 4 * eps * r
+        take = torch.zeros_like(moving)
+        t = torch.ones_like(E)
+        for _ in range(_REFINE_HALVINGS):  # backtrack to a feasible plane whose E stays within its rounding
+            Et = energy(X, P + t[:, None] * dp, half_delta, lam)
+            ok = moving & ~take & (Et <= E + e_res)
+            P = torch.where(ok[:, None], P + t[:, None] * dp, P)
+            E = torch.where(ok, Et, E)
+            take = take | ok
+            if bool((take | ~moving).all()):
+                break
+            t = torch.where(take, t, 0.5 * t)
+        if not bool(take.any()):
+            break
+    return P, E
+
+
 def _schur_parts(X: torch.Tensor, P: torch.Tensor, half_delta: float, lam: float):
     """Gaps s (K, 6), E_px (K, 18, 4) and the Cholesky factor of E_pp (K, 4, 4). Where E_pp is ill-conditioned
     (a pivot below _ROT_COND of its largest diagonal entry) both are expressed in E_pp's eigenbasis Q instead:
     E_px Q and Q^T E_pp Q, formed from B_k = Q^T [x_k; 1] (``_pair_numba._rotated_epp``: in (n, d) coordinates
     E_pp's weak directions round away). The Schur complement E_xp E_pp^-1 E_px does not depend on the basis."""
     s, _, Exp, Epp = pair_derivative_parts(X, P, half_delta, lam)
-    L, info = torch.linalg.cholesky_ex(Epp)
-    piv = torch.diagonal(L, dim1=-2, dim2=-1).amin(-1) ** 2
-    dmax = torch.diagonal(Epp, dim1=-2, dim2=-1).amax(-1)
-    bad = (info != 0) | ~(piv >= _ROT_COND * dmax)
+    bad = _ill_conditioned(Epp)
     if bool(bad.any()):
         Xb, Pb, sb = X[bad], P[bad], s[bad]
-        _, Q = torch.linalg.eigh(Epp[bad])  # (B, 4, 4)
-        xh = torch.cat([Xb, torch.ones_like(Xb[..., :1])], -1)  # (B, 6, 4)
-        Bk = torch.einsum("kvi,kia->kva", xh, Q)
+        Q, Bk, Eq, _ = _rotated(Xb, Pb, sb, Epp[bad], lam)
         w1 = 1.0 / (sb * sb)
         w2 = 2.0 * w1 / sb
         n = Pb[:, :3]
-        r = torch.linalg.vector_norm(n, dim=-1)
-        om = 1.0 - r
-        gl = lam / (om * om)
-        c2 = gl / r
-        c12 = 2.0 * gl / om - c2
         Q3 = Q[:, :3, :]
-        uq = torch.einsum("ki,kia->ka", n, Q3) / r[:, None]
-        Eq = torch.einsum("kv,kva,kvb->kab", w2, Bk, Bk)
-        Eq = (
-            Eq
-            + c12[:, None, None] * uq[:, :, None] * uq[:, None, :]
-            + c2[:, None, None] * (Q3.transpose(1, 2) @ Q3)
-        )
         sg = _sign(Xb)
         # rows (k, j): Q^T (2 n_j [x_k; 1] / s^3 - sg e_j / s^2)
         Eb = (
