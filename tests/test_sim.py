@@ -636,6 +636,34 @@ def test_pair_sums_in_numba_equal_the_tensor_scatter():
                 torch.testing.assert_close(x, y.detach(), rtol=0.0, atol=1e-13)
 
 
+def test_body_terms_in_numba_equal_the_tensor_form():
+    """body_terms' CPU loop (no graph wanted) equals its tensor form (taken when q needs a graph) at every order:
+    inertia of translations and of rotations (a full second moment), gravity, force and torque."""
+    from cfd_torch.sim.energy import body_terms
+
+    g = torch.Generator().manual_seed(6)
+    E = 7
+    q = torch.randn(E, 6, generator=g, dtype=F64)
+    q_t = q + 0.01 * torch.randn(E, 6, generator=g, dtype=F64)
+    q_p = q_t + 0.01 * torch.randn(E, 6, generator=g, dtype=F64)
+    force, torque = torch.randn(E, 3, generator=g, dtype=F64), torch.randn(E, 3, generator=g, dtype=F64)
+    mass = torch.rand(E, generator=g, dtype=F64) + 0.5
+    A = torch.randn(E, 3, 3, generator=g, dtype=F64)
+    S = A @ A.transpose(1, 2)
+    gravity = torch.tensor([0.0, 0.0, -9.81], dtype=F64)
+    for order in (0, 1, 2):
+        fast = body_terms(q, q_t, q_p, force, torque, mass, S, gravity, 0.01, order)
+        with torch.enable_grad():
+            ref = body_terms(
+                q.clone().requires_grad_(), q_t, q_p, force, torque, mass, S, gravity, 0.01, order
+            )
+        for k, (x, y) in enumerate(zip(fast, ref, strict=True)):
+            assert (x is None) == (y is None) == (k > order)
+            if x is not None:
+                assert float(x.abs().max()) > 0
+                torch.testing.assert_close(x, y.detach(), rtol=0.0, atol=1e-15 * float(y.abs().max()))
+
+
 def test_warm_start_tables_merge_with_the_newer_plane_winning():
     """The step's warm-start table merges each evaluation's sorted (key, plane) table into its own: every key of
     both once, sorted, with the newer plane where both have it."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from ..contact.model import LaggedContacts, sum_pairs
@@ -184,6 +185,14 @@ def _axial(M: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _numba_body_terms(*xs) -> bool:
+    """Whether :func:`body_terms` can run as its numba kernel: CPU float64 tensors, none of them needing a graph."""
+    ts = [x for x in xs if isinstance(x, torch.Tensor)]
+    if not all(x.device.type == "cpu" and x.dtype == torch.float64 for x in ts):
+        return False
+    return not (torch.is_grad_enabled() and any(x.requires_grad for x in ts))
+
+
 def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     """Inertia, gravity and actuation of E dynamic bodies (pose rows (E, 6)): values (E,), grad (E, 6), Hessian
     (E, 6, 6).
@@ -192,9 +201,23 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
 
     E is a handful of bodies, so the cost is the number of tensor ops: R and its derivatives go through the
     products they share as one stack of 3 x 3 matrices Rk = [R, dR_k (k = 0..2), d2R_kl (kl = 00..22)] (up to the
-    order), each product summing in the same order as the per-term products would.
+    order), each product summing in the same order as the per-term products would. On the CPU in float64 without
+    a graph to record, one numba loop (``_body_numba``) computes the same.
     """
     E = q.shape[0]
+    if _numba_body_terms(q, q_t, q_p, force, torque, mass, S, gravity):
+        from ._body_numba import body_terms_kernel
+
+        value = q.new_empty(E)
+        grad = q.new_empty(E if order >= 1 else 0, 6)
+        hess = q.new_empty(E if order >= 2 else 0, 6, 6)
+        g = gravity.numpy() if isinstance(gravity, torch.Tensor) else np.asarray(gravity, dtype=np.float64)
+        body_terms_kernel(
+            q.contiguous().numpy(), q_t.contiguous().numpy(), q_p.contiguous().numpy(), force.contiguous().numpy(),
+            torque.contiguous().numpy(), mass.contiguous().numpy(), S.contiguous().numpy(), g, float(dt), order,
+            value.numpy(), grad.numpy(), hess.numpy(),
+        )  # fmt: skip
+        return value, (grad if order >= 1 else None), (hess if order >= 2 else None)
     R, dR, d2R = rotation_derivatives(q[:, 3:], order)
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
     b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]

@@ -122,20 +122,25 @@ def _restricted(
 ):
     """The value and rounding scale of the terms of ``ev``'s scenes ``rows`` (A,) (evaluated over a superset of
     bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of
-    ``others`` (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move).
-    Only the per-body and per-pair values are read (not the rows of the whole evaluation)."""
+    ``others`` (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move);
+    third, with ``others``, the value with those pairs included (else None). Only the per-body and per-pair values
+    are read (not the rows of the whole evaluation)."""
     A, M = act.shape
     ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
     pb = torch.where(pair_bodies >= 0, pair_bodies, M)
     on = ext[:, pb[:, 0]] | ext[:, pb[:, 1]]  # (A, P)
+    zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
+    own = torch.where(act, ev.body_value[rows], zero).sum(1)
+    pair_value = ev.pair_value[rows]
+    every = None
     if others is not None:
+        every = own + torch.where(on, pair_value, zero).sum(1)
         oth = torch.cat([others, others.new_zeros(A, 1)], 1)
         on = on & ~(oth[:, pb[:, 0]] | oth[:, pb[:, 1]])
-    zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
-    own = torch.where(act, ev.body_value[rows], zero)
-    pv = torch.where(on, ev.pair_value[rows], zero)
-    value = own.sum(1) + pv.sum(1)
-    return value, value.abs() + own.abs().sum(1) + 2.0 * pv.abs().sum(1)
+    pv = torch.where(on, pair_value, zero)
+    value = own + pv.sum(1)
+    own_abs = torch.where(act, ev.body_value[rows].abs(), zero).sum(1)
+    return value, value.abs() + own_abs + 2.0 * pv.abs().sum(1), every
 
 
 def newton(
@@ -276,7 +281,7 @@ def newton(
                 act[sc] = act[sc] & ~frz
                 whole[sc] = whole[sc] & ~frz.any(1)
                 p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
-                value, scale = _restricted(cur, sc, act[sc], pair_bodies)
+                value, scale, _ = _restricted(cur, sc, act[sc], pair_bodies)
                 cur.value[sc], cur.scale[sc] = value, scale
                 L = L.clone()
                 L[k] = value
@@ -301,8 +306,8 @@ def newton(
         slope = (g[gs] * gp).sum(1)
         if freeze:
             others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
-            L0, scale0 = _restricted(cur, idx[gs], gm, pair_bodies, others)
-            cross0 = _restricted(cur, idx[gs], gm, pair_bodies)[0] - L0  # its pairs with the other islands
+            L0, scale0, every0 = _restricted(cur, idx[gs], gm, pair_bodies, others)
+            cross0 = every0 - L0  # its pairs with the other islands
         else:
             L0, scale0 = L, cur.scale[idx]
         noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
@@ -331,8 +336,7 @@ def newton(
             if k == 0:
                 full = ev
             if freeze:
-                L_try = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies, others[sub])[0]
-                with_others = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies)[0]
+                L_try, _, with_others = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies, others[sub])
                 # feasible: all its pairs finite, those with the other islands too
                 feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
