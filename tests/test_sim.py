@@ -662,6 +662,17 @@ def test_body_terms_in_numba_equal_the_tensor_form():
             if x is not None:
                 assert float(x.abs().max()) > 0
                 torch.testing.assert_close(x, y.detach(), rtol=0.0, atol=1e-15 * float(y.abs().max()))
+    # a forward-mode tangent takes the tensor form (the kernel would drop it): the value's derivative along the
+    # force is minus the displacement it works over
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        v = body_terms(
+            q, q_t, q_p, fwAD.make_dual(force, torch.ones_like(force)), torque, mass, S, gravity, 0.01, 0
+        )[0]
+        tangent = fwAD.unpack_dual(v).tangent
+    assert tangent is not None
+    torch.testing.assert_close(tangent, -(q - q_t)[:, :3].sum(1), rtol=1e-12, atol=0.0)
 
 
 def test_warm_start_tables_merge_with_the_newer_plane_winning():

@@ -274,8 +274,12 @@ def _refine(Xo, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, 
                 acc -= sg * B[k, a] / (s[k] * s[k])
             m[a] = -acc
         shift = 0.0
-        while not _cholesky4(Hq, L, Li, shift) and shift < 1.0:
+        factored = _cholesky4(Hq, L, Li, shift)
+        while not factored and shift < 1.0:
             shift = 16 * 2.220446049250313e-16 if shift == 0.0 else shift * 16.0
+            factored = _cholesky4(Hq, L, Li, shift)
+        if not factored:
+            break
         _chol_solve4(L, Li, m, step)  # in the eigenbasis
         big = 0.0
         for i in range(4):  # the step in (n, d), into m

@@ -264,13 +264,16 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
         take = spd & (Et <= Ec + e_res)
         Pc = torch.where(take[:, None], trial, Pc)
         Ec = torch.where(take, Et, Ec)
-        _, H, _, s, _, _, _ = plane_grad_hess(Xc, Pc, half_delta, lam)
-        # (_pair_numba._conditioning: max_k |n| |x_k| / s_k)
+        # the ill-conditioned pairs (``_pair_numba._conditioning``, max_k |n| |x_k| / s_k, then E_pp's pivots)
+        s = gaps(Xc, Pc, half_delta)
         cond = (
             torch.linalg.vector_norm(Pc[:, None, :3], dim=-1) * torch.linalg.vector_norm(Xc, dim=-1) / s
         ).amax(-1)
-        ill = (cond > _REFINE_KAPPA) & _ill_conditioned(H)
-        if bool(ill.any()):
+        ill = torch.nonzero(cond > _REFINE_KAPPA).squeeze(-1)
+        if ill.numel():
+            H = plane_grad_hess(Xc[ill], Pc[ill], half_delta, lam)[1]
+            ill = ill[_ill_conditioned(H)]
+        if ill.numel():
             Pc[ill], Ec[ill] = _refine(Xc[ill], Pc[ill], Ec[ill], half_delta, lam)
         P[conv], E[conv] = Pc, Ec
     return P, E, status, resid, o, X

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from .._autograd import tracked
 from ..contact.model import LaggedContacts, sum_pairs
 from ..rotation import rotation_derivatives, rotation_matrix
 from .friction import friction_by_pair
@@ -186,11 +187,12 @@ def _axial(M: torch.Tensor) -> torch.Tensor:
 
 
 def _numba_body_terms(*xs) -> bool:
-    """Whether :func:`body_terms` can run as its numba kernel: CPU float64 tensors, none of them needing a graph."""
+    """Whether :func:`body_terms` can run as its numba kernel: CPU float64 tensors, none of them tracked (a graph to
+    record, a torch.func transform or a forward-mode tangent: ``_autograd.tracked``)."""
     ts = [x for x in xs if isinstance(x, torch.Tensor)]
     if not all(x.device.type == "cpu" and x.dtype == torch.float64 for x in ts):
         return False
-    return not (torch.is_grad_enabled() and any(x.requires_grad for x in ts))
+    return not any(tracked(x) for x in ts)
 
 
 def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
