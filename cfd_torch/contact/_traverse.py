@@ -185,7 +185,9 @@ def _traverse_cpu(
     forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess, hint
 ):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
-    weights' Hessians stay in the kernel's weight table: ``ld2w`` is None) and that table (lwid, wv, wd1, wd2).
+    weights' Hessians stay in the kernel's weight tables: ``ld2w`` is None) and those tables: (the leaves' entries
+    lwid in the concatenated table, each part's table (wv, wd1, wd2) as the kernel wrote it, the parts' leaf bounds,
+    the parts' offsets in the concatenation).
     ``hint``: the leaf pairs of earlier evaluations of the same step, or None (see :func:`_node_threads`).
 
     Several body pairs are traversed by up to four threads, each taking every n-th pair (the kernel is serial
@@ -230,8 +232,12 @@ def _traverse_cpu(
     else:
         chunks = [torch.arange(i, P, k) for i in range(k)]
         parts = list(zip(chunks, _pool().map(run, chunks), strict=True))
-    cols: list[list[torch.Tensor]] = [[] for _ in range(7)]  # LI, LJ, lp, lwid, wv, wd1, wd2
+    cols: list[list[torch.Tensor]] = [[] for _ in range(6)]  # LI, LJ, lp, lwid, wv, wd1
     bounds = [0]  # each part's leaves: [bounds[i], bounds[i + 1]) (their body pairs are the part's only)
+    offsets = []  # each part's first entry in the concatenated weight table (wv, wd1)
+    # each part's own table (wv, wd1, wd2) for the leaf accumulation: the weight Hessians are not concatenated
+    # (several MB per evaluation on a rack of balls)
+    tables = []
     n_pairs = 0
     offset = 0
     for rows, ((LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_p), v, g, h) in parts:
@@ -246,15 +252,17 @@ def _traverse_cpu(
         for c, x in zip(
             cols,
             (torch.from_numpy(LI[:n]), torch.from_numpy(LJ[:n]), lp_t if rows is None else rows[lp_t],
-             torch.from_numpy(lwid[:n]) + offset, torch.from_numpy(wv), torch.from_numpy(wd1), torch.from_numpy(wd2)),
+             torch.from_numpy(lwid[:n]) + offset, torch.from_numpy(wv), torch.from_numpy(wd1)),
             strict=True,
         ):  # fmt: skip
             c.append(x)
+        offsets.append(offset)
+        tables.append((wv, wd1, wd2))
         offset += wv.shape[0]
         n_pairs += int(n_p)
         bounds.append(bounds[-1] + n)
-    LI, LJ, lp, wid, wv, wd1, wd2 = (_cat(c) for c in cols)
-    table = (wid, wv, wd1, wd2, bounds)
+    LI, LJ, lp, wid, wv, wd1 = (_cat(c) for c in cols)
+    table = (wid, tables, bounds, offsets)
     leaves = []
     if wid.numel():
         leaves.append((LI, LJ, lp, wv[wid], wd1[wid] if order >= 1 else None, None))
@@ -471,7 +479,7 @@ def traverse(
                     for x in warm_table(keys.numpy(), pv.numpy(), Pl.contiguous().numpy(), sol.centre.numpy())
                 )
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
-            lwid, wv, wd1, wd2, bounds = wtable
+            lwid, tables, bounds, offsets = wtable
             gx = gx if gx is not None else z.reshape(0, 18)
             per_leaf = [lp, lwid, pv, gx, WT, gaps, Pl, Xa, Xb, ba, bb]
             shared = (
@@ -481,14 +489,12 @@ def traverse(
                 hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
             )  # fmt: skip
 
-            def accumulate(part: tuple[int, int]) -> None:
-                a, b = part
+            def accumulate(part: tuple[int, int, int]) -> None:
+                a, b, i = part  # the leaves of part i, with its own weight table
                 x = [t[a:b].numpy() if t.shape[0] else t.numpy() for t in per_leaf]
-                accumulate_leaves_lowrank(
-                    x[0], x[1], wv.numpy(), wd1.numpy(), wd2.numpy(), *x[2:], *shared
-                )  # fmt: skip
+                accumulate_leaves_lowrank(x[0], x[1] - offsets[i], *tables[i], *x[2:], *shared)
 
-            parts = [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+            parts = [(a, b, i) for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)) if b > a]
             if len(parts) > 1:  # the parts' body pairs are disjoint: their rows of value/grad/hess too
                 list(_pool().map(accumulate, parts))
             elif parts:
