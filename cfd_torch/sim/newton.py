@@ -130,7 +130,8 @@ def _restricted(
     pb = torch.where(pair_bodies >= 0, pair_bodies, M)
     on = ext[:, pb[:, 0]] | ext[:, pb[:, 1]]  # (A, P)
     zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
-    own = torch.where(act, ev.body_value[rows], zero).sum(1)
+    body_value = ev.body_value[rows]
+    own = torch.where(act, body_value, zero).sum(1)
     pair_value = ev.pair_value[rows]
     every = None
     if others is not None:
@@ -139,7 +140,7 @@ def _restricted(
         on = on & ~(oth[:, pb[:, 0]] | oth[:, pb[:, 1]])
     pv = torch.where(on, pair_value, zero)
     value = own + pv.sum(1)
-    own_abs = torch.where(act, ev.body_value[rows].abs(), zero).sum(1)
+    own_abs = torch.where(act, body_value.abs(), zero).sum(1)
     return value, value.abs() + own_abs + 2.0 * pv.abs().sum(1), every
 
 
