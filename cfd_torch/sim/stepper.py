@@ -79,6 +79,7 @@ def _solve(
     )  # fmt: skip
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     moved[scene.kinematics.bodies] = True
+    moved[scene.kinematic] = True
     q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
     q_next = _shift(torch.where(moved, recentre_rotation(q_next), q_next), c)
     ones = torch.ones_like(iters)
@@ -166,8 +167,10 @@ def step(
         return_info: also return the :class:`StepInfo` (solver statistics, end-of-step forces).
 
     Returns:
-        The next State(q_next, q): dynamic rows solved, kinematic rows at their targets, static rows unchanged,
-        rotation vectors re-centred when |omega| > pi; with ``return_info``, (State, StepInfo).
+        The next State(q_next, q): dynamic rows solved, kinematic rows at their targets (the step turns a
+        kinematic body the short way to its target's rotation, whichever of the equivalent rotation vectors omega
+        and omega - 2 pi omega / |omega| the target is written as), static rows unchanged, rotation vectors of the
+        moving rows re-centred when |omega| > pi; with ``return_info``, (State, StepInfo).
 
     Raises:
         ValueError: bad shapes, dtypes, devices or NaN/inf inputs (naming the argument), a start state that
@@ -230,6 +233,10 @@ def step(
             links = scene.kinematic_link_poses(joints, _batch(state.q, B)).to(dtype)
         target = torch.cat([target, links], 1)
     if action.target is not None or action.joints is not None:
+        # each target rotation on the rotation-vector branch of the body's pose now (the same rotation): the step
+        # moves kinematic coordinates along straight lines (the path checks, the push-out continuation, sub-steps),
+        # so a turn across |omega| = pi given as omega - 2 pi omega / |omega| would be a turn of almost 2 pi back
+        target = _unwrap_previous(target, _batch(state.q, B)[:, kin].to(target.dtype))
         check_targets_clear(scene, _batch(state.q, B), target)
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque = _batch(force, B), _batch(torque, B)
