@@ -115,7 +115,10 @@ class CubesCore(TaskCore):
         raise NotImplementedError(f"{type(self).__name__} must define _goal_obs")
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        body = [3.0, 3.0, 20.0, 20.0]  # xy within the 6 x 6 m floor, planar velocities [m/s]
+        # xy: the pusher starts within the spread and runs at up to max_speed (twice that, for the PD law's
+        # overshoot) for the whole horizon, off the floor's edge if told to (it hovers); cubes go where it pushes them
+        reach = self.spread + 2.0 * self.pusher.max_speed * self.horizon * self.scene.dt + 1.0
+        body = [reach, reach, 20.0, 20.0]  # xy [m], planar velocities [m/s]
         extra = self.obs_dim - 4 * (self.num_cubes + 1)
         high = torch.tensor(body * (self.num_cubes + 1) + [3.0] * extra, dtype=torch.float64)
         return -high, high

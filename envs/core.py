@@ -129,6 +129,14 @@ class StepOut(NamedTuple):
     info: dict[str, torch.Tensor]
 
 
+def _generator_seed(seed: int) -> int:
+    """The seed for torch's CPU generator, which keeps only a seed's low 32 bits: seeds in [0, 2^32) unchanged,
+    others (larger or negative) hashed to 32 bits (numpy's SeedSequence)."""
+    if 0 <= seed < 2**32:
+        return seed
+    return int(np.random.SeedSequence(seed % 2**128).generate_state(1)[0])
+
+
 class TaskCore(abc.ABC):
     """A task over the differentiable simulator: subclasses build ``self.scene`` and define the abstract methods.
 
@@ -259,7 +267,8 @@ class TaskCore(abc.ABC):
     def reset(self, seed: int | Sequence[int], batch_size: int | None = None) -> EnvState:
         """Initial states of B environments: environment i drawn with seed ``seed + i`` (an int; ``batch_size``
         environments, default 1) or ``seed[i]`` (a sequence of B ints), as Gymnasium's SyncVectorEnv seeds its
-        copies."""
+        copies. Any int seeds (torch's generator takes 32 bits: seeds outside [0, 2^32) are hashed to 32 bits, so
+        that seed + 2^32 is not seed again; there are 2^32 distinct draws)."""
         if isinstance(seed, bool) or not isinstance(seed, (int, Sequence)):
             raise TypeError(f"seed must be an int or a sequence of ints, got {seed!r}")
         if isinstance(seed, int):
@@ -273,7 +282,7 @@ class TaskCore(abc.ABC):
                 raise ValueError(f"seed has {len(seeds)} entries but batch_size is {batch_size}")
         parts = []
         for s in seeds:
-            gen = torch.Generator().manual_seed(s)
+            gen = torch.Generator().manual_seed(_generator_seed(s))
             parts.append(self._initial(gen))
         q = torch.stack([p[0] for p in parts])
         q_prev = torch.stack([p[1] for p in parts])
@@ -285,7 +294,8 @@ class TaskCore(abc.ABC):
 
         Args:
             state: the current :class:`EnvState` (B environments).
-            action: (B, A) actions, each component in [-1, 1] (values outside are clipped).
+            action: (B, A) actions, each component in [-1, 1] (the physics sees values outside clipped; the
+                reward's action cost is of the action as given, as in Gymnasium's MuJoCo tasks).
             params: the simulator's differentiable physical parameters (``core.scene.params()``), or None.
 
         Raises:

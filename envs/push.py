@@ -93,9 +93,13 @@ class PushCore(BoxToTargetCore):
         return torch.cat([state.q[:, 0], v[:, 0], state.q[:, 1], v[:, 1], state.task["target"]], 1)
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        half = self.distance + 2.0  # the floor's half width [m]
-        pose = [half, half, 2.0, 4.0, 4.0, 4.0]  # rotation vectors are re-centred below pi
-        vel = [20.0] * 6
+        # xy: the pole starts within 0.7 m of the box and runs at up to max_speed (twice that, for the PD law's
+        # overshoot) for the whole horizon; the box goes where it is pushed, and falls if pushed off the floor
+        T = self.horizon * self.scene.dt
+        half = max(self.distance + 2.0, 0.7 + 2.0 * self.pusher.max_speed * T + 1.0)
+        g = -float(self.scene.gravity[2])
+        pose = [half, half, 2.0 + 0.5 * g * T * T, 4.0, 4.0, 4.0]  # rotation vectors are re-centred below pi
+        vel = [20.0, 20.0, 20.0 + g * T] + [20.0] * 3
         high = torch.tensor(pose + vel + pose + vel + [half, half], dtype=torch.float64)
         return -high, high
 

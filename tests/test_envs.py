@@ -89,6 +89,35 @@ def test_gymnasium_check_env(env_id):
     env.close()
 
 
+def test_observations_stay_within_the_declared_bounds_when_the_pusher_runs_away():
+    """Sort's pusher driven straight at full speed leaves the floor behind (it hovers): its position passes 3 m (the
+    floor's half width, the old bound of the positions, crossed at step 231 of 300 at dt = 0.01; Gather shares the
+    scene) and every observation stays inside observation_bounds. dt = 0.02 gets there in half the steps."""
+    core = make_core("cfd_torch/Sort-v0", dt=0.02)
+    low, high = core.observation_bounds()
+    s = core.reset(0, 1)
+    far = 0.0
+    for _ in range(160):
+        out = core.step(s, torch.tensor([[0.0, 1.0]], dtype=F64))
+        s = out.state
+        assert bool(((out.obs >= low) & (out.obs <= high)).all())
+        far = max(far, float(s.q[0, core.action_body, 1]))
+    assert far > 3.1
+
+
+def test_seeds_beyond_32_bits_do_not_alias_small_ones():
+    """torch's generator keeps a seed's low 32 bits: the core hashes larger seeds first (the Gymnasium shells draw
+    core seeds up to 2^62), so seed + 2^32 is another draw, and seeds below 2^32 keep their draws."""
+    core = make_core("cfd_torch/Push-v0")
+    a, b = core.reset(7), core.reset(7 + 2**32)
+    assert float((a.q - b.q).abs().max()) > 1e-3
+    pair = core.reset(2**32 - 1, batch_size=2)  # environment 1 has seed 2^32
+    assert float((pair.q[1] - core.reset(0).q[0]).abs().max()) > 1e-3
+    gen = torch.Generator().manual_seed(7)  # a small seed: torch's own draw, as before
+    first = core._initial(gen)[0]
+    torch.testing.assert_close(a.q[0], first, rtol=0.0, atol=0.0)
+
+
 def test_seeding_is_deterministic_and_seeds_differ():
     a, b = gym.make("cfd_torch/Push-v0"), gym.make("cfd_torch/Push-v0")
     oa, _ = a.reset(seed=7)
