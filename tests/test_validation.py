@@ -120,6 +120,17 @@ def test_bsh_build_names_nan_vertices():
         BSH.build(V, box.faces)
 
 
+def test_mesh_potential_poses_must_share_a_dtype_and_device():
+    from cfd_torch import mesh_potential
+
+    bsh = BSH.from_trimesh(trimesh.creation.box((0.1, 0.1, 0.1)))
+    pose = torch.tensor([0.3, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64)
+    with _raises("pose_a and pose_b must share a dtype"):
+        mesh_potential(bsh, torch.zeros(6, dtype=F32), bsh, pose)
+    with _raises("pose_a and pose_b must be on one device"):
+        mesh_potential(bsh, torch.zeros(6, dtype=F64, device=META), bsh, pose)
+
+
 def test_non_mesh_is_a_type_error():
     with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
         rigid_body(np.zeros((4, 3)))

@@ -81,6 +81,13 @@ def _check_params(mu, margin, eps, split):
 def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
     if not isinstance(bsh_a, BSH) or not isinstance(bsh_b, BSH):
         raise TypeError("bsh_a and bsh_b must be cfd_torch.BSH")
+    if isinstance(pose_a, torch.Tensor) and isinstance(pose_b, torch.Tensor):
+        if pose_a.dtype != pose_b.dtype:
+            raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
+        if pose_a.device != pose_b.device:
+            raise ValueError(
+                f"pose_a and pose_b must be on one device, got {pose_a.device} and {pose_b.device}"
+            )
     _check_pose(pose_a, "pose_a")
     _check_pose(pose_b, "pose_b")
     try:
