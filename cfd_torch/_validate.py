@@ -114,7 +114,7 @@ def _triangle_codes_nb(tri, tol, code):
 
 def check_positive(value: float, name: str) -> None:
     if not (isinstance(value, (int, float)) and value > 0 and value < float("inf")):
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+        raise ValueError(f"{name} must be a finite positive Python int or float, got {value!r}")
 
 
 _triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)

@@ -131,6 +131,21 @@ def test_mesh_potential_poses_must_share_a_dtype_and_device():
         mesh_potential(bsh, torch.zeros(6, dtype=F64, device=META), bsh, pose)
 
 
+def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
+    from cfd_torch import contact_potential
+
+    bsh = BSH.from_trimesh(trimesh.creation.box((0.1, 0.1, 0.1)))
+    poses = torch.tensor([[0.0] * 6, [0.3, 0, 0, 0, 0, 0], [0.6, 0, 0, 0, 0, 0]], dtype=F64)
+    with _raises(r"bshes\[1\] must be a cfd_torch.BSH, got str"):
+        contact_potential([bsh, "box", bsh], poses)
+    with _raises("bshes must be a sequence of N = 3 BSH objects"):
+        contact_potential([bsh, bsh], poses)
+    with _raises("poses must hold at least one body"):
+        contact_potential([], torch.zeros(0, 6, dtype=F64))
+    with _raises("mu must be a finite positive Python int or float"):
+        contact_potential([bsh] * 3, poses, mu=np.float32(1e-3))
+
+
 def test_non_mesh_is_a_type_error():
     with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
         rigid_body(np.zeros((4, 3)))

@@ -73,7 +73,7 @@ def _check_pose(pose: object, name: str) -> None:
 def _check_params(mu, margin, eps, split):
     for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
         if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
-            raise ValueError(f"{n} must be a finite positive number, got {v!r}")
+            raise ValueError(f"{n} must be a finite positive Python int or float, got {v!r}")
     if split not in SPLIT_RULES:
         raise ValueError(f"split must be one of {SPLIT_RULES}, got {split!r}")
 

@@ -130,8 +130,15 @@ def contact_potential(
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
     refuse_vmap("contact_potential", poses)
     N = poses.shape[0]
-    if len(bshes) != N or not all(isinstance(b, BSH) for b in bshes):
-        raise ValueError(f"bshes must be a sequence of N = {N} BSH objects, got {len(bshes)}")
+    if N == 0:
+        raise ValueError("poses must hold at least one body, got a (0, 6) tensor")
+    if len(bshes) != N:
+        raise ValueError(
+            f"bshes must be a sequence of N = {N} BSH objects (one per row of poses), got {len(bshes)}"
+        )
+    for i, b in enumerate(bshes):
+        if not isinstance(b, BSH):
+            raise ValueError(f"bshes[{i}] must be a cfd_torch.BSH, got {type(b).__name__}")
     if not poses.is_floating_point():
         raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
     with outside_transforms():
