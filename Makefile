@@ -1,5 +1,8 @@
 # Two commands do all set-up on a fresh machine:  `make demo`  and  `make test`.
 PY ?= python3
+# Extra pip options for torch: empty here (this machine's pip finds a local CPU wheel); elsewhere the CPU build is
+# `make test TORCH_PIP="--index-url https://download.pytorch.org/whl/cpu"` (else pip fetches the multi-GB CUDA one)
+TORCH_PIP ?=
 VENV := .venv
 BIN := $(VENV)/bin
 
@@ -8,8 +11,8 @@ BIN := $(VENV)/bin
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	# The local CPU wheel; an unpinned torch would download a multi-GB CUDA build.
-	$(BIN)/python -m pip install -q torch==2.13.0
+	# torch pinned first (the CPU build; an unpinned torch would download a multi-GB CUDA build)
+	$(BIN)/python -m pip install -q $(TORCH_PIP) torch==2.13.0
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $@
 
