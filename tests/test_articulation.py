@@ -792,7 +792,16 @@ def test_closed_form_derivatives_match_torch_func(which):
     assert (J - J_ref).abs().max() < 1e-10
     assert (second - second_ref).abs().max() < 1e-10
     assert torch.equal(_fk_derivatives(art, q, fixed, lo, None)[0], J)
-    assert torch.allclose(_joint_values(art, _fk_rows(art, q, fixed)), q, rtol=0.0, atol=1e-12)  # the inverse
+    # the inverse: the same coordinates, a hinge's up to whole turns (its value comes back in the turn centred on
+    # its range, or its ref), the Ant's drawn beyond their ranges too
+    back = _joint_values(art, _fk_rows(art, q, fixed))
+    diff = back - q
+    nj, hinge = art.num_joints, torch.tensor([k == "hinge" for k in art.joint_kind])
+    turns = diff[:, -nj:][:, hinge] / (2 * math.pi)
+    diff[:, -nj:][:, hinge] = 0.0 if turns.numel() == 0 else (turns - turns.round()) * 2 * math.pi
+    assert diff.abs().max() < 1e-12
+    centre = torch.as_tensor(art.centre)[hinge]
+    assert ((back[:, -nj:][:, hinge] - centre).abs() <= math.pi + 1e-12).all()
 
 
 @pytest.mark.slow
@@ -926,3 +935,122 @@ def test_numba_frames_equal_the_torch_chain_on_trees_with_anchors_and_refs(which
         )
     assert float(Sr.abs().max()) > 0.1
     assert float((J - Jr).abs().max()) < 1e-12 and float((S - Sr).abs().max()) < 1e-11
+
+
+# ------------------------------------------------------------------------------------------------ audit regressions
+def _arm_xml(joint: str = "", actuator: str = "", extra: str = "") -> str:
+    """A 0.5 m capsule arm on a hinge about y, hung from a joint-less base at z = 1 (a fixed base)."""
+    return f"""<mujoco><worldbody><body name="base" pos="0 0 1"><geom type="sphere" size="0.05"/>
+      <body name="arm"><joint name="j" type="hinge" axis="0 1 0" {joint}/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/></body></body></worldbody>
+      <actuator>{actuator}</actuator>{extra}</mujoco>"""
+
+
+def test_servo_past_pi_on_an_unlimited_hinge_settles_instead_of_spinning():
+    """A position servo (kp 20, kv 0.3) toward 3.0 rad on an unlimited hinge, no gravity: the swing overshoots past
+    pi and rings down to 3.0 (MuJoCo: 3.004 at 4 s). Before, the servo's spring was cut at ref + pi, its force
+    flipped there, and the arm spun on (unwrapped angle 137 rad at 4 s); a joint spring toward 4.0 rad settles at
+    4.0 - 2 pi, the same angle reached the short way."""
+    from cfd_torch.sim.articulation import articulation
+
+    for joint, act, ctrl, goal in (
+        ("", '<position joint="j" kp="20" kv="0.3"/>', [3.0], 3.0),
+        ('stiffness="20" springref="229.18" damping="0.3"', "", [], 4.0 - 2 * math.pi),  # degrees: 4.0 rad
+    ):
+        art = articulation(_arm_xml(joint, act))
+        scene = Scene([], articulations=[art], gravity=(0.0, 0.0, 0.0))
+        q0 = art.poses(torch.tensor([0.0], dtype=F64))
+        traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=torch.tensor(ctrl, dtype=F64))] * 300)
+        th = np.unwrap(scene.kinematics.coords(traj.q)[:, 0].numpy())
+        assert th.max() < 2 * math.pi  # never a whole turn
+        assert (
+            abs(math.remainder(th[-1] - goal, 2 * math.pi)) < 0.05
+        )  # 3 s: settled (2.99 and -2.283 measured)
+
+
+def test_hinge_ranges_beyond_pi_from_ref():
+    """A range of 0..300 degrees: a state at 4.0 rad reads back as 4.0 and steps (before: -2.28, below the range,
+    and StepError); a range of +-200 degrees (wider than a turn) is refused by name."""
+    from cfd_torch.sim.articulation import articulation
+
+    art = articulation(_arm_xml('range="0 300"'))
+    scene = Scene([], articulations=[art], gravity=(0.0, 0.0, 0.0))
+    q0 = art.poses(torch.tensor([4.0], dtype=F64))
+    assert abs(float(scene.kinematics.coords(q0[None])[0, 0]) - 4.0) < 1e-12
+    step(scene, State(q0, q0.clone()))
+    with pytest.raises(ValueError, match="hinge joint 'j' has the range .* wider than 2 pi"):
+        articulation(_arm_xml('range="-200 200"'))
+
+
+def test_joint_outside_its_limits_is_refused_by_name():
+    """Gymnasium's Ant at its MJCF pose (every joint 0) has its ankles outside their 30-70 degree ranges: a
+    ValueError names the joint (before: StepError "infeasible Newton start")."""
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    ant = articulation(gymnasium_ant_xml())
+    scene = Scene([], articulations=[ant], gravity=(0.0, 0.0, 0.0))
+    q = ant.poses(torch.zeros(8, dtype=F64), torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=F64))
+    with pytest.raises(ValueError, match="state.q: joint 'ant/ankle_1' is at 0, outside its range"):
+        step(scene, State(q, q.clone()))
+
+
+def test_mjcf_physics_the_step_does_not_model_is_refused():
+    from cfd_torch.sim.articulation import articulation
+
+    two = """<mujoco><worldbody><body name="b" pos="0 0 1"><geom type="sphere" size="0.05"/>
+      <body name="a1"><joint name="j1" type="hinge" axis="0 1 0" {j1}/><geom type="capsule" fromto="0 0 0 0 0 -0.5"
+      size="0.03"/><body name="a2" pos="0 0 -0.5"><joint name="j2" type="hinge" axis="0 1 0"/><geom type="capsule"
+      fromto="0 0 0 0 0 -0.4" size="0.03"/></body></body></body></worldbody>{extra}</mujoco>"""
+    cases = [
+        ('frictionloss="50"', "", "joint 'j1': frictionloss is not supported"),
+        ('actuatorfrcrange="-0.1 0.1"', '<actuator><motor joint="j1"/></actuator>', "actuatorfrcrange"),
+        ("", '<equality><joint joint1="j2" joint2="j1"/></equality>', "<equality> constraints"),
+        (
+            "",
+            '<tendon><fixed name="t" limited="true" range="-0.05 0.05"><joint joint="j1" coef="1"/>'
+            '<joint joint="j2" coef="1"/></fixed></tendon>',
+            "tendon 't': tendon limits",
+        ),
+    ]
+    for j1, extra, message in cases:
+        with pytest.raises(ValueError, match=message):
+            articulation(two.format(j1=j1, extra=extra))
+    with pytest.warns(UserWarning, match=r"geoms \['tip'\] have contype = conaffinity = 0"):
+        articulation(_arm_xml().replace('size="0.03"/>', 'size="0.03"/><geom name="tip" type="sphere" '
+                                         'pos="0 0 -0.5" size="0.02" contype="0" conaffinity="0"/>'))  # fmt: skip
+
+
+def test_mjcf_file_with_an_include_next_to_it(tmp_path):
+    from cfd_torch.sim.articulation import articulation
+
+    (tmp_path / "defaults.xml").write_text(
+        '<mujoco><default><joint damping="0.2" armature="0.01"/><geom size="0.03"/></default></mujoco>'
+    )
+    (tmp_path / "robot.xml").write_text(
+        '<mujoco model="inc"><include file="defaults.xml"/><worldbody><body name="base" pos="0 0 1"><geom '
+        'type="sphere" size="0.05"/><body name="arm"><joint name="j" type="hinge" axis="0 1 0"/><geom '
+        'type="capsule" fromto="0 0 0 0 0 -0.5"/></body></body></worldbody></mujoco>'
+    )
+    art = articulation(tmp_path / "robot.xml")
+    assert art.damping.tolist() == [0.2] and art.armature.tolist() == [0.01]
+
+
+def test_articulation_inputs_are_checked():
+    from cfd_torch.sim.articulation import articulation
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    ant = articulation(gymnasium_ant_xml())
+    j = torch.zeros(8, dtype=F64)
+    with pytest.raises(ValueError, match=r"base must be a torch.float64 tensor of shape \(\[B,\] 6\)"):
+        ant.poses(j, torch.zeros(7, dtype=F64))  # a MuJoCo qpos-style quaternion base
+    with pytest.raises(ValueError, match="joints must be a float tensor"):
+        ant.poses(torch.tensor(0.0, dtype=F64))
+    with pytest.raises(ValueError, match="joints contains NaN"):
+        ant.poses(torch.full((8,), math.nan, dtype=F64))
+    scene = Scene([], articulations=[articulation(_arm_xml())], gravity=(0.0, 0.0, 0.0))
+    q = scene.bodies[-1:] and scene.kinematics.poses(
+        torch.zeros(1, 1, dtype=F64), torch.zeros(1, 2, 6, dtype=F64)
+    )
+    with pytest.raises(ValueError, match="action.joints drives kinematic robots"):
+        step(scene, State(q[0], q[0].clone()), Action(joints=torch.zeros(5, 7, dtype=F64)))

@@ -15,15 +15,20 @@ Forward kinematics (MuJoCo's `mj_kinematics`): the frame of link i, whose MJCF b
 
 (the root's parent: the base; a fixed base whose root has joints hangs from its mount), and its state row is the
 pose of its centre of mass, (p_i + R_i com_i, log R_i). The joint values of a state are recovered from each link's
-frame in its parent's (:func:`_joint_values`: hinge angles in ref + (-pi, pi]).
+frame in its parent's (:func:`_joint_values`: a hinge's angle in the turn centred on its range, or on its ref
+without one).
 
 Joint-space terms, for each joint with value theta (theta_t, theta_p: one and two steps earlier)::
 
     armature a (theta - 2 theta_t + theta_p)^2 / (2 dt^2)  +  damping d (theta - theta_t)^2 / (2 dt)
-    + stiffness k (theta - springref)^2 / 2  +  limit barrier  -  tau (theta - theta_t)
+    + stiffness k (theta - springref)^2 / 2  +  sum over its servos kp gear^2 (theta - ctrl / gear)^2 / 2
+    + limit barrier  -  tau (theta - theta_t)
 
-with the position actuators' kp gear^2 theta^2 / 2 and kv gear^2 added to the stiffness and damping, and tau the
-torque of the controls (:meth:`ArticulatedKinematics.ctrl_torque`).
+with the servos' kv gear^2 added to the damping and tau the motors' torque (:meth:`ArticulatedKinematics.drive`).
+A hinge's differences (theta - springref, theta - ctrl / gear, and in time) are taken mod 2 pi: the link poses
+tell its angle only up to whole turns, and a servo or spring then pulls the short way round (in MuJoCo, whose
+qpos counts turns, a servo past pi pulls back the same way; from a state written a turn away, MuJoCo's the long
+way).
 
 The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) = -(s - 1)^2 ln s for 0 < s < 1
 (zero beyond, C2 at s = 1, +inf at s <= 0): a joint never reaches its limit, whatever the torque.
@@ -80,7 +85,8 @@ class Articulation:
     the joint's own spring and damping), so a stiff PD target is stable at any dt.
 
     Joint values are recovered from the link poses of a state (the state rows are the links' poses): a hinge's in
-    ref + (-pi, pi]; for a link with three hinges, the middle one's two solutions are told apart by its range (the
+    the turn centred on its range (so the whole range is inside it; ranges wider than 2 pi are refused), or on its
+    ref without one; for a link with three hinges, the middle one's two solutions are told apart by its range (the
     one inside it), else the one nearer ref (|theta - ref| <= pi / 2). Hinge axes that cannot be told apart
     (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
     """
@@ -139,6 +145,19 @@ class Articulation:
         rng = [j.range if j.range is not None else (-math.inf, math.inf) for j in joints]
         self.lower = np.array([r[0] for r in rng], dtype=float)
         self.upper = np.array([r[1] for r in rng], dtype=float)
+        hinge = np.array([k == "hinge" for k in self.joint_kind], dtype=bool)
+        limited = np.isfinite(self.lower) & np.isfinite(self.upper)
+        for j in np.nonzero(hinge & limited & (self.upper - self.lower > 2 * math.pi))[0]:
+            raise ValueError(
+                f"articulation: hinge joint {self.joint_names[j]!r} has the range [{self.lower[j]:.6g}, "
+                f"{self.upper[j]:.6g}] rad, wider than 2 pi: its angle is read from the link poses, which repeat "
+                "every turn, so its limits could not be told apart"
+            )
+        # the window of a hinge's angle as read from link poses: centre + (-pi, pi], centred on its range (which then
+        # lies inside it) or, without one, on its ref
+        self.centre = self.ref.copy()
+        both = hinge & limited
+        self.centre[both] = 0.5 * (self.lower[both] + self.upper[both])
         self.damping = np.array([j.damping for j in joints], dtype=float)
         self.armature = np.array([j.armature for j in joints], dtype=float)
         self.stiffness = np.array([j.stiffness for j in joints], dtype=float)
@@ -235,12 +254,37 @@ class Articulation:
         """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
         ([B,] 6) of the root link's frame (translation, rotation vector; a fixed base: where its root stands,
         default the origin). A fixed base whose root has joints hangs from its ``mount``: ``base`` must be None."""
+        if (
+            not isinstance(joints, torch.Tensor)
+            or not joints.is_floating_point()
+            or joints.dim() not in (1, 2)
+        ):
+            got = (
+                (joints.dtype, tuple(joints.shape))
+                if isinstance(joints, torch.Tensor)
+                else type(joints).__name__
+            )
+            raise ValueError(f"joints must be a float tensor of shape ([B,] {self.num_joints}), got {got}")
         single = joints.dim() == 1
         th = joints[None] if single else joints
         if th.shape[-1] != self.num_joints:
             raise ValueError(
                 f"joints must hold {self.num_joints} values per robot, got shape {tuple(joints.shape)}"
             )
+        if not bool(torch.isfinite(th.detach()).all()):
+            raise ValueError("joints contains NaN or inf")
+        if base is not None:
+            if not isinstance(base, torch.Tensor) or base.dtype != th.dtype or base.shape[-1:] != (6,):
+                got = (
+                    (base.dtype, tuple(base.shape)) if isinstance(base, torch.Tensor) else type(base).__name__
+                )
+                raise ValueError(
+                    f"base must be a {th.dtype} tensor of shape ([B,] 6) (translation, rotation vector), got {got}"
+                )
+            if base.dim() == 2 and base.shape[0] not in (1, th.shape[0]):
+                raise ValueError(f"base has {base.shape[0]} rows for {th.shape[0]} sets of joints")
+            if not bool(torch.isfinite(base.detach()).all()):
+                raise ValueError("base contains NaN or inf")
         if self.root_moves and base is not None:
             raise ValueError(
                 f"base: {self.name!r} is mounted where its root's joints hang from (articulation(..., mount=)); "
@@ -728,7 +772,7 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     RM = F.transpose(-1, -2) @ R
     pM = mv(F.transpose(-1, -2), p - pp - mv(Rp, as_t(art.offset_p)))
     th = rows.new_zeros(A, art.num_joints)
-    lower, upper, ref = as_t(art.lower), as_t(art.upper), as_t(art.ref)
+    lower, upper, ref, centre = as_t(art.lower), as_t(art.upper), as_t(art.ref), as_t(art.centre)
     axis, anchor = as_t(art.axis), as_t(art.anchor)
     for g in art._groups:
         links, joints = g.links.to(dev), g.joints.to(dev)
@@ -765,13 +809,16 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
             m = hinge_at[1]  # the middle hinge decides where the translation does not
             j = joints[:, m]
             in_1, in_2 = (
-                (v[..., m] + ref[j] >= lower[j]) & (v[..., m] + ref[j] <= upper[j]) for v in (vals, other)
+                (w >= lower[j]) & (w <= upper[j])
+                for w in (centre[j] + _wrap(v[..., m] + ref[j] - centre[j]) for v in (vals, other))
             )
             tol = 1e-9 * (1.0 + target.norm(dim=-1) + anchor[joints].norm(dim=-1).amax(-1))
             prefer = torch.where(in_1 != in_2, in_2, other[..., m].abs() < vals[..., m].abs())
             second = torch.where((res - res2).abs() > tol, res2 < res, prefer)
             vals = torch.where(second[..., None], other, vals)
         th[:, joints] = vals + ref[joints]
+    hinge = torch.as_tensor([k == "hinge" for k in art.joint_kind], device=dev)
+    th = torch.where(hinge, centre + _wrap(th - centre), th)
     if not art.floating:
         return th
     return torch.cat([p[:, 0], rows[:, 0, 3:], th], 1)
@@ -795,12 +842,15 @@ def _limit_barrier(x: torch.Tensor, order: int):
 
 
 class JointDrive(NamedTuple):
-    """What the actuators add to the joint terms, per joint (A, J): the controls' torque, and the servos'
-    stiffness (about zero) and damping."""
+    """What the actuators add to the joint terms: per joint (A, J) the motors' torque and the servos' summed
+    stiffness and damping; per actuator (A, U) each servo's gain kp gear^2 (zero for motors) and target angle
+    ctrl / gear."""
 
     torque: torch.Tensor
     stiffness: torch.Tensor
     damping: torch.Tensor
+    servo_gain: torch.Tensor
+    servo_target: torch.Tensor
 
 
 class ArticulatedKinematics:
@@ -880,6 +930,23 @@ class ArticulatedKinematics:
             parts.append(art.coords(poses[:, r : r + art.num_links]))
         return torch.cat(parts, 1)
 
+    def check_within_limits(self, poses: torch.Tensor, name: str) -> None:
+        """Raise ValueError naming the first joint of the poses (A, N, 6) (``name``: the argument) at or beyond one
+        of its limits, where the step's limit barrier is infinite (MuJoCo accepts such a state and pushes it
+        back)."""
+        th = self.coords(poses)[:, self.joint_index.to(poses.device)]
+        lo = self.joint_data["lower"].to(dtype=th.dtype, device=th.device)
+        hi = self.joint_data["upper"].to(dtype=th.dtype, device=th.device)
+        bad = (th <= lo) | (th >= hi)
+        if bool(bad.any()):
+            a, j = (int(i) for i in torch.nonzero(bad)[0])
+            names = [f"{art.name}/{n}" for art in self.arts for n in art.joint_names]
+            raise ValueError(
+                f"{name}: joint {names[j]!r} is at {float(th[a, j]):.6g}, outside its range ({float(lo[j]):.6g}, "
+                f"{float(hi[j]):.6g}) (the step's limits are barriers; start a joint strictly inside its range)"
+                + (f" (scene {a})" if th.shape[0] > 1 else "")
+            )
+
     def _derivatives(self, q: torch.Tensor, fixed: torch.Tensor, grad: torch.Tensor | None):
         """Per articulation: its moving rows [r0, r1), its coordinates' slice, the Jacobian (A, 6 La, Qa) of those
         rows and, for pose-space gradients grad (A, N, 6), sum_k grad_k d2 row_k / dqa dqa (A, Qa, Qa)."""
@@ -952,23 +1019,30 @@ class ArticulatedKinematics:
         d["pd_stiffness"] = joint.stiffness
         th, tt, tp = q[:, idx], q_t[:, idx], q_p[:, idx]
         hinge = self.hinge.to(q.device)
-        # hinge values are angles: differences taken mod 2 pi (the state's values live in (-pi, pi])
+        # a hinge's value is an angle, known from the link poses only up to whole turns: every term that is not
+        # periodic in it (springs, servos; differences in time) takes the difference mod 2 pi, i.e. the short way
+        # round (a servo past pi pulls back across pi; without this its force would flip there and add energy)
         wrap = lambda x: torch.where(hinge, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
         acc = wrap(th - tt) - wrap(tt - tp)
         vel = wrap(th - tt)
-        spring = th - d["springref"]
+        spring = wrap(th - d["springref"])
+        # the servos, one term each: kp gear^2 (theta - ctrl / gear)^2 / 2 on the joint it drives
+        aj = self.actuator_joint.to(q.device)
+        servo = th[:, aj] - joint.servo_target  # (A, U) (motors: zero gain)
+        servo = torch.where(hinge[aj], torch.remainder(servo + math.pi, 2 * math.pi) - math.pi, servo)
+        vs = th.new_zeros(th.shape).index_add(1, aj, 0.5 * joint.servo_gain * servo**2)
+        gs = th.new_zeros(th.shape).index_add(1, aj, joint.servo_gain * servo)
         vl, gl, hl = _limit_barrier(th - d["lower"], order)
         vu, gu, hu = _limit_barrier(d["upper"] - th, order)
         inv = 1.0 / (dt * dt)
         value = (
             0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2
-            + 0.5 * d["stiffness"] * spring**2 + 0.5 * d["pd_stiffness"] * th**2 + vl + vu - torque * vel
+            + 0.5 * d["stiffness"] * spring**2 + vs + vl + vu - torque * vel
         ).sum(1)  # fmt: skip
         if order == 0:
             return value, None, None
         g = (
-            inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + d["pd_stiffness"] * th
-            + gl - gu - torque
+            inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + gs + gl - gu - torque
         )  # fmt: skip
         grad = q.new_zeros(q.shape).index_add(1, idx, g)
         if order == 1:
@@ -985,8 +1059,9 @@ class ArticulatedKinematics:
 
     def drive(self, ctrl: torch.Tensor, kp: torch.Tensor, kv: torch.Tensor) -> JointDrive:
         """The actuators' joint terms for controls ctrl (A, U) and servo gains kp, kv (A, U) (motors' entries
-        unused): per joint the torque sum gear g clip(ctrl) (g = 1 for a motor, kp for a servo) and the servos'
-        stiffness sum kp gear^2 and damping sum kv gear^2 (A, J). Differentiable in ctrl, kp and kv."""
+        unused): per joint (A, J) the motors' torque sum gear clip(ctrl) and the servos' stiffness sum kp gear^2
+        and damping sum kv gear^2; per actuator (A, U) a servo's gain kp gear^2 and target clip(ctrl) / gear (its
+        force kp (ctrl - gear theta), MuJoCo's position actuator). Differentiable in ctrl, kp and kv."""
         d = {k: v.to(dtype=ctrl.dtype, device=ctrl.device) for k, v in self.actuator_data.items()}
         servo = self.actuator_servo.to(ctrl.device)
         on = servo.to(ctrl.dtype)
@@ -995,9 +1070,11 @@ class ArticulatedKinematics:
         j = self.actuator_joint.to(ctrl.device)
         zero = ctrl.new_zeros(ctrl.shape[0], len(self.joint_index))
         return JointDrive(
-            zero.index_add(1, j, d["gear"] * torch.where(servo, kp, torch.ones_like(kp)) * c),
+            zero.index_add(1, j, (1.0 - on) * d["gear"] * c),
             zero.index_add(1, j, on * kp * g2),
             zero.index_add(1, j, on * kv * g2),
+            on * kp * g2,
+            on * c / d["gear"],
         )
 
     @property

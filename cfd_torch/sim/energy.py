@@ -76,14 +76,17 @@ class StepProblem(NamedTuple):
 
 
 class JointInputs(NamedTuple):
-    """The coordinates one and two steps earlier (B, Q) and the actuators' terms per joint (B, J): the controls'
-    torque and the servos' stiffness and damping (:meth:`ArticulatedKinematics.drive`)."""
+    """The coordinates one and two steps earlier (B, Q) and the actuators' terms (:meth:`ArticulatedKinematics
+    .drive`): per joint (B, J) the motors' torque and the servos' stiffness and damping, per actuator (B, U) each
+    servo's gain and target."""
 
     q_t: torch.Tensor
     q_p: torch.Tensor
     torque: torch.Tensor
     stiffness: torch.Tensor
     damping: torch.Tensor
+    servo_gain: torch.Tensor
+    servo_target: torch.Tensor
 
 
 class EnergyEval(NamedTuple):

@@ -22,7 +22,10 @@ axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agre
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos, compiler options that bound
-masses (`boundmass`, `boundinertia`, `balanceinertia`). Unnamed bodies are named after their parent and their
+masses (`boundmass`, `boundinertia`, `balanceinertia`), and physics the simulator does not model: joint
+`frictionloss` and `actuatorfrcrange`, `<equality>` constraints, tendon limits, stiffness and damping. Geoms with
+`contype` = `conaffinity` = 0 (never collided by MuJoCo) collide here, with a warning: every geom of a link is
+part of its collision mesh. Unnamed bodies are named after their parent and their
 place among its children ("aux_1/0"; `MJCFModel.xml` then holds MuJoCo's own rewrite of the file with those
 names), and `settotalmass` scales the geoms' masses as MuJoCo does.
 """
@@ -33,6 +36,7 @@ import importlib.resources
 import math
 import os
 import re
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
@@ -266,9 +270,16 @@ def load_mjcf(
     if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
         with open(source) as f:
             xml = f.read()
+        try:
+            spec = mujoco.MjSpec.from_string(xml)
+        except ValueError:  # <include> or assets relative to the file: MuJoCo's own rewrite holds them inline
+            spec = mujoco.MjSpec.from_file(str(source))
+            spec.compile()
+            xml = spec.to_xml()
+            spec = mujoco.MjSpec.from_string(xml)
     else:
         xml = str(source)
-    spec = mujoco.MjSpec.from_string(xml)
+        spec = mujoco.MjSpec.from_string(xml)
     if _name_bodies(spec.worldbody):  # the text of the model carries the names given
         spec.compile()
         xml = spec.to_xml()
@@ -286,6 +297,7 @@ def load_mjcf(
     group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
     m = spec.compile()
 
+    _check_model(m)
     root_id = m.body(root).id
     floating, root_pos, root_quat = _root_pose(m, root_id)
 
@@ -431,6 +443,38 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
     c = spec.compiler
     if c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
         raise ValueError("compiler boundmass/boundinertia/balanceinertia are not supported")
+
+
+def _check_model(m: mujoco.MjModel) -> None:
+    """Refuse the compiled model's physics that the simulator does not model (it would be silently absent), and
+    warn of geoms that MuJoCo never collides (here every geom of a link is part of its collision mesh)."""
+    for j in range(m.njnt):
+        name = m.joint(j).name
+        if float(m.dof_frictionloss[m.jnt_dofadr[j]]) > 0:
+            raise ValueError(f"joint '{name}': frictionloss is not supported (dry joint friction)")
+        if bool(m.jnt_actfrclimited[j]):
+            raise ValueError(
+                f"joint '{name}': actuatorfrcrange is not supported (clamp the actuators' ctrlrange)"
+            )
+    if m.neq:
+        raise ValueError(f"<equality> constraints are not supported ({m.neq} in the model)")
+    for t in range(m.ntendon):
+        if bool(m.tendon_limited[t]) or float(m.tendon_stiffness[t]) > 0 or float(m.tendon_damping[t]) > 0:
+            raise ValueError(
+                f"tendon '{m.tendon(t).name}': tendon limits, stiffness and damping are not supported"
+            )
+    visual = [
+        m.geom(g).name or f"#{g}"
+        for g in range(m.ngeom)
+        if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0
+    ]
+    if visual:
+        warnings.warn(
+            f"geoms {visual[:8]}{' ...' if len(visual) > 8 else ''} have contype = conaffinity = 0 (MuJoCo never "
+            "collides them); here every geom of a link is part of its collision mesh, so they collide",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:

@@ -222,6 +222,10 @@ def step(
     params = scene.params(f64, dev) if params is None else params
     params = check_params(params, B, len(scene.kinematics.bodies), dev, batched, gains)
     target = _batch(target, B)
+    if action.joints is not None and not scene.kinematic_articulations:
+        raise ValueError(
+            "action.joints drives kinematic robots (articulation(..., kinematic=True)), and this scene has none"
+        )
     if scene.kinematic_articulations:  # the kinematic robots' links: forward kinematics of action.joints
         if action.joints is None:
             links = _batch(state.q[..., kin[K:], :], B)
@@ -238,6 +242,8 @@ def step(
         # so a turn across |omega| = pi given as omega - 2 pi omega / |omega| would be a turn of almost 2 pi back
         target = _unwrap_previous(target, _batch(state.q, B)[:, kin].to(target.dtype))
         check_targets_clear(scene, _batch(state.q, B), target)
+    if scene.simulates_joints:
+        scene.kinematics.check_within_limits(_batch(state.q, B).detach().to(f64), "state.q")
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque = _batch(force, B), _batch(torque, B)
     ctrl = ctrl.expand(B, U) if ctrl.dim() == 1 else ctrl
