@@ -307,6 +307,29 @@ def test_a_contact_model_is_a_class_not_a_stepper_change(bodies):
     torch.testing.assert_close(a.q, b.q, rtol=0, atol=1e-12)
 
 
+def test_replace_rebuilds_from_the_bodies_as_given_and_keeps_the_other_settings(bodies):
+    """replace() builds from the meshes as given (a 12-face floor refined for the cfd potential is 12 faces again
+    under IPC, and the contact forces equal a direct build's), and friction= a number changes only the
+    coefficient (before: the refined meshes were passed on, and eps_v and active reset to their defaults)."""
+    from cfd_torch import pair_forces
+
+    cube = bodies[0]
+    mesh = trimesh.creation.box(extents=(1.4, 0.6, 0.05))
+    mesh.apply_translation([0.0, 0.0, -0.025])
+    ground = rigid_body(mesh, kind="static")  # 12 faces, as given
+    s = Scene((cube, ground), friction=FrictionConfig(0.5, eps_v=1e-6, active=1e-3))
+    assert s.bodies[1].bsh.num_faces > 12  # refined for the cfd potential
+    ipc = s.replace(potential="ipc")
+    direct = Scene((cube, ground), potential="ipc", friction=FrictionConfig(0.5, eps_v=1e-6, active=1e-3))
+    assert ipc.bodies[1].bsh.num_faces == direct.bodies[1].bsh.num_faces == 12
+    q = torch.tensor([[0.0, 0.0, 0.1 + 3e-3, 0.0, 0.0, 0.0], [0.0] * 6], dtype=F64)
+    f = pair_forces(ipc, q)
+    assert float(f.abs().max()) > 0.0
+    torch.testing.assert_close(f, pair_forces(direct, q), rtol=0.0, atol=0.0)
+    assert s.replace(friction=0.3).friction == FrictionConfig(0.3, eps_v=1e-6, active=1e-3)
+    assert s.replace(dt=0.005).friction == s.friction
+
+
 def test_configs_hold_the_defaults_and_check_their_fields(bodies):
     cube, ground, _, _ = bodies
     s = Scene((cube, ground), mu=1e-9, friction=0.3, newton_tol=1e-11)

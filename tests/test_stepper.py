@@ -558,6 +558,20 @@ def test_box_mass_properties_match_closed_form():
     torch.testing.assert_close(body.com, torch.zeros(3, dtype=F64), rtol=0, atol=1e-15)
 
 
+def test_recentre_rotation_brings_any_norm_to_at_most_pi():
+    """|omega| = 10, 5 pi - 1e-9, 20 and 101 come back with norm at most pi and the same rotation (before: one turn
+    was taken off, so 10 became 3.72 and 20 became 13.7); |omega| <= pi passes unchanged."""
+    from cfd_torch import recentre_rotation
+
+    axis = torch.tensor([0.48, -0.6, 0.64], dtype=F64)
+    norms = torch.tensor([10.0, 5 * math.pi - 1e-9, 20.0, 101.0, 3.0, math.pi], dtype=F64)
+    q = torch.cat([torch.ones(len(norms), 3, dtype=F64), axis * norms[:, None]], 1)
+    out = recentre_rotation(q)
+    assert (out[:, 3:].norm(dim=1) <= math.pi + 1e-12).all()
+    torch.testing.assert_close(rotation_matrix(out[:, 3:]), rotation_matrix(q[:, 3:]), rtol=0.0, atol=1e-12)
+    assert torch.equal(out[4:], q[4:]) and torch.equal(out[:, :3], q[:, :3])
+
+
 def test_off_centre_mesh_is_recentred():
     a, b, c, rho = 0.3, 0.2, 0.1, 700.0
     Rm = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, -0.5])

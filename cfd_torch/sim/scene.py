@@ -101,6 +101,7 @@ class Scene:
         **shorthand: float | int | str,
     ) -> None:
         bodies = tuple(bodies)
+        self._given_bodies = bodies  # as given (before obstacle refinement): what ``replace`` rebuilds from
         arts = tuple(articulations)
         if not all(isinstance(a, Articulation) for a in arts):
             raise TypeError(
@@ -251,16 +252,22 @@ class Scene:
         raise AttributeError(f"'Scene' object has no attribute {name!r}")
 
     def replace(self, **changes) -> Scene:
-        """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand)."""
+        """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand), built from the bodies
+        as given (so a changed ``potential`` or ``refine_obstacles`` refines the obstacles afresh); ``friction=``
+        a number changes only the coefficient."""
         kw = {
             "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
             "solver": self.solver, "exclude": self.exclude, "pair_eps": self.pair_eps,
             "contact_model": self._given_contact_model,
             "articulations": self.articulations, "planar": self.planar,
         }  # fmt: skip
+        if isinstance(changes.get("friction"), (int, float)) and not isinstance(changes["friction"], bool):
+            changes = {
+                **changes,
+                "friction": dataclasses.replace(self.friction, coefficient=changes["friction"]),
+            }
         kw.update(changes)
-        n = len(self.bodies) - sum(a.num_links for a in self.articulations)
-        return Scene(self.bodies[:n], **kw)
+        return Scene(self._given_bodies, **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
         """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one

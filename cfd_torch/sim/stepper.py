@@ -28,13 +28,15 @@ __all__ = ["step", "rollout", "recentre_rotation", "pair_forces"]
 
 
 def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
-    """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi / |omega|) (same rotation, norm
-    below pi), differentiably; translations and small rotation vectors pass through unchanged."""
+    """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi k / |omega|), k the whole turns
+    that bring the norm to at most pi (the same rotation), differentiably; translations and rotation vectors of norm
+    at most pi pass through unchanged."""
     w = q[..., 3:]
     n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
     big = n > math.pi
     ns = torch.where(big, n, torch.ones_like(n))
-    w = torch.where(big, w * (1.0 - 2.0 * math.pi / ns), w)
+    k = torch.floor((ns.detach() + math.pi) / (2.0 * math.pi))
+    w = torch.where(big, w * (1.0 - 2.0 * math.pi * k / ns), w)
     return torch.cat([q[..., :3], w], -1)
 
 
