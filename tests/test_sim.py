@@ -226,6 +226,8 @@ def test_substeps_retry_a_failed_step(bodies):
     state = hard.initial_state(q, v)
     with pytest.raises(StepError):
         step(hard, state)
+    with pytest.raises(StepError, match=r"\(the step failed whole and as 2, 4 sub-steps\)"):
+        step(hard.replace(substeps=4, max_newton_iter=1), state)
     retry = hard.replace(substeps=4)
     nxt, info = step(retry, state, return_info=True)
     k = int(info.substeps)

@@ -143,9 +143,10 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
     while True:
         try:
             return _substeps(scene, state, force, torque, target, ctrl, params, k)
-        except StepError:
+        except StepError as err:
             if 2 * k > scene.solver.substeps:
-                raise
+                tried = ", ".join(str(2**i) for i in range(1, k.bit_length()))
+                raise StepError(f"{err} (the step failed whole and as {tried} sub-steps)") from err
             k *= 2
 
 
