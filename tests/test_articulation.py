@@ -1016,9 +1016,21 @@ def test_mjcf_physics_the_step_does_not_model_is_refused():
     for j1, extra, message in cases:
         with pytest.raises(ValueError, match=message):
             articulation(two.format(j1=j1, extra=extra))
-    with pytest.warns(UserWarning, match=r"geoms \['tip'\] have contype = conaffinity = 0"):
-        articulation(_arm_xml().replace('size="0.03"/>', 'size="0.03"/><geom name="tip" type="sphere" '
-                                         'pos="0 0 -0.5" size="0.02" contype="0" conaffinity="0"/>'))  # fmt: skip
+    # a visual-only geom (contype = conaffinity = 0) beside a colliding one: out of the collision mesh, in the mass;
+    # a link with nothing else keeps it, with a warning
+    tip = '<geom name="tip" type="sphere" pos="0 0 -0.5" size="0.02" contype="0" conaffinity="0"/>'
+    plain, tipped = (
+        articulation(_arm_xml()),
+        articulation(_arm_xml().replace('size="0.03"/>', 'size="0.03"/>' + tip)),
+    )
+    assert tipped.bodies[1].bsh.num_faces == plain.bodies[1].bsh.num_faces
+    assert tipped.bodies[1].mass > plain.bodies[1].mass
+    alone = _arm_xml().replace(
+        '<geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/>',
+        '<geom name="arm_vis" type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03" contype="0" conaffinity="0"/>',
+    )
+    with pytest.warns(UserWarning, match=r"geoms \['arm_vis'\] have contype = conaffinity = 0"):
+        articulation(alone)
 
 
 def test_mjcf_file_with_an_include_next_to_it(tmp_path):

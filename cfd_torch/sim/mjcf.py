@@ -23,9 +23,10 @@ relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos, compiler options that bound
 masses (`boundmass`, `boundinertia`, `balanceinertia`), and physics the simulator does not model: joint
-`frictionloss` and `actuatorfrcrange`, `<equality>` constraints, tendon limits, stiffness and damping. Geoms with
-`contype` = `conaffinity` = 0 (never collided by MuJoCo) collide here, with a warning: every geom of a link is
-part of its collision mesh. Unnamed bodies are named after their parent and their
+`frictionloss` and `actuatorfrcrange`, `<equality>` constraints, tendon limits, stiffness and damping. A link's
+collision mesh holds the geoms MuJoCo may collide (`contype` or `conaffinity` nonzero; every geom's mass counts);
+a link whose geoms are all visual-only keeps them, and they collide (with a warning). Which geoms collide with
+which (the bits themselves) is not modelled. Unnamed bodies are named after their parent and their
 place among its children ("aux_1/0"; `MJCFModel.xml` then holds MuJoCo's own rewrite of the file with those
 names), and `settotalmass` scales the geoms' masses as MuJoCo does.
 """
@@ -340,6 +341,9 @@ def load_mjcf(
             link_bodies[link_of[b]].append(b)
 
     links = []
+    visual_only: list[
+        str
+    ] = []  # geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
@@ -378,6 +382,11 @@ def load_mjcf(
                 geoms.append(geom)
         mass, com, S = _combine(parts)
         pose = link_pose[k]
+        # the collision mesh: the geoms MuJoCo may collide (contype or conaffinity nonzero); a link with none keeps
+        # all of its geoms (a body needs a mesh), and they collide
+        colliding = [g for g in geoms if g.contype or g.conaffinity]
+        if geoms and not colliding:
+            visual_only += [g.name or f"{m.body(group[0]).name}/#{i}" for i, g in enumerate(geoms)]
         links.append(
             LinkSpec(
                 name=m.body(group[0]).name,
@@ -385,7 +394,9 @@ def load_mjcf(
                 pos=pose[:3, 3].copy(),
                 quat=_matrix_to_quat(pose[:3, :3]),
                 joints=tuple(joints[i] for i in link_joint[k]),
-                mesh=trimesh.util.concatenate([g.mesh for g in geoms]) if geoms else trimesh.Trimesh(),
+                mesh=trimesh.util.concatenate([g.mesh for g in colliding or geoms])
+                if geoms
+                else trimesh.Trimesh(),
                 mass=mass,
                 com=com,
                 second_moment=S,
@@ -394,6 +405,13 @@ def load_mjcf(
             )
         )
 
+    if visual_only:
+        warnings.warn(
+            f"geoms {visual_only[:8]}{' ...' if len(visual_only) > 8 else ''} have contype = conaffinity = 0 "
+            "(MuJoCo never collides them) but are all their link has: they are its collision mesh here, and collide",
+            UserWarning,
+            stacklevel=3,
+        )
     actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu))
     pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) and j.ref == 0 for j in joints)
     return MJCFModel(
@@ -446,8 +464,7 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
 
 
 def _check_model(m: mujoco.MjModel) -> None:
-    """Refuse the compiled model's physics that the simulator does not model (it would be silently absent), and
-    warn of geoms that MuJoCo never collides (here every geom of a link is part of its collision mesh)."""
+    """Refuse the compiled model's physics that the simulator does not model (it would be silently absent)."""
     for j in range(m.njnt):
         name = m.joint(j).name
         if float(m.dof_frictionloss[m.jnt_dofadr[j]]) > 0:
@@ -463,18 +480,6 @@ def _check_model(m: mujoco.MjModel) -> None:
             raise ValueError(
                 f"tendon '{m.tendon(t).name}': tendon limits, stiffness and damping are not supported"
             )
-    visual = [
-        m.geom(g).name or f"#{g}"
-        for g in range(m.ngeom)
-        if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0
-    ]
-    if visual:
-        warnings.warn(
-            f"geoms {visual[:8]}{' ...' if len(visual) > 8 else ''} have contype = conaffinity = 0 (MuJoCo never "
-            "collides them); here every geom of a link is part of its collision mesh, so they collide",
-            UserWarning,
-            stacklevel=3,
-        )
 
 
 def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:
