@@ -978,8 +978,16 @@ def test_hinge_ranges_beyond_pi_from_ref():
     q0 = art.poses(torch.tensor([4.0], dtype=F64))
     assert abs(float(scene.kinematics.coords(q0[None])[0, 0]) - 4.0) < 1e-12
     step(scene, State(q0, q0.clone()))
-    with pytest.raises(ValueError, match="hinge joint 'j' has the range .* wider than 2 pi"):
-        articulation(_arm_xml('range="-200 200"'))
+    with pytest.warns(UserWarning, match="hinge joint 'j' has the range .* a whole turn or more"):
+        wide = articulation(_arm_xml('range="-200 200"'))
+    assert wide.lower.tolist() == [-math.inf] and wide.upper.tolist() == [math.inf]
+    # a servo across the gap of a limited hinge goes round through the range, not the short way into a limit
+    # (range +-170 degrees, from -2.5 to 2.9 rad: 2.9000 at 1.5 s, as in MuJoCo)
+    art = articulation(_arm_xml('range="-170 170"', '<position joint="j" kp="20" kv="1" ctrlrange="-3 3"/>'))
+    scene = Scene([], articulations=[art], gravity=(0.0, 0.0, 0.0))
+    q0 = art.poses(torch.tensor([-2.5], dtype=F64))
+    traj = rollout(scene, State(q0, q0.clone()), [Action(ctrl=torch.tensor([2.9], dtype=F64))] * 150)
+    assert abs(float(scene.kinematics.coords(traj.q[-1:])[0, 0]) - 2.9) < 1e-3
 
 
 def test_joint_outside_its_limits_is_refused_by_name():
@@ -1005,7 +1013,11 @@ def test_mjcf_physics_the_step_does_not_model_is_refused():
     cases = [
         ('frictionloss="50"', "", "joint 'j1': frictionloss is not supported"),
         ('actuatorfrcrange="-0.1 0.1"', '<actuator><motor joint="j1"/></actuator>', "actuatorfrcrange"),
-        ("", '<equality><joint joint1="j2" joint2="j1"/></equality>', "<equality> constraints"),
+        (
+            "",
+            '<equality><joint joint1="j2" joint2="j1"/></equality>',
+            "<equality> constraint .* is not supported",
+        ),
         (
             "",
             '<tendon><fixed name="t" limited="true" range="-0.05 0.05"><joint joint="j1" coef="1"/>'
@@ -1046,6 +1058,18 @@ def test_mjcf_file_with_an_include_next_to_it(tmp_path):
     )
     art = articulation(tmp_path / "robot.xml")
     assert art.damping.tolist() == [0.2] and art.armature.tolist() == [0.01]
+
+
+def test_mjcf_refusals_look_at_the_loaded_subtree_only_and_a_zero_gear_motor_is_finite():
+    from cfd_torch.sim.articulation import articulation
+
+    door = '<body name="door" pos="2 0 1"><joint name="hinge" type="hinge" frictionloss="1"/><geom size="0.1"/></body>'
+    xml = _arm_xml(actuator='<motor joint="j" gear="0"/>').replace("</worldbody>", door + "</worldbody>")
+    art = articulation(xml, root="base")  # the door's frictionloss is not the robot's
+    scene = Scene([], articulations=[art], gravity=(0.0, 0.0, -9.81))
+    q0 = art.poses(torch.tensor([0.3], dtype=F64))
+    nxt = step(scene, State(q0, q0.clone()), Action(ctrl=torch.tensor([1.0], dtype=F64)))
+    assert bool(torch.isfinite(nxt.q).all())  # (gear 0: before, NaN from the servo target ctrl / gear)
 
 
 def test_articulation_inputs_are_checked():

@@ -570,6 +570,16 @@ def test_recentre_rotation_brings_any_norm_to_at_most_pi():
     assert (out[:, 3:].norm(dim=1) <= math.pi + 1e-12).all()
     torch.testing.assert_close(rotation_matrix(out[:, 3:]), rotation_matrix(q[:, 3:]), rtol=0.0, atol=1e-12)
     assert torch.equal(out[4:], q[4:]) and torch.equal(out[:, :3], q[:, :3])
+    # a body at yaw 10 (more than 3 pi) spinning at 1 rad/s comes out re-centred with its velocity (before: the
+    # previous pose was unwrapped by one turn at most, a yaw rate of -627 rad/s)
+    cube, far = _box((0.2, 0.2, 0.2), density=500.0), _box((0.2, 0.2, 0.2), kind="static")
+    scene = Scene([cube, far], gravity=(0.0, 0.0, 0.0))
+    q = _poses((0.0, 0.0, 2.0, 0.0, 0.0, 10.0), (5.0, 5.0, 5.0))
+    q_prev = q.clone()
+    q_prev[0, 5] -= 0.01
+    nxt = step(scene, State(q, q_prev))
+    assert abs(float(nxt.q[0, 5])) <= math.pi
+    assert abs(float(nxt.q[0, 5] - nxt.q_prev[0, 5]) / DT - 1.0) < 1e-9
 
 
 def test_off_centre_mesh_is_recentred():

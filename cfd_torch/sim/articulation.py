@@ -25,10 +25,10 @@ Joint-space terms, for each joint with value theta (theta_t, theta_p: one and tw
     + limit barrier  -  tau (theta - theta_t)
 
 with the servos' kv gear^2 added to the damping and tau the motors' torque (:meth:`ArticulatedKinematics.drive`).
-A hinge's differences (theta - springref, theta - ctrl / gear, and in time) are taken mod 2 pi: the link poses
-tell its angle only up to whole turns, and a servo or spring then pulls the short way round (in MuJoCo, whose
-qpos counts turns, a servo past pi pulls back the same way; from a state written a turn away, MuJoCo's the long
-way).
+A hinge's differences in time, and on a hinge without a range its spring's and servos' differences, are taken
+mod 2 pi: the link poses tell its angle only up to whole turns, and a servo or spring then pulls the short way
+round (in MuJoCo, whose qpos counts turns, a servo past pi pulls back the same way; from a state written a turn
+away, MuJoCo's the long way). On a limited hinge the range fixes the angle, and they pull through the range.
 
 The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) = -(s - 1)^2 ln s for 0 < s < 1
 (zero beyond, C2 at s = 1, +inf at s <= 0): a joint never reaches its limit, whatever the torque.
@@ -37,6 +37,7 @@ The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) =
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -85,7 +86,8 @@ class Articulation:
     the joint's own spring and damping), so a stiff PD target is stable at any dt.
 
     Joint values are recovered from the link poses of a state (the state rows are the links' poses): a hinge's in
-    the turn centred on its range (so the whole range is inside it; ranges wider than 2 pi are refused), or on its
+    the turn centred on its range (so the whole range is inside it; a range of a whole turn or more is dropped, with
+    a warning), or on its
     ref without one; for a link with three hinges, the middle one's two solutions are told apart by its range (the
     one inside it), else the one nearer ref (|theta - ref| <= pi / 2). Hinge axes that cannot be told apart
     (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
@@ -147,12 +149,18 @@ class Articulation:
         self.upper = np.array([r[1] for r in rng], dtype=float)
         hinge = np.array([k == "hinge" for k in self.joint_kind], dtype=bool)
         limited = np.isfinite(self.lower) & np.isfinite(self.upper)
-        for j in np.nonzero(hinge & limited & (self.upper - self.lower > 2 * math.pi))[0]:
-            raise ValueError(
+        for j in np.nonzero(hinge & limited & (self.upper - self.lower >= 2 * math.pi))[0]:
+            warnings.warn(
                 f"articulation: hinge joint {self.joint_names[j]!r} has the range [{self.lower[j]:.6g}, "
-                f"{self.upper[j]:.6g}] rad, wider than 2 pi: its angle is read from the link poses, which repeat "
-                "every turn, so its limits could not be told apart"
+                f"{self.upper[j]:.6g}] rad, a whole turn or more: its angle is read from the link poses, which "
+                "repeat every turn, so its limits cannot be told apart; it is simulated without limits",
+                UserWarning,
+                stacklevel=3,
             )
+            self.lower[j], self.upper[j] = -math.inf, math.inf
+            limited[j] = False
+        #: hinges without a range: their springs and servos pull the short way round (differences mod 2 pi)
+        self.free_hinge = hinge & ~limited
         # the window of a hinge's angle as read from link poses: centre + (-pi, pi], centred on its range (which then
         # lies inside it) or, without one, on its ref
         self.centre = self.ref.copy()
@@ -890,7 +898,8 @@ class ArticulatedKinematics:
         self.num_coords = start
         self._f6 = (free[:, None] * 6 + torch.arange(6)).reshape(-1)
         # joint coordinates of all articulations (indices into q) and their per-joint data
-        jidx, hinge, data = (
+        jidx, hinge, free_hinge, data = (
+            [],
             [],
             [],
             {k: [] for k in ("lower", "upper", "damping", "armature", "stiffness", "springref")},
@@ -901,12 +910,14 @@ class ArticulatedKinematics:
             act["joint"] += list(len(jidx) + art.actuator_joint)
             jidx += list(range(j0, j0 + art.num_joints))
             hinge += [k == "hinge" for k in art.joint_kind]
+            free_hinge += [bool(f) for f in art.free_hinge]
             for key, vals in data.items():
                 vals += list(getattr(art, key))
             for key, vals in act.items():
                 vals += [] if key == "joint" else list(getattr(art, key))
         self.joint_index = torch.tensor(jidx, dtype=torch.long)
         self.hinge = torch.tensor(hinge, dtype=torch.bool)
+        self.free_hinge = torch.tensor(free_hinge, dtype=torch.bool)  # hinges without a range
         self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
         # the actuators of all articulations (U): joint (into joint_index), gear, servo (position actuator or
         # motor), the control's clip and the MJCF's servo gains (zero for motors)
@@ -1025,11 +1036,14 @@ class ArticulatedKinematics:
         wrap = lambda x: torch.where(hinge, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
         acc = wrap(th - tt) - wrap(tt - tp)
         vel = wrap(th - tt)
-        spring = wrap(th - d["springref"])
+        # springs and servos: the short way round on hinges without a range (on a limited hinge the range fixes
+        # the angle, and the short way could cross the limits)
+        free = self.free_hinge.to(q.device)
+        turn = lambda x, m: torch.where(m, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
+        spring = turn(th - d["springref"], free)
         # the servos, one term each: kp gear^2 (theta - ctrl / gear)^2 / 2 on the joint it drives
         aj = self.actuator_joint.to(q.device)
-        servo = th[:, aj] - joint.servo_target  # (A, U) (motors: zero gain)
-        servo = torch.where(hinge[aj], torch.remainder(servo + math.pi, 2 * math.pi) - math.pi, servo)
+        servo = turn(th[:, aj] - joint.servo_target, free[aj])  # (A, U) (motors: zero gain)
         vs = th.new_zeros(th.shape).index_add(1, aj, 0.5 * joint.servo_gain * servo**2)
         gs = th.new_zeros(th.shape).index_add(1, aj, joint.servo_gain * servo)
         vl, gl, hl = _limit_barrier(th - d["lower"], order)
@@ -1074,7 +1088,7 @@ class ArticulatedKinematics:
             zero.index_add(1, j, on * kp * g2),
             zero.index_add(1, j, on * kv * g2),
             on * kp * g2,
-            on * c / d["gear"],
+            torch.where(servo & (d["gear"] != 0), c / torch.where(d["gear"] != 0, d["gear"], 1.0), 0.0),
         )
 
     @property

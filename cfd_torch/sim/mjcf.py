@@ -298,7 +298,6 @@ def load_mjcf(
     group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
     m = spec.compile()
 
-    _check_model(m)
     root_id = m.body(root).id
     floating, root_pos, root_quat = _root_pose(m, root_id)
 
@@ -308,6 +307,7 @@ def load_mjcf(
         if int(m.body_parentid[b]) in in_tree:
             in_tree.add(b)
     bodies = sorted(in_tree)
+    _check_model(m, in_tree)
 
     link_of: dict[int, int] = {}  # body id -> link index
     T_in_link: dict[int, np.ndarray] = {}  # body id -> (4, 4) body frame in its link frame
@@ -463,9 +463,12 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
         raise ValueError("compiler boundmass/boundinertia/balanceinertia are not supported")
 
 
-def _check_model(m: mujoco.MjModel) -> None:
-    """Refuse the compiled model's physics that the simulator does not model (it would be silently absent)."""
-    for j in range(m.njnt):
+def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
+    """Refuse the physics the simulator does not model (it would be silently absent) where it touches the loaded
+    subtree (the bodies ``in_tree``): joint friction loss and actuator force ranges, equality constraints, and
+    tendons with limits, stiffness or damping."""
+    joints = {j for j in range(m.njnt) if int(m.jnt_bodyid[j]) in in_tree}
+    for j in sorted(joints):
         name = m.joint(j).name
         if float(m.dof_frictionloss[m.jnt_dofadr[j]]) > 0:
             raise ValueError(f"joint '{name}': frictionloss is not supported (dry joint friction)")
@@ -473,13 +476,40 @@ def _check_model(m: mujoco.MjModel) -> None:
             raise ValueError(
                 f"joint '{name}': actuatorfrcrange is not supported (clamp the actuators' ctrlrange)"
             )
-    if m.neq:
-        raise ValueError(f"<equality> constraints are not supported ({m.neq} in the model)")
+
+    def tendon_touches(t: int) -> bool:
+        adr, num = int(m.tendon_adr[t]), int(m.tendon_num[t])
+        for w in range(adr, adr + num):
+            obj = int(m.wrap_objid[w])
+            if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_JOINT) and obj in joints:
+                return True
+            if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_SITE) and int(m.site_bodyid[obj]) in in_tree:
+                return True
+        return False
+
     for t in range(m.ntendon):
-        if bool(m.tendon_limited[t]) or float(m.tendon_stiffness[t]) > 0 or float(m.tendon_damping[t]) > 0:
+        if (
+            bool(m.tendon_limited[t]) or float(m.tendon_stiffness[t]) > 0 or float(m.tendon_damping[t]) > 0
+        ) and tendon_touches(t):
             raise ValueError(
                 f"tendon '{m.tendon(t).name}': tendon limits, stiffness and damping are not supported"
             )
+    for e in range(m.neq):
+        kind, site = int(m.eq_type[e]), int(m.eq_objtype[e]) == int(mujoco.mjtObj.mjOBJ_SITE)
+        touches = False
+        for obj in (int(m.eq_obj1id[e]), int(m.eq_obj2id[e])):
+            if obj < 0:
+                continue
+            if kind == int(mujoco.mjtEq.mjEQ_JOINT):
+                touches |= obj in joints
+            elif kind == int(mujoco.mjtEq.mjEQ_TENDON):
+                touches |= tendon_touches(obj)
+            elif kind in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)):
+                touches |= (int(m.site_bodyid[obj]) if site else obj) in in_tree
+            else:  # flex and other kinds: refused outright
+                touches = True
+        if touches:
+            raise ValueError(f"<equality> constraint {m.equality(e).name or e!r} is not supported")
 
 
 def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:

@@ -252,9 +252,9 @@ class Scene:
         raise AttributeError(f"'Scene' object has no attribute {name!r}")
 
     def replace(self, **changes) -> Scene:
-        """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand), built from the bodies
-        as given (so a changed ``potential`` or ``refine_obstacles`` refines the obstacles afresh); ``friction=``
-        a number changes only the coefficient."""
+        """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand); a change of the
+        contact settings, the potential, ``refine_obstacles``, ``exclude`` or the articulations builds it from the
+        bodies as given (their obstacles refined afresh); ``friction=`` a number changes only the coefficient."""
         kw = {
             "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
             "solver": self.solver, "exclude": self.exclude, "pair_eps": self.pair_eps,
@@ -267,6 +267,12 @@ class Scene:
                 "friction": dataclasses.replace(self.friction, coefficient=changes["friction"]),
             }
         kw.update(changes)
+        # the obstacles as refined here serve unless a change can change their refinement (refining them again
+        # would cost each sub-step retry's replace(dt=...) about 0.1 s)
+        refining = {"contact", "potential", "refine_obstacles", "contact_model", "exclude", "articulations"}
+        if refining.isdisjoint(changes):
+            n = len(self.bodies) - sum(a.num_links for a in self.articulations)
+            return Scene(self.bodies[:n], **kw)
         return Scene(self._given_bodies, **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:

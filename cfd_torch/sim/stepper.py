@@ -41,15 +41,17 @@ def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
 
 
 def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """q_prev (..., 6) with each rotation vector replaced by the equivalent omega + 2 pi k omega/|omega| (k in -1, 0,
-    1; the same rotation) closest to q's, so that (q - q_prev) / dt stays the velocity after q was re-centred."""
+    """q_prev (..., 6) with each rotation vector omega replaced by the equivalent omega + 2 pi k omega / |omega| (k
+    whole turns, the same rotation) closest to q's, so that (q - q_prev) / dt stays the velocity after q was
+    re-centred (also a target against the current pose: the step then turns the short way)."""
     w = q_prev[..., 3:]
     n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
-    u = w / torch.where(n > 0, n, torch.ones_like(n))
-    cands = torch.stack([w - 2.0 * math.pi * u, w, w + 2.0 * math.pi * u])  # (3, ..., 3)
-    k = torch.linalg.vector_norm(cands - q[..., 3:].detach(), dim=-1).argmin(0)  # (...)
-    pick = torch.gather(cands, 0, k[None, ..., None].expand(1, *w.shape))[0]
-    w = torch.where((n > 0) & (k[..., None] != 1), pick, w)
+    some = n > 0
+    u = w / torch.where(some, n, torch.ones_like(n))
+    # along u, the candidates' norms |omega| + 2 pi k: the one nearest q's component along u is the closest
+    along = (q[..., 3:].detach() * u.detach()).sum(-1, keepdim=True)
+    k = torch.round((along - n.detach()) / (2.0 * math.pi))
+    w = torch.where(some & (k != 0), w + (2.0 * math.pi) * k * u, w)
     return torch.cat([q_prev[..., :3], w], -1)
 
 
@@ -99,7 +101,8 @@ def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: P
     start = state.q[:, kin]
     infos = []
     for i in range(1, k + 1):
-        tgt = start + (i / k) * (target - start)
+        # (on the branch of the kinematic bodies' poses now: the sub-steps re-centre them)
+        tgt = _unwrap_previous(start + (i / k) * (target - start), q[:, kin])
         q_next, info = _solve(fine, State(q, q_prev), force, torque, tgt, ctrl, params)
         q, q_prev = q_next, _unwrap_previous(q, q_next)
         infos.append(info)
