@@ -937,6 +937,20 @@ def test_kinematic_turn_across_pi_is_the_same_whichever_rotation_vector_names_it
     torch.testing.assert_close(outs[1].q, outs[0].q, rtol=0.0, atol=1e-15)
     torch.testing.assert_close(outs[1].q_prev, outs[0].q_prev, rtol=0.0, atol=1e-15)
     assert abs(float(outs[0].q[1, 5]) - (y0 + turn - 2.0 * math.pi)) < 1e-15  # re-centred
+    # the sub-step retry path: 4 sub-steps of a 0.2 rad turn across pi (their targets on the branch of the re-centred
+    # poses; before, the second sub-step's push-out turned the bar the long way and failed)
+    from cfd_torch import Params
+    from cfd_torch.sim.stepper import _substeps
+
+    q1 = _poses((-0.25, low - 0.05 - 1e-3), (0.0, 0.0, 0.0, 0.0, 0.0, y0))
+    zero = torch.zeros(1, 2, 3, dtype=F64)
+    params = Params(*(x[None] for x in scene.params()))
+    tgt = _poses((0.0, 0.0, 0.0, 0.0, 0.0, y0 + 0.2))[None]
+    qn, _, info = _substeps(
+        scene, State(q1[None], q1[None].clone()), zero, zero, tgt, torch.zeros(1, 0, dtype=F64), params, 4
+    )
+    assert int(info.substeps[0]) == 4 and abs(float(qn[0, 1, 5]) - (y0 + 0.2 - 2.0 * math.pi)) < 1e-12
+    assert float(qn[0, 0, 1] - q1[0, 1]) < -1e-3  # the block pushed
     # spinning on, free of the block, from re-centred targets
     st = State(
         _poses((2.0, 2.0), (0.0, 0.0, 0.0, 0.0, 0.0, y0)), _poses((2.0, 2.0), (0.0, 0.0, 0.0, 0.0, 0.0, y0))
