@@ -147,7 +147,7 @@ class Articulation:
         rng = [j.range if j.range is not None else (-math.inf, math.inf) for j in joints]
         self.lower = np.array([r[0] for r in rng], dtype=float)
         self.upper = np.array([r[1] for r in rng], dtype=float)
-        hinge = np.array([k == "hinge" for k in self.joint_kind], dtype=bool)
+        self.hinge = hinge = np.array([k == "hinge" for k in self.joint_kind], dtype=bool)
         limited = np.isfinite(self.lower) & np.isfinite(self.upper)
         for j in np.nonzero(hinge & limited & (self.upper - self.lower >= 2 * math.pi))[0]:
             warnings.warn(
@@ -825,8 +825,7 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
             second = torch.where((res - res2).abs() > tol, res2 < res, prefer)
             vals = torch.where(second[..., None], other, vals)
         th[:, joints] = vals + ref[joints]
-    hinge = torch.as_tensor([k == "hinge" for k in art.joint_kind], device=dev)
-    th = torch.where(hinge, centre + _wrap(th - centre), th)
+    th = torch.where(torch.as_tensor(art.hinge, device=dev), centre + _wrap(th - centre), th)
     if not art.floating:
         return th
     return torch.cat([p[:, 0], rows[:, 0, 3:], th], 1)
@@ -909,8 +908,8 @@ class ArticulatedKinematics:
             j0 = sl.start + (6 if art.floating else 0)
             act["joint"] += list(len(jidx) + art.actuator_joint)
             jidx += list(range(j0, j0 + art.num_joints))
-            hinge += [k == "hinge" for k in art.joint_kind]
-            free_hinge += [bool(f) for f in art.free_hinge]
+            hinge += art.hinge.tolist()
+            free_hinge += art.free_hinge.tolist()
             for key, vals in data.items():
                 vals += list(getattr(art, key))
             for key, vals in act.items():
@@ -1030,16 +1029,14 @@ class ArticulatedKinematics:
         d["pd_stiffness"] = joint.stiffness
         th, tt, tp = q[:, idx], q_t[:, idx], q_p[:, idx]
         hinge = self.hinge.to(q.device)
-        # a hinge's value is an angle, known from the link poses only up to whole turns: every term that is not
-        # periodic in it (springs, servos; differences in time) takes the difference mod 2 pi, i.e. the short way
-        # round (a servo past pi pulls back across pi; without this its force would flip there and add energy)
-        wrap = lambda x: torch.where(hinge, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
-        acc = wrap(th - tt) - wrap(tt - tp)
-        vel = wrap(th - tt)
-        # springs and servos: the short way round on hinges without a range (on a limited hinge the range fixes
-        # the angle, and the short way could cross the limits)
+        # a hinge's value is an angle, known from the link poses only up to whole turns: its differences in time are
+        # taken mod 2 pi, and so are its spring's and servos' on a hinge without a range (the short way round: a
+        # servo past pi pulls back across pi instead of flipping its force there and adding energy; on a limited
+        # hinge the range fixes the angle, and the short way could cross the limits)
+        turn = lambda x, m: torch.where(m, _wrap(x), x)  # noqa: E731
+        acc = turn(th - tt, hinge) - turn(tt - tp, hinge)
+        vel = turn(th - tt, hinge)
         free = self.free_hinge.to(q.device)
-        turn = lambda x, m: torch.where(m, torch.remainder(x + math.pi, 2 * math.pi) - math.pi, x)  # noqa: E731
         spring = turn(th - d["springref"], free)
         # the servos, one term each: kp gear^2 (theta - ctrl / gear)^2 / 2 on the joint it drives
         aj = self.actuator_joint.to(q.device)

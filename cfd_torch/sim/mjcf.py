@@ -341,9 +341,8 @@ def load_mjcf(
             link_bodies[link_of[b]].append(b)
 
     links = []
-    visual_only: list[
-        str
-    ] = []  # geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
+    # the geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
+    visual_only: list[str] = []
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame

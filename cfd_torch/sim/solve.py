@@ -234,6 +234,8 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
             continue
         where = f" (scene {b})" if B > 1 else ""
         if r == Stop.INFEASIBLE_START:
+            if prob.scene.simulates_joints:  # a joint at or beyond its limit: say which
+                prob.scene.kinematics.check_within_limits(prob.q_t.detach(), "state.q")
             raise StepError(f"infeasible Newton start (non-finite energy){where}")
         what = {
             Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "

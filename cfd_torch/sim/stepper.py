@@ -27,32 +27,31 @@ from .types import Action, Params, State, StepError, StepInfo, Trajectory
 __all__ = ["step", "rollout", "recentre_rotation", "pair_forces"]
 
 
+def _whole_turns(w: torch.Tensor, toward: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors w (..., 3) as the equivalent w + 2 pi k w / |w| (k whole turns: the same rotation) closest to
+    ``toward`` (..., 3): along w's axis, the norm |w| + 2 pi k nearest toward's component (k chosen without
+    gradient; w's own gradient flows)."""
+    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
+    some = n > 0
+    u = w / torch.where(some, n, torch.ones_like(n))
+    along = (toward.detach() * u.detach()).sum(-1, keepdim=True)
+    k = torch.round((along - n.detach()) / (2.0 * math.pi))
+    return torch.where(some & (k != 0), w + (2.0 * math.pi) * k * u, w)
+
+
 def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
     """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi k / |omega|), k the whole turns
     that bring the norm to at most pi (the same rotation), differentiably; translations and rotation vectors of norm
     at most pi pass through unchanged."""
     w = q[..., 3:]
-    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
-    big = n > math.pi
-    ns = torch.where(big, n, torch.ones_like(n))
-    k = torch.floor((ns.detach() + math.pi) / (2.0 * math.pi))
-    w = torch.where(big, w * (1.0 - 2.0 * math.pi * k / ns), w)
-    return torch.cat([q[..., :3], w], -1)
+    return torch.cat([q[..., :3], _whole_turns(w, torch.zeros_like(w))], -1)
 
 
 def _unwrap_previous(q_prev: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """q_prev (..., 6) with each rotation vector omega replaced by the equivalent omega + 2 pi k omega / |omega| (k
     whole turns, the same rotation) closest to q's, so that (q - q_prev) / dt stays the velocity after q was
     re-centred (also a target against the current pose: the step then turns the short way)."""
-    w = q_prev[..., 3:]
-    n = torch.linalg.vector_norm(w, dim=-1, keepdim=True)
-    some = n > 0
-    u = w / torch.where(some, n, torch.ones_like(n))
-    # along u, the candidates' norms |omega| + 2 pi k: the one nearest q's component along u is the closest
-    along = (q[..., 3:].detach() * u.detach()).sum(-1, keepdim=True)
-    k = torch.round((along - n.detach()) / (2.0 * math.pi))
-    w = torch.where(some & (k != 0), w + (2.0 * math.pi) * k * u, w)
-    return torch.cat([q_prev[..., :3], w], -1)
+    return torch.cat([q_prev[..., :3], _whole_turns(q_prev[..., 3:], q[..., 3:])], -1)
 
 
 def _shift(q: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -248,8 +247,6 @@ def step(
         # so a turn across |omega| = pi given as omega - 2 pi omega / |omega| would be a turn of almost 2 pi back
         target = _unwrap_previous(target, _batch(state.q, B)[:, kin].to(target.dtype))
         check_targets_clear(scene, _batch(state.q, B), target)
-    if scene.simulates_joints:
-        scene.kinematics.check_within_limits(_batch(state.q, B).detach().to(f64), "state.q")
     st = State(_batch(state.q, B), _batch(state.q_prev, B))
     force, torque = _batch(force, B), _batch(torque, B)
     ctrl = ctrl.expand(B, U) if ctrl.dim() == 1 else ctrl
