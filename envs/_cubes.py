@@ -114,13 +114,18 @@ class CubesCore(TaskCore):
         """(B, obs_dim - 44) the task's part of the observation."""
         raise NotImplementedError(f"{type(self).__name__} must define _goal_obs")
 
+    def _goal_high(self) -> float:
+        """The largest magnitude of an entry of the task's part of the observation."""
+        raise NotImplementedError(f"{type(self).__name__} must define _goal_high")
+
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         # xy: the pusher starts within the spread and runs at up to max_speed (twice that, for the PD law's
         # overshoot) for the whole horizon, off the floor's edge if told to (it hovers); cubes go where it pushes them
         reach = self.spread + 2.0 * self.pusher.max_speed * self.horizon * self.scene.dt + 1.0
         body = [reach, reach, 20.0, 20.0]  # xy [m], planar velocities [m/s]
         extra = self.obs_dim - 4 * (self.num_cubes + 1)
-        high = torch.tensor(body * (self.num_cubes + 1) + [3.0] * extra, dtype=torch.float64)
+        goal = max(3.0, 2.0 * self._goal_high())
+        high = torch.tensor(body * (self.num_cubes + 1) + [goal] * extra, dtype=torch.float64)
         return -high, high
 
     def render_camera(self) -> dict:

@@ -9,7 +9,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore, disc, marker_rows
+from .core import EnvState, TaskCore, _is_int, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -75,9 +75,9 @@ class BilliardsCore(TaskCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        if target_ball is not None and not 0 <= target_ball < 15:
-            raise ValueError(f"target_ball must be a rack ball index in 0..14 or None, got {target_ball}")
-        if pocket is not None and not 0 <= pocket < len(POCKETS):
+        if target_ball is not None and not (_is_int(target_ball) and 0 <= target_ball < 15):
+            raise ValueError(f"target_ball must be a rack ball index in 0..14 or None, got {target_ball!r}")
+        if pocket is not None and not (_is_int(pocket) and 0 <= pocket < len(POCKETS)):
             raise ValueError(
                 f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket}"
             )

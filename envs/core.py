@@ -57,9 +57,14 @@ class EnvState:
         return State(self.q, self.q_prev)
 
     def select(self, index: torch.Tensor | slice | int) -> EnvState:
-        """The environments ``index`` (a slice or index tensor keeps the batch dimension; an int keeps it too)."""
-        if isinstance(index, int):
-            index = slice(index, index + 1)
+        """The environments ``index`` (a slice or index tensor keeps the batch dimension; an int keeps it too, and
+        counts from the end when negative, as in a sequence)."""
+        if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
+            B = self.batch_size
+            if not -B <= int(index) < B:
+                raise IndexError(f"index {int(index)} is out of range for a batch of {B} environments")
+            i = int(index) % B
+            index = slice(i, i + 1)
         return EnvState(
             self.q[index], self.q_prev[index], self.t[index], {k: v[index] for k, v in self.task.items()}
         )
@@ -127,6 +132,11 @@ class StepOut(NamedTuple):
     reward: torch.Tensor
     terminated: torch.Tensor
     info: dict[str, torch.Tensor]
+
+
+def _is_int(x) -> bool:
+    """An integer (Python's or NumPy's), not a bool."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
 def _generator_seed(seed: int) -> int:
@@ -269,17 +279,21 @@ class TaskCore(abc.ABC):
         environments, default 1) or ``seed[i]`` (a sequence of B ints), as Gymnasium's SyncVectorEnv seeds its
         copies. Any int seeds (torch's generator takes 32 bits: seeds outside [0, 2^32) are hashed to 32 bits, so
         that seed + 2^32 is not seed again; there are 2^32 distinct draws)."""
-        if isinstance(seed, bool) or not isinstance(seed, (int, Sequence)):
-            raise TypeError(f"seed must be an int or a sequence of ints, got {seed!r}")
-        if isinstance(seed, int):
+        if _is_int(seed):
             B = 1 if batch_size is None else batch_size
-            if not isinstance(B, int) or B < 1:
+            if not _is_int(B) or B < 1:
                 raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
-            seeds = [seed + i for i in range(B)]
-        else:
+            seeds = [int(seed) + i for i in range(int(B))]
+        elif isinstance(seed, (Sequence, np.ndarray)) and not isinstance(seed, (str, bytes)):
+            if not all(_is_int(s) for s in seed):
+                raise TypeError(
+                    f"seed: every entry of a sequence of seeds must be an int, got {list(seed)!r}"
+                )
             seeds = [int(s) for s in seed]
             if not seeds or (batch_size is not None and batch_size != len(seeds)):
                 raise ValueError(f"seed has {len(seeds)} entries but batch_size is {batch_size}")
+        else:
+            raise TypeError(f"seed must be an int or a sequence of ints, got {seed!r}")
         parts = []
         for s in seeds:
             gen = torch.Generator().manual_seed(_generator_seed(s))

@@ -40,6 +40,9 @@ class GatherCore(CubesCore):
         self.region_radius = region_radius
         self.region_distance = region_distance
 
+    def _goal_high(self) -> float:
+        return abs(self.region_distance)  # the region's centre
+
     def _task(self, gen: torch.Generator, q: torch.Tensor) -> dict[str, torch.Tensor]:
         a = 2 * math.pi * float(torch.rand(1, generator=gen, dtype=torch.float64))
         return {

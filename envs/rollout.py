@@ -42,13 +42,26 @@ class Rollout(NamedTuple):
     q: torch.Tensor
 
 
+def _policy_action(core: TaskCore, policy: Policy, obs: torch.Tensor, t: int) -> torch.Tensor:
+    """policy(obs, t), checked: a tensor of shape (B, A) or (A,)."""
+    a = policy(obs, t)
+    B, A = obs.shape[0], core.action_dim
+    if not isinstance(a, torch.Tensor):
+        raise TypeError(f"policy(obs, {t}) must return a torch tensor of actions, got {type(a).__name__}")
+    if tuple(a.shape) not in ((B, A), (A,)):
+        raise ValueError(
+            f"policy(obs, {t}) must return actions of shape ({B}, {A}) or ({A},), got {tuple(a.shape)}"
+        )
+    return a
+
+
 def _chunk(core: TaskCore, state: EnvState, policy, t0: int, n: int, params: Params | None):
     """n steps from ``state`` at time t0: (state, obs (n, B, O), actions, rewards, terminated, info, q)."""
     obs, acts, rews, terms, qs = [], [], [], [], []
     infos: dict[str, list[torch.Tensor]] = {}
     o = core.observe(state)
     for k in range(n):
-        a = policy[t0 + k] if isinstance(policy, torch.Tensor) else policy(o, t0 + k)
+        a = policy[t0 + k] if isinstance(policy, torch.Tensor) else _policy_action(core, policy, o, t0 + k)
         if a.dim() == 1:
             a = a.expand(state.batch_size, -1)
         out = core.step(state, a, params)
@@ -120,7 +133,7 @@ def rollout(
     for name, k in (("truncate_every", truncate_every), ("checkpoint_every", checkpoint_every)):
         if k is not None and (not isinstance(k, int) or k < 1):
             raise ValueError(f"{name} must be a positive int or None, got {k!r}")
-    if not isinstance(T, int) or T < 0:
+    if isinstance(T, bool) or not isinstance(T, int) or T < 0:
         raise ValueError(f"horizon must be an int >= 0, got {T!r}")
 
     # chunk boundaries: every truncate_every and every checkpoint_every step
@@ -151,7 +164,7 @@ def rollout(
         acts = obs0.new_zeros(0, B, core.action_dim)
         rews = obs0.new_zeros(0, B)
         terms = torch.zeros(0, B, dtype=torch.bool, device=obs0.device)
-        qs = state.q[:0]
+        qs = state.q[None][:0]
         info = {}
     done_before = torch.cumsum(terms.long(), 0) - terms.long()  # terminal steps strictly before t
     alive = (done_before == 0).to(rews.dtype)

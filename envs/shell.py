@@ -94,11 +94,12 @@ class CoreEnv(gym.Env):
     def step(self, action):
         if self.state is None:
             raise RuntimeError("call reset() before step()")
-        a = torch.as_tensor(
-            np.asarray(action, dtype=np.float64), dtype=self.core.dtype, device=self.core.device
-        )
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (self.core.action_dim,):
+            raise ValueError(f"action must have shape ({self.core.action_dim},), got {action.shape}")
+        a = torch.as_tensor(action, dtype=self.core.dtype, device=self.core.device)
         with torch.no_grad():
-            out = self.core.step(self.state, a.reshape(1, -1))
+            out = self.core.step(self.state, a[None])
         self.state = out.state
         info = {k: v[0].item() for k, v in out.info.items()}
         obs = out.obs[0].cpu().numpy().astype(np.float64)
@@ -145,7 +146,7 @@ class CoreVectorEnv(VectorEnv):
         batched: bool = False,
         **task: Any,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -195,7 +196,14 @@ class CoreVectorEnv(VectorEnv):
     def step(self, actions):
         if any(s is None for s in self.states):
             raise RuntimeError("call reset() before step()")
-        actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, self.core.action_dim)
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (self.num_envs, self.core.action_dim):
+            raise ValueError(
+                f"actions must have shape ({self.num_envs}, {self.core.action_dim}), got {actions.shape}"
+            )
+        if not np.isfinite(actions).all():  # checked before any environment steps
+            bad = sorted({int(i) for i in np.nonzero(~np.isfinite(actions))[0]})
+            raise ValueError(f"actions: non-finite entries for environments {bad}")
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
         truncated = np.zeros(self.num_envs, dtype=np.bool_)
@@ -214,12 +222,8 @@ class CoreVectorEnv(VectorEnv):
                 rewards[i] = float(out.reward[k])
                 terminated[i] = bool(out.terminated[k])
                 truncated[i] = int(out.state.t[k]) >= self.max_episode_steps
-                for key, v in out.info.items():
-                    if key not in infos:
-                        infos[key] = np.zeros(self.num_envs, dtype=np.float64)
-                        infos[f"_{key}"] = np.zeros(self.num_envs, dtype=np.bool_)
-                    infos[key][i] = v[k].item()
-                    infos[f"_{key}"][i] = True
+                # the single env's info (Python scalars) gathered as SyncVectorEnv does (its dtypes follow them)
+                infos = self._add_info(infos, {key: v[k].item() for key, v in out.info.items()}, i)
         self._autoreset = terminated | truncated
         return self._obs.copy(), rewards, terminated, truncated, infos
 

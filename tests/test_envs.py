@@ -152,6 +152,10 @@ def test_native_vector_env_equals_make_vec_sync_bit_for_bit():
         r2 = native.step(act)
         for x, y in zip(r1[:4], r2[:4], strict=True):
             np.testing.assert_array_equal(x, y)
+        assert r1[4].keys() == r2[4].keys()
+        for key in r1[4]:  # the info arrays too, dtypes included (integers stay integers)
+            assert r1[4][key].dtype == r2[4][key].dtype, key
+            np.testing.assert_array_equal(r1[4][key], r2[4][key])
         truncations += int(r1[3].sum())
     assert truncations == 2  # both environments truncated once and were reset
     sync.close()
@@ -289,6 +293,71 @@ def test_core_checks_its_inputs():
         rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 5)
     s32 = make_core("cfd_torch/Push-v0", dtype=torch.float32).reset([4, 5])
     assert s32.q.dtype == torch.float32 and s32.batch_size == 2
+    # seeds: NumPy integers are ints; strings, floats and bool batch sizes are refused
+    torch.testing.assert_close(core.reset(np.int64(3)).q, core.reset(3).q, rtol=0, atol=0)
+    torch.testing.assert_close(core.reset(np.array([3, 4])).q, core.reset(3, 2).q, rtol=0, atol=0)
+    with pytest.raises(TypeError, match="seed must be an int"):
+        core.reset("12")
+    with pytest.raises(TypeError, match="every entry of a sequence of seeds must be an int"):
+        core.reset([1.7, 2.2])
+    with pytest.raises(ValueError, match="batch_size must be a positive int"):
+        core.reset(0, batch_size=True)
+    # select: an int keeps the batch dimension, negative ints count from the end, others are refused
+    s3 = core.reset(0, 3)
+    torch.testing.assert_close(s3.select(-1).q, s3.q[2:], rtol=0, atol=0)
+    with pytest.raises(IndexError, match="index 3 is out of range for a batch of 3"):
+        s3.select(3)
+    # a rollout of no steps: the start only
+    out = rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 0)
+    assert out.q.shape == (1, 2, 3, 6) and out.rewards.shape == (0, 2) and out.obs.shape[0] == 1
+    # a policy that returns something else than a (B, A) or (A,) tensor is named with its step
+    with pytest.raises(TypeError, match=r"policy\(obs, 0\) must return a torch tensor"):
+        rollout(core, s, lambda o, t: np.zeros((2, 2)), 2)
+    with pytest.raises(ValueError, match=r"policy\(obs, 1\) must return actions of shape \(2, 2\) or \(2,\)"):
+        rollout(core, s, lambda o, t: torch.zeros(2 if t == 0 else 1, 2, dtype=F64), 2)
+    # torch.func's transforms cannot pass a simulator step: refused with the way out
+    with pytest.raises(
+        NotImplementedError, match="torch.func transforms .* do not pass through a simulation step"
+    ):
+        torch.func.grad(lambda a: core.step(s, a).reward.sum())(torch.zeros(2, 2, dtype=F64))
+
+
+def test_shells_check_action_shapes_before_stepping():
+    """The Gymnasium shells take actions of exactly their space's shape (a (2, 4) batch for 4 environments of 2
+    actions is not reshaped into (4, 2)); a non-finite action is refused before any environment steps."""
+    env = gym.make("cfd_torch/Push-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must have shape \(2,\), got \(2, 1\)"):
+        env.step(np.zeros((2, 1)))
+    vec = gym.make_vec("cfd_torch/Push-v0", 4)
+    vec.reset(seed=0)
+    for bad in (np.zeros((2, 4)), np.zeros(8)):
+        with pytest.raises(ValueError, match=r"actions must have shape \(4, 2\)"):
+            vec.step(bad)
+    before = [st.q.clone() for st in vec.unwrapped.states]
+    act = np.zeros((4, 2))
+    act[2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"non-finite entries for environments \[2\]"):
+        vec.step(act)
+    for st, q in zip(vec.unwrapped.states, before, strict=True):
+        torch.testing.assert_close(st.q, q, rtol=0, atol=0)  # nothing stepped
+    with pytest.raises(ValueError, match="num_envs must be a positive int"):
+        gym.make_vec("cfd_torch/Push-v0", True, vectorization_mode="vector_entry_point")
+    vec.close()
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs",
+    [("cfd_torch/Gather-v0", {"region_distance": 5.0}), ("cfd_torch/Sort-v0", {"region_offset": 4.0})],
+)
+def test_observation_bounds_follow_the_task_arguments(env_id, kwargs):
+    """The goal part of Sort's and Gather's observation (the regions' centres) stays inside its bound for regions
+    farther out than the defaults."""
+    core = make_core(env_id, **kwargs)
+    low, high = core.observation_bounds()
+    obs = core.observe(core.reset(0, 4))
+    assert float(obs.abs().max()) > 3.0  # the old fixed bound of the goal part
+    assert bool(((obs >= low) & (obs <= high)).all())
 
 
 def test_rendered_frames_show_the_scene_and_change_when_it_moves():
