@@ -112,9 +112,21 @@ def _triangle_codes_nb(tri, tol, code):
         code[k] = 0 if area2_sq > (tol * longest_sq) ** 2 else 2
 
 
+def _is_real(value: object) -> bool:
+    """A real number (Python's or NumPy's), not a bool."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+
+
 def check_positive(value: float, name: str) -> None:
-    if not (isinstance(value, (int, float)) and value > 0 and value < float("inf")):
-        raise ValueError(f"{name} must be a finite positive Python int or float, got {value!r}")
+    if not (_is_real(value) and 0 < value < float("inf")):
+        raise ValueError(f"{name} must be a finite positive number (int or float), got {value!r}")
+
+
+def check_count(value: int, name: str) -> None:
+    if not (isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) and value > 0):
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
 
 
 _triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)

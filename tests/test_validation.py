@@ -142,8 +142,79 @@ def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
         contact_potential([bsh, bsh], poses)
     with _raises("poses must hold at least one body"):
         contact_potential([], torch.zeros(0, 6, dtype=F64))
-    with _raises("mu must be a finite positive Python int or float"):
-        contact_potential([bsh] * 3, poses, mu=np.float32(1e-3))
+    with _raises("mu must be a finite positive number"):
+        contact_potential([bsh] * 3, poses, mu=True)
+    # NumPy numbers are numbers
+    ref = contact_potential([bsh] * 3, poses, mu=1e-3).value
+    assert float(contact_potential([bsh] * 3, poses, mu=np.float32(1e-3)).value) == pytest.approx(float(ref))
+    # the plane solve's settings are checked here as in pair_potential
+    for kw, msg in (
+        ({"tol": -1.0}, "tol must be a finite positive number"),
+        ({"tol": float("nan")}, "tol must be a finite positive number"),
+        ({"max_iter": 0}, "max_iter must be a positive int"),
+        ({"max_iter": True}, "max_iter must be a positive int"),
+    ):
+        with _raises(msg):
+            contact_potential([bsh] * 3, poses, **kw)
+    # exclude: a tensor of pairs works; pairs of non-integers are refused
+    assert float(contact_potential([bsh] * 3, poses, exclude=torch.tensor([[0, 1]])).value) == pytest.approx(
+        float(contact_potential([bsh] * 3, poses, exclude=[(0, 1)]).value)
+    )
+    with _raises("exclude must hold pairs"):
+        contact_potential([bsh] * 3, poses, exclude=[(0, 1.5)])
+
+
+def test_mesh_potential_checks_its_solver_settings_and_names_the_bad_hierarchy():
+    from cfd_torch import mesh_potential, mesh_potential_derivatives
+
+    bsh = BSH.from_trimesh(trimesh.creation.box((0.1, 0.1, 0.1)))
+    pa = torch.zeros(6, dtype=F64)
+    pb = torch.tensor([0.3, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64)
+    for f in (mesh_potential, mesh_potential_derivatives):
+        with _raises("tol must be a finite positive number"):
+            f(bsh, pa, bsh, pb, tol=-1.0)
+        with _raises("max_iter must be a positive int"):
+            f(bsh, pa, bsh, pb, max_iter=0)
+    with pytest.raises(TypeError, match="bsh_b must be a cfd_torch.BSH, got str"):
+        mesh_potential(bsh, pa, "box", pb)
+
+
+def test_central_terms_check_their_arguments():
+    from cfd_torch.contact.central import blend_weight, central_potential, smoothstep
+
+    with _raises("mu must be a finite positive number"):
+        central_potential(torch.tensor([1.0], dtype=F64), mu=-1.0)
+    with _raises("d1 must be finite and > 0"):
+        blend_weight(torch.tensor([1.0], dtype=F64), 0.0, 0.1)
+    with _raises("r contains NaN"):
+        blend_weight(torch.tensor([float("nan")], dtype=F64), 1.0, 0.1)
+    # infinitely far: the central term alone (phi = 1), as the clamp says
+    inf = torch.tensor([float("inf")], dtype=F64)
+    assert float(blend_weight(inf, 1.0, 0.1)) == 1.0 and float(smoothstep(inf)) == 1.0
+
+
+def test_a_triangle_soup_has_the_hierarchy_of_the_merged_mesh():
+    """An internal node's centre is the mean of the distinct points below it: the same surface with every vertex
+    repeated in each face that has it (an STL's triangle soup) gives the same hierarchy and potential."""
+    from cfd_torch import mesh_potential
+
+    ico = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    V, Fc = np.asarray(ico.vertices), np.asarray(ico.faces)
+    merged = BSH.build(V, Fc)
+    soup = BSH.build(V[Fc].reshape(-1, 3), np.arange(3 * len(Fc)).reshape(-1, 3))
+    torch.testing.assert_close(soup.centre, merged.centre, rtol=0, atol=1e-15)
+    torch.testing.assert_close(soup.radius, merged.radius, rtol=0, atol=1e-15)
+    qa = torch.zeros(6, dtype=F64)
+    qb = torch.tensor([1.003, 0.02, 0.01, 0, 0, 0], dtype=F64)
+    a, b = float(mesh_potential(merged, qa, merged, qb)), float(mesh_potential(soup, qa, soup, qb))
+    assert a > 0 and b == pytest.approx(a, rel=1e-12)
+
+
+def test_bsh_build_warns_that_vertices_get_no_gradient():
+    box = trimesh.creation.box((0.1, 0.1, 0.1))
+    V = torch.tensor(box.vertices, dtype=F64, requires_grad=True)
+    with pytest.warns(UserWarning, match="no gradient flows back to a mesh's vertices"):
+        BSH.build(V, box.faces)
 
 
 def test_non_mesh_is_a_type_error():

@@ -14,6 +14,7 @@ comparable to those of the bodies they touch.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,12 @@ class BSH:
         Raises:
             ValueError: bad shapes, NaN/inf vertices, out-of-range indices or degenerate faces (naming the face).
         """
+        if isinstance(vertices, torch.Tensor) and vertices.requires_grad:
+            warnings.warn(
+                "BSH.build: vertices require grad, but the hierarchy holds their values: no gradient flows back to "
+                "a mesh's vertices (only to body poses)",
+                stacklevel=2,
+            )
         V = np.asarray(
             vertices.detach().cpu() if isinstance(vertices, torch.Tensor) else vertices, dtype=np.float64
         )
@@ -103,6 +110,10 @@ class BSH:
 def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:
     F = Fc.shape[0]
     tris = V[Fc]  # (F, 3, 3)
+    # each vertex index mapped to the first index of its position: a node's distinct vertices are distinct points
+    # (a triangle soup, as read from STL, repeats each point in every face that has it)
+    _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    Fp = first[inverse.reshape(-1)][Fc]
     centroids = tris.mean(1)
     M = 2 * F - 1
     centre = np.zeros((M, 3))
@@ -123,7 +134,7 @@ def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:
             radius[node] = np.sqrt(((tris[f] - c) ** 2).sum(1)).max()
             tri[node] = f
             continue
-        verts = V[np.unique(Fc[idx].ravel())]
+        verts = V[np.unique(Fp[idx].ravel())]
         c = verts.mean(0)
         centre[node] = c
         radius[node] = np.sqrt(((verts - c) ** 2).sum(1)).max()

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_finite_tensor
+from .._validate import check_finite_tensor, check_positive
 from ..config import DEFAULT_CONTACT
 
 __all__ = ["central_potential", "smoothstep", "blend_weight", "band_width", "BAND_MARGINS"]
@@ -46,6 +46,7 @@ def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness)
         ValueError: if ``r`` is not a floating tensor, holds NaN, or is negative.
     """
     check_finite_tensor(r, "r", allow_inf=True)
+    check_positive(mu, "mu")
     if bool((r < 0).any()):
         raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
     return 12.0 * mu * (1.0 + torch.rsqrt(r)) ** 2
@@ -62,7 +63,7 @@ def smoothstep(s: torch.Tensor) -> torch.Tensor:
     Returns:
         (...) Phi(s) in [0, 1], differentiable to any order (zero derivatives outside [0, 1]).
     """
-    check_finite_tensor(s, "s")
+    check_finite_tensor(s, "s", allow_inf=True)
     t = s.clamp(0.0, 1.0)
     return t * t * t * (t * (6.0 * t - 15.0) + 10.0)
 
@@ -87,10 +88,15 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
     Returns:
         (...) phi: 0 for r <= d1 (fine potential only), 1 for r >= d2 (central only), C2 in between.
     """
-    if not eps > 0:
-        raise ValueError(f"eps must be > 0, got {eps}")
+    check_positive(eps, "eps")
     if not margin >= 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
+    check_finite_tensor(r, "r", allow_inf=True)
+    if bool((r < 0).any()):
+        raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
+    d1_t = torch.as_tensor(d1, dtype=r.dtype, device=r.device)
+    if not bool((torch.isfinite(d1_t) & (d1_t > 0)).all()):
+        raise ValueError(f"d1 must be finite and > 0 (a sum of two radii), got {d1}")
     return smoothstep((r - d1) / band_width(d1, eps, margin))
 
 

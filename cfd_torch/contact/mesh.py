@@ -29,6 +29,7 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
+from .._validate import check_count, check_positive
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -44,7 +45,8 @@ class MeshDerivatives(NamedTuple):
         grad: (..., 12) d value / d [t_a, omega_a, t_b, omega_b], or None (zero where value is +inf).
         hessian: (..., 12, 12), or None.
         stats: counts of the traversal: "node_pairs" (all node pairs visited), "leaf_pairs" (exact solves),
-            "levels".
+            "levels" (the breadth-first traversal's levels, on other devices or with ``backend="torch"``; -1
+            where the depth-first CPU kernel ran, which does not count them).
     """
 
     value: torch.Tensor
@@ -70,17 +72,20 @@ def _check_pose(pose: object, name: str) -> None:
             raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
 
 
-def _check_params(mu, margin, eps, split):
-    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
-        if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
-            raise ValueError(f"{n} must be a finite positive Python int or float, got {v!r}")
+def _check_params(mu, margin, eps, split, tol, max_iter):
+    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps"), (tol, "tol")):
+        check_positive(v, n)
+    check_count(max_iter, "max_iter")
     if split not in SPLIT_RULES:
         raise ValueError(f"split must be one of {SPLIT_RULES}, got {split!r}")
 
 
 def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
     if not isinstance(bsh_a, BSH) or not isinstance(bsh_b, BSH):
-        raise TypeError("bsh_a and bsh_b must be cfd_torch.BSH")
+        bad = "bsh_a" if not isinstance(bsh_a, BSH) else "bsh_b"
+        raise TypeError(
+            f"{bad} must be a cfd_torch.BSH, got {type(bsh_a if bad == 'bsh_a' else bsh_b).__name__}"
+        )
     if isinstance(pose_a, torch.Tensor) and isinstance(pose_b, torch.Tensor):
         if pose_a.dtype != pose_b.dtype:
             raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
@@ -143,7 +148,7 @@ def mesh_potential_derivatives(
     """
     refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
-    _check_params(mu, margin, eps, split)
+    _check_params(mu, margin, eps, split, tol, max_iter)
     dt = pose_a.dtype
     with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
         qa = plain(pose_a).detach().to(torch.float64).expand(*batch, 6).reshape(-1, 6)
@@ -185,7 +190,7 @@ def mesh_potential(
     """
     refuse_vmap("mesh_potential", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
-    _check_params(mu, margin, eps, split)
+    _check_params(mu, margin, eps, split, tol, max_iter)
     qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
     qb = pose_b.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
     params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}

@@ -34,7 +34,7 @@ from .._autograd import (
     vmap_error,
 )
 from .._geometry import frame_origin
-from .._validate import check_positive, check_triangles
+from .._validate import check_count, check_positive, check_triangles
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
@@ -321,8 +321,7 @@ def _prepare(tri_a, tri_b, mu, margin, tol, max_iter):
     check_positive(mu, "mu")
     check_positive(margin, "margin")
     check_positive(tol, "tol")
-    if not (isinstance(max_iter, int) and max_iter > 0):
-        raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
+    check_count(max_iter, "max_iter")
     try:
         batch = torch.broadcast_shapes(tri_a.shape[:-2], tri_b.shape[:-2])
     except RuntimeError as err:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from .._autograd import (
@@ -42,7 +43,8 @@ class ContactPotential(NamedTuple):
             poses included.
         hessian: (N * 6, N * 6) second derivative over the flattened poses, rows and columns of static bodies set
             to zero, or None unless asked for.
-        stats: traversal counts ("body_pairs", "node_pairs", "leaf_pairs", "levels").
+        stats: traversal counts ("body_pairs", "node_pairs", "leaf_pairs", "levels": as in
+            :class:`cfd_torch.contact.mesh.MeshDerivatives`, -1 from the depth-first CPU kernel).
     """
 
     value: torch.Tensor
@@ -87,7 +89,14 @@ def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] 
     """(P, 2) pairs i < j that interact: not both static and not excluded."""
     i, j = torch.triu_indices(n, n, offset=1)
     keep = ~(static[i] & static[j])
-    if exclude:
+    if isinstance(exclude, torch.Tensor):
+        exclude = exclude.tolist()
+    if len(exclude):
+        if not all(
+            len(e) == 2 and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in e)
+            for e in exclude
+        ):
+            raise ValueError(f"exclude must hold pairs (i, j) of int body indices, got {list(exclude)!r}")
         ex = torch.tensor([(min(a, b), max(a, b)) for a, b in exclude], dtype=torch.long)
         if bool(((ex < 0) | (ex >= n)).any()) or bool((ex[:, 0] == ex[:, 1]).any()):
             raise ValueError(f"exclude holds invalid body pairs for {n} bodies: {list(exclude)}")
@@ -145,7 +154,7 @@ def contact_potential(
         bad = ~torch.isfinite(plain(poses)).all(1)
         if bool(bad.any()):
             raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
-    _check_params(mu, margin, eps, split)
+    _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:
         grad = poses.requires_grad and torch.is_grad_enabled()
     order = 2 if hessian else (1 if grad else 0)
