@@ -90,6 +90,14 @@ def refuse_vmap(name: str, *tensors: torch.Tensor) -> None:
             x = _functorch.get_unwrapped(x)
 
 
+def refuse_transforms(message: str, *tensors: object) -> None:
+    """Raise NotImplementedError(``message``) if one of ``tensors`` (non-tensors are skipped) is under any
+    torch.func transform: for code whose autograd Function is not in the new style."""
+    for x in tensors:
+        if isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
+            raise NotImplementedError(message)
+
+
 Evaluate = Callable[[torch.Tensor, int], tuple]
 
 

@@ -112,20 +112,27 @@ def _triangle_codes_nb(tri, tol, code):
         code[k] = 0 if area2_sq > (tol * longest_sq) ** 2 else 2
 
 
-def _is_real(value: object) -> bool:
+def is_real(value: object) -> bool:
     """A real number (Python's or NumPy's), not a bool."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
         value, (bool, np.bool_)
     )
 
 
+def is_int(value: object) -> bool:
+    """An integer (Python's or NumPy's, or a 0-d integer tensor), not a bool."""
+    if isinstance(value, torch.Tensor):
+        return value.dim() == 0 and not value.is_floating_point() and value.dtype not in (torch.bool,)
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 def check_positive(value: float, name: str) -> None:
-    if not (_is_real(value) and 0 < value < float("inf")):
+    if not (is_real(value) and 0 < value < float("inf")):
         raise ValueError(f"{name} must be a finite positive number (int or float), got {value!r}")
 
 
 def check_count(value: int, name: str) -> None:
-    if not (isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) and value > 0):
+    if not (is_int(value) and value > 0):
         raise ValueError(f"{name} must be a positive int, got {value!r}")
 
 

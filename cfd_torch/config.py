@@ -10,6 +10,8 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from ._validate import is_int, is_real
+
 __all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "POTENTIALS", "DEFAULT_CONTACT"]
 
 SPLIT_RULES = ("both", "larger")
@@ -17,12 +19,12 @@ POTENTIALS = ("cfd", "ipc", "sdrs")
 
 
 def _positive(owner: str, name: str, value: object) -> None:
-    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf):
+    if not (is_real(value) and 0 < value < math.inf):
         raise ValueError(f"{owner}.{name} must be a finite positive number, got {value!r}")
 
 
 def _count(owner: str, name: str, value: object) -> None:
-    if not (isinstance(value, int) and not isinstance(value, bool) and value > 0):
+    if not (is_int(value) and value > 0):
         raise ValueError(f"{owner}.{name} must be a positive int, got {value!r}")
 
 

@@ -115,8 +115,9 @@ class CubesCore(TaskCore):
         raise NotImplementedError(f"{type(self).__name__} must define _goal_obs")
 
     def _goal_high(self) -> float:
-        """The largest magnitude of an entry of the task's part of the observation."""
-        raise NotImplementedError(f"{type(self).__name__} must define _goal_high")
+        """The largest magnitude of an entry of the task's part of the observation (its bound is at least twice
+        that, and at least 3)."""
+        return 1.5
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         # xy: the pusher starts within the spread and runs at up to max_speed (twice that, for the PD law's

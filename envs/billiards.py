@@ -79,7 +79,7 @@ class BilliardsCore(TaskCore):
             raise ValueError(f"target_ball must be a rack ball index in 0..14 or None, got {target_ball!r}")
         if pocket is not None and not (_is_int(pocket) and 0 <= pocket < len(POCKETS)):
             raise ValueError(
-                f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket}"
+                f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket!r}"
             )
         for name, v in (("ball_radius", ball_radius), ("ball_mass", ball_mass), ("max_force", max_force)):
             if not v > 0:

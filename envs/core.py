@@ -26,6 +26,7 @@ import torch.utils._pytree as pytree
 import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
+from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
 
 __all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_states", "task_at"]
@@ -59,7 +60,11 @@ class EnvState:
     def select(self, index: torch.Tensor | slice | int) -> EnvState:
         """The environments ``index`` (a slice or index tensor keeps the batch dimension; an int keeps it too, and
         counts from the end when negative, as in a sequence)."""
-        if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
+        if isinstance(index, (bool, np.bool_)) or (
+            isinstance(index, torch.Tensor) and index.dtype == torch.bool and index.dim() == 0
+        ):
+            raise TypeError(f"index must be an int, a slice or an index tensor, got {index!r}")
+        if _is_int(index):
             B = self.batch_size
             if not -B <= int(index) < B:
                 raise IndexError(f"index {int(index)} is out of range for a batch of {B} environments")
@@ -132,11 +137,6 @@ class StepOut(NamedTuple):
     reward: torch.Tensor
     terminated: torch.Tensor
     info: dict[str, torch.Tensor]
-
-
-def _is_int(x) -> bool:
-    """An integer (Python's or NumPy's), not a bool."""
-    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
 def _generator_seed(seed: int) -> int:
@@ -274,11 +274,13 @@ class TaskCore(abc.ABC):
 
     # ---- the pure functions --------------------------------------------------------------------------------------
 
-    def reset(self, seed: int | Sequence[int], batch_size: int | None = None) -> EnvState:
+    def reset(self, seed: int | Sequence[int] | np.ndarray, batch_size: int | None = None) -> EnvState:
         """Initial states of B environments: environment i drawn with seed ``seed + i`` (an int; ``batch_size``
         environments, default 1) or ``seed[i]`` (a sequence of B ints), as Gymnasium's SyncVectorEnv seeds its
         copies. Any int seeds (torch's generator takes 32 bits: seeds outside [0, 2^32) are hashed to 32 bits, so
         that seed + 2^32 is not seed again; there are 2^32 distinct draws)."""
+        if isinstance(seed, np.ndarray) and seed.ndim == 0:
+            seed = seed[()]
         if _is_int(seed):
             B = 1 if batch_size is None else batch_size
             if not _is_int(B) or B < 1:
@@ -290,6 +292,8 @@ class TaskCore(abc.ABC):
                     f"seed: every entry of a sequence of seeds must be an int, got {list(seed)!r}"
                 )
             seeds = [int(s) for s in seed]
+            if batch_size is not None and not (_is_int(batch_size) and batch_size >= 1):
+                raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
             if not seeds or (batch_size is not None and batch_size != len(seeds)):
                 raise ValueError(f"seed has {len(seeds)} entries but batch_size is {batch_size}")
         else:

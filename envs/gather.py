@@ -6,6 +6,8 @@ import math
 
 import torch
 
+from cfd_torch._validate import check_positive, is_real
+
 from ._cubes import CubesCore
 from .core import EnvState, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
@@ -36,6 +38,9 @@ class GatherCore(CubesCore):
     obs_dim = 46
 
     def __init__(self, *, region_radius: float = 0.35, region_distance: float = 1.5, **kwargs) -> None:
+        check_positive(region_radius, "region_radius")
+        if not (is_real(region_distance) and 0 <= region_distance < math.inf):
+            raise ValueError(f"region_distance must be a finite number >= 0, got {region_distance!r}")
         super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_distance = region_distance

@@ -35,6 +35,7 @@ import mujoco
 import numpy as np
 import torch
 
+from cfd_torch._validate import is_int
 from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 
 from .core import EnvState, TaskCore
@@ -71,7 +72,7 @@ class MujocoTwin:
             raise ValueError(
                 "core: MujocoTwin takes dynamic and static bodies only (this scene has kinematic ones)"
             )
-        if not (isinstance(substeps, int) and substeps >= 1):
+        if not (is_int(substeps) and substeps >= 1):
             raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
         self.core, self.substeps = core, substeps
         self.planar = bool(scene.planar)
@@ -223,11 +224,15 @@ class MujocoTwin:
             raise ValueError(
                 f"state: MujocoTwin.rollout takes one environment, got a batch of {state.batch_size}"
             )
-        a = actions.detach().double().reshape(actions.shape[0], -1)
-        if a.shape[1] != core.action_dim:
+        A = core.action_dim
+        if not isinstance(actions, torch.Tensor) or tuple(actions.shape[1:]) not in ((A,), (1, A)):
             raise ValueError(
-                f"actions must be (T, {core.action_dim}) or (T, 1, {core.action_dim}), got {tuple(actions.shape)}"
+                f"actions must be (T, {A}) or (T, 1, {A}), got {tuple(getattr(actions, 'shape', ()))}"
             )
+        a = actions.detach().double().reshape(actions.shape[0], A)
+        if not bool(torch.isfinite(a).all()):
+            first = int(torch.nonzero(~torch.isfinite(a))[0, 0])
+            raise ValueError(f"actions contain NaN or inf (first at step {first})")
         self._set_state(state)
         d = self.data
         cur = EnvState(state.q.detach().double(), state.q_prev.detach().double(), state.t, state.task)

@@ -9,6 +9,7 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from cfd_torch import Params
+from cfd_torch._validate import is_int
 
 from .core import EnvState, TaskCore
 
@@ -131,9 +132,9 @@ def rollout(
     else:
         raise TypeError(f"policy must be a tensor of actions or a callable, got {type(policy).__name__}")
     for name, k in (("truncate_every", truncate_every), ("checkpoint_every", checkpoint_every)):
-        if k is not None and (not isinstance(k, int) or k < 1):
+        if k is not None and (not is_int(k) or k < 1):
             raise ValueError(f"{name} must be a positive int or None, got {k!r}")
-    if isinstance(T, bool) or not isinstance(T, int) or T < 0:
+    if not is_int(T) or T < 0:
         raise ValueError(f"horizon must be an int >= 0, got {T!r}")
 
     # chunk boundaries: every truncate_every and every checkpoint_every step

@@ -201,8 +201,11 @@ class CoreVectorEnv(VectorEnv):
             raise ValueError(
                 f"actions must have shape ({self.num_envs}, {self.core.action_dim}), got {actions.shape}"
             )
-        if not np.isfinite(actions).all():  # checked before any environment steps
-            bad = sorted({int(i) for i in np.nonzero(~np.isfinite(actions))[0]})
+        stepping = (
+            ~self._autoreset
+        )  # (the actions of environments being reset are ignored, as in SyncVectorEnv)
+        if not np.isfinite(actions[stepping]).all():  # checked before any environment steps
+            bad = sorted({int(i) for i in np.nonzero(stepping & ~np.isfinite(actions).all(1))[0]})
             raise ValueError(f"actions: non-finite entries for environments {bad}")
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=np.bool_)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from cfd_torch._validate import check_positive
+
 from ._cubes import CubesCore
 from .core import EnvState, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
@@ -38,6 +40,8 @@ class SortCore(CubesCore):
     obs_dim = 58
 
     def __init__(self, *, region_radius: float = 0.4, region_offset: float = 1.2, **kwargs) -> None:
+        check_positive(region_radius, "region_radius")
+        check_positive(region_offset, "region_offset")
         super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_offset = region_offset

@@ -307,6 +307,16 @@ def test_core_checks_its_inputs():
     torch.testing.assert_close(s3.select(-1).q, s3.q[2:], rtol=0, atol=0)
     with pytest.raises(IndexError, match="index 3 is out of range for a batch of 3"):
         s3.select(3)
+    torch.testing.assert_close(s3.select(torch.tensor(1)).q, s3.q[1:2], rtol=0, atol=0)
+    with pytest.raises(TypeError, match="index must be an int, a slice or an index tensor"):
+        s3.select(True)
+    # seeds as 0-d tensors or arrays are ints; a bool batch size is refused with a sequence too
+    torch.testing.assert_close(core.reset([torch.tensor(3)]).q, core.reset(3).q, rtol=0, atol=0)
+    torch.testing.assert_close(core.reset(np.array(3)).q, core.reset(3).q, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="batch_size must be a positive int"):
+        core.reset([3], batch_size=True)
+    with pytest.raises(ValueError, match="truncate_every must be a positive int"):
+        rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 2, truncate_every=True)
     # a rollout of no steps: the start only
     out = rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 0)
     assert out.q.shape == (1, 2, 3, 6) and out.rewards.shape == (0, 2) and out.obs.shape[0] == 1

@@ -82,6 +82,13 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
     moved, moved_ours = 3.0 - float(d[-1]), 3.0 - float(ours[-1])
     assert moved_ours > 1e-4
     assert 0.3 * moved_ours < moved < 3.0 * moved_ours
+    # actions of another shape are refused, not reshaped; NaN is refused before MuJoCo sees it
+    with pytest.raises(ValueError, match=r"actions must be \(T, 2\) or \(T, 1, 2\), got \(2, 2, 1\)"):
+        twin.rollout(s, torch.zeros(2, 2, 1, dtype=torch.float64))
+    bad = torch.zeros(3, 2, dtype=torch.float64)
+    bad[1, 0] = float("nan")
+    with pytest.raises(ValueError, match="actions contain NaN or inf \\(first at step 1\\)"):
+        twin.rollout(s, bad)
 
 
 def test_mujoco_twin_of_the_ant_takes_its_state_and_stands_on_the_floor():

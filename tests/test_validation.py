@@ -162,6 +162,9 @@ def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
     )
     with _raises("exclude must hold pairs"):
         contact_potential([bsh] * 3, poses, exclude=[(0, 1.5)])
+    assert float(contact_potential([bsh] * 3, poses, exclude=None).value) == float(
+        contact_potential([bsh] * 3, poses).value
+    )
 
 
 def test_mesh_potential_checks_its_solver_settings_and_names_the_bad_hierarchy():
@@ -191,6 +194,10 @@ def test_central_terms_check_their_arguments():
     # infinitely far: the central term alone (phi = 1), as the clamp says
     inf = torch.tensor([float("inf")], dtype=F64)
     assert float(blend_weight(inf, 1.0, 0.1)) == 1.0 and float(smoothstep(inf)) == 1.0
+    d1 = torch.tensor(1.0, dtype=F64, requires_grad=True)
+    r = torch.tensor([float("inf"), 1.05], dtype=F64, requires_grad=True)
+    blend_weight(r, d1, 0.1).sum().backward()
+    assert bool(torch.isfinite(d1.grad)) and float(d1.grad) != 0.0 and float(r.grad[0]) == 0.0
 
 
 def test_a_triangle_soup_has_the_hierarchy_of_the_merged_mesh():
@@ -327,6 +334,20 @@ def test_kinematic_target_clear_of_static_bodies_steps(scene, state):
     target = torch.tensor([[-0.3, 0.0, 0.06 - 1e-3, 0.0, 0.0, 0.0]], dtype=F64)  # 9 mm above the ground
     nxt = step(scene, state, Action(target=target))
     torch.testing.assert_close(nxt.q[2], target[0])
+
+
+def test_step_refuses_torch_func_transforms(scene, state):
+    """The step's autograd Function cannot pass torch.func's transforms: grad and vmap are refused, saying what
+    to use instead."""
+    msg = "do not pass through a simulation step; differentiate with torch.autograd"
+
+    def f(q):
+        return step(scene, State(q, state.q_prev)).q.sum()
+
+    with _raises(msg, err=NotImplementedError):
+        torch.func.grad(f)(state.q)
+    with _raises(msg, err=NotImplementedError):
+        torch.func.vmap(f)(state.q[None].expand(2, -1, -1))
 
 
 def test_rollout_actions(scene, state):

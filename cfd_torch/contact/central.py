@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_finite_tensor, check_positive
+from .._validate import check_finite_tensor, check_positive, is_real
 from ..config import DEFAULT_CONTACT
 
 __all__ = ["central_potential", "smoothstep", "blend_weight", "band_width", "BAND_MARGINS"]
@@ -43,7 +43,8 @@ def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness)
         constant ``12 mu``, but its derivative ``-12 mu (r^-3/2 + r^-2)`` never vanishes.
 
     Raises:
-        ValueError: if ``r`` is not a floating tensor, holds NaN, or is negative.
+        ValueError: if ``r`` is not a floating tensor, holds NaN, or is negative, or ``mu`` is not a finite positive
+            number.
     """
     check_finite_tensor(r, "r", allow_inf=True)
     check_positive(mu, "mu")
@@ -86,18 +87,26 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
         margin: the contact margin delta [m] (the hierarchy's potential uses its own; 0: the band is ``eps d1``).
 
     Returns:
-        (...) phi: 0 for r <= d1 (fine potential only), 1 for r >= d2 (central only), C2 in between.
+        (...) phi: 0 for r <= d1 (fine potential only), 1 for r >= d2 (central only; r = inf included), C2 in
+        between.
+
+    Raises:
+        ValueError: eps not a finite positive number, margin negative, r NaN or negative, d1 not finite and > 0.
     """
     check_positive(eps, "eps")
-    if not margin >= 0:
-        raise ValueError(f"margin must be >= 0, got {margin}")
+    if not (is_real(margin) and 0 <= margin < float("inf")):
+        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
     check_finite_tensor(r, "r", allow_inf=True)
     if bool((r < 0).any()):
         raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
     d1_t = torch.as_tensor(d1, dtype=r.dtype, device=r.device)
     if not bool((torch.isfinite(d1_t) & (d1_t > 0)).all()):
         raise ValueError(f"d1 must be finite and > 0 (a sum of two radii), got {d1}")
-    return smoothstep((r - d1) / band_width(d1, eps, margin))
+    w = band_width(d1, eps, margin)
+    # beyond the band phi = 1 with zero derivatives: r is capped at d1 + 2 w, so that r = inf gives no inf - inf in
+    # the derivatives with respect to d1
+    cap = torch.as_tensor(d1 + 2.0 * w, dtype=r.dtype, device=r.device)
+    return smoothstep((torch.minimum(r, cap) - d1) / w)
 
 
 def _first(mask: torch.Tensor) -> tuple[int, ...]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from .._autograd import (
@@ -23,6 +22,7 @@ from .._autograd import (
     tracked,
     vmap_error,
 )
+from .._validate import is_int
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -89,12 +89,17 @@ def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] 
     """(P, 2) pairs i < j that interact: not both static and not excluded."""
     i, j = torch.triu_indices(n, n, offset=1)
     keep = ~(static[i] & static[j])
+    if exclude is None:
+        exclude = ()
     if isinstance(exclude, torch.Tensor):
+        if exclude.dim() != 2 or exclude.shape[1] != 2:
+            raise ValueError(
+                f"exclude must hold pairs (i, j) of int body indices, got shape {tuple(exclude.shape)}"
+            )
         exclude = exclude.tolist()
     if len(exclude):
         if not all(
-            len(e) == 2 and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in e)
-            for e in exclude
+            isinstance(e, (tuple, list)) and len(e) == 2 and all(is_int(x) for x in e) for e in exclude
         ):
             raise ValueError(f"exclude must hold pairs (i, j) of int body indices, got {list(exclude)!r}")
         ex = torch.tensor([(min(a, b), max(a, b)) for a, b in exclude], dtype=torch.long)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, self_intersection
+from .._validate import check_mesh, is_real, self_intersection
 from ..contact.bsh import BSH
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -91,7 +91,7 @@ def rigid_body(
         bsh = BSH.from_trimesh(mesh, max_edge=max_edge)
         z = torch.zeros(3, 3, dtype=torch.float64)
         return RigidBody(bsh, kind, 0.0, z, torch.zeros(3, dtype=torch.float64))
-    if not (isinstance(density, (int, float)) and 0 < density < float("inf")):
+    if not (is_real(density) and 0 < density < float("inf")):
         raise ValueError(f"density must be a finite positive number, got {density!r}")
     if not mesh.is_watertight or not mesh.is_winding_consistent:
         raise ValueError(

@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
+from .._validate import is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact.cfd import CfdContact
 from ..contact.ipc import IpcContact
@@ -125,7 +126,7 @@ class Scene:
         self.articulation_rows = tuple(first)
         if not any(b.kind == "dynamic" for b in bodies):
             raise ValueError("a scene needs at least one dynamic body")
-        if not (isinstance(dt, (int, float)) and 0 < dt < math.inf):
+        if not (is_real(dt) and 0 < dt < math.inf):
             raise ValueError(f"dt must be a finite positive number, got {dt!r}")
         gravity = tuple(float(x) for x in gravity)
         if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):

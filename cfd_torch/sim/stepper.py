@@ -17,6 +17,7 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
+from .._autograd import refuse_transforms
 from .._geometry import frame_origin
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
@@ -152,20 +153,6 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             k *= 2
 
 
-def _refuse_transforms(*args) -> None:
-    """Raise if a tensor among the arguments' fields is under a torch.func transform: the step's Function is an
-    old-style autograd Function around numba kernels, which the transforms cannot pass."""
-    from .._autograd import _functorch
-
-    for a in args:
-        for x in a if isinstance(a, tuple) else ():  # State, Action, Params: named tuples of tensors
-            if isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
-                raise NotImplementedError(
-                    "cfd_torch.step: torch.func transforms (grad, jacrev, vmap, jvp) do not pass through a "
-                    "simulation step; differentiate with torch.autograd (loss.backward() or torch.autograd.grad)"
-                )
-
-
 def step(
     scene: Scene,
     state: State,
@@ -202,7 +189,14 @@ def step(
         raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
     if not isinstance(state, State):
         raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
-    _refuse_transforms(state, action, params)
+    # the step's Function is an old-style autograd Function around numba kernels, which the transforms cannot pass
+    refuse_transforms(
+        "cfd_torch.step: torch.func transforms (grad, jacrev, vmap, jvp) do not pass through a simulation step; "
+        "differentiate with torch.autograd (loss.backward() or torch.autograd.grad)",
+        *state,
+        *(action or ()),
+        *(params or ()),
+    )
     N = scene.num_bodies
     check_state_tensor(state.q, "state.q", N)
     check_state_tensor(state.q_prev, "state.q_prev", N, like=state.q)
