@@ -78,6 +78,9 @@ def main() -> None:
     ap.add_argument("--action-scale", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=Path("results/bench_envs"))
     args = ap.parse_args()
+    for name in ("steps", "num_envs"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = [bench(t, args.steps, args.num_envs, args.action_scale) for t in tqdm(args.tasks, desc="tasks")]
     meta = {"commit": git_revision(), "machine": platform.processor() or platform.machine(),

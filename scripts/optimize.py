@@ -33,8 +33,10 @@ the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts diffe
 
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
 ``--iters`` iterations on the window of the next ``--horizon`` actions from the current state, then the first
-action is executed and the window shifts (its last action repeats); the logged loss is the executed trajectory's,
-next to the same loss with zero actions (the trivial start's).
+action is executed and the window shifts (its last action repeats); each control step's log row holds the
+optimised window's loss and final distance (``loss``, ``final_distance``) and the executed step's distance
+(``executed_distance``); the summary's ``loss_executed`` is the executed trajectory's loss, next to the same loss
+with zero actions (``loss_zero_actions``, the trivial start's).
 
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout with the smallest final
@@ -50,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -231,6 +234,34 @@ class _TwinRollout:
         self.q = None
 
 
+def _check_settings(cfg: dict) -> None:
+    """Raise ValueError naming the first setting of ``cfg`` out of its range."""
+
+    def count(key: str, low: int) -> None:
+        v = cfg[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ValueError(
+                f"config['{key}'] (--{key.replace('_', '-')}) must be an int >= {low}, got {v!r}"
+            )
+
+    def positive(key: str) -> None:
+        v = cfg[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+            raise ValueError(
+                f"config['{key}'] (--{key.replace('_', '-')}) must be a finite number > 0, got {v!r}"
+            )
+
+    count("iters", 1)
+    count("horizon", 1)
+    if cfg["mpc"]:
+        count("steps", 1)
+    if cfg["threads"] is not None:
+        count("threads", 1)
+    positive("lr")
+    if cfg["fd_step"] is not None:
+        positive("fd_step")
+
+
 def run_experiment(config: dict) -> dict:
     """One optimisation run (module docstring) from ``config`` (keys of :data:`DEFAULTS`; missing ones take their
     default): returns {"config", "commit", "summary", "log"} (JSON-able) and, with ``config["out"]``, writes
@@ -245,7 +276,8 @@ def run_experiment(config: dict) -> dict:
         raise ValueError(f"config['model'] must be one of {MODELS}, got {cfg['model']!r}")
     if cfg["model"] == "mujoco-fd" and cfg["mpc"]:
         raise ValueError("config: mujoco-fd runs open loop only")
-    if cfg["threads"]:
+    _check_settings(cfg)
+    if cfg["threads"] is not None:
         import numba
 
         torch.set_num_threads(int(cfg["threads"]))

@@ -7,7 +7,8 @@ decrease 1 - best / initial loss (open loop: the best iterate's loss, the optimi
 trajectory's; mean and range over seeds), the best final distance to the goal, iterations, rollouts
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
 
-Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged.
+Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged (a
+cell, task x model x seed, found in two of them is refused: the means would count it twice).
 
     python scripts/plot_results.py results/sweep
     python scripts/plot_results.py results/sweep/billiards results/sweep/push --out docs/experiments
@@ -105,7 +106,17 @@ def main() -> None:
     ap.add_argument("sweeps", type=Path, nargs="+", help="folders with a sweep.json (scripts/sweep.py --out)")
     ap.add_argument("--out", type=Path, default=None, help="where to write (default: the first folder)")
     args = ap.parse_args()
-    runs = [r for d in args.sweeps for r in json.loads((d / "sweep.json").read_text())["runs"]]
+    runs, where = [], {}
+    for d in args.sweeps:
+        for r in json.loads((d / "sweep.json").read_text())["runs"]:
+            c = r["config"]
+            key = (c["task"], c["model"], c["seed"])
+            if key in where:
+                raise SystemExit(
+                    f"{key[0]} {key[1]} seed {key[2]} is in both {where[key]} and {d}: pass one of them"
+                )
+            where[key] = d
+            runs.append(r)
     if not runs:
         raise SystemExit(f"no runs in {[str(d / 'sweep.json') for d in args.sweeps]}")
     out = args.out or args.sweeps[0]

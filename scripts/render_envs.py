@@ -2,7 +2,7 @@
 Sort, Gather: the pusher heads for the first box or cube; Billiards: the cue ball pushed toward the rack's apex for
 8 steps; AntPush: 2 Hz sines of staggered phase on the motors), rendered headless with each task's goal markers
 (:meth:`~cfd_torch.envs.core.TaskCore.draw`). Writes ``<task>.png`` (first and last frame side by side) and
-``<task>.gif`` under ``--out``.
+``<task>.gif`` under ``--out``, the task's name in lower case (``push.png``).
 
     python scripts/render_envs.py --out results/envs
 """

@@ -8,9 +8,10 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 ``--workers`` CPUs; each run is a ``@ray.remote(num_cpus=1)`` task. Each run writes its own folder
 ``<out>/<task>/<model>/seed<k>/`` (log.json, loss.png, best.gif with ``--gif``) on the machine that ran it; the
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
-as runs finish, so an interrupted sweep keeps what it finished (``--resume`` skips the cells already in it); a run
-that raises is reported and kept in ``<out>/failed.json``, and the sweep goes on. Cells no model can run are left
-out of the grid (mujoco-fd with ``--mpc``). On Ray, the scripts folder travels with the job
+as runs finish (through a temporary file), so an interrupted sweep keeps what it finished (``--resume`` skips the
+cells already in it, and refuses a cell there that ran with other settings); a run that raises is reported and
+kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on. Cells no
+model can run are left out of the grid (mujoco-fd with ``--mpc``). On Ray, the scripts folder travels with the job
 (``runtime_env`` working_dir), so cluster nodes need cfd_torch installed but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
 
@@ -57,6 +58,18 @@ def run_one(config: dict) -> dict:
 
 def _key(config: dict) -> tuple:
     return config["task"], config["model"], config["seed"]
+
+
+def _settings_differ(old: dict, new: dict) -> list[str]:
+    """The settings (keys of ``new`` but the output folder) in which an earlier run's config differs."""
+    return [k for k in new if k != "out" and old.get(k) != new[k]]
+
+
+def _write(path: Path, data) -> None:
+    """Write JSON through a temporary file and a rename: a sweep killed mid-write keeps the previous file."""
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
 
 
 def _run_local(todo: list[dict], workers: int):
@@ -111,8 +124,19 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "sweep.json"
     runs = json.loads(path.read_text())["runs"] if args.resume and path.exists() else []
-    done = {_key(r["config"]) for r in runs}
-    todo = [c for c in configs(args) if _key(c) not in done]
+    earlier = {_key(r["config"]): r["config"] for r in runs}
+    grid = configs(args)
+    for (
+        c
+    ) in grid:  # --resume continues the same experiment: a finished cell run with other settings is an error
+        if _key(c) in earlier and (diff := _settings_differ(earlier[_key(c)], c)):
+            old = earlier[_key(c)]
+            raise SystemExit(
+                f"--resume: {path} holds {c['task']} {c['model']} seed {c['seed']} run with other settings ("
+                + ", ".join(f"{k}: {old.get(k)!r} there, {c[k]!r} now" for k in diff)
+                + "); resume with the same settings or write to another --out"
+            )
+    todo = [c for c in grid if _key(c) not in earlier]
     results = (_run_ray if args.ray else _run_local)(todo, args.workers)
     failed = []
     for r in tqdm(results, total=len(todo), desc="sweep"):
@@ -120,16 +144,19 @@ def main() -> None:
         if "error" in r:
             failed.append(r)
             tqdm.write(f"{c['task']} {c['model']} seed {c['seed']}: FAILED {r['error']}")
-            (args.out / "failed.json").write_text(json.dumps(failed, indent=1))
+            _write(args.out / "failed.json", failed)
             continue
         runs.append(r)
-        path.write_text(json.dumps({"runs": runs}, indent=1))
+        _write(path, {"runs": runs})
         s = r["summary"]
         end = s.get("loss_end", s.get("loss_executed"))
         start = s.get("loss_start", s.get("loss_zero_actions"))
         tqdm.write(
             f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
         )
+    _write(path, {"runs": runs})  # (also when every run failed: the file says so)
+    if not failed:  # failed.json lists this sweep's failures only: none now
+        (args.out / "failed.json").unlink(missing_ok=True)
     print(
         f"{len(runs)} runs in {path}"
         + (f"; {len(failed)} failed, in {args.out / 'failed.json'}" if failed else "")

@@ -136,6 +136,9 @@ def test_run_experiment_refuses_unknown_keys_and_models():
         run_experiment({"task": "Push", "model": "mujoco"})
     with pytest.raises(ValueError, match="mujoco-fd runs open loop only"):
         run_experiment({"task": "Push", "model": "mujoco-fd", "mpc": True})
+    for key, value in (("iters", -1), ("horizon", 0), ("lr", float("nan")), ("fd_step", 0.0), ("threads", 0)):
+        with pytest.raises(ValueError, match=f"config\\['{key}'\\] \\(--{key.replace('_', '-')}\\) must be"):
+            run_experiment({"task": "Push", "iters": 1, "horizon": 2, key: value})
 
 
 def test_sweep_and_plot_results(tmp_path):
@@ -154,6 +157,17 @@ def test_sweep_and_plot_results(tmp_path):
     table = (tmp_path / "results.md").read_text().splitlines()
     assert len(table) == 4 and "| Push | cfd |" in table[2] and "| Push | gb |" in table[3]
     assert (tmp_path / "Push.png").stat().st_size > 0
+    # --resume continues the same experiment only: other settings for a finished cell are refused
+    again = subprocess.run(
+        [*cmd[:-2], "--resume", "--iters", "2", "--out", str(tmp_path)], capture_output=True, text=True
+    )
+    assert again.returncode != 0 and "run with other settings (iters: 1 there, 2 now)" in again.stderr
+    # a cell in two of the folders given to plot_results.py is refused (it would count twice)
+    twice = subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), str(tmp_path), "--out", str(tmp_path / "p")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert twice.returncode != 0 and "is in both" in twice.stderr
 
 
 def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
