@@ -8,6 +8,8 @@ devices before reading any value, so they fire before a meta tensor could reach 
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -253,6 +255,37 @@ def state(scene):
 
 def _raises(name: str, err=ValueError):
     return pytest.raises(err, match=name.replace(".", r"\."))
+
+
+def test_unbatched_state_takes_unbatched_actions_and_empty_batches_are_refused(scene, state):
+    """With an unbatched state an action field has no batch dimension (the message offers only that shape); a batch
+    of no scenes is refused by name."""
+    msg = "action.force must have shape (3, 3) (state.q has no batch dimension), got (1, 3, 3)"
+    with pytest.raises(ValueError, match=re.escape(msg)):
+        step(scene, state, Action(force=torch.zeros(1, 3, 3, dtype=F64)))
+    empty = torch.zeros(0, 3, 6, dtype=F64)
+    with _raises("state.q: a batch of no scenes"):
+        step(scene, State(empty, empty))
+
+
+def test_a_failed_step_in_a_batch_names_its_scene():
+    """Three scenes; only scene 1 (a box thrown spinning at the floor) fails within 4 Newton iterations, also in
+    2 and 4 sub-steps: the StepError says it is scene 1."""
+    from cfd_torch import StepError
+
+    floor = rigid_body(trimesh.creation.box((4, 4, 0.2)), kind="static", max_edge=0.1)
+    sc = Scene(
+        [rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=500.0), floor], dt=0.01, friction=0.5,
+        max_newton_iter=4, substeps=4,
+    )  # fmt: skip
+    q = torch.tensor([[[0, 0, 0.1015, 0, 0, 0], [0, 0, -0.1, 0, 0, 0]]] * 3, dtype=F64)
+    q_prev = q.clone()
+    q[1, 0, 2] = 0.115
+    q_prev[1, 0] = q[1, 0] - 0.01 * torch.tensor([1.0, 0, -1.5, 2, 3, 0], dtype=F64)
+    with pytest.raises(
+        StepError, match="^scene 1 of the batch: the step did not converge in 4 Newton iterations"
+    ):
+        step(sc, State(q, q_prev))
 
 
 def test_state_dtypes_must_match(scene, state):

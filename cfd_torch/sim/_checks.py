@@ -25,18 +25,21 @@ def check_state_tensor(
     like: torch.Tensor | None = None,
     like_name: str = "state.q",
 ) -> None:
-    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given), with the dtype
-    and device of ``like`` (named ``like_name``) when given. Devices and dtypes are compared before any value is
+    """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given; ``batch=0``: no
+    batch dimension allowed), with the dtype and device of ``like`` (named ``like_name``) when given. Devices and dtypes are compared before any value is
     read, so a tensor on another device fails here, not inside a kernel."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     ok = (
         x.shape[-2:] == (n, cols)
         and x.dim() in (2, 3)
-        and (batch is None or x.dim() == 2 or x.shape[0] == batch)
+        and (batch is None or x.dim() == 2 or (batch > 0 and x.shape[0] == batch))
     )
     if not ok:
-        want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
+        if batch == 0:
+            want = f"({n}, {cols}) (state.q has no batch dimension)"
+        else:
+            want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     if x.dtype not in _FLOATS:
         raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")

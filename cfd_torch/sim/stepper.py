@@ -129,10 +129,13 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
         outs = []
         for b in range(B):
             one = slice(b, b + 1)
-            q, q_prev, info = _advance(
-                scene, State(state.q[one], state.q_prev[one]), force[one], torque[one], target[one], ctrl[one],
-                Params(*(x[one] for x in params)),
-            )  # fmt: skip
+            try:
+                q, q_prev, info = _advance(
+                    scene, State(state.q[one], state.q_prev[one]), force[one], torque[one], target[one],
+                    ctrl[one], Params(*(x[one] for x in params)),
+                )  # fmt: skip
+            except StepError as err:  # say which scene of the batch failed
+                raise StepError(f"scene {b} of the batch: {err}") from err
             outs.append((q, _unwrap_previous(state.q[one], q) if q_prev is None else q_prev, info))
         infos = [o[2] for o in outs]
         cat = lambda f: torch.cat([getattr(i, f) for i in infos])  # noqa: E731
@@ -206,6 +209,8 @@ def step(
         )
     batched = state.q.dim() == 3
     B = state.q.shape[0] if batched else 1
+    if B == 0:
+        raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
     dtype, dev = state.q.dtype, state.q.device
     if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
         dyn = scene.dynamic.to(dev)
@@ -221,14 +226,12 @@ def step(
     f64 = torch.float64
     force = action.force if action.force is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
     torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
-    check_state_tensor(force, "action.force", N, 3, B if batched else 1, like=state.q)
-    check_state_tensor(torque, "action.torque", N, 3, B if batched else 1, like=state.q)
+    check_state_tensor(force, "action.force", N, 3, B if batched else 0, like=state.q)
+    check_state_tensor(torque, "action.torque", N, 3, B if batched else 0, like=state.q)
     K = scene.num_kinematic_bodies
     kin = scene.kinematic.to(dev)
     target = action.target if action.target is not None else state.q[..., kin[:K], :]
-    check_state_tensor(target, "action.target", K, 6, B if batched else 1, like=state.q)
-    if not batched and any(x.dim() == 3 for x in (force, torque, target)):
-        raise ValueError("action fields have a batch dimension but state.q does not")
+    check_state_tensor(target, "action.target", K, 6, B if batched else 0, like=state.q)
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else 1, state.q)
