@@ -1,0 +1,101 @@
+"""A user's first optimisation on each task: plain Adam on the action sequence from the trivial start.
+
+The README's environments snippet as an optimisation loop: actions U (T, 1, A) start at zero, the loss is minus
+the summed ``reward_distance`` of ``rollout(core, state, U.clamp(-1, 1))`` (the task's distance term over the
+horizon), Adam with ``--lr`` on the raw gradient, ``--iters`` iterations, the task's default dt. It answers one
+question: does the loss fall from the trivial start in a short run through the torch API, and by how much (the
+relative decrease 1 - best / initial). ``scripts/optimize.py`` is the tuned experiment (unit gradients, longer
+steps); this is the naive use.
+
+Writes ``<out>/trivial_start_runs.json`` (per run: the losses, gradient norms and seconds per iteration) and
+``<out>/table.md``.
+
+    python scripts/trivial_start_runs.py --tasks Push Sort Gather Billiards AntPush --seeds 3 4 5 --out X
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numba
+import torch
+from _provenance import git_revision
+from tqdm import tqdm
+
+import cfd_torch.envs  # noqa: F401 (registers the ids)
+from cfd_torch.envs import make_core, rollout
+
+TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
+
+
+def run(task: str, seed: int, horizon: int, iters: int, lr: float) -> dict:
+    core = make_core(f"cfd_torch/{task}-v0")
+    state = core.reset(seed, 1)
+    U = torch.zeros(horizon, 1, core.action_dim, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([U], lr=lr)
+    losses, grads, seconds = [], [], []
+    for _ in tqdm(range(iters), desc=f"{task} seed {seed}", leave=False):
+        t0 = time.perf_counter()
+        out = rollout(core, state, U.clamp(-1, 1))
+        loss = -(out.info["reward_distance"] * out.alive).sum()
+        opt.zero_grad()
+        loss.backward()
+        losses.append(float(loss))
+        grads.append(float(U.grad.norm()))
+        seconds.append(time.perf_counter() - t0)
+        opt.step()
+    return {
+        "task": task, "seed": seed, "losses": losses, "grad_norms": grads, "seconds": seconds,
+        "decrease": (losses[0] - min(losses)) / abs(losses[0]),
+    }  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4, 5])
+    ap.add_argument("--horizon", type=int, default=100, help="steps (at the task's dt)")
+    ap.add_argument("--iters", type=int, default=12)
+    ap.add_argument("--lr", type=float, default=0.1)
+    ap.add_argument("--threads", type=int, default=1, help="torch and numba threads")
+    ap.add_argument("--out", type=Path, default=Path("results/trivial_start_runs"))
+    args = ap.parse_args()
+    for name in ("horizon", "iters", "threads"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if not args.lr > 0:
+        ap.error(f"--lr must be > 0, got {args.lr}")
+    torch.set_num_threads(args.threads)
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    args.out.mkdir(parents=True, exist_ok=True)
+    cells = [(t, s) for t in args.tasks for s in args.seeds]
+    runs = [run(t, s, args.horizon, args.iters, args.lr) for t, s in tqdm(cells, desc="runs")]
+    meta = {
+        "commit": git_revision(),
+        "horizon": args.horizon,
+        "iters": args.iters,
+        "lr": args.lr,
+        "runs": runs,
+    }
+    (args.out / "trivial_start_runs.json").write_text(json.dumps(meta, indent=1))
+    lines = [
+        "| task | seed | loss start | loss best | decrease 1 - best / start | s per iteration |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in runs:
+        sec = sorted(r["seconds"])[len(r["seconds"]) // 2]
+        lines.append(
+            f"| {r['task']} | {r['seed']} | {r['losses'][0]:.10g} | {min(r['losses']):.10g} | {r['decrease']:.2g} "
+            f"| {sec:.1f} |"
+        )
+    table = "\n".join(lines)
+    (args.out / "table.md").write_text(table + "\n")
+    print(table)
+    print("wrote", args.out / "trivial_start_runs.json", args.out / "table.md")
+
+
+if __name__ == "__main__":
+    main()
