@@ -43,7 +43,7 @@ def run(task: str, seed: int, horizon: int, iters: int, lr: float) -> dict:
         loss = -(out.info["reward_distance"] * out.alive).sum()
         opt.zero_grad()
         loss.backward()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         grads.append(float(U.grad.norm()))
         seconds.append(time.perf_counter() - t0)
         opt.step()
