@@ -26,8 +26,8 @@ def check_state_tensor(
     like_name: str = "state.q",
 ) -> None:
     """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given; ``batch=0``: no
-    batch dimension allowed), with the dtype and device of ``like`` (named ``like_name``) when given. Devices and dtypes are compared before any value is
-    read, so a tensor on another device fails here, not inside a kernel."""
+    batch dimension allowed), with the dtype and device of ``like`` (named ``like_name``) when given. Devices and
+    dtypes are compared before any value is read, so a tensor on another device fails here, not inside a kernel."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     ok = (
