@@ -4,7 +4,7 @@ For every task: a Gymnasium env (``gym.make(id)``) is reset with seed 0 and step
 uniform random actions of magnitude up to ``--action-scale``, recording the (state, action) pairs; then, pair by
 pair, ``env.step`` from that state (the env's state set to it) and the core's step on it are timed one after the
 other (same work, same moment: the shell's overhead is the ratio of the medians; timing the two in separate blocks
-put the env's steps, which came first, on colder caches: +38 % on Billiards, where interleaved they differ by 3 %);
+put the env's steps, which came first, on colder caches: +38 and +53 % on Billiards, 3 % interleaved);
 then a native vector env of ``--num-envs`` environments (``gym.make_vec(id, n)``) is stepped ``--steps`` times.
 Medians of per-step wall times; float64, CPU. Writes ``bench_envs.json`` and ``bench_envs.md`` under ``--out``.
 
