@@ -216,8 +216,9 @@ def test_gradient_from_the_trivial_start_is_nonzero_and_matches_finite_differenc
 def test_ant_push_gradient_from_the_trivial_start_matches_finite_differences():
     """AntPush from its trivial start (the Ant standing 1 m from the box): the box's distance after 3 steps depends
     on the first step's 8 motor controls through the far field, and the gradient matches central differences at
-    h = 1e-4 (the feet's contacts make the loss curve at h >= 1e-3: 10-170 % off there). Components below 1e-9 are
-    compared absolutely: central differences resolve 2 ulp / (2 h) = 2e-11 of a 2 m distance."""
+    h = 1e-4 (the feet's contacts curve the loss: at h = 1e-3 a component is 10 % off, at 1e-2 signs flip).
+    Components below 1e-9 are compared absolutely: central differences resolve 2 ulp / (2 h) = 2e-11 of a 2 m
+    distance."""
     core = make_core("cfd_torch/AntPush-v0")
     s0 = core.reset(3, 1)
     U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
