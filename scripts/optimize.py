@@ -64,6 +64,7 @@ import torch  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from cfd_torch._validate import is_int, is_real  # noqa: E402
 from cfd_torch.envs import make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
@@ -239,14 +240,14 @@ def _check_settings(cfg: dict) -> None:
 
     def count(key: str, low: int) -> None:
         v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        if not (is_int(v) and v >= low):
             raise ValueError(
                 f"config['{key}'] (--{key.replace('_', '-')}) must be an int >= {low}, got {v!r}"
             )
 
     def positive(key: str) -> None:
         v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+        if not (is_real(v) and 0 < v < math.inf):
             raise ValueError(
                 f"config['{key}'] (--{key.replace('_', '-')}) must be a finite number > 0, got {v!r}"
             )

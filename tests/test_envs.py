@@ -184,6 +184,22 @@ def _loss(core, s0: EnvState, U: torch.Tensor) -> torch.Tensor:
     return -out.info["reward_distance"][-1].sum()
 
 
+def _first_action_gradient(core, h: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """From seed 3's initial state with 3 zero actions: the gradient of ``_loss`` with respect to the first action
+    (A,) by autograd and by central differences of step ``h``."""
+    s0 = core.reset(3, 1)
+    U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
+    _loss(core, s0, U).backward()
+    g = U.grad[0, 0]
+    fd = torch.zeros_like(g)
+    with torch.no_grad():
+        for a in range(core.action_dim):
+            dU = torch.zeros_like(U)
+            dU[0, 0, a] = h
+            fd[a] = (_loss(core, s0, U + dU) - _loss(core, s0, U - dU)) / (2 * h)
+    return g, fd
+
+
 @pytest.mark.parametrize(
     ("env_id", "kwargs", "h"),
     [
@@ -198,18 +214,8 @@ def _loss(core, s0: EnvState, U: torch.Tensor) -> torch.Tensor:
 def test_gradient_from_the_trivial_start_is_nonzero_and_matches_finite_differences(env_id, kwargs, h):
     """Zero actions from the initial state: nothing touches, yet the task loss after 3 steps depends on the first
     action through the contact model's far field (a locally supported model gives exactly zero here)."""
-    core = make_core(env_id, **kwargs)
-    s0 = core.reset(3, 1)
-    U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
-    _loss(core, s0, U).backward()
-    g = U.grad[0, 0]
+    g, fd = _first_action_gradient(make_core(env_id, **kwargs), h)
     assert bool((g.abs() > 0).all())
-    fd = torch.zeros_like(g)
-    with torch.no_grad():
-        for a in range(core.action_dim):
-            dU = torch.zeros_like(U)
-            dU[0, 0, a] = h
-            fd[a] = (_loss(core, s0, U + dU) - _loss(core, s0, U - dU)) / (2 * h)
     torch.testing.assert_close(g, fd, rtol=2e-2, atol=0)
 
 
@@ -219,19 +225,8 @@ def test_ant_push_gradient_from_the_trivial_start_matches_finite_differences():
     h = 1e-4 (the feet's contacts curve the loss: at h = 1e-3 a component is 10 % off, at 1e-2 signs flip).
     Components below 1e-9 are compared absolutely: central differences resolve 2 ulp / (2 h) = 2e-11 of a 2 m
     distance."""
-    core = make_core("cfd_torch/AntPush-v0")
-    s0 = core.reset(3, 1)
-    U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
-    _loss(core, s0, U).backward()
-    g = U.grad[0, 0]
+    g, fd = _first_action_gradient(make_core("cfd_torch/AntPush-v0"), 1e-4)
     assert float(g.abs().max()) > 1e-8
-    h = 1e-4
-    fd = torch.zeros_like(g)
-    with torch.no_grad():
-        for a in range(core.action_dim):
-            dU = torch.zeros_like(U)
-            dU[0, 0, a] = h
-            fd[a] = (_loss(core, s0, U + dU) - _loss(core, s0, U - dU)) / (2 * h)
     torch.testing.assert_close(g, fd, rtol=1e-2, atol=5e-11)
 
 
