@@ -1,10 +1,13 @@
 """Gradient-based control on a task of cfd_torch.envs from its trivial start, gradients by autograd through the
 differentiable simulator: open-loop trajectory optimisation, or model-predictive control (``--mpc``).
 
-Loss: minus the sum over the horizon of the task's ``distance`` reward term (the action cost is left out: at the
-trivial start its gradient, 2e-3 |a| per step, would swamp the far field's 1e-11 after the first update). Actions
-are the tanh of free parameters (so they stay in [-1, 1]), all zero at the start. Every optimiser takes the unit
-gradient g / |g|: far-field gradients grow by orders of magnitude as bodies approach (Push's start: about 1e-13
+Loss (``--loss``, :func:`task_loss`): ``sum`` (the default), minus the sum over the horizon of the task's
+``distance`` reward term; ``final``, the distance to the goal after the last step (the terminal step where the task
+terminates first); ``closest``, the smallest distance over the horizon. The action cost is left out: at the trivial
+start its gradient, 2e-3 |a| per step, would swamp the far field's 1e-11 after the first update. The logs'
+``final_distance`` is the distance after the last step alive, whatever the loss. Actions are the tanh of free
+parameters (so they stay in [-1, 1]), all zero at the start. Every optimiser takes the unit gradient g / |g|:
+far-field gradients grow by orders of magnitude as bodies approach (Push's start: about 1e-13
 per action), and an optimiser fed raw gradients either crawls in the far field or, like Adam, remembers the largest
 one and stalls after it. Optimisers: ``ngd`` (default: heavy-ball momentum 0.9 on the unit gradient, steps of
 ``--lr``; it keeps the gradient's direction, so Push's pole turns toward the back of the box), ``adam`` (Adam on the
@@ -39,8 +42,9 @@ optimised window's loss and final distance (``loss``, ``final_distance``) and th
 with zero actions (``loss_zero_actions``, the trivial start's).
 
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
-times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout with the smallest final
-distance; MPC: the executed trajectory; none for mujoco-fd) under ``--out``. :func:`run_experiment` (a config
+times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout of the best iterate, the
+smallest loss; MPC: the executed trajectory; none for mujoco-fd) under ``--out``, and while an open-loop run goes,
+``progress.jsonl`` (one line per finished iteration: what an interrupted run keeps). :func:`run_experiment` (a config
 dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs it over a grid.
 
     python scripts/optimize.py --task Billiards --optimizer ngd-ls --lr 0.5 --iters 20 --horizon 100 --out X
@@ -72,6 +76,22 @@ from cfd_torch.envs.render import write_gif  # noqa: E402
 TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
 TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 OPTIMISERS = ("ngd", "adam", "ngd-ls")
+LOSSES = ("sum", "final", "closest")
+
+
+def task_loss(reward_distance: torch.Tensor, alive: torch.Tensor, kind: str) -> torch.Tensor:
+    """(B,) the loss of rollouts with distance terms ``reward_distance`` (T, B) (minus the distance to the goal)
+    and ``alive`` (T, B): ``sum``, minus the distance term summed over the steps alive; ``final``, the distance
+    after the last step alive (the terminal step, or the horizon's last); ``closest``, the smallest distance over
+    the steps alive (Billiards: a ball that passes within the pocket's radius is potted, whenever it does)."""
+    if kind == "sum":
+        return -(reward_distance * alive).sum(0)
+    if kind == "closest":
+        return torch.where(alive > 0, -reward_distance, torch.inf).amin(0)
+    last = (alive.sum(0).long() - 1).clamp_min(0)  # alive is 1 up to and including the first terminal step
+    return -reward_distance.gather(0, last[None])[0]
+
+
 MODELS = ("cfd", "ipc", "sdrs", "gb", "mujoco-fd")
 FD_STEPS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)  # mujoco-fd: the step sizes its sweep tries
 
@@ -79,7 +99,7 @@ FD_STEPS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)  # mujoco-fd: the step sizes its sweep
 DEFAULTS = {
     "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
     "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
-    "fd_step": None, "mj_substeps": 10, "threads": None,
+    "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
     "out": None, "gif": True,
 }  # fmt: skip
 
@@ -88,11 +108,18 @@ class Optimiser:
     """An optimiser on the unit gradient of one parameter tensor (see the module docstring): ``start`` begins a
     problem (parameters and their evaluation function), ``step`` returns the evaluation at the new parameters."""
 
-    def __init__(self, kind: str, lr: float) -> None:
+    def __init__(self, kind: str, lr: float, lr_final: float | None = None, iters: int = 1) -> None:
         if kind not in OPTIMISERS:
             raise ValueError(f"kind must be one of {OPTIMISERS}, got {kind!r}")
         self.kind, self.lr = kind, lr
+        self.lr_final, self.iters = lr if lr_final is None else lr_final, iters
         self.step_size = lr
+        self.k = 0  # steps taken since start
+
+    def rate(self) -> float:
+        """The learning rate of the next step: ``lr`` decayed geometrically to ``lr_final`` at the last of
+        ``iters`` steps (constant without ``lr_final``)."""
+        return self.lr * (self.lr_final / self.lr) ** (self.k / max(1, self.iters - 1))
 
     def start(self, theta: torch.Tensor, evaluate):
         self.evaluate = evaluate
@@ -102,13 +129,18 @@ class Optimiser:
         elif self.kind == "ngd":
             self.torch_opt = torch.optim.SGD([self.theta], lr=self.lr, momentum=0.9)
         self.step_size = self.lr
+        self.k = 0
         self.current = self.evaluate(self.theta)
         return self.current
 
     def step(self):
         loss, _, g = self.current[:3]
         unit = g / g.norm().clamp_min(1e-300)
+        lr = self.rate()
+        self.k += 1
         if self.kind != "ngd-ls":
+            for group in self.torch_opt.param_groups:
+                group["lr"] = lr
             self.theta.grad = unit
             self.torch_opt.step()
             self.current = self.evaluate(self.theta)
@@ -119,7 +151,7 @@ class Optimiser:
         nxt = self.evaluate(trial)
         if nxt[0] < loss:
             self.theta, self.current = trial, nxt
-            self.step_size = min(1.5 * self.step_size, self.lr)
+            self.step_size = min(1.5 * self.step_size, lr)
         else:
             self.step_size *= 0.5
         return self.current
@@ -130,7 +162,7 @@ def _gradient_fn(core, model: str, config: dict, actions):
     backward rollouts) of the task loss (module docstring) with ``model``'s gradient."""
 
     def loss_of(out) -> torch.Tensor:
-        return -(out.info["reward_distance"] * out.alive).sum(0)  # (B,)
+        return task_loss(out.info["reward_distance"], out.alive, config["loss"])  # (B,)
 
     if model == "mujoco-fd":
         return _mujoco_fd(core, config, actions)
@@ -183,9 +215,9 @@ def _mujoco_fd(core, config: dict, actions):
     twin = MujocoTwin(core, substeps=int(config["mj_substeps"]))
     sweep = config.setdefault("fd", {})
 
-    def loss_at(state, th: torch.Tensor) -> tuple[float, torch.Tensor]:
+    def loss_at(state, th: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
         d, alive = twin.rollout(state, actions(th))
-        return float((d * alive).sum()), d
+        return float(task_loss(-d[:, None], alive[:, None], config["loss"]).sum()), d, alive
 
     def fd_gradient(state, th: torch.Tensor, h: float) -> torch.Tensor:
         g = torch.zeros_like(th)
@@ -201,7 +233,7 @@ def _mujoco_fd(core, config: dict, actions):
         def evaluate(th: torch.Tensor):
             th = th.detach()
             t0 = time.perf_counter()
-            loss, d = loss_at(state, th)
+            loss, d, alive = loss_at(state, th)
             t1 = time.perf_counter()
             n = 1  # rollouts: this loss, the gradient's, and (at the first evaluation) the step-size sweep's
             if "step" not in sweep:  # the step-size sweep, once, at the first evaluation
@@ -218,7 +250,7 @@ def _mujoco_fd(core, config: dict, actions):
             else:
                 g = fd_gradient(state, th, sweep["step"])
                 n += 2 * th.numel()
-            out = _TwinRollout(d)
+            out = _TwinRollout(d, alive)
             return loss, out, g, t1 - t0, time.perf_counter() - t1, n, 0
 
         return evaluate
@@ -227,10 +259,12 @@ def _mujoco_fd(core, config: dict, actions):
 
 
 class _TwinRollout:
-    """What run_experiment reads from a rollout, for MuJoCo's: ``info["reward_distance"]`` (T, 1), ``info
-    ["newton_iters"]`` (zeros: MuJoCo has none) and ``q`` (None: the GIF shows the simulator's rollouts only)."""
+    """What run_experiment reads from a rollout, for MuJoCo's: ``info["reward_distance"]`` (T, 1), ``alive``
+    (T, 1), ``info["newton_iters"]`` (zeros: MuJoCo has none) and ``q`` (None: the GIF shows the simulator's
+    rollouts only)."""
 
-    def __init__(self, distances: torch.Tensor) -> None:
+    def __init__(self, distances: torch.Tensor, alive: torch.Tensor) -> None:
+        self.alive = alive[:, None]  # (T, 1)
         self.info = {"reward_distance": -distances[:, None], "newton_iters": torch.zeros(1, dtype=torch.long)}
         self.q = None
 
@@ -256,9 +290,13 @@ def _check_settings(cfg: dict) -> None:
     count("horizon", 1)
     if cfg["mpc"]:
         count("steps", 1)
+    if cfg["loss"] not in LOSSES:
+        raise ValueError(f"config['loss'] (--loss) must be one of {LOSSES}, got {cfg['loss']!r}")
     if cfg["threads"] is not None:
         count("threads", 1)
     positive("lr")
+    if cfg["lr_final"] is not None:
+        positive("lr_final")
     if cfg["fd_step"] is not None:
         positive("fd_step")
 
@@ -324,8 +362,9 @@ def run_experiment(config: dict) -> dict:
 
     def record(cur, **extra):
         loss, out, g, t_fwd, t_grad = cur[:5]
+        final = float(task_loss(out.info["reward_distance"].detach(), out.alive, "final").sum())
         return {
-            "loss": loss, "final_distance": float(-out.info["reward_distance"][-1].detach().sum()), "forward_s": t_fwd,
+            "loss": loss, "final_distance": final, "forward_s": t_fwd,
             "gradient_s": t_grad, "grad_norm": float(g.norm()), "newton_iters": int(out.info["newton_iters"].sum()),
             "rollouts": spent["rollouts"], "backward": spent["backward"], "wall_s": spent["wall_s"],
         } | extra  # fmt: skip
@@ -334,20 +373,23 @@ def run_experiment(config: dict) -> dict:
     log = []
     name = f"{task} {model} {cfg['optimizer']} seed {cfg['seed']}"
     if not cfg["mpc"]:
-        opt = Optimiser(cfg["optimizer"], cfg["lr"])
+        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"])
         cur = opt.start(theta, evaluate_from(s0))
         best = None
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             rec = record(cur, iter=it, step=opt.step_size)
-            if best is None or rec["final_distance"] < best[0]:
-                best = (rec["final_distance"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
+            if best is None or rec["loss"] < best[0]:
+                best = (rec["loss"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
             log.append(rec)
+            if out_dir is not None:  # an interrupted run keeps the iterations it finished
+                with open(out_dir / "progress.jsonl", "a" if it else "w") as f:
+                    f.write(json.dumps(rec) + "\n")
             if it < cfg["iters"]:
                 cur = opt.step()
         first, last = log[0], log[-1]
         low = min(log, key=lambda r: r["loss"])  # the optimiser's answer: its best iterate
         summary = {"loss_start": first["loss"], "loss_end": last["loss"], "loss_best": low["loss"],
-                   "best_iter": low["iter"], "best_final_distance": best[0],
+                   "best_iter": low["iter"], "best_final_distance": min(r["final_distance"] for r in log),
                    "final_distance_start": first["final_distance"], "final_distance_end": last["final_distance"],
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = best[1]
@@ -355,9 +397,9 @@ def run_experiment(config: dict) -> dict:
         steps = cfg["steps"]
         with torch.no_grad():
             zero = rollout(core, s0, torch.zeros(steps, 1, core.action_dim, dtype=torch.float64))
-        zero_loss = float(-(zero.info["reward_distance"] * zero.alive).sum())
+        zero_loss = float(task_loss(zero.info["reward_distance"], zero.alive, cfg["loss"]).sum())
         state, executed, qs = s0, [], [s0.q[0]]
-        opt = Optimiser(cfg["optimizer"], cfg["lr"])
+        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"])
         for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
             cur = opt.start(theta, evaluate_from(state))
             window0 = cur[0]
@@ -375,7 +417,8 @@ def run_experiment(config: dict) -> dict:
                 theta = torch.cat([theta[1:], theta[-1:]])
             if bool(out.terminated.all()):
                 break
-        summary = {"loss_zero_actions": zero_loss, "loss_executed": sum(executed), "steps_run": len(executed),
+        summary = {"loss_zero_actions": zero_loss, "loss_executed": float(task_loss(-torch.tensor(executed)[:, None],
+                   torch.ones(len(executed), 1), cfg["loss"])), "steps_run": len(executed),
                    "final_distance": executed[-1], "final_distance_zero_actions":
                    float(-zero.info["reward_distance"][len(executed) - 1].sum()),
                    "zero_distances": (-zero.info["reward_distance"][:, 0]).tolist(),
@@ -431,6 +474,14 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                     help="the blend width between the actuated body and the objects (the task's eps; default: "
                     "the task's, 1.0 for the pushing tasks, 0.01 for Billiards)")  # fmt: skip
     ap.add_argument("--lr", type=float, default=d["lr"])
+    ap.add_argument("--lr-final", type=float, default=d["lr_final"],
+                    help="decay the learning rate geometrically from --lr to this at the last iteration")  # fmt: skip
+    ap.add_argument(
+        "--loss",
+        default=d["loss"],
+        choices=LOSSES,
+        help="sum: the distance summed over the horizon; final: the distance after its last step",
+    )
     ap.add_argument("--optimizer", default=d["optimizer"], choices=OPTIMISERS,
                     help="ngd (momentum on the unit gradient), adam or ngd-ls (with backtracking)")  # fmt: skip
     ap.add_argument("--gb-samples", type=int, default=d["gb_samples"], help="gb: rollouts per gradient")

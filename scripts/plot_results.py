@@ -33,8 +33,12 @@ def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cfg, log, s = run["config"], run["log"], run["summary"]
     if cfg["mpc"]:
         x = np.array([r["step"] for r in log], dtype=float)
-        executed = np.cumsum([r["executed_distance"] for r in log])
-        zero = np.cumsum(s["zero_distances"][: len(log)])  # the zero-action trajectory's loss up to each step
+        # the executed and the zero-action trajectories' losses up to each step (optimize.task_loss)
+        acc = {"sum": np.cumsum, "final": np.asarray, "closest": np.minimum.accumulate}[
+            cfg.get("loss", "sum")
+        ]
+        executed = acc([r["executed_distance"] for r in log])
+        zero = acc(s["zero_distances"][: len(log)])
         loss = executed / np.where(zero > 0, zero, 1.0)
     else:
         x = np.array([r["iter"] for r in log], dtype=float)
@@ -45,7 +49,7 @@ def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _ratio(run: dict) -> float:
     s = run["summary"]
     if run["config"]["mpc"]:
-        return s["loss_executed"] / sum(s["zero_distances"][: s["steps_run"]])
+        return float(_curves(run)[2][-1])
     return s.get("loss_best", s["loss_end"]) / s["loss_start"]
 
 

@@ -10,11 +10,12 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
-    from optimize import FD_STEPS, MODELS, run_experiment
+    from optimize import FD_STEPS, MODELS, Optimiser, run_experiment
 finally:
     sys.path.pop(0)
 
@@ -136,7 +137,9 @@ def test_run_experiment_refuses_unknown_keys_and_models():
         run_experiment({"task": "Push", "model": "mujoco"})
     with pytest.raises(ValueError, match="mujoco-fd runs open loop only"):
         run_experiment({"task": "Push", "model": "mujoco-fd", "mpc": True})
-    for key, value in (("iters", -1), ("horizon", 0), ("lr", float("nan")), ("fd_step", 0.0), ("threads", 0)):
+    for key, value in (
+        ("iters", -1), ("horizon", 0), ("lr", float("nan")), ("lr_final", -0.1), ("fd_step", 0.0), ("threads", 0)
+    ):  # fmt: skip
         with pytest.raises(ValueError, match=f"config\\['{key}'\\] \\(--{key.replace('_', '-')}\\) must be"):
             run_experiment({"task": "Push", "iters": 1, "horizon": 2, key: value})
 
@@ -181,3 +184,45 @@ def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
     assert all(row["grad_norm"] == 0.0 for row in sweep)
     assert [row["rollouts"] for row in r["log"]] == [1 + len(FD_STEPS) * 32, 2 + len(FD_STEPS) * 32 + 32]
     assert all(row["grad_norm"] == 0.0 for row in r["log"])
+
+
+def test_task_losses():
+    """optimize.task_loss: ``sum`` adds the distances of the steps alive, ``final`` takes the distance after the
+    last step alive (the terminal one), ``closest`` the smallest distance among the steps alive; an unknown loss is
+    refused by name."""
+    from optimize import task_loss
+
+    # two rollouts of 4 steps: the first terminates at step 2 (alive up to and including it), the second runs on
+    d = torch.tensor([[3.0, 5.0], [2.0, 4.0], [0.5, 1.0], [4.0, 0.75]], dtype=torch.float64)
+    alive = torch.tensor([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
+    assert task_loss(-d, alive, "sum").tolist() == [5.5, 10.75]
+    assert task_loss(-d, alive, "final").tolist() == [0.5, 0.75]
+    assert task_loss(-d, alive, "closest").tolist() == [0.5, 0.75]
+    assert task_loss(-d, torch.ones_like(d), "final").tolist() == [4.0, 0.75]  # no termination: the last step
+    th = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
+    (g,) = torch.autograd.grad(task_loss(-(d + th), alive, "closest").sum(), th)
+    assert g.abs().sum() > 0 and g.tolist() == [[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]
+    with pytest.raises(ValueError, match="config\\['loss'\\] \\(--loss\\) must be one of"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "loss": "mean"})
+
+
+def test_learning_rate_decay():
+    """Optimiser's rate: --lr at the first step, --lr-final at the last of the run's iterations, geometric in between
+    (constant without --lr-final); each Adam step moves every coordinate by about that rate (the unit gradient's
+    sign-consistent steps)."""
+    opt = Optimiser("adam", 0.05, 0.005, 5)
+    theta = torch.zeros(3, dtype=torch.float64)
+    opt.start(theta, lambda th: (float(th.sum()), None, torch.ones_like(th)))
+    rates, moves = [], []
+    for _ in range(5):
+        rates.append(opt.rate())
+        before = opt.theta.detach().clone()
+        opt.step()
+        moves.append(float((before - opt.theta.detach()).abs().max()))
+    assert (
+        rates[0] == 0.05
+        and math.isclose(rates[-1], 0.005)
+        and math.isclose(rates[2], math.sqrt(0.05 * 0.005))
+    )
+    assert all(math.isclose(m, r, rel_tol=1e-6) for m, r in zip(moves, rates))
+    assert Optimiser("ngd", 0.3).rate() == 0.3
