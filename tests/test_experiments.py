@@ -224,5 +224,5 @@ def test_learning_rate_decay():
         and math.isclose(rates[-1], 0.005)
         and math.isclose(rates[2], math.sqrt(0.05 * 0.005))
     )
-    assert all(math.isclose(m, r, rel_tol=1e-6) for m, r in zip(moves, rates))
+    assert all(math.isclose(m, r, rel_tol=1e-6) for m, r in zip(moves, rates, strict=True))
     assert Optimiser("ngd", 0.3).rate() == 0.3
