@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
     potted = L < core.pocket_radius
     ai, mi = np.nonzero(potted)
     ax.scatter(strengths[mi], angles[ai], marker="o", facecolors="none", edgecolors="r", label="potted")
-    ax.set(xlabel="shot strength (action units, 5 N each, for %d steps)" % args.shot_steps,
+    ax.set(xlabel=f"shot strength (action units, 5 N each, for {args.shot_steps} steps)",
            ylabel="shot direction [deg from the object ball]",
            title=f"Billiards seed {args.seed}: object ball {target}, {args.horizon} steps")  # fmt: skip
     if potted.any():
