@@ -2,7 +2,8 @@
 
 Per task, one figure with the loss, relative to each run's start (open loop: the first iteration's loss; MPC: the
 loss of zero actions), against iteration and against wall time (the time spent computing losses and gradients),
-for every model: the mean over seeds and its spread (min to max). The table gives per task and model: the loss
+for every model: the mean over seeds and its spread (min to max); with ``--best``, open-loop runs' best loss so
+far instead of each iterate's. The table gives per task and model: the loss
 decrease 1 - best / initial loss (open loop: the best iterate's loss, the optimiser's answer; MPC: the executed
 trajectory's; mean and range over seeds), the best final distance to the goal, iterations, rollouts
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
@@ -28,8 +29,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x iteration or control step, wall s, loss / initial loss) of one run."""
+def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x iteration or control step, wall s, loss / initial loss) of one run; open loop with ``best``, the best
+    loss so far (the run's answer had it stopped there)."""
     cfg, log, s = run["config"], run["log"], run["summary"]
     if cfg["mpc"]:
         x = np.array([r["step"] for r in log], dtype=float)
@@ -43,6 +45,8 @@ def _curves(run: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     else:
         x = np.array([r["iter"] for r in log], dtype=float)
         loss = np.array([r["loss"] for r in log]) / log[0]["loss"]
+        if best:
+            loss = np.minimum.accumulate(loss)
     return x, np.array([r["wall_s"] for r in log]), loss
 
 
@@ -77,7 +81,7 @@ def table(runs: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def plot(runs: list[dict], out: Path) -> list[Path]:
+def plot(runs: list[dict], out: Path, best: bool = False) -> list[Path]:
     by_task: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
         by_task[r["config"]["task"]][r["config"]["model"]].append(r)
@@ -85,7 +89,7 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
     for task, models in sorted(by_task.items()):
         fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
         for model, rs in sorted(models.items()):
-            curves = [_curves(r) for r in rs]
+            curves = [_curves(r, best) for r in rs]
             n = min(len(c[0]) for c in curves)
             x = curves[0][0][:n]
             wall = np.mean([c[1][:n] for c in curves], 0)
@@ -94,8 +98,9 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
                 (line,) = axis.plot(xs, L.mean(0), label=f"{model} ({len(rs)} seeds)")
                 axis.fill_between(xs, L.min(0), L.max(0), color=line.get_color(), alpha=0.2)
         mpc = next(iter(models.values()))[0]["config"]["mpc"]
-        ax[0].set(xlabel="control step" if mpc else "iteration", ylabel="loss / initial loss", title=task)
-        ax[1].set(xlabel="wall time [s]", ylabel="loss / initial loss", xscale="symlog")
+        ylabel = "best loss so far / initial" if best and not mpc else "loss / initial loss"
+        ax[0].set(xlabel="control step" if mpc else "iteration", ylabel=ylabel, title=task)
+        ax[1].set(xlabel="wall time [s]", ylabel=ylabel, xscale="symlog")
         ax[0].legend(fontsize=8)
         fig.tight_layout()
         path = out / f"{task}.png"
@@ -109,6 +114,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sweeps", type=Path, nargs="+", help="folders with a sweep.json (scripts/sweep.py --out)")
     ap.add_argument("--out", type=Path, default=None, help="where to write (default: the first folder)")
+    ap.add_argument(
+        "--best", action="store_true", help="open loop: plot the best loss so far instead of each iterate's"
+    )
     args = ap.parse_args()
     runs, where = [], {}
     for d in args.sweeps:
@@ -127,7 +135,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     md = table(runs)
     (out / "results.md").write_text(md + "\n")
-    paths = plot(runs, out)
+    paths = plot(runs, out, args.best)
     print(md)
     print("wrote", out / "results.md", *paths)
 

@@ -160,6 +160,11 @@ def test_sweep_and_plot_results(tmp_path):
     table = (tmp_path / "results.md").read_text().splitlines()
     assert len(table) == 4 and "| Push | cfd |" in table[2] and "| Push | gb |" in table[3]
     assert (tmp_path / "Push.png").stat().st_size > 0
+    subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), "--best", "--out", str(tmp_path / "b")],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    assert (tmp_path / "b" / "Push.png").stat().st_size > 0
     # --resume continues the same experiment only: other settings for a finished cell are refused
     again = subprocess.run(
         [*cmd[:-2], "--resume", "--iters", "2", "--out", str(tmp_path)], capture_output=True, text=True
