@@ -50,6 +50,10 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if not 1 <= args.shot_steps <= args.horizon:
         sys.exit(f"--shot-steps must be in [1, --horizon], got {args.shot_steps}")
+    if not (0 <= args.strengths[0] <= args.strengths[1] <= 1):  # beyond 1 the action clips per component
+        sys.exit(f"--strengths must satisfy 0 <= LO <= HI <= 1, got {args.strengths[:2]}")
+    if args.angles[2] < 1 or args.strengths[2] < 1 or args.batch < 1:
+        sys.exit("the counts of --angles and --strengths and --batch must be at least 1")
     args.out.mkdir(parents=True, exist_ok=True)
     core = make_core("cfd_torch/Billiards-v0", **TASK_KWARGS["Billiards"])
     s0 = core.reset(args.seed, 1)
@@ -70,11 +74,9 @@ def main(argv: list[str] | None = None) -> None:
         with torch.no_grad():
             out = rollout(core, s0.select(torch.zeros(len(chunk), dtype=torch.long)), acts)
         losses += task_loss(out.info["reward_distance"], out.alive, "final").tolist()
-    start = float(
-        -rollout(core, s0, torch.zeros(args.horizon, 1, 2, dtype=torch.float64)).info["reward_distance"][
-            -1, 0
-        ]
-    )
+    with torch.no_grad():
+        zero = rollout(core, s0, torch.zeros(args.horizon, 1, 2, dtype=torch.float64))
+    start = float(task_loss(zero.info["reward_distance"], zero.alive, "final")[0])
     L = np.array(losses).reshape(len(angles), len(strengths))
     result = {
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},

@@ -3,7 +3,7 @@ differentiable simulator: open-loop trajectory optimisation, or model-predictive
 
 Loss (``--loss``, :func:`task_loss`): ``sum`` (the default), minus the sum over the horizon of the task's
 ``distance`` reward term; ``final``, the distance to the goal after the last step (the terminal step where the task
-terminates first); ``closest``, the smallest distance over the horizon. The action cost is left out: at the trivial
+terminates first); ``closest``, the smallest distance over the steps alive. The action cost is left out: at the trivial
 start its gradient, 2e-3 |a| per step, would swamp the far field's 1e-11 after the first update. The logs'
 ``final_distance`` is the distance after the last step alive, whatever the loss. Actions are the tanh of free
 parameters (so they stay in [-1, 1]), all zero at the start. Every optimiser takes the unit gradient g / |g|:
@@ -13,7 +13,9 @@ one and stalls after it. Optimisers: ``ngd`` (default: heavy-ball momentum 0.9 o
 ``--lr``; it keeps the gradient's direction, so Push's pole turns toward the back of the box), ``adam`` (Adam on the
 unit gradient: per-coordinate steps of about ``--lr``, which bends the direction toward the diagonals) and
 ``ngd-ls`` (steps of at most ``--lr`` along -g / |g|, halved until the loss falls: the loss never rises, but
-changes below the solver's tolerance, as in Push's far field, stop it).
+changes below the solver's tolerance, as in Push's far field, stop it). With ``--lr-final`` the rate (``ngd``'s
+and ``adam``'s step, ``ngd-ls``'s largest step) decays geometrically from ``--lr`` at the first step to
+``--lr-final`` at the last (under ``--mpc``, again in every control step's iterations).
 Each iteration costs one rollout and its backward. The run's answer is its best iterate (``loss_best`` in the
 summary; momentum can leave the last one worse). The pushing tasks' blend width between the pusher and the boxes
 (``--eps``) is 1.0 by default: with the library's 0.01 the far field is a staircase of millimetre-wide bands that
@@ -141,12 +143,14 @@ class Optimiser:
         if self.kind != "ngd-ls":
             for group in self.torch_opt.param_groups:
                 group["lr"] = lr
+            self.step_size = lr
             self.theta.grad = unit
             self.torch_opt.step()
             self.current = self.evaluate(self.theta)
             return self.current
-        # a step of length step_size along -unit, taken only if the loss falls (else halved); an accepted step
-        # grows the next one by 1.5, up to lr
+        # a step of length step_size (at most this step's rate) along -unit, taken only if the loss falls (else
+        # halved); an accepted step grows the next one by 1.5, up to the rate
+        self.step_size = min(self.step_size, lr)
         trial = self.theta.detach() - self.step_size * unit
         nxt = self.evaluate(trial)
         if nxt[0] < loss:
@@ -389,7 +393,8 @@ def run_experiment(config: dict) -> dict:
         first, last = log[0], log[-1]
         low = min(log, key=lambda r: r["loss"])  # the optimiser's answer: its best iterate
         summary = {"loss_start": first["loss"], "loss_end": last["loss"], "loss_best": low["loss"],
-                   "best_iter": low["iter"], "best_final_distance": min(r["final_distance"] for r in log),
+                   "best_iter": low["iter"], "final_distance_best_iter": low["final_distance"],
+                   "best_final_distance": min(r["final_distance"] for r in log),
                    "final_distance_start": first["final_distance"], "final_distance_end": last["final_distance"],
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = best[1]
@@ -417,8 +422,9 @@ def run_experiment(config: dict) -> dict:
                 theta = torch.cat([theta[1:], theta[-1:]])
             if bool(out.terminated.all()):
                 break
-        summary = {"loss_zero_actions": zero_loss, "loss_executed": float(task_loss(-torch.tensor(executed)[:, None],
-                   torch.ones(len(executed), 1), cfg["loss"])), "steps_run": len(executed),
+        ex = torch.tensor(executed, dtype=torch.float64)[:, None]
+        loss_executed = float(task_loss(-ex, torch.ones_like(ex), cfg["loss"]))
+        summary = {"loss_zero_actions": zero_loss, "loss_executed": loss_executed, "steps_run": len(executed),
                    "final_distance": executed[-1], "final_distance_zero_actions":
                    float(-zero.info["reward_distance"][len(executed) - 1].sum()),
                    "zero_distances": (-zero.info["reward_distance"][:, 0]).tolist(),
@@ -480,7 +486,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--loss",
         default=d["loss"],
         choices=LOSSES,
-        help="sum: the distance summed over the horizon; final: the distance after its last step",
+        help="sum: the distance summed over the steps alive; final: the distance after the last step alive; "
+        "closest: the smallest distance over the steps alive",
     )
     ap.add_argument("--optimizer", default=d["optimizer"], choices=OPTIMISERS,
                     help="ngd (momentum on the unit gradient), adam or ngd-ls (with backtracking)")  # fmt: skip

@@ -231,3 +231,25 @@ def test_learning_rate_decay():
     )
     assert all(math.isclose(m, r, rel_tol=1e-6) for m, r in zip(moves, rates, strict=True))
     assert Optimiser("ngd", 0.3).rate() == 0.3
+    # ngd-ls: each accepted step is this step's rate (a loss that falls along -g)
+    ls = Optimiser("ngd-ls", 0.5, 0.05, 3)
+    ls.start(theta, lambda th: (float(th.sum()), None, torch.ones_like(th)))
+    moved = []
+    for _ in range(3):
+        before = ls.theta.detach().clone()
+        ls.step()
+        moved.append(float((before - ls.theta.detach()).norm()))
+    assert moved[0] == 0.5 and math.isclose(moved[1], math.sqrt(0.5 * 0.05)) and math.isclose(moved[2], 0.05)
+
+
+def test_resume_takes_missing_settings_as_defaults():
+    """A sweep.json written before a setting existed ran with that setting's default: --resume compares it so."""
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        from optimize import DEFAULTS
+        from sweep import _settings_differ
+    finally:
+        sys.path.pop(0)
+    old = {k: v for k, v in DEFAULTS.items() if k not in ("loss", "lr_final")}
+    assert _settings_differ(old, dict(DEFAULTS)) == []
+    assert _settings_differ(old, {**DEFAULTS, "loss": "final"}) == ["loss"]
