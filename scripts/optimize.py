@@ -16,7 +16,10 @@ unit gradient: per-coordinate steps of about ``--lr``, which bends the direction
 changes below the solver's tolerance, as in Push's far field, stop it). With ``--lr-final`` the rate (``ngd``'s
 and ``adam``'s step, ``ngd-ls``'s largest step) decays geometrically from ``--lr`` at the first step to
 ``--lr-final`` at the last (under ``--mpc``, again in every control step's iterations).
-Each iteration costs one rollout and its backward. The run's answer is its best iterate (``loss_best`` in the
+Each iteration costs one rollout and its backward; with ``--smooth-samples`` N (cfd, ipc, sdrs), a forward rollout
+at the parameters for the loss and N differentiated rollouts, as one batch, at perturbations theta + sigma eps_i
+(eps_i ~ N(0, I), sigma = ``--smooth-sigma``), whose gradients' mean is the step's gradient (first-order randomised
+smoothing, Suh et al. 2022). The run's answer is its best iterate (``loss_best`` in the
 summary; momentum can leave the last one worse). The pushing tasks' blend width between the pusher and the boxes
 (``--eps``) is 1.0 by default: with the library's 0.01 the far field is a staircase of millimetre-wide bands that
 rollouts cross hit-or-miss (:class:`cfd_torch.envs.core.TaskCore`).
@@ -102,6 +105,7 @@ DEFAULTS = {
     "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
     "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
     "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
+    "smooth_samples": 0, "smooth_sigma": 0.1,
     "out": None, "gif": True,
 }  # fmt: skip
 
@@ -170,7 +174,7 @@ def _gradient_fn(core, model: str, config: dict, actions):
 
     if model == "mujoco-fd":
         return _mujoco_fd(core, config, actions)
-    if model != "gb":
+    if model != "gb" and not config["smooth_samples"]:
 
         def evaluate_from(state):
             def evaluate(th: torch.Tensor):
@@ -181,6 +185,29 @@ def _gradient_fn(core, model: str, config: dict, actions):
                 t1 = time.perf_counter()
                 (g,) = torch.autograd.grad(loss, th)
                 return float(loss.detach()), out, g, t1 - t0, time.perf_counter() - t1, 1, 1
+
+            return evaluate
+
+        return evaluate_from
+    if model != "gb":  # first-order smoothing: the mean of the autograd gradients at N perturbed parameters
+        n, sigma = int(config["smooth_samples"]), float(config["smooth_sigma"])  # checked by _check_settings
+        gen = torch.Generator().manual_seed(int(config["seed"]))
+
+        def evaluate_from(state):
+            many = state.select(torch.zeros(n, dtype=torch.long))
+
+            def evaluate(th: torch.Tensor):
+                th = th.detach()
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    out = rollout(core, state, actions(th))
+                    loss = float(loss_of(out).sum())
+                t1 = time.perf_counter()
+                eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
+                ths = (th + sigma * eps).requires_grad_(True)  # (N, K, 1, A)
+                acts = torch.cat([actions(t) for t in ths], 1)  # the N perturbed plans as one batch (T, N, A)
+                (g,) = torch.autograd.grad(loss_of(rollout(core, many, acts)).sum(), ths)
+                return loss, out, g.mean(0), t1 - t0, time.perf_counter() - t1, 1 + n, n
 
             return evaluate
 
@@ -292,6 +319,13 @@ def _check_settings(cfg: dict) -> None:
 
     count("iters", 1)
     count("horizon", 1)
+    count("smooth_samples", 0)
+    if cfg["smooth_samples"] and cfg["model"] not in ("cfd", "ipc", "sdrs"):
+        raise ValueError(
+            "config['smooth_samples'] (--smooth-samples) applies to the autograd models cfd, ipc, sdrs"
+        )
+    if cfg["smooth_samples"]:
+        positive("smooth_sigma")
     if cfg["mpc"]:
         count("steps", 1)
     if cfg["loss"] not in LOSSES:
@@ -492,6 +526,14 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--optimizer", default=d["optimizer"], choices=OPTIMISERS,
                     help="ngd (momentum on the unit gradient), adam or ngd-ls (with backtracking)")  # fmt: skip
     ap.add_argument("--gb-samples", type=int, default=d["gb_samples"], help="gb: rollouts per gradient")
+    ap.add_argument(
+        "--smooth-samples",
+        type=int,
+        default=d["smooth_samples"],
+        help="cfd, ipc, sdrs: average the gradient over this many perturbed parameters (0: none)",
+    )
+    ap.add_argument("--smooth-sigma", type=float, default=d["smooth_sigma"],
+                    help="--smooth-samples: the perturbations' standard deviation")  # fmt: skip
     ap.add_argument(
         "--gb-sigma", type=float, default=d["gb_sigma"], help="gb: smoothing scale of the parameters"
     )

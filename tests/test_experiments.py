@@ -253,3 +253,18 @@ def test_resume_takes_missing_settings_as_defaults():
     old = {k: v for k, v in DEFAULTS.items() if k not in ("loss", "lr_final")}
     assert _settings_differ(old, dict(DEFAULTS)) == []
     assert _settings_differ(old, {**DEFAULTS, "loss": "final"}) == ["loss"]
+
+
+def test_first_order_smoothing(tmp_path):
+    """--smooth-samples 2 on Push's trivial start: each evaluation one forward rollout and two differentiated ones
+    (logged), a non-zero gradient for ours; gb and mujoco-fd refuse the option by name."""
+    r = run_experiment(
+        {"task": "Push", "iters": 1, "horizon": 3, "smooth_samples": 2, "smooth_sigma": 0.1, "gif": False}
+    )
+    log = r["log"]
+    assert [row["rollouts"] for row in log] == [3, 6] and [row["backward"] for row in log] == [2, 4]
+    assert log[0]["grad_norm"] > 0.0 and all(math.isfinite(row["loss"]) for row in log)
+    with pytest.raises(ValueError, match="smooth_samples.*applies to the autograd models"):
+        run_experiment({"task": "Push", "model": "gb", "iters": 1, "horizon": 2, "smooth_samples": 2})
+    with pytest.raises(ValueError, match="config\\['smooth_sigma'\\]"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "smooth_samples": 2, "smooth_sigma": 0.0})
