@@ -189,32 +189,15 @@ def _gradient_fn(core, model: str, config: dict, actions):
             return evaluate
 
         return evaluate_from
-    if model != "gb":  # first-order smoothing: the mean of the autograd gradients at N perturbed parameters
+    # sampled gradients: first-order smoothing (cfd, ipc, sdrs with smooth_samples), the mean of the autograd
+    # gradients at N perturbed parameters; gb, the zeroth-order (bundled) estimate from the same N rollouts' losses
+    first_order = model != "gb"
+    if first_order:
         n, sigma = int(config["smooth_samples"]), float(config["smooth_sigma"])  # checked by _check_settings
-        gen = torch.Generator().manual_seed(int(config["seed"]))
-
-        def evaluate_from(state):
-            many = state.select(torch.zeros(n, dtype=torch.long))
-
-            def evaluate(th: torch.Tensor):
-                th = th.detach()
-                t0 = time.perf_counter()
-                with torch.no_grad():
-                    out = rollout(core, state, actions(th))
-                    loss = float(loss_of(out).sum())
-                t1 = time.perf_counter()
-                eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
-                ths = (th + sigma * eps).requires_grad_(True)  # (N, K, 1, A)
-                acts = torch.cat([actions(t) for t in ths], 1)  # the N perturbed plans as one batch (T, N, A)
-                (g,) = torch.autograd.grad(loss_of(rollout(core, many, acts)).sum(), ths)
-                return loss, out, g.mean(0), t1 - t0, time.perf_counter() - t1, 1 + n, n
-
-            return evaluate
-
-        return evaluate_from
-    n, sigma = int(config["gb_samples"]), float(config["gb_sigma"])
-    if n < 1 or not sigma > 0:
-        raise ValueError(f"gb_samples must be >= 1 and gb_sigma > 0, got {n} and {sigma}")
+    else:
+        n, sigma = int(config["gb_samples"]), float(config["gb_sigma"])
+        if n < 1 or not sigma > 0:
+            raise ValueError(f"gb_samples must be >= 1 and gb_sigma > 0, got {n} and {sigma}")
     gen = torch.Generator().manual_seed(int(config["seed"]))
 
     def evaluate_from(state):
@@ -226,13 +209,18 @@ def _gradient_fn(core, model: str, config: dict, actions):
             with torch.no_grad():
                 out = rollout(core, state, actions(th))
                 loss = float(loss_of(out).sum())
-                t1 = time.perf_counter()
-                eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
-                # th (K, 1, A) -> the N perturbed plans as one batch (T, N, A)
-                acts = torch.cat([actions(th + sigma * e) for e in eps], 1)
+            t1 = time.perf_counter()
+            eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
+            ths = (th + sigma * eps).requires_grad_(first_order)  # (N, K, 1, A)
+            with torch.set_grad_enabled(first_order):
+                acts = torch.cat([actions(t) for t in ths], 1)  # the N perturbed plans as one batch (T, N, A)
                 losses = loss_of(rollout(core, many, acts))
+            if first_order:
+                (g,) = torch.autograd.grad(losses.sum(), ths)
+                g = g.mean(0)
+            else:
                 g = ((losses - loss)[:, None, None, None] * eps).mean(0) / sigma
-            return loss, out, g, t1 - t0, time.perf_counter() - t1, 1 + n, 0
+            return loss, out, g, t1 - t0, time.perf_counter() - t1, 1 + n, n if first_order else 0
 
         return evaluate
 
