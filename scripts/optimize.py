@@ -105,7 +105,7 @@ DEFAULTS = {
     "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
     "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
     "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
-    "smooth_samples": 0, "smooth_sigma": 0.1,
+    "smooth_samples": 0, "smooth_sigma": 0.1, "task_args": None,
     "out": None, "gif": True,
 }  # fmt: skip
 
@@ -325,6 +325,10 @@ def _check_settings(cfg: dict) -> None:
         positive("lr_final")
     if cfg["fd_step"] is not None:
         positive("fd_step")
+    if cfg["task_args"] is not None and not isinstance(cfg["task_args"], dict):
+        raise ValueError(
+            f"config['task_args'] (--task-args) must be a dict of the task core's arguments, got {cfg['task_args']!r}"
+        )
 
 
 def run_experiment(config: dict) -> dict:
@@ -352,7 +356,7 @@ def run_experiment(config: dict) -> dict:
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
     task, model = cfg["task"], cfg["model"]
-    kwargs = dict(TASK_KWARGS.get(task, {}))
+    kwargs = dict(TASK_KWARGS.get(task, {})) | dict(cfg["task_args"] or {})
     if cfg["dt"] is not None:
         kwargs["dt"] = cfg["dt"]
     if cfg["eps"] is not None:
@@ -501,6 +505,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--eps", type=float, default=d["eps"],
                     help="the blend width between the actuated body and the objects (the task's eps; default: "
                     "the task's, 1.0 for the pushing tasks, 0.01 for Billiards)")  # fmt: skip
+    ap.add_argument("--task-args", type=json.loads, default=d["task_args"],
+                    help='the task core\'s arguments as a JSON object, e.g. \'{"distance": 1.5}\' (Push)')  # fmt: skip
     ap.add_argument("--lr", type=float, default=d["lr"])
     ap.add_argument("--lr-final", type=float, default=d["lr_final"],
                     help="decay the learning rate geometrically from --lr to this at the last iteration")  # fmt: skip

@@ -191,6 +191,20 @@ def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
     assert all(row["grad_norm"] == 0.0 for row in r["log"])
 
 
+def test_task_args_reach_the_task():
+    """--task-args: the task core's arguments (Push's target 1.5 m away instead of 3 m); a non-dict or an unknown
+    argument is refused."""
+    r = run_experiment(
+        {"task": "Push", "iters": 1, "horizon": 2, "loss": "final", "task_args": {"distance": 1.5}}
+    )
+    assert abs(r["summary"]["final_distance_start"] - 1.5) < 1e-3
+    assert r["config"]["task_args"] == {"distance": 1.5}
+    with pytest.raises(ValueError, match="config\\['task_args'\\] \\(--task-args\\) must be a dict"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": [1.5]})
+    with pytest.raises(TypeError, match="distanse"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": {"distanse": 1.5}})
+
+
 def test_task_losses():
     """optimize.task_loss: ``sum`` adds the distances of the steps alive, ``final`` takes the distance after the
     last step alive (the terminal one), ``closest`` the smallest distance among the steps alive; an unknown loss is
