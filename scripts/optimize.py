@@ -20,7 +20,11 @@ Each iteration costs one rollout and its backward; with ``--smooth-samples`` N (
 at the parameters for the loss and N differentiated rollouts, as one batch, at perturbations theta + sigma eps_i
 (eps_i ~ N(0, I), sigma = ``--smooth-sigma``), whose gradients' mean is the step's gradient (first-order randomised
 smoothing, Suh et al. 2022). The run's answer is its best iterate (``loss_best`` in the
-summary; momentum can leave the last one worse). The pushing tasks' blend width between the pusher and the boxes
+summary; momentum can leave the last one worse). An open-loop run with a deterministic gradient (``cfd``, ``ipc``,
+``sdrs`` without smoothing, ``mujoco-fd``) stops at an iteration whose gradient is exactly zero while the optimiser
+holds no momentum (``stopped_at`` in the summary; ``None`` when it ran its ``--iters``): every later iterate would
+be the same parameters and the same rollout; ``scripts/plot_results.py`` carries such a run flat to its budget.
+The pushing tasks' blend width between the pusher and the boxes
 (``--eps``) is 1.0 by default: with the library's 0.01 the far field is a staircase of millimetre-wide bands that
 rollouts cross hit-or-miss (:class:`cfd_torch.envs.core.TaskCore`).
 
@@ -138,6 +142,15 @@ class Optimiser:
         self.k = 0
         self.current = self.evaluate(self.theta)
         return self.current
+
+    def still(self) -> bool:
+        """Whether a step from a zero gradient leaves the parameters where they are: no momentum held (``ngd``'s
+        buffer and ``adam``'s first moment zero or not yet made); ``ngd-ls`` always (its trial is the point)."""
+        if self.kind == "ngd-ls":
+            return True
+        state = self.torch_opt.state.get(self.theta, {})
+        held = state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
+        return held is None or not bool(held.any())
 
     def step(self):
         loss, _, g = self.current[:3]
@@ -405,7 +418,9 @@ def run_experiment(config: dict) -> dict:
     if not cfg["mpc"]:
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"])
         cur = opt.start(theta, evaluate_from(s0))
-        best = None
+        best, stopped = None, None
+        # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run
+        deterministic = model in ("cfd", "ipc", "sdrs", "mujoco-fd") and not cfg["smooth_samples"]
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             rec = record(cur, iter=it, step=opt.step_size)
             if best is None or rec["loss"] < best[0]:
@@ -415,6 +430,11 @@ def run_experiment(config: dict) -> dict:
                 with open(out_dir / "progress.jsonl", "a" if it else "w") as f:
                     f.write(json.dumps(rec) + "\n")
             if it < cfg["iters"]:
+                if deterministic and not bool(cur[2].any()) and opt.still():
+                    stopped = (
+                        it  # every later iterate would be this one: the same parameters, the same rollout
+                    )
+                    break
                 cur = opt.step()
         first, last = log[0], log[-1]
         low = min(log, key=lambda r: r["loss"])  # the optimiser's answer: its best iterate
@@ -422,7 +442,7 @@ def run_experiment(config: dict) -> dict:
                    "best_iter": low["iter"], "final_distance_best_iter": low["final_distance"],
                    "best_final_distance": min(r["final_distance"] for r in log),
                    "final_distance_start": first["final_distance"], "final_distance_end": last["final_distance"],
-                   "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
+                   "rollouts": spent["rollouts"], "wall_s": spent["wall_s"], "stopped_at": stopped}  # fmt: skip
         frames_q = best[1]
     else:
         steps = cfg["steps"]

@@ -43,10 +43,13 @@ def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.n
         zero = acc(s["zero_distances"][: len(log)])
         loss = executed / np.where(zero > 0, zero, 1.0)
     else:
-        x = np.array([r["iter"] for r in log], dtype=float)
-        loss = np.array([r["loss"] for r in log]) / log[0]["loss"]
+        # a run stopped at a zero gradient (optimize.py's ``stopped_at``) repeats its last iterate to its budget
+        pad = cfg["iters"] + 1 - len(log) if s.get("stopped_at") is not None else 0
+        x = np.arange(len(log) + pad, dtype=float)
+        loss = np.array([r["loss"] for r in log] + [log[-1]["loss"]] * pad) / log[0]["loss"]
         if best:
             loss = np.minimum.accumulate(loss)
+        return x, np.array([r["wall_s"] for r in log] + [log[-1]["wall_s"]] * pad), loss
     return x, np.array([r["wall_s"] for r in log]), loss
 
 
@@ -71,7 +74,12 @@ def table(runs: list[dict]) -> str:
         dist = np.mean(
             [r["summary"].get("best_final_distance", r["summary"].get("final_distance")) for r in rs]
         )
-        its = rs[0]["config"]["iters"] * (rs[0]["config"]["steps"] if rs[0]["config"]["mpc"] else 1)
+        its = str(rs[0]["config"]["iters"] * (rs[0]["config"]["steps"] if rs[0]["config"]["mpc"] else 1))
+        stops = [r["summary"].get("stopped_at") for r in rs]
+        if any(k is not None for k in stops):
+            its += (
+                " (stopped at " + ", ".join("-" if k is None else str(k) for k in stops) + ": zero gradient)"
+            )
         lines.append(
             f"| {task} | {model} | {drop.mean():.3g} ({drop.min():.3g} .. {drop.max():.3g}) | {dist:.4g} | "
             f"{its} | {np.mean([r['summary']['rollouts'] for r in rs]):.0f} | "
