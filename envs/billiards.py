@@ -51,6 +51,12 @@ class BilliardsCore(TaskCore):
     (``target_ball``, default drawn uniformly from the 15) and the pocket (``pocket``: an index of ``POCKETS``,
     default drawn from the far corners and the sides, 0-3) are drawn per reset unless fixed. Task variables:
     ``state.task["target"]`` (int64 index), ``state.task["pocket"]`` (xy).
+
+    Baselines (``potential`` "ipc" or "sdrs"): their activation distance is ``dhat`` (1 mm here, not the models'
+    1 cm), under the rack's smallest gap (0.156 ``ball_radius``, 4.4 mm: SDRS acts out to 2 (dhat + 0.5 mm) = 3 mm),
+    so that the rack rests at zero action as it does with this library's potential. With 1 cm both barriers span the
+    gaps and blow the rack apart in the first step (at zero actions IPC then sent ball 14 into its far-right pocket,
+    seed 2).
     """
 
     action_dim = 2
@@ -70,6 +76,7 @@ class BilliardsCore(TaskCore):
         target_ball: int | None = None,
         pocket: int | None = None,
         potential: str = "cfd",
+        dhat: float = 1e-3,
         eps: float = 0.01,
         dt: float = 0.01,
         device: torch.device | str = "cpu",
@@ -93,6 +100,7 @@ class BilliardsCore(TaskCore):
             substeps=8,
             planar=True,
             potential=potential,
+            dhat=dhat,
             pair_eps={(15, k): eps for k in range(15)},
         )
         super().__init__(scene, device=device, dtype=dtype)

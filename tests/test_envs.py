@@ -247,19 +247,37 @@ def test_ant_push_gradient_from_the_trivial_start_matches_finite_differences():
     ],
 )
 def test_locally_supported_models_give_no_gradient_from_the_trivial_start(env_id, kwargs, potential):
-    """The test above with the baselines' contact (``potential="ipc"`` or ``"sdrs"``, dhat 1 cm): the task loss
-    after 3 steps does not depend on the first action at all, its gradient is exactly zero (bodies within dhat of
-    each other have active contacts, so the models do act)."""
+    """The test above with the baselines' contact (``potential="ipc"`` or ``"sdrs"``, dhat 1 cm; Billiards 1 mm):
+    the task loss after 3 steps does not depend on the first action at all, its gradient is exactly zero (the boxes
+    resting within dhat of the floor have active contacts, so the models do act)."""
     from cfd_torch.sim.energy import scene_pairs
 
     core = make_core(env_id, potential=potential, **kwargs)
     s0 = core.reset(3, 1)
-    active = core.scene.contact_model.evaluate(s0.q, scene_pairs(core.scene, 1), 0).value
-    assert float(active.sum()) > 0  # bodies within dhat of each other: the rack's balls, boxes on the floor
+    active = float(core.scene.contact_model.evaluate(s0.q, scene_pairs(core.scene, 1), 0).value.sum())
+    if "Billiards" in env_id:
+        assert active == 0.0  # the rack's gaps (4.4 mm) are wider than Billiards' barrier dhat (1 mm)
+    else:
+        assert active > 0  # bodies within dhat of each other: the boxes on the floor
     U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
     loss = _loss(core, s0, U)
     (g,) = torch.autograd.grad(loss, U)
     assert torch.isfinite(loss) and float(g.abs().max()) == 0.0
+
+
+def test_billiards_rack_rests_under_the_baselines():
+    """Billiards with IPC's barrier: its dhat (1 mm) is under the rack's gaps, so with the cue ball driven toward
+    the rack the rack's balls do not move in 5 steps (with the models' 1 cm the barrier spans the 4.4 mm gaps and
+    the first step blows the rack apart); the cue ball does move."""
+    core = make_core("cfd_torch/Billiards-v0", potential="ipc", target_ball=14, pocket=1)
+    assert core.scene.contact.dhat == 1e-3
+    s = core.reset(2, 1)
+    q0 = s.q.clone()
+    a = torch.tensor([[0.0, 1.0]], dtype=F64)
+    for _ in range(5):
+        s = core.step(s, a).state
+    assert float((s.q[0, 15, :2] - q0[0, 15, :2]).norm()) > 1e-3
+    assert float((s.q[0, :15] - q0[0, :15]).abs().max()) == 0.0
 
 
 def test_rollout_checkpointed_and_truncated_gradients():
