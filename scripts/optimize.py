@@ -431,9 +431,8 @@ def run_experiment(config: dict) -> dict:
                     f.write(json.dumps(rec) + "\n")
             if it < cfg["iters"]:
                 if deterministic and not bool(cur[2].any()) and opt.still():
-                    stopped = (
-                        it  # every later iterate would be this one: the same parameters, the same rollout
-                    )
+                    # every later iterate would be this one: the same parameters, the same rollout
+                    stopped = it
                     break
                 cur = opt.step()
         first, last = log[0], log[-1]
