@@ -67,10 +67,10 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     for lo in tqdm(range(0, len(shots), args.batch), desc="shots"):
         chunk = shots[lo : lo + args.batch]
+        a, m = torch.tensor(chunk, dtype=torch.float64).T  # directions [deg], strengths
+        direction = aim + torch.deg2rad(a)
         acts = torch.zeros(args.horizon, len(chunk), 2, dtype=torch.float64)
-        for i, (a, m) in enumerate(chunk):
-            acts[: args.shot_steps, i, 0] = m * math.cos(aim + math.radians(a))
-            acts[: args.shot_steps, i, 1] = m * math.sin(aim + math.radians(a))
+        acts[: args.shot_steps] = m[:, None] * torch.stack([direction.cos(), direction.sin()], 1)
         with torch.no_grad():
             out = rollout(core, s0.select(torch.zeros(len(chunk), dtype=torch.long)), acts)
         losses += task_loss(out.info["reward_distance"], out.alive, "final").tolist()

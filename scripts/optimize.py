@@ -226,7 +226,7 @@ def _gradient_fn(core, model: str, config: dict, actions):
             eps = torch.randn((n, *th.shape), generator=gen, dtype=th.dtype)
             ths = (th + sigma * eps).requires_grad_(first_order)  # (N, K, 1, A)
             with torch.set_grad_enabled(first_order):
-                acts = torch.cat([actions(t) for t in ths], 1)  # the N perturbed plans as one batch (T, N, A)
+                acts = actions(ths[:, :, 0].transpose(0, 1))  # the N perturbed plans as one batch (T, N, A)
                 losses = loss_of(rollout(core, many, acts))
             if first_order:
                 (g,) = torch.autograd.grad(losses.sum(), ths)
@@ -385,7 +385,7 @@ def run_experiment(config: dict) -> dict:
     segment = torch.arange(horizon) * knots // horizon  # the knot each step's action comes from
 
     def actions(th: torch.Tensor) -> torch.Tensor:
-        """(horizon, 1, A) actions in [-1, 1] from the knot parameters th (knots, 1, A)."""
+        """(horizon, B, A) actions in [-1, 1] from the knot parameters th (knots, B, A)."""
         return torch.tanh(th)[segment]
 
     spent = {"rollouts": 0, "backward": 0, "wall_s": 0.0}  # over every evaluation, rejected trials included
@@ -420,7 +420,7 @@ def run_experiment(config: dict) -> dict:
         cur = opt.start(theta, evaluate_from(s0))
         best, stopped = None, None
         # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run
-        deterministic = model in ("cfd", "ipc", "sdrs", "mujoco-fd") and not cfg["smooth_samples"]
+        deterministic = model != "gb" and not cfg["smooth_samples"]
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             rec = record(cur, iter=it, step=opt.step_size)
             if best is None or rec["loss"] < best[0]:

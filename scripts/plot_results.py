@@ -44,12 +44,11 @@ def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.n
         loss = executed / np.where(zero > 0, zero, 1.0)
     else:
         # a run stopped at a zero gradient (optimize.py's ``stopped_at``) repeats its last iterate to its budget
-        pad = cfg["iters"] + 1 - len(log) if s.get("stopped_at") is not None else 0
-        x = np.arange(len(log) + pad, dtype=float)
-        loss = np.array([r["loss"] for r in log] + [log[-1]["loss"]] * pad) / log[0]["loss"]
+        log = log + [log[-1]] * (cfg["iters"] + 1 - len(log) if s.get("stopped_at") is not None else 0)
+        x = np.arange(len(log), dtype=float)
+        loss = np.array([r["loss"] for r in log]) / log[0]["loss"]
         if best:
             loss = np.minimum.accumulate(loss)
-        return x, np.array([r["wall_s"] for r in log] + [log[-1]["wall_s"]] * pad), loss
     return x, np.array([r["wall_s"] for r in log]), loss
 
 

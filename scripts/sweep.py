@@ -62,9 +62,8 @@ def _key(config: dict) -> tuple:
 
 def _settings_differ(old: dict, new: dict) -> list[str]:
     """The settings (keys of ``new`` but the output folder) in which an earlier run's config differs."""
-    return [
-        k for k in new if k != "out" and old.get(k, DEFAULTS.get(k)) != new[k]
-    ]  # (keys added since: defaults)
+    old = DEFAULTS | old  # keys added since that run: their defaults
+    return [k for k in new if k != "out" and old.get(k) != new[k]]
 
 
 def _write(path: Path, data) -> None:
@@ -132,10 +131,10 @@ def main() -> None:
         c
     ) in grid:  # --resume continues the same experiment: a finished cell run with other settings is an error
         if _key(c) in earlier and (diff := _settings_differ(earlier[_key(c)], c)):
-            old = earlier[_key(c)]
+            old = DEFAULTS | earlier[_key(c)]
             raise SystemExit(
                 f"--resume: {path} holds {c['task']} {c['model']} seed {c['seed']} run with other settings ("
-                + ", ".join(f"{k}: {old.get(k, DEFAULTS.get(k))!r} there, {c[k]!r} now" for k in diff)
+                + ", ".join(f"{k}: {old.get(k)!r} there, {c[k]!r} now" for k in diff)
                 + "); resume with the same settings or write to another --out"
             )
     todo = [c for c in grid if _key(c) not in earlier]
