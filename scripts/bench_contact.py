@@ -19,8 +19,12 @@ Every timing is the median of ``--repeats`` runs after one warm-up, on the CPU, 
    poses, against a float64 reference at the tightest tolerance accepted (1e-14 first). Rows with eps in
    {0.01, 0.1, 1.0} are a different potential each: their cost only.
 4. large triangles: a 320-face ball (radius 0.5) 2e-3 above a 12-triangle box (extents 4 x 4 x 0.5, top face at
-   z = 0) vs two 320-face balls 2e-3 apart; the box's BSH without refinement and with ``max_edge`` = k x the ball's
-   mean edge length.
+   z = 0) vs two 320-face balls 2e-3 apart; the box's BSH without refinement, as a ``Scene`` refines it with no
+   tuning argument (``refine_obstacles``), and with ``max_edge`` = k x the ball's mean edge length
+   (``--edge-factors``); each row's time also as a ratio to the two balls' (the cases timed in turn, round after
+   round, at least 9 rounds: the ratios see the same machine load). ``--obstacle PATH`` adds the ball 2 mm
+   above that mesh (any file trimesh reads; placed as in ``bench_step.py``'s obstacle case), as given and as a
+   Scene refines it.
 
 Writes ``<out>/bench_contact.json``, ``<out>/bench_contact_scaling.png``, ``<out>/bench_contact_error.png`` and prints
 tables.
@@ -52,7 +56,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
-from cfd_torch import BSH, mesh_potential_derivatives, pair_potential_derivatives  # noqa: E402
+from cfd_torch import BSH, Scene, mesh_potential_derivatives, pair_potential_derivatives, rigid_body  # noqa: E402
 from cfd_torch.rotation import rotation_derivatives, transform_points  # noqa: E402
 
 TIMED = {
@@ -348,31 +352,58 @@ def section_large(args) -> dict:
     ball, p_ball, box, p_box = ball_on_box(gap)
     mean_edge = float(ball.edges_unique_length.mean())
     kw = {"mu": args.mu, "margin": args.margin, "eps": args.eps}
-    cases = [("ball-ball", None)] + [("ball-box", None)] + [("ball-box", k) for k in args.edge_factors]
-    rows = []
-    for name, k in tqdm(cases, desc="4 large triangles"):
+    # (case, obstacle mesh, its pose, max_edge factor: None as given, "scene" as a Scene refines it with no tuning)
+    cases = [
+        ("ball-ball", None, None, None),
+        ("ball-box", box, p_box, None),
+        ("ball-box", box, p_box, "scene"),
+    ]
+    cases += [("ball-box", box, p_box, k) for k in args.edge_factors]
+    poses = {"ball-box": p_ball}
+    if args.obstacle is not None:
+        from _placement import load_obstacle, rest_height
+
+        obstacle = load_obstacle(args.obstacle)
+        (x0, y0, _), (x1, y1, _) = obstacle.bounds
+        xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
+        z = rest_height(obstacle, 0.5, xy, gap)
+        poses["ball-obstacle"] = torch.tensor([*xy, z, 0, 0, 0], dtype=torch.float64)
+        p_obs = torch.zeros(6, dtype=torch.float64)
+        cases += [("ball-obstacle", obstacle, p_obs, None), ("ball-obstacle", obstacle, p_obs, "scene")]
+    rows, fns = [], []
+    for name, mesh, pb, k in cases:
+        t0 = time.perf_counter()
         if name == "ball-ball":
             mesh, pa, pb = sphere_pair(2, 0.5, gap)
-            t0 = time.perf_counter()
             bsh_a = bsh_b = BSH.from_trimesh(mesh)
-            build_s = time.perf_counter() - t0
         else:
-            bsh_a, pa = BSH.from_trimesh(ball), p_ball
-            t0 = time.perf_counter()
-            bsh_b = BSH.from_trimesh(box, max_edge=None if k is None else k * mean_edge)
-            build_s = time.perf_counter() - t0
-            pb = p_box
-        r = timed(ours_fn(bsh_a, pa, bsh_b, pb, **kw), args.repeats)
-        d = r.pop("out")
+            bsh_a, pa = BSH.from_trimesh(ball), poses[name]
+            if k == "scene":  # what a user gets: the Scene's automatic refinement of a static body
+                sc = Scene([rigid_body(ball), rigid_body(mesh, kind="static")])
+                bsh_b = sc.bodies[1].bsh
+            else:
+                bsh_b = BSH.from_trimesh(mesh, max_edge=None if k is None else k * mean_edge)
+        build_s = time.perf_counter() - t0
+        fns.append(ours_fn(bsh_a, pa, bsh_b, pb, **kw))
+        d = fns[-1]()  # also the warm-up
         rows.append(
             {
-                "case": name, "max_edge_factor": k, "max_edge": None if k is None else k * mean_edge,
-                "faces_a": bsh_a.num_faces, "faces_b": bsh_b.num_faces, "bsh_b_build_s": build_s,
-                "time_s": r["median_s"], "times_s": r["times_s"], **d.stats,
-                "value": float(d.value), "grad_norm": float(d.grad.norm()),
+                "case": name, "max_edge_factor": k,
+                "max_edge": k * mean_edge if isinstance(k, float) else None,
+                "faces_a": bsh_a.num_faces, "faces_b": bsh_b.num_faces, "bsh_b_build_s": build_s, "times_s": [],
+                **d.stats, "value": float(d.value), "grad_norm": float(d.grad.norm()),
             }
         )  # fmt: skip
-    return {"gap": gap, "ball_mean_edge": mean_edge, "rows": rows}
+    # the cases in turn, round after round: the ratios to the two balls see the same machine load
+    for _ in tqdm(range(max(args.repeats, 9)), desc="4 large triangles (rounds)"):
+        for row, fn in zip(rows, fns, strict=True):
+            t0 = time.perf_counter()
+            fn()
+            row["times_s"].append(time.perf_counter() - t0)
+    for r in rows:
+        r["time_s"] = statistics.median(r["times_s"])
+        r["vs_ball_ball"] = r["time_s"] / rows[0]["time_s"]
+    return {"gap": gap, "ball_mean_edge": mean_edge, "obstacle": args.obstacle, "rows": rows}
 
 
 # ------------------------------------------------------------------------------------------------ output
@@ -504,14 +535,16 @@ def print_tables(out: dict) -> None:
         res = out["large_triangles"]
         print(f"\n4. large triangles (gap {res['gap']:g}, ball mean edge {res['ball_mean_edge']:.4f})")
         print(
-            f"| {'case':9} | {'max_edge':>12} | {'faces b':>7} | {'node pairs':>10} | {'leaf pairs':>10} | {'ms':>7} |"
+            f"| {'case':13} | {'max_edge':>12} | {'faces b':>7} | {'node pairs':>10} | {'leaf pairs':>10} | {'ms':>8} "
+            f"| {'/ ball-ball':>6} |"
         )
-        print("|" + "-" * 72 + "|")
+        print("|" + "-" * 90 + "|")
         for r in res["rows"]:
-            me = "none" if r["max_edge"] is None else f"{r['max_edge_factor']:g}x={r['max_edge']:.3f}"
+            k = r["max_edge_factor"]
+            me = "none" if k is None else "Scene" if k == "scene" else f"{k:g}x={r['max_edge']:.3f}"
             print(
-                f"| {r['case']:9} | {me:>12} | {r['faces_b']:>7} | {r['node_pairs']:>10} | {r['leaf_pairs']:>10} "
-                f"| {_ms(r['time_s']):>8} |"
+                f"| {r['case']:13} | {me:>12} | {r['faces_b']:>7} | {r['node_pairs']:>10} | {r['leaf_pairs']:>10} "
+                f"| {_ms(r['time_s']):>8} | {r.get('vs_ball_ball', float('nan')):>6.2f} |"
             )
 
 
@@ -536,6 +569,10 @@ def main() -> None:
     )
     ap.add_argument("--fit-min-faces", type=int, default=1000)
     ap.add_argument("--edge-factors", type=float, nargs="+", default=[2.0, 1.0])
+    ap.add_argument(
+        "--obstacle", default=None, metavar="PATH",
+        help="large: also the ball 2 mm above this mesh file (as given, and as a Scene refines it)",
+    )  # fmt: skip
     args = ap.parse_args()
     args.repeats = args.repeats or (3 if args.quick else 5)
     args.brute_max_s = args.brute_max_s or (2.0 if args.quick else 20.0)

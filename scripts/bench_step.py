@@ -14,9 +14,10 @@ from a fixed seed, so both sides of ``--baseline`` and every run get the same sc
    ``--baseline``). Every ball starts with its lowest vertex 2 mm above the table and lands in the 2 warm-up steps;
    the cue ball hits the apex in step 4 (counted from 0: the third timed step), and the 12 timed steps (3 with
    ``--quick``) cover the impact and all balls moving apart.
-2. cubes (``cubes10``): ``--num-cubes`` (10) cubes of 5 cm (trimesh.creation.box, 12 triangles) over a static
-   1 x 1 x 0.1 box floor (12 triangles, top face at z = 0), friction 0.5. From ``numpy.random.default_rng(0)``:
-   centres uniform in [-0.3, 0.3]^2 with footprints (circles of the half diagonal) 5 mm apart (rejection
+2. cubes (``cubes10``): ``--num-cubes`` (10) cubes of ``--cube-size`` (5 cm; trimesh.creation.box, 12 triangles)
+   over a static box floor (12 triangles, top face at z = 0; 1 x 1 x 0.1, wider if the cubes' spread needs it),
+   friction 0.5. From ``numpy.random.default_rng(0)``: centres uniform in [-s, s]^2, s = ``--cube-spread`` (0.3),
+   with footprints (circles of the half diagonal) 5 mm apart (rejection
    sampling), yaw uniform in [-pi, pi], lowest face ``--cube-drop`` (uniform in [5, 20] mm) above the floor,
    horizontal velocities of speed uniform in [0, ``--cube-speed``] (0.5 m/s) and uniform heading. 3 warm-up steps;
    the cubes land in the first timed steps and slide (to rest after ~13 steps), so the default timed window is
@@ -32,7 +33,10 @@ from a fixed seed, so both sides of ``--baseline`` and every run get the same sc
 5. ball (``ball_box[_refined]_mu{0,0.5}``): one 320-face ball (radius 0.5) resting on a 12-triangle box (4 x 4 x
    0.5; the configuration of ``bench_contact.py`` section 4), the box as-is and refined with ``max_edge`` =
    ``--ground-edge-factor`` x the ball's mean edge length, each with friction off (0) and on (``--friction``).
-   Timed after the ball has settled.
+   Timed after the ball has settled. With ``--obstacle PATH`` (any mesh file trimesh reads, in its own frame:
+   z up), two more cases, ``ball_obstacle_mu{0,0.5}``: the same ball on that mesh as a static body, as given (the
+   Scene refines it as it would any user's obstacle), centred over the mesh's xy bounds offset by (0.08, 0.04) of
+   their extents, its surface 2 mm above the mesh's highest point under its footprint (``_placement.py``).
 
 6. ant: Gymnasium's Ant (``gymnasium_ant_xml(servos=(100, 5))``: its eight motors as position servos, kp 100
    N m/rad, kv 5 N m s/rad) on a static 3 x 3 x 0.2 m box floor (top face at z = 0; refined to the capsules'
@@ -212,21 +216,31 @@ def boxes(args) -> Case:
 def cubes(args) -> Case:
     """``--num-cubes`` 5 cm cubes (12 triangles each) dropped onto a 12-triangle 1 x 1 x 0.1 floor (top face at
     z = 0), sliding: random positions, yaw, drop heights and horizontal velocities from ``default_rng(0)``."""
-    a, n, friction = 0.05, args.num_cubes, 0.5
+    a, n, friction, spread = args.cube_size, args.num_cubes, 0.5, args.cube_spread
+    if a <= 0 or spread < 0:
+        raise ValueError(f"--cube-size must be > 0 and --cube-spread >= 0, got {a} and {spread}")
     rng = np.random.default_rng(0)
     half_diag = a * math.sqrt(2) / 2  # the cube's footprint lies within this radius whatever its yaw
-    spread, min_dist = 0.3, 2 * half_diag + 5e-3  # centres in [-spread, spread]^2, footprints 5 mm apart
+    min_dist = 2 * half_diag + 5e-3  # centres in [-spread, spread]^2, footprints 5 mm apart
     xy: list[np.ndarray] = []
+    tries = 0
     while len(xy) < n:  # rejection sampling: no two footprints overlap
         p = rng.uniform(-spread, spread, 2)
         if all(np.linalg.norm(p - o) >= min_dist for o in xy):
             xy.append(p)
+        tries += 1
+        if tries > 100_000:
+            raise ValueError(
+                f"--num-cubes {n} cubes of --cube-size {a} do not fit 5 mm apart in --cube-spread {spread}: "
+                "widen the spread"
+            )
     yaw = rng.uniform(-math.pi, math.pi, n)
     drop = rng.uniform(*args.cube_drop, n)  # lowest face above the floor [m]
     speed = rng.uniform(0.0, args.cube_speed, n)
     heading = rng.uniform(-math.pi, math.pi, n)
     cube = trimesh.creation.box(extents=(a, a, a))
-    floor = trimesh.creation.box(extents=(1.0, 1.0, 0.1))
+    side = max(1.0, 2 * (spread + a) + 0.2)  # the cubes slide a few cm: 0.1 m of floor around them at least
+    floor = trimesh.creation.box(extents=(side, side, 0.1))
     bodies = [rigid_body(floor, kind="static")] + [rigid_body(cube)] * n
     poses = [[0.0, 0.0, -0.05, 0.0, 0.0, 0.0]]
     poses += [[*xy[i], a / 2 + drop[i], 0.0, 0.0, yaw[i]] for i in range(n)]
@@ -236,9 +250,9 @@ def cubes(args) -> Case:
     scene = Scene(bodies, friction=friction)
     state = scene.initial_state(torch.tensor(poses, dtype=F64), vel)
     meta = {
-        "cubes": n, "cube_extents": [a, a, a], "box_faces": 12, "ground_faces": 12, "floor_extents": [1.0, 1.0, 0.1],
+        "cubes": n, "cube_extents": [a, a, a], "box_faces": 12, "ground_faces": 12,
         "friction": friction, "seed": 0, "drop_heights": drop.tolist(), "speeds": speed.tolist(),
-        "max_speed": args.cube_speed,
+        "max_speed": args.cube_speed, "spread": spread, "floor_extents": [side, side, 0.1],
     }  # fmt: skip
     return Case(f"cubes{n}", scene, state, args.warmup_cubes, args.steps_cubes, meta)
 
@@ -301,6 +315,26 @@ def ball_on_box(args, refined: bool, friction: float) -> Case:
     return Case(name, scene, scene.initial_state(poses), args.warmup_ball, args.steps_ball, meta)
 
 
+def ball_on_obstacle(args, friction: float) -> Case:
+    """A 320-face ball (radius 0.5) 2 mm above the static mesh ``--obstacle`` (as given: the Scene refines it)."""
+    from _placement import load_obstacle, rest_height
+
+    ball = _ball(0.5)
+    obstacle = load_obstacle(args.obstacle)
+    (x0, y0, _), (x1, y1, _) = obstacle.bounds
+    xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
+    z = rest_height(obstacle, 0.5, xy, 2e-3)
+    scene = Scene([rigid_body(ball), rigid_body(obstacle, kind="static")], friction=friction)
+    poses = torch.tensor([[*xy, z, 0, 0, 0], [0.0] * 6], dtype=F64)
+    meta = {
+        "obstacle": str(args.obstacle), "ball_radius": 0.5, "ball_faces": scene.bodies[0].bsh.num_faces,
+        "obstacle_faces": len(obstacle.faces), "obstacle_faces_simulated": scene.bodies[1].bsh.num_faces,
+        "friction": friction, "ball_start": [*xy, z],
+    }  # fmt: skip
+    state = scene.initial_state(poses)
+    return Case(f"ball_obstacle_mu{friction:g}", scene, state, args.warmup_ball, args.steps_ball, meta)
+
+
 def ant(args) -> Case:
     """Gymnasium's Ant on position servos walking a sinusoidal gait on a 3 x 3 m floor (see the module docstring)."""
     from cfd_torch.rotation import rotation_matrix
@@ -354,6 +388,8 @@ def make_cases(args) -> list[Case]:
             for refined in (False, True):
                 for mu_f in (0.0, args.friction):
                     cases.append(ball_on_box(args, refined, mu_f))
+            if args.obstacle is not None:
+                cases += [ball_on_obstacle(args, mu_f) for mu_f in (0.0, args.friction)]
     return cases
 
 
@@ -705,6 +741,8 @@ def _load(x) -> str:
 
 def _faces(r: dict) -> str:
     m = r["meta"]
+    if "obstacle_faces" in m:
+        return f"{m['ball_faces']} + {m['obstacle_faces']} ({m['obstacle_faces_simulated']} simulated)"
     if "ball_faces" in m and "box_faces" in m:
         return f"{m['ball_faces']} + {m['box_faces']}"
     if "ground_faces" in m and "ball_faces" in m:
@@ -821,6 +859,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--billiards-friction", type=float, default=0.0, help="friction coefficient of billiards (default 0)"
     )
     ap.add_argument("--num-cubes", type=int, default=10)
+    ap.add_argument("--cube-size", type=float, default=0.05, help="cubes: edge length [m] (default 0.05)")
+    ap.add_argument(
+        "--cube-spread", type=float, default=0.3, help="cubes: centres uniform in [-s, s]^2 [m] (default 0.3)"
+    )
     ap.add_argument(
         "--cube-speed", type=float, default=0.5, help="cubes: largest random horizontal speed [m/s]"
     )
@@ -841,6 +883,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--friction", type=float, default=0.5, help="friction coefficient of the 'on' ball case")
     ap.add_argument(
+        "--obstacle", type=Path, default=None, metavar="PATH",
+        help="ball: also rest the ball on this mesh file (a static obstacle, as given; see the docstring)",
+    )  # fmt: skip
+    ap.add_argument(
         "--only", nargs="+", default=None, metavar="NAME",
         help="run only these case names (e.g. ball_box_mu0 boxes4) of the selected --cases",
     )  # fmt: skip
@@ -855,6 +901,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
     args = ap.parse_args(argv)
+    if args.obstacle is not None:  # a --baseline worker runs in its checkout's directory
+        args.obstacle = args.obstacle.resolve()
     steps = args.steps or (3 if args.quick else 20)
     args.steps_ball = args.steps_boxes = args.steps_push = steps
     args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps

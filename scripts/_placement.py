@@ -1,0 +1,57 @@
+"""Placing a ball on an arbitrary obstacle mesh (shared by the benchmark scripts' ``--obstacle`` cases)."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+
+def load_obstacle(path: str) -> trimesh.Trimesh:
+    """The triangle mesh in the file ``path`` (any format trimesh reads; a scene's meshes are concatenated)."""
+    mesh = trimesh.load(path, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"--obstacle: {path} holds no triangle mesh")
+    return mesh
+
+
+def surface_heights(mesh: trimesh.Trimesh, xy: np.ndarray) -> np.ndarray:
+    """(P,) the highest point of ``mesh``'s surface straight above or below each point ``xy`` (P, 2), -inf where no
+    triangle covers it (vertical rays, tested against every triangle whose xy bounds hold the point)."""
+    tri = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
+    lo, hi = tri[:, :, :2].min(1), tri[:, :, :2].max(1)
+    out = np.full(len(xy), -np.inf)
+    for i, p in enumerate(np.asarray(xy, dtype=np.float64)):
+        t = tri[np.all((lo <= p) & (p <= hi), axis=1)]
+        if len(t) == 0:
+            continue
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        e1, e2, w = b[:, :2] - a[:, :2], c[:, :2] - a[:, :2], p - a[:, :2]
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        ok = np.abs(det) > 1e-14 * (np.abs(e1).sum(1) * np.abs(e2).sum(1) + 1e-300)  # not seen edge-on
+        det = np.where(ok, det, 1.0)
+        u = (w[:, 0] * e2[:, 1] - w[:, 1] * e2[:, 0]) / det
+        v = (e1[:, 0] * w[:, 1] - e1[:, 1] * w[:, 0]) / det
+        inside = ok & (u >= -1e-12) & (v >= -1e-12) & (u + v <= 1 + 1e-12)
+        if inside.any():
+            z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
+            out[i] = z[inside].max()
+    return out
+
+
+def rest_height(
+    obstacle: trimesh.Trimesh, radius: float, xy: tuple[float, float], gap: float, n: int = 21
+) -> float:
+    """The height of the centre of a ball of ``radius`` (a mesh inscribed in that sphere, like an icosphere) at
+    ``xy`` whose surface is at least ``gap`` above ``obstacle``'s surface at an n x n grid of points over its
+    footprint: max over the points at horizontal distance rho of (surface height + sqrt(radius^2 - rho^2)) + gap.
+    Raises ValueError when the obstacle does not lie under the ball's centre."""
+    s = np.linspace(-radius, radius, n)
+    gx, gy = np.meshgrid(s, s)
+    rho2 = gx.ravel() ** 2 + gy.ravel() ** 2
+    keep = rho2 <= radius**2
+    pts = np.stack([gx.ravel()[keep] + xy[0], gy.ravel()[keep] + xy[1]], 1)
+    h = surface_heights(obstacle, pts)
+    if not np.isfinite(surface_heights(obstacle, np.asarray([xy]))[0]):
+        raise ValueError(f"--obstacle: no part of the obstacle lies under the ball's centre {tuple(xy)}")
+    need = h + np.sqrt(radius**2 - rho2[keep])  # the centre's height that puts the sphere on each point
+    return float(need[np.isfinite(need)].max()) + gap
