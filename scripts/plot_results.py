@@ -2,8 +2,8 @@
 
 Per task, one figure with the loss, relative to each run's start (open loop: the first iteration's loss; MPC: the
 loss of zero actions), against iteration and against wall time (the time spent computing losses and gradients),
-for every model: the mean over seeds and its spread (min to max); with ``--best``, open-loop runs' best loss so
-far instead of each iterate's. The table gives per task and model: the loss
+for every model: the mean over seeds and its spread (min to max), a dot at each model's total wall time; with
+``--best``, open-loop runs' best loss so far instead of each iterate's. The table gives per task and model: the loss
 decrease 1 - best / initial loss (open loop: the best iterate's loss, the optimiser's answer; MPC: the executed
 trajectory's; mean and range over seeds), the best final distance to the goal, iterations, rollouts
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
@@ -104,6 +104,8 @@ def plot(runs: list[dict], out: Path, best: bool = False) -> list[Path]:
             for axis, xs in ((ax[0], x), (ax[1], wall)):
                 (line,) = axis.plot(xs, L.mean(0), label=f"{model} ({len(rs)} seeds)")
                 axis.fill_between(xs, L.min(0), L.max(0), color=line.get_color(), alpha=0.2)
+            # each model's total cost: a run stopped at its first evaluation is this point alone on the wall axis
+            ax[1].plot(wall[-1:], L.mean(0)[-1:], marker="o", color=line.get_color())
         mpc = next(iter(models.values()))[0]["config"]["mpc"]
         ylabel = "best loss so far / initial" if best and not mpc else "loss / initial loss"
         ax[0].set(xlabel="control step" if mpc else "iteration", ylabel=ylabel, title=task)
