@@ -42,8 +42,9 @@ class PushCore(BoxToTargetCore):
     Reach: at these defaults the pole cannot bring the box to the target within the horizon, whatever it does. Its
     velocity law's force, ``m k_v (v* - v) / (1 + k_v dt)`` (67 N at rest, dt = 0.01), against the box's floor
     friction (32 N) caps the box's speed at about 0.5 m/s (0.47 measured; 0.19 at dt = 0.04): started right behind
-    the box and pushing straight at the target for 3 s, the box ends 1.95 m from it (``scripts/push_reach.py``). With ``box_density=50`` (1.35 kg) the
-    same push reaches 0.88 m/s, and ``distance=1.5`` then leaves time to go around the box first.
+    the box and pushing straight at the target for 3 s, the box ends 1.95 m from it (``scripts/push_reach.py``).
+    With ``box_density=50`` (1.35 kg) the same push reaches 0.88 m/s, and ``distance=1.5`` then leaves time to go
+    around the box first.
     """
 
     action_dim = 2
