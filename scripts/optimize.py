@@ -109,7 +109,7 @@ DEFAULTS = {
     "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
     "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
     "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
-    "smooth_samples": 0, "smooth_sigma": 0.1, "task_args": None,
+    "smooth_samples": 0, "smooth_sigma": 0.1, "task_args": None, "theta_max": None,
     "out": None, "gif": True,
 }  # fmt: skip
 
@@ -118,10 +118,18 @@ class Optimiser:
     """An optimiser on the unit gradient of one parameter tensor (see the module docstring): ``start`` begins a
     problem (parameters and their evaluation function), ``step`` returns the evaluation at the new parameters."""
 
-    def __init__(self, kind: str, lr: float, lr_final: float | None = None, iters: int = 1) -> None:
+    def __init__(
+        self,
+        kind: str,
+        lr: float,
+        lr_final: float | None = None,
+        iters: int = 1,
+        theta_max: float | None = None,
+    ) -> None:
         if kind not in OPTIMISERS:
             raise ValueError(f"kind must be one of {OPTIMISERS}, got {kind!r}")
         self.kind, self.lr = kind, lr
+        self.theta_max = theta_max  # every step ends with the parameters clamped to [-theta_max, theta_max]
         self.lr_final, self.iters = lr if lr_final is None else lr_final, iters
         self.step_size = lr
         self.k = 0  # steps taken since start
@@ -152,6 +160,20 @@ class Optimiser:
         held = state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
         return held is None or not bool(held.any())
 
+    def _project(self) -> None:
+        """Clamp the parameters to [-theta_max, theta_max]; at the bound, drop the momentum (ngd's buffer, adam's
+        first moment) that pushes outward, so that the parameters leave the bound as soon as the gradient turns."""
+        with torch.no_grad():
+            th = self.theta
+            th.clamp_(-self.theta_max, self.theta_max)
+            state = self.torch_opt.state.get(th, {})
+            held = state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
+            if (
+                held is not None
+            ):  # the update is -lr * held (scaled): outward where held's sign is opposite th's
+                out = (th.abs() >= self.theta_max) & (held * th < 0)
+                held.masked_fill_(out, 0.0)
+
     def step(self):
         loss, _, g = self.current[:3]
         unit = g / g.norm().clamp_min(1e-300)
@@ -163,12 +185,24 @@ class Optimiser:
             self.step_size = lr
             self.theta.grad = unit
             self.torch_opt.step()
+            if self.theta_max is not None:
+                self._project()
             self.current = self.evaluate(self.theta)
             return self.current
         # a step of length step_size (at most this step's rate) along -unit, taken only if the loss falls (else
         # halved); an accepted step grows the next one by 1.5, up to the rate
         self.step_size = min(self.step_size, lr)
-        trial = self.theta.detach() - self.step_size * unit
+        th = self.theta.detach()
+        down = -unit
+        if self.theta_max is not None:  # the projected direction: no component out through the bound
+            down = down.masked_fill((th.abs() >= self.theta_max) & (down * th > 0), 0.0)
+            if not bool(
+                down.any()
+            ):  # stationary on the bound: nothing to try (and no reason to shrink the step)
+                return self.current
+        trial = th + self.step_size * down
+        if self.theta_max is not None:
+            trial = trial.clamp(-self.theta_max, self.theta_max)
         nxt = self.evaluate(trial)
         if nxt[0] < loss:
             self.theta, self.current = trial, nxt
@@ -338,6 +372,8 @@ def _check_settings(cfg: dict) -> None:
         positive("lr_final")
     if cfg["fd_step"] is not None:
         positive("fd_step")
+    if cfg["theta_max"] is not None:
+        positive("theta_max")
     if cfg["task_args"] is not None and not isinstance(cfg["task_args"], dict):
         raise ValueError(
             f"config['task_args'] (--task-args) must be a dict of the task core's arguments, got {cfg['task_args']!r}"
@@ -416,13 +452,16 @@ def run_experiment(config: dict) -> dict:
     log = []
     name = f"{task} {model} {cfg['optimizer']} seed {cfg['seed']}"
     if not cfg["mpc"]:
-        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"])
+        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         cur = opt.start(theta, evaluate_from(s0))
         best, stopped = None, None
         # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run
         deterministic = model != "gb" and not cfg["smooth_samples"]
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
-            rec = record(cur, iter=it, step=opt.step_size)
+            # the largest knot parameter: beyond about 3 its tanh saturates and passes on under 1 % of the gradient
+            rec = record(
+                cur, iter=it, step=opt.step_size, theta_abs_max=float(opt.theta.detach().abs().max())
+            )
             if best is None or rec["loss"] < best[0]:
                 best = (rec["loss"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
             log.append(rec)
@@ -449,7 +488,7 @@ def run_experiment(config: dict) -> dict:
             zero = rollout(core, s0, torch.zeros(steps, 1, core.action_dim, dtype=torch.float64))
         zero_loss = float(task_loss(zero.info["reward_distance"], zero.alive, cfg["loss"]).sum())
         state, executed, qs = s0, [], [s0.q[0]]
-        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"])
+        opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
             cur = opt.start(theta, evaluate_from(state))
             window0 = cur[0]
@@ -529,6 +568,10 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--lr", type=float, default=d["lr"])
     ap.add_argument("--lr-final", type=float, default=d["lr_final"],
                     help="decay the learning rate geometrically from --lr to this at the last iteration")  # fmt: skip
+    ap.add_argument(
+        "--theta-max", type=float, default=d["theta_max"],
+        help="clamp the knot parameters to [-this, this] after every step (the actions are their tanh: at 3, 0.995)",
+    )  # fmt: skip
     ap.add_argument(
         "--loss",
         default=d["loss"],

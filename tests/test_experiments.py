@@ -297,6 +297,44 @@ def test_learning_rate_decay():
     assert moved[0] == 0.5 and math.isclose(moved[1], math.sqrt(0.5 * 0.05)) and math.isclose(moved[2], 0.05)
 
 
+def test_theta_max_clamps_every_step():
+    """--theta-max: the knot parameters stay within [-theta_max, theta_max] under every optimiser, however long the
+    gradient pushes them out; at the bound ngd and adam drop the momentum that pushes outward, so they leave it as
+    soon as the gradient turns, and ngd-ls, stationary there, keeps its step; without the bound the parameters run
+    on; a non-positive bound is refused, naming the option."""
+    theta = torch.zeros(2, dtype=torch.float64)
+    for kind in OPTIMISERS:
+        sign = torch.tensor([1.0, -1.0], dtype=torch.float64)  # the loss falls along +theta_0 and -theta_1
+
+        def evaluate(th, sign=sign):
+            return float(-(sign * th.detach()).sum()), None, -sign.clone()
+
+        opt = Optimiser(kind, 0.5, iters=40, theta_max=1.5)
+        opt.start(theta, evaluate)
+        for _ in range(40):
+            opt.step()
+        assert opt.theta.detach().tolist() == [1.5, -1.5]
+        if kind == "ngd-ls":
+            assert opt.step_size == 0.5
+        else:
+            sign[
+                :
+            ] = -sign  # now the loss falls inward; the next step's gradient is the one from before the change
+            opt.step()
+            opt.step()
+            th = opt.theta.detach()
+            assert 0.0 < float(th[0]) < 1.5 and -1.5 < float(th[1]) < 0.0
+        free = Optimiser(kind, 0.5, iters=40)
+        free.start(theta, lambda th: (float(-th.detach().sum()), None, -torch.ones_like(th)))
+        for _ in range(40):
+            free.step()
+        assert float(free.theta.detach().min()) > 1.5
+    with pytest.raises(
+        ValueError, match=r"config\['theta_max'\] \(--theta-max\) must be a finite number > 0"
+    ):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "theta_max": 0.0})
+
+
 def test_resume_takes_missing_settings_as_defaults():
     """A sweep.json written before a setting existed ran with that setting's default: --resume compares it so."""
     sys.path.insert(0, str(SCRIPTS))
