@@ -55,3 +55,11 @@ def rest_height(
         raise ValueError(f"--obstacle: no part of the obstacle lies under the ball's centre {tuple(xy)}")
     need = h + np.sqrt(radius**2 - rho2[keep])  # the centre's height that puts the sphere on each point
     return float(need[np.isfinite(need)].max()) + gap
+
+
+def ball_over(obstacle: trimesh.Trimesh, radius: float, gap: float) -> tuple[float, float, float]:
+    """The benchmarks' ball position over ``obstacle``: centred over its xy bounds offset by (0.08, 0.04) of their
+    extents (off any symmetry line), its surface ``gap`` above the obstacle's surface (:func:`rest_height`)."""
+    (x0, y0, _), (x1, y1, _) = obstacle.bounds
+    xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
+    return (*xy, rest_height(obstacle, radius, xy, gap))

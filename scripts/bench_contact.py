@@ -361,13 +361,10 @@ def section_large(args) -> dict:
     cases += [("ball-box", box, p_box, k) for k in args.edge_factors]
     poses = {"ball-box": p_ball}
     if args.obstacle is not None:
-        from _placement import load_obstacle, rest_height
+        from _placement import ball_over, load_obstacle
 
         obstacle = load_obstacle(args.obstacle)
-        (x0, y0, _), (x1, y1, _) = obstacle.bounds
-        xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
-        z = rest_height(obstacle, 0.5, xy, gap)
-        poses["ball-obstacle"] = torch.tensor([*xy, z, 0, 0, 0], dtype=torch.float64)
+        poses["ball-obstacle"] = torch.tensor([*ball_over(obstacle, 0.5, gap), 0, 0, 0], dtype=torch.float64)
         p_obs = torch.zeros(6, dtype=torch.float64)
         cases += [("ball-obstacle", obstacle, p_obs, None), ("ball-obstacle", obstacle, p_obs, "scene")]
     rows, fns = [], []

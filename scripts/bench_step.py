@@ -317,19 +317,17 @@ def ball_on_box(args, refined: bool, friction: float) -> Case:
 
 def ball_on_obstacle(args, friction: float) -> Case:
     """A 320-face ball (radius 0.5) 2 mm above the static mesh ``--obstacle`` (as given: the Scene refines it)."""
-    from _placement import load_obstacle, rest_height
+    from _placement import ball_over, load_obstacle
 
     ball = _ball(0.5)
     obstacle = load_obstacle(args.obstacle)
-    (x0, y0, _), (x1, y1, _) = obstacle.bounds
-    xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
-    z = rest_height(obstacle, 0.5, xy, 2e-3)
+    start = ball_over(obstacle, 0.5, 2e-3)
     scene = Scene([rigid_body(ball), rigid_body(obstacle, kind="static")], friction=friction)
-    poses = torch.tensor([[*xy, z, 0, 0, 0], [0.0] * 6], dtype=F64)
+    poses = torch.tensor([[*start, 0, 0, 0], [0.0] * 6], dtype=F64)
     meta = {
         "obstacle": str(args.obstacle), "ball_radius": 0.5, "ball_faces": scene.bodies[0].bsh.num_faces,
         "obstacle_faces": len(obstacle.faces), "obstacle_faces_simulated": scene.bodies[1].bsh.num_faces,
-        "friction": friction, "ball_start": [*xy, z],
+        "friction": friction, "ball_start": list(start),
     }  # fmt: skip
     state = scene.initial_state(poses)
     return Case(f"ball_obstacle_mu{friction:g}", scene, state, args.warmup_ball, args.steps_ball, meta)
