@@ -367,6 +367,7 @@ def section_large(args) -> dict:
         poses["ball-obstacle"] = torch.tensor([*ball_over(obstacle, 0.5, gap), 0, 0, 0], dtype=torch.float64)
         p_obs = torch.zeros(6, dtype=torch.float64)
         cases += [("ball-obstacle", obstacle, p_obs, None), ("ball-obstacle", obstacle, p_obs, "scene")]
+    bsh_ball = BSH.from_trimesh(ball)
     rows, fns = [], []
     for name, mesh, pb, k in cases:
         t0 = time.perf_counter()
@@ -374,7 +375,7 @@ def section_large(args) -> dict:
             mesh, pa, pb = sphere_pair(2, 0.5, gap)
             bsh_a = bsh_b = BSH.from_trimesh(mesh)
         else:
-            bsh_a, pa = BSH.from_trimesh(ball), poses[name]
+            bsh_a, pa = bsh_ball, poses[name]
             if k == "scene":  # what a user gets: the Scene's automatic refinement of a static body
                 sc = Scene([rigid_body(ball), rigid_body(mesh, kind="static")])
                 bsh_b = sc.bodies[1].bsh

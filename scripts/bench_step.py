@@ -214,8 +214,9 @@ def boxes(args) -> Case:
 
 
 def cubes(args) -> Case:
-    """``--num-cubes`` 5 cm cubes (12 triangles each) dropped onto a 12-triangle 1 x 1 x 0.1 floor (top face at
-    z = 0), sliding: random positions, yaw, drop heights and horizontal velocities from ``default_rng(0)``."""
+    """``--num-cubes`` cubes of ``--cube-size`` (12 triangles each) dropped onto a 12-triangle box floor (top face
+    at z = 0; at least 1 x 1 x 0.1), sliding: random positions within ``--cube-spread``, yaw, drop heights and
+    horizontal velocities from ``default_rng(0)``."""
     a, n, friction, spread = args.cube_size, args.num_cubes, 0.5, args.cube_spread
     if a <= 0 or spread < 0:
         raise ValueError(f"--cube-size must be > 0 and --cube-spread >= 0, got {a} and {spread}")

@@ -156,9 +156,13 @@ class Optimiser:
         buffer and ``adam``'s first moment zero or not yet made); ``ngd-ls`` always (its trial is the point)."""
         if self.kind == "ngd-ls":
             return True
-        state = self.torch_opt.state.get(self.theta, {})
-        held = state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
+        held = self._momentum()
         return held is None or not bool(held.any())
+
+    def _momentum(self) -> torch.Tensor | None:
+        """ngd's momentum buffer or adam's first moment (None before the first step)."""
+        state = self.torch_opt.state.get(self.theta, {})
+        return state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
 
     def _project(self) -> None:
         """Clamp the parameters to [-theta_max, theta_max]; at the bound, drop the momentum (ngd's buffer, adam's
@@ -166,13 +170,10 @@ class Optimiser:
         with torch.no_grad():
             th = self.theta
             th.clamp_(-self.theta_max, self.theta_max)
-            state = self.torch_opt.state.get(th, {})
-            held = state.get("momentum_buffer" if self.kind == "ngd" else "exp_avg")
-            if (
-                held is not None
-            ):  # the update is -lr * held (scaled): outward where held's sign is opposite th's
-                out = (th.abs() >= self.theta_max) & (held * th < 0)
-                held.masked_fill_(out, 0.0)
+            held = self._momentum()
+            # the update is -lr * held (scaled): outward where held's sign is opposite th's
+            if held is not None:
+                held.masked_fill_((th.abs() >= self.theta_max) & (held * th < 0), 0.0)
 
     def step(self):
         loss, _, g = self.current[:3]
@@ -196,9 +197,8 @@ class Optimiser:
         down = -unit
         if self.theta_max is not None:  # the projected direction: no component out through the bound
             down = down.masked_fill((th.abs() >= self.theta_max) & (down * th > 0), 0.0)
-            if not bool(
-                down.any()
-            ):  # stationary on the bound: nothing to try (and no reason to shrink the step)
+            # stationary on the bound: nothing to try (and no reason to shrink the step)
+            if not bool(down.any()):
                 return self.current
         trial = th + self.step_size * down
         if self.theta_max is not None:
