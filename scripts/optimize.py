@@ -23,7 +23,8 @@ smoothing, Suh et al. 2022). The run's answer is its best iterate (``loss_best``
 summary; momentum can leave the last one worse). An open-loop run with a deterministic gradient (``cfd``, ``ipc``,
 ``sdrs`` without smoothing, ``mujoco-fd``) stops at an iteration whose gradient is exactly zero while the optimiser
 holds no momentum (``stopped_at`` in the summary; ``None`` when it ran its ``--iters``): every later iterate would
-be the same parameters and the same rollout; ``scripts/plot_results.py`` carries such a run flat to its budget.
+be the same parameters and the same rollout; ``scripts/plot_results.py`` carries such a run flat to its budget. Under
+``--mpc`` the same condition ends a control step's iterations (``iters_run`` in its log row).
 The pushing tasks' blend width between the pusher and the boxes
 (``--eps``) is 1.0 by default: with the library's 0.01 the far field is a staircase of millimetre-wide bands that
 rollouts cross hit-or-miss (:class:`cfd_torch.envs.core.TaskCore`).
@@ -451,12 +452,13 @@ def run_experiment(config: dict) -> dict:
     theta = torch.zeros(knots, 1, core.action_dim, dtype=torch.float64)
     log = []
     name = f"{task} {model} {cfg['optimizer']} seed {cfg['seed']}"
+    # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run (open loop)
+    # or the control step's iterations (MPC): every later iterate would be the same parameters and rollout
+    deterministic = model != "gb" and not cfg["smooth_samples"]
     if not cfg["mpc"]:
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         cur = opt.start(theta, evaluate_from(s0))
         best, stopped = None, None
-        # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run
-        deterministic = model != "gb" and not cfg["smooth_samples"]
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             # the largest knot parameter: beyond about 3 its tanh saturates and passes on under 1 % of the gradient
             rec = record(
@@ -470,7 +472,6 @@ def run_experiment(config: dict) -> dict:
                     f.write(json.dumps(rec) + "\n")
             if it < cfg["iters"]:
                 if deterministic and not bool(cur[2].any()) and opt.still():
-                    # every later iterate would be this one: the same parameters, the same rollout
                     stopped = it
                     break
                 cur = opt.step()
@@ -491,16 +492,27 @@ def run_experiment(config: dict) -> dict:
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
             cur = opt.start(theta, evaluate_from(state))
-            window0 = cur[0]
+            window0, iters_run = cur[0], 0
             for _ in range(cfg["iters"]):
+                if deterministic and not bool(cur[2].any()) and opt.still():
+                    break
                 cur = opt.step()
+                iters_run += 1
             theta = opt.theta.detach()
             with torch.no_grad():
                 out = core.step(state, actions(theta)[0])
             state = out.state.detach()
             executed.append(float(-out.info["reward_distance"].sum()))
             qs.append(state.q[0])
-            log.append(record(cur, step=t, window_loss_start=window0, executed_distance=executed[-1]))
+            log.append(
+                record(
+                    cur,
+                    step=t,
+                    window_loss_start=window0,
+                    executed_distance=executed[-1],
+                    iters_run=iters_run,
+                )
+            )
             # shift the window, repeating its last action (with knots the plan's segments stay)
             if knots == horizon:
                 theta = torch.cat([theta[1:], theta[-1:]])

@@ -232,6 +232,22 @@ def test_a_zero_gradient_stops_a_run_only_without_momentum():
     assert "| Push | ipc | 0 (0 .. 0) | 1 | 4 (stopped at 0: zero gradient) | 1 | 3 | 0 |" in table([run])
 
 
+def test_mpc_skips_a_control_steps_iterations_only_at_a_zero_gradient():
+    """MPC on Push's trivial start: IPC's gradient is exactly zero there, so each control step evaluates its window
+    once and runs none of its iterations (``iters_run`` 0, one rollout per step); ours is not zero and runs all."""
+    runs = {
+        model: run_experiment(
+            {"task": "Push", "model": model, "mpc": True, "steps": 2, "iters": 2, "horizon": 3, "gif": False}
+        )
+        for model in ("ipc", "cfd")
+    }
+    ipc, cfd = runs["ipc"]["log"], runs["cfd"]["log"]
+    assert [row["grad_norm"] for row in ipc] == [0.0, 0.0]
+    assert [row["iters_run"] for row in ipc] == [0, 0] and [row["rollouts"] for row in ipc] == [1, 2]
+    assert all(row["grad_norm"] > 0.0 for row in cfd)
+    assert [row["iters_run"] for row in cfd] == [2, 2] and [row["rollouts"] for row in cfd] == [3, 6]
+
+
 def test_task_args_reach_the_task():
     """--task-args: the task core's arguments (Push's target 1.5 m away instead of 3 m); a non-dict or an unknown
     argument is refused."""
