@@ -73,7 +73,11 @@ def table(runs: list[dict]) -> str:
         dist = np.mean(
             [r["summary"].get("best_final_distance", r["summary"].get("final_distance")) for r in rs]
         )
-        its = str(rs[0]["config"]["iters"] * (rs[0]["config"]["steps"] if rs[0]["config"]["mpc"] else 1))
+        cfg = rs[0]["config"]
+        its = f"{cfg['iters']} x {cfg['steps']} steps" if cfg["mpc"] else str(cfg["iters"])
+        if cfg["mpc"] and all("iters_run" in row for r in rs for row in r["log"]):
+            # a control step at an exactly zero gradient runs none of its iterations (optimize.py)
+            its += f" ({np.mean([sum(row['iters_run'] for row in r['log']) for r in rs]):.0f} run)"
         stops = [r["summary"].get("stopped_at") for r in rs]
         if any(k is not None for k in stops):
             its += (

@@ -234,7 +234,8 @@ def test_a_zero_gradient_stops_a_run_only_without_momentum():
 
 def test_mpc_skips_a_control_steps_iterations_only_at_a_zero_gradient():
     """MPC on Push's trivial start: IPC's gradient is exactly zero there, so each control step evaluates its window
-    once and runs none of its iterations (``iters_run`` 0, one rollout per step); ours is not zero and runs all."""
+    once and runs none of its iterations (``iters_run`` 0, one rollout per step); ours is not zero and runs all. The
+    results table gives the budget and the iterations run."""
     runs = {
         model: run_experiment(
             {"task": "Push", "model": model, "mpc": True, "steps": 2, "iters": 2, "horizon": 3, "gif": False}
@@ -246,6 +247,9 @@ def test_mpc_skips_a_control_steps_iterations_only_at_a_zero_gradient():
     assert [row["iters_run"] for row in ipc] == [0, 0] and [row["rollouts"] for row in ipc] == [1, 2]
     assert all(row["grad_norm"] > 0.0 for row in cfd)
     assert [row["iters_run"] for row in cfd] == [2, 2] and [row["rollouts"] for row in cfd] == [3, 6]
+    rows = table(list(runs.values())).splitlines()
+    assert "| 2 x 2 steps (0 run) |" in next(r for r in rows if "| ipc |" in r)
+    assert "| 2 x 2 steps (4 run) |" in next(r for r in rows if "| cfd |" in r)
 
 
 def test_task_args_reach_the_task():
