@@ -455,6 +455,10 @@ def run_experiment(config: dict) -> dict:
     # a deterministic gradient (no sampling) that is exactly zero, with no momentum held, ends the run (open loop)
     # or the control step's iterations (MPC): every later iterate would be the same parameters and rollout
     deterministic = model != "gb" and not cfg["smooth_samples"]
+
+    def flat(cur, opt: Optimiser) -> bool:
+        return deterministic and not bool(cur[2].any()) and opt.still()
+
     if not cfg["mpc"]:
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         cur = opt.start(theta, evaluate_from(s0))
@@ -471,7 +475,7 @@ def run_experiment(config: dict) -> dict:
                 with open(out_dir / "progress.jsonl", "a" if it else "w") as f:
                     f.write(json.dumps(rec) + "\n")
             if it < cfg["iters"]:
-                if deterministic and not bool(cur[2].any()) and opt.still():
+                if flat(cur, opt):
                     stopped = it
                     break
                 cur = opt.step()
@@ -494,7 +498,7 @@ def run_experiment(config: dict) -> dict:
             cur = opt.start(theta, evaluate_from(state))
             window0, iters_run = cur[0], 0
             for _ in range(cfg["iters"]):
-                if deterministic and not bool(cur[2].any()) and opt.still():
+                if flat(cur, opt):
                     break
                 cur = opt.step()
                 iters_run += 1
