@@ -214,17 +214,39 @@ class MujocoTwin:
         return q
 
     # ------------------------------------------------------------------------------------------------- rollout
-    def rollout(self, state: EnvState, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def rollout(
+        self, state: EnvState, actions: torch.Tensor, physics: np.ndarray | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The task's distance term after each of T steps from ``state`` (one environment) under ``actions``
         ((T, A) or (T, 1, A), in [-1, 1]): (T,) [m], the negated ``reward_distance`` of the core on MuJoCo's
         poses, and (T,) ``alive`` as in :func:`~cfd_torch.envs.rollout` (1 until and including the first step
-        at which the core's ``terminated`` holds, then 0; the steps after it are still simulated)."""
-        core = self.core
-        if state.batch_size != 1:
-            raise ValueError(
-                f"state: MujocoTwin.rollout takes one environment, got a batch of {state.batch_size}"
-            )
-        A = core.action_dim
+        at which the core's ``terminated`` holds, then 0; the steps after it are still simulated).
+
+        MuJoCo starts from ``state``'s poses and their finite-difference velocities, or, with ``physics`` (what
+        :meth:`step` returned with ``state``), from that exact MuJoCo state."""
+        out = torch.empty(len(self._check_actions(actions)), dtype=torch.float64)
+        alive = torch.ones_like(out)
+        done = False
+        for t, (_, dist, term) in enumerate(self._steps(state, actions, physics)):
+            out[t] = dist
+            alive[t] = 0.0 if done else 1.0
+            done = done or term
+        return out, alive
+
+    def step(
+        self, state: EnvState, action: torch.Tensor, physics: np.ndarray | None = None
+    ) -> tuple[EnvState, np.ndarray, float, bool]:
+        """One task step in MuJoCo from ``state`` (one environment; with ``physics``, from that MuJoCo state, as
+        in :meth:`rollout`) under ``action`` ((A,) or (1, A)): the next state (MuJoCo's poses), MuJoCo's state
+        after the step (``mj_getState``, ``mjSTATE_INTEGRATION``: what the next :meth:`step` or :meth:`rollout`
+        continues from exactly), the task's distance term [m] and whether the task terminated."""
+        action = action.reshape(1, -1) if isinstance(action, torch.Tensor) else action
+        ((nxt, dist, term),) = list(self._steps(state, action, physics))
+        return nxt, self._get_physics(), dist, term
+
+    # ------------------------------------------------------------------------------------------------ internals
+    def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        A = self.core.action_dim
         if not isinstance(actions, torch.Tensor) or tuple(actions.shape[1:]) not in ((A,), (1, A)):
             raise ValueError(
                 f"actions must be (T, {A}) or (T, 1, {A}), got {tuple(getattr(actions, 'shape', ()))}"
@@ -233,12 +255,44 @@ class MujocoTwin:
         if not bool(torch.isfinite(a).all()):
             first = int(torch.nonzero(~torch.isfinite(a))[0, 0])
             raise ValueError(f"actions contain NaN or inf (first at step {first})")
-        self._set_state(state)
+        return a
+
+    def _get_physics(self) -> np.ndarray:
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        out = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, out, spec)
+        return out
+
+    def _set_physics(self, state: EnvState, physics: np.ndarray) -> None:
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        size = mujoco.mj_stateSize(self.model, spec)
+        if not isinstance(physics, np.ndarray) or physics.shape != (size,):
+            raise ValueError(
+                f"physics must be a ({size},) array from MujocoTwin.step, got {getattr(physics, 'shape', physics)!r}"
+            )
+        if self.planar:  # the plane each body moves in is a model field, not part of MuJoCo's state
+            for i in self._dynamic:
+                self.model.body_pos[self._body_id[i], 2] = float(state.q[0, i, 2])
+        # no mj_forward: it would overwrite the warm start of the constraint solver that the next mj_step reads
+        mujoco.mj_setState(self.model, self.data, physics.astype(np.float64), spec)
+        gap = float((self._poses(state.q.detach().double()) - state.q.detach().double()).abs().max())
+        if gap > 1e-9:
+            raise ValueError(f"physics does not hold state's poses (they differ by {gap:.3g})")
+
+    def _steps(self, state: EnvState, actions: torch.Tensor, physics: np.ndarray | None):
+        """Yield (next state, distance term [m], terminated) after each step of ``actions`` from ``state``."""
+        core = self.core
+        if state.batch_size != 1:
+            raise ValueError(
+                f"state: MujocoTwin.rollout takes one environment, got a batch of {state.batch_size}"
+            )
+        a = self._check_actions(actions)
+        if physics is None:
+            self._set_state(state)
+        else:
+            self._set_physics(state, physics)
         d = self.data
         cur = EnvState(state.q.detach().double(), state.q_prev.detach().double(), state.t, state.task)
-        out = torch.empty(a.shape[0], dtype=torch.float64)
-        alive = torch.ones(a.shape[0], dtype=torch.float64)
-        done = False
         ids = np.array(self._body_id)
         for t in range(a.shape[0]):
             act = core._action(cur, a[t : t + 1])
@@ -252,11 +306,12 @@ class MujocoTwin:
             for _ in range(self.substeps):
                 mujoco.mj_step(self.model, d)
             nxt = EnvState(self._poses(cur.q), cur.q, cur.t + 1, cur.task)
-            out[t] = -core.reward_terms(cur, a[t : t + 1], nxt)["distance"][0]
-            alive[t] = 0.0 if done else 1.0
-            done = done or bool(core.terminated(nxt)[0])
+            yield (
+                nxt,
+                float(-core.reward_terms(cur, a[t : t + 1], nxt)["distance"][0]),
+                bool(core.terminated(nxt)[0]),
+            )
             cur = nxt
-        return out, alive
 
 
 def _angular_velocity(r: torch.Tensor, r_prev: torch.Tensor, dt: float) -> torch.Tensor:

@@ -41,7 +41,9 @@ steps per task step),
 its loss's gradient by central differences in every action parameter (2 K A + 1 rollouts for K knots and A action
 dimensions), with the step ``--fd-step``, or, by default, the step chosen at the start by a sweep over
 ``FD_STEPS``: the one whose unit gradient, stepped by ``--lr``, lowers the loss most (recorded in the log's summary
-with every step's gradient norm and loss; the sweep's rollouts are counted); open loop only. Every log row counts
+with every step's gradient norm and loss; the sweep's rollouts are counted). Under ``--mpc`` it plans and executes
+in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the executed actions
+(``MujocoTwin.step``), and the first action runs there. Every log row counts
 the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
 
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
@@ -53,9 +55,10 @@ with zero actions (``loss_zero_actions``, the trivial start's).
 
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout of the best iterate, the
-smallest loss; MPC: the executed trajectory; none for mujoco-fd) under ``--out``, and while an open-loop run goes,
-``progress.jsonl`` (one line per finished iteration: what an interrupted run keeps). :func:`run_experiment` (a config
-dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs it over a grid.
+smallest loss, none for mujoco-fd; MPC: the executed trajectory, MuJoCo's for mujoco-fd) under ``--out``, and
+while an open-loop run goes, ``progress.jsonl`` (one line per finished iteration: what an interrupted run keeps).
+:func:`run_experiment` (a config dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs
+it over a grid.
 
     python scripts/optimize.py --task Billiards --optimizer ngd-ls --lr 0.5 --iters 20 --horizon 100 --out X
     python scripts/optimize.py --task Push --mpc --dt 0.02 --horizon 48 --steps 100 --iters 3 --out X
@@ -68,19 +71,21 @@ import argparse
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402
 from cfd_torch.envs import make_core, rollout  # noqa: E402
-from cfd_torch.envs.core import task_at  # noqa: E402
+from cfd_torch.envs.core import EnvState, task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
 
 TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
@@ -213,15 +218,16 @@ class Optimiser:
         return self.current
 
 
-def _gradient_fn(core, model: str, config: dict, actions):
+def _gradient_fn(core, model: str, config: dict, actions, twin=None):
     """evaluate_from(state) -> evaluate(theta) -> (loss, rollout, gradient, forward s, gradient s, rollouts,
-    backward rollouts) of the task loss (module docstring) with ``model``'s gradient."""
+    backward rollouts) of the task loss (module docstring) with ``model``'s gradient (``mujoco-fd``: in ``twin``,
+    from an EnvState or a :class:`_TwinState`)."""
 
     def loss_of(out) -> torch.Tensor:
         return task_loss(out.info["reward_distance"], out.alive, config["loss"])  # (B,)
 
     if model == "mujoco-fd":
-        return _mujoco_fd(core, config, actions)
+        return _mujoco_fd(twin, config, actions)
     if model != "gb" and not config["smooth_samples"]:
 
         def evaluate_from(state):
@@ -275,15 +281,24 @@ def _gradient_fn(core, model: str, config: dict, actions):
     return evaluate_from
 
 
-def _mujoco_fd(core, config: dict, actions):
-    """evaluate_from for ``mujoco-fd`` (module docstring); the chosen step and the sweep go to ``config["fd"]``."""
-    from cfd_torch.envs.mujoco_twin import MujocoTwin
+@dataclass
+class _TwinState:
+    """Where an MPC run of ``mujoco-fd`` stands: the task's state and MuJoCo's own (``MujocoTwin.step``; None at
+    the start, which MuJoCo takes from the task's state)."""
 
-    twin = MujocoTwin(core, substeps=int(config["mj_substeps"]))
+    env: EnvState
+    physics: np.ndarray | None
+
+
+def _mujoco_fd(twin, config: dict, actions):
+    """evaluate_from for ``mujoco-fd`` (module docstring); the chosen step and the sweep go to ``config["fd"]``."""
     sweep = config.setdefault("fd", {})
 
     def loss_at(state, th: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-        d, alive = twin.rollout(state, actions(th))
+        if isinstance(state, _TwinState):
+            d, alive = twin.rollout(state.env, actions(th), state.physics)
+        else:
+            d, alive = twin.rollout(state, actions(th))
         return float(task_loss(-d[:, None], alive[:, None], config["loss"]).sum()), d, alive
 
     def fd_gradient(state, th: torch.Tensor, h: float) -> torch.Tensor:
@@ -393,8 +408,6 @@ def run_experiment(config: dict) -> dict:
         raise ValueError(f"config['task'] must be one of {TASKS}, got {cfg['task']!r}")
     if cfg["model"] not in MODELS:
         raise ValueError(f"config['model'] must be one of {MODELS}, got {cfg['model']!r}")
-    if cfg["model"] == "mujoco-fd" and cfg["mpc"]:
-        raise ValueError("config: mujoco-fd runs open loop only")
     _check_settings(cfg)
     if cfg["threads"] is not None:
         import numba
@@ -426,7 +439,12 @@ def run_experiment(config: dict) -> dict:
         return torch.tanh(th)[segment]
 
     spent = {"rollouts": 0, "backward": 0, "wall_s": 0.0}  # over every evaluation, rejected trials included
-    gradient_from = _gradient_fn(core, model, cfg, actions)
+    twin = None
+    if model == "mujoco-fd":
+        from cfd_torch.envs.mujoco_twin import MujocoTwin
+
+        twin = MujocoTwin(core, substeps=int(cfg["mj_substeps"]))
+    gradient_from = _gradient_fn(core, model, cfg, actions, twin)
 
     def evaluate_from(state):
         evaluate = gradient_from(state)
@@ -488,11 +506,17 @@ def run_experiment(config: dict) -> dict:
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"], "stopped_at": stopped}  # fmt: skip
         frames_q = best[1]
     else:
+        # mujoco-fd plans and executes in MuJoCo (its state a _TwinState), the others in the simulator
         steps = cfg["steps"]
-        with torch.no_grad():
-            zero = rollout(core, s0, torch.zeros(steps, 1, core.action_dim, dtype=torch.float64))
-        zero_loss = float(task_loss(zero.info["reward_distance"], zero.alive, cfg["loss"]).sum())
-        state, executed, qs = s0, [], [s0.q[0]]
+        zeros = torch.zeros(steps, 1, core.action_dim, dtype=torch.float64)
+        if twin is None:
+            with torch.no_grad():
+                zero = rollout(core, s0, zeros)
+            zero_d, zero_alive = -zero.info["reward_distance"][:, 0], zero.alive[:, 0]
+        else:
+            zero_d, zero_alive = twin.rollout(s0, zeros)
+        zero_loss = float(task_loss(-zero_d[:, None], zero_alive[:, None], cfg["loss"]).sum())
+        state, executed, qs = (s0 if twin is None else _TwinState(s0, None)), [], [s0.q[0]]
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
             cur = opt.start(theta, evaluate_from(state))
@@ -503,11 +527,17 @@ def run_experiment(config: dict) -> dict:
                 cur = opt.step()
                 iters_run += 1
             theta = opt.theta.detach()
-            with torch.no_grad():
-                out = core.step(state, actions(theta)[0])
-            state = out.state.detach()
-            executed.append(float(-out.info["reward_distance"].sum()))
-            qs.append(state.q[0])
+            if twin is None:
+                with torch.no_grad():
+                    out = core.step(state, actions(theta)[0])
+                state, done = out.state.detach(), bool(out.terminated.all())
+                executed.append(float(-out.info["reward_distance"].sum()))
+                qs.append(state.q[0])
+            else:
+                env, physics, distance, done = twin.step(state.env, actions(theta)[0], state.physics)
+                state = _TwinState(env, physics)
+                executed.append(distance)
+                qs.append(env.q[0])
             log.append(
                 record(
                     cur,
@@ -520,14 +550,13 @@ def run_experiment(config: dict) -> dict:
             # shift the window, repeating its last action (with knots the plan's segments stay)
             if knots == horizon:
                 theta = torch.cat([theta[1:], theta[-1:]])
-            if bool(out.terminated.all()):
+            if done:
                 break
         ex = torch.tensor(executed, dtype=torch.float64)[:, None]
         loss_executed = float(task_loss(-ex, torch.ones_like(ex), cfg["loss"]))
         summary = {"loss_zero_actions": zero_loss, "loss_executed": loss_executed, "steps_run": len(executed),
                    "final_distance": executed[-1], "final_distance_zero_actions":
-                   float(-zero.info["reward_distance"][len(executed) - 1].sum()),
-                   "zero_distances": (-zero.info["reward_distance"][:, 0]).tolist(),
+                   float(zero_d[len(executed) - 1]), "zero_distances": zero_d.tolist(),
                    "rollouts": spent["rollouts"], "wall_s": spent["wall_s"]}  # fmt: skip
         frames_q = torch.stack(qs)
     fd = cfg.pop("fd", None)

@@ -10,9 +10,9 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
 as runs finish (through a temporary file), so an interrupted sweep keeps what it finished (``--resume`` skips the
 cells already in it, and refuses a cell there that ran with other settings); a run that raises is reported and
-kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on. Cells no
-model can run are left out of the grid (mujoco-fd with ``--mpc``). On Ray, the scripts folder travels with the job
-(``runtime_env`` working_dir), so cluster nodes need cfd_torch installed but not this checkout.
+kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on. On Ray,
+the scripts folder travels with the job (``runtime_env`` working_dir), so cluster nodes need cfd_torch installed
+but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
 
     python scripts/sweep.py --tasks Billiards Push --models cfd ipc sdrs gb --seeds 0 1 2 --iters 20 \\
@@ -37,14 +37,13 @@ from optimize import DEFAULTS, MODELS, TASKS, add_arguments, run_experiment  # n
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
-    """The grid's configs, task-major, without the cells no model can run (mujoco-fd with MPC)."""
+    """The grid's configs, task-major."""
     shared = {k: getattr(args, k) for k in DEFAULTS if k not in ("task", "model", "seed", "out")}
     return [
         {**shared, "task": t, "model": m, "seed": s, "out": str(args.out / t / m / f"seed{s}")}
         for t in args.tasks
         for m in args.models
         for s in args.seeds
-        if not (m == "mujoco-fd" and args.mpc)
     ]
 
 

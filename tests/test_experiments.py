@@ -94,6 +94,39 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
     bad[1, 0] = float("nan")
     with pytest.raises(ValueError, match="actions contain NaN or inf \\(first at step 1\\)"):
         twin.rollout(s, bad)
+    # step by step, each step from the MuJoCo state the one before returned, is the rollout bit for bit, and a
+    # rollout from a state mid-way is the rest of it
+    st, physics, steps = s, None, []
+    for t in range(12):
+        st, physics, dist, done = twin.step(st, a[t], physics)
+        steps.append(dist)
+        assert not done
+        if t == 5:
+            tail, _ = twin.rollout(st, a[6:12], physics)
+    assert torch.equal(torch.tensor(steps, dtype=torch.float64), d[:12])
+    assert torch.equal(tail, d[6:12])
+    with pytest.raises(ValueError, match="physics does not hold state's poses"):
+        twin.rollout(s, a[:2], physics)
+    with pytest.raises(ValueError, match="physics must be a"):
+        twin.step(s, a[0], physics[:-1])
+
+
+def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):
+    """mujoco-fd under --mpc: at Push's trivial start its finite differences are exactly zero in every control
+    step (the pole 0.5 m from the box), so no iteration runs and the executed actions are zero: the executed
+    distances are MuJoCo's zero-action rollout's to the last bit (executed in MuJoCo), the
+    step-size sweep runs once, and every control step counts its 1 + 2 x 3 x 2 rollouts."""
+    r = run_experiment(
+        {"task": "Push", "model": "mujoco-fd", "mpc": True, "steps": 3, "horizon": 3, "iters": 2, "gif": False,
+         "out": tmp_path}
+    )  # fmt: skip
+    log, summary = r["log"], r["summary"]
+    assert [row["iters_run"] for row in log] == [0, 0, 0]
+    assert all(row["grad_norm"] == 0.0 for row in log)
+    assert [row["executed_distance"] for row in log] == summary["zero_distances"][:3]
+    assert len(summary["fd_sweep"]) == len(FD_STEPS)
+    first = 1 + len(FD_STEPS) * 12
+    assert [row["rollouts"] for row in log] == [first, first + 13, first + 26]
 
 
 def test_mujoco_twin_of_the_ant_takes_its_state_and_stands_on_the_floor():
@@ -139,8 +172,6 @@ def test_run_experiment_refuses_unknown_keys_and_models():
         run_experiment({"task": "Push", "learning_rate": 0.1})
     with pytest.raises(ValueError, match="config\\['model'\\]"):
         run_experiment({"task": "Push", "model": "mujoco"})
-    with pytest.raises(ValueError, match="mujoco-fd runs open loop only"):
-        run_experiment({"task": "Push", "model": "mujoco-fd", "mpc": True})
     for key, value in (
         ("iters", -1), ("horizon", 0), ("lr", float("nan")), ("lr_final", -0.1), ("fd_step", 0.0), ("threads", 0)
     ):  # fmt: skip
