@@ -240,8 +240,10 @@ class MujocoTwin:
         in :meth:`rollout`) under ``action`` ((A,) or (1, A)): the next state (MuJoCo's poses), MuJoCo's state
         after the step (``mj_getState``, ``mjSTATE_INTEGRATION``: what the next :meth:`step` or :meth:`rollout`
         continues from exactly), the task's distance term [m] and whether the task terminated."""
-        action = action.reshape(1, -1) if isinstance(action, torch.Tensor) else action
-        ((nxt, dist, term),) = list(self._steps(state, action, physics))
+        A = self.core.action_dim
+        if not isinstance(action, torch.Tensor) or tuple(action.shape) not in ((A,), (1, A)):
+            raise ValueError(f"action must be ({A},) or (1, {A}), got {tuple(getattr(action, 'shape', ()))}")
+        ((nxt, dist, term),) = list(self._steps(state, action.reshape(1, A), physics))
         return nxt, self._get_physics(), dist, term
 
     # ------------------------------------------------------------------------------------------------ internals

@@ -109,6 +109,8 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
         twin.rollout(s, a[:2], physics)
     with pytest.raises(ValueError, match="physics must be a"):
         twin.step(s, a[0], physics[:-1])
+    with pytest.raises(ValueError, match=r"action must be \(2,\) or \(1, 2\), got \(3,\)"):
+        twin.step(s, torch.zeros(3, dtype=torch.float64))
 
 
 def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):
