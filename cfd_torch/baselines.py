@@ -103,7 +103,7 @@ def sdrs_pair_potential(
     kappa: float = 1.0,
     iters: int = 60,
 ) -> torch.Tensor:
-    """SDRS-style local plane barrier, minimised over the plane by damped Newton (autograd Hessians).
+    """SDRS-style local plane barrier, minimised over the plane by damped Newton (closed-form derivatives).
 
     The value's gradient with respect to the vertices follows from the envelope theorem: the plane is detached
     at the optimum and the energy re-evaluated, so autograd gives ``kappa sum_k B'(s_k) sg_k n``.
@@ -138,9 +138,6 @@ def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -
     p = p * ((1.0 - 0.5 * dhat) / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
     p = torch.where(torch.isfinite(sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0])
 
-    def total(q: torch.Tensor) -> torch.Tensor:
-        return sdrs_energy(q, Xd, dhat, margin).sum()
-
     done = torch.zeros(
         p.shape[0], dtype=torch.bool, device=p.device
     )  # each pair stops at its own convergence
@@ -149,10 +146,7 @@ def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -
         done = done | (e == 0)
         if bool(done.all()):
             break
-        g = torch.func.grad(total)(p)
-        H = torch.func.vmap(torch.func.hessian(lambda q, x: sdrs_energy(q[None], x[None], dhat, margin)[0]))(
-            p, Xd
-        )
+        g, H = _sdrs_plane_derivatives(p, Xd, dhat, margin)
         H = (
             H
             + 1e-12
@@ -179,3 +173,35 @@ def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -
         if bool(done.all()):
             break
     return p
+
+
+def _sdrs_barrier_derivatives(y: torch.Tensor, dhat: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """B'(y) and B''(y) of :func:`sdrs_barrier` on (0, dhat), 0 elsewhere (also at y <= 0, where B is +inf)."""
+    inside = (y > 0) & (y < dhat)
+    ys = torch.where(inside, y, torch.full_like(y, dhat))
+    u, L = ys - dhat, torch.log(ys / dhat)
+    # B = -u^2 L / y
+    d1 = -(2 * u * L / ys + u * u / ys**2 - u * u * L / ys**2)
+    d2 = -(2 * L / ys + 4 * u / ys**2 - 4 * u * L / ys**2 - 3 * u * u / ys**3 + 2 * u * u * L / ys**3)
+    zero = torch.zeros((), dtype=y.dtype, device=y.device)
+    return torch.where(inside, d1, zero), torch.where(inside, d2, zero)
+
+
+def _sdrs_plane_derivatives(
+    p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(K, 4) gradient and (K, 4, 4) Hessian in the plane p (K, 4) of :func:`sdrs_energy` of triangle pairs X
+    (K, 6, 3): sum_k B(a_k . p - delta/2) + B(1 - |n|), a_k = sg_k [x_k, 1]."""
+    sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
+    A = sg[:, None] * torch.cat([X, torch.ones_like(X[..., :1])], -1)  # (K, 6, 4)
+    b1, b2 = _sdrs_barrier_derivatives((A * p[:, None]).sum(-1) - margin / 2, dhat)
+    r = torch.linalg.vector_norm(p[:, :3], dim=-1)
+    c1, c2 = _sdrs_barrier_derivatives(1.0 - r, dhat)
+    u = p[:, :3] / r[:, None]
+    g = (b1[..., None] * A).sum(1)
+    g[:, :3] -= c1[:, None] * u
+    H = torch.einsum("kv,kvi,kvj->kij", b2, A, A)
+    uu = u[:, :, None] * u[:, None, :]
+    eye = torch.eye(3, dtype=X.dtype, device=X.device)
+    H[:, :3, :3] += c2[:, None, None] * uu - (c1 / r)[:, None, None] * (eye - uu)
+    return g, H

@@ -270,13 +270,16 @@ def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(poten
 
 
 @pytest.mark.slow
-def test_ipc_friction_rollout_gradient_matches_finite_differences():
-    """A box sliding on a floor under 60 N with friction 0.5 and potential="ipc", 10 steps: the gradient of its
-    final pose in the force and in its initial velocity (through the lagged friction contacts' dependence on the
-    previous poses) matches central differences to 1e-6."""
+@pytest.mark.parametrize("potential", ["ipc", "sdrs"])
+def test_baseline_friction_rollout_gradient_matches_finite_differences(potential):
+    """A box sliding on a floor under 60 N with friction 0.5 and the baseline's contact, 10 steps: the gradient of
+    its final pose in the force and in its initial velocity (through the lagged friction contacts' dependence on the
+    previous poses) matches central differences to 1e-6 (SDRS: its plane solves stop about 1e-10 from the optimum,
+    a noise of about 1e-11 m in the poses, so its differences take longer steps, and its yaw component, 8e-6 m s,
+    is checked to 1e-3)."""
     floor = trimesh.creation.box((2.0, 2.0, 0.2))
     floor.apply_translation((0.0, 0.0, -0.1))
-    scene = Scene([_box(0.2), rigid_body(floor, kind="static")], potential="ipc", friction=0.5)
+    scene = Scene([_box(0.2), rigid_body(floor, kind="static")], potential=potential, friction=0.5)
     q0 = torch.zeros(2, 6, dtype=F64)
     q0[0, 2] = 0.105
     w = torch.tensor([1.0, 0.3, 0.7, 0.2, 0.1, 0.5], dtype=F64)
@@ -290,10 +293,13 @@ def test_ipc_friction_rollout_gradient_matches_finite_differences():
 
     theta = torch.tensor([60.0, 0.3, 0.5], dtype=F64, requires_grad=True)
     (g,) = torch.autograd.grad(final(theta), theta)
-    assert float(g.abs().min()) > 1e-4
-    for k, h in enumerate((1e-4, 1e-6, 1e-6)):
+    assert float(g.abs().min()) > 1e-6
+    steps, rel = (
+        ((1e-4, 1e-6, 1e-6), (1e-6,) * 3) if potential == "ipc" else ((1e-2, 1e-4, 1e-3), (1e-6, 1e-6, 1e-3))
+    )
+    for k, h in enumerate(steps):
         e = torch.zeros(3, dtype=F64)
         e[k] = h
         with torch.no_grad():
             fd = (final(theta + e) - final(theta - e)) / (2 * h)
-        assert float(g[k]) == pytest.approx(float(fd), rel=1e-6), k
+        assert float(g[k]) == pytest.approx(float(fd), rel=rel[k]), k

@@ -13,7 +13,7 @@ farther apart. A pair within the margin delta (or intersecting) is +inf, as for 
 widened by 1e-6 of itself: at the margin the optimal plane's gaps round to zero).
 
 Derivatives by the implicit function theorem at each pair's optimal plane p*(x) (x: its 18 vertex coordinates):
-grad = f_x and Hessian f_xx - f_xp f_pp^-1 f_px of f(p, x), from ``torch.func``, chained to the two bodies' poses.
+grad = f_x and Hessian f_xx - f_xp f_pp^-1 f_px of f(p, x), in closed form, chained to the two bodies' poses.
 Lagged friction: one contact per active triangle pair, this library's construction (the vertex forces
 kappa |B'(s_k)| |n| along the plane normal, their sum on one triangle the normal force, their centres the contact
 points).
@@ -27,7 +27,13 @@ import torch
 
 from .._geometry import triangle_closest_points
 from .._validate import check_positive
-from ..baselines import sdrs_barrier, sdrs_energy, sdrs_planes
+from ..baselines import (
+    _sdrs_barrier_derivatives,
+    _sdrs_plane_derivatives,
+    sdrs_barrier,
+    sdrs_energy,
+    sdrs_planes,
+)
 from ..rotation import rotation_matrix
 from ._primitives import CollisionQuery, Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
 from .bsh import BSH
@@ -36,6 +42,7 @@ from .model import ContactEval, LaggedContacts
 __all__ = ["SdrsContact"]
 
 _SIDE = torch.tensor([0, 0, 0, 1, 1, 1])  # a triangle pair's six vertices: three of body i, three of body j
+_SIGN = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # their sides of the separating plane
 
 
 class SdrsContact:
@@ -122,20 +129,27 @@ class SdrsContact:
             value.index_add_(0, pair, e)
         if order >= 1 and C:
             kappa = self.stiffness
-
-            def f(z):  # z = (plane (4), vertices (18))
-                return kappa * sdrs_energy(z[None, :4], z[None, 4:].reshape(1, 6, 3), h, dl)[0]
-
-            z = torch.cat([p, x.reshape(C, 18)], 1)
-            gz = torch.func.vmap(torch.func.grad(f))(z)
-            gx = gz[:, 4:].reshape(C, 6, 3)  # f_x (f_p = 0 at the optimum)
+            # f(p, x) = kappa [B(1 - |n|) + sum_k B(s_k)], s_k = sg_k (n . x_k + d) - delta / 2:
+            # f_x_k = kappa B'(s_k) sg_k n (f_p = 0 at the optimum)
+            n, sg = p[:, :3], _SIGN.to(x)
+            s_k = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
+            b1, b2 = _sdrs_barrier_derivatives(s_k, h)  # (C, 6)
+            gx = kappa * (b1 * sg)[..., None] * n[:, None]
             Hx = None
             if order >= 2:
-                Hz = torch.func.vmap(torch.func.hessian(f))(z)
-                Hpp, Hpx, Hxx = Hz[:, :4, :4], Hz[:, :4, 4:], Hz[:, 4:, 4:]
+                # f_xx: kappa B''(s_k) n n^T on the diagonal blocks; f_x_k p = kappa sg_k (B''(s_k) n a_k^T +
+                # B'(s_k) [I 0]), a_k = sg_k [x_k, 1]; f_pp the plane solve's Hessian
+                _, Hpp = _sdrs_plane_derivatives(p, x, h, dl)
+                a = sg[:, None] * torch.cat([x, torch.ones_like(x[..., :1])], -1)  # (C, 6, 4)
+                Hxp = (b2 * sg)[..., None, None] * n[:, None, :, None] * a[:, :, None, :]  # (C, 6, 3, 4)
+                Hxp[..., :3] += (b1 * sg)[..., None, None] * torch.eye(3, dtype=x.dtype, device=x.device)
+                Hxp = kappa * Hxp.reshape(C, 18, 4)
                 # (a pseudo-inverse: where few barrier terms are active the energy is flat along some planes)
-                Hinv = torch.linalg.pinv(Hpp, hermitian=True, rtol=1e-12)
-                Hx = (Hxx - Hpx.transpose(1, 2) @ Hinv @ Hpx).reshape(C, 6, 3, 6, 3)
+                Hinv = torch.linalg.pinv(kappa * Hpp, hermitian=True, rtol=1e-12)
+                Hx = -(Hxp @ Hinv @ Hxp.transpose(1, 2)).reshape(C, 6, 3, 6, 3)
+                diag = kappa * b2[..., None, None] * n[:, None, :, None] * n[:, None, None, :]  # (C, 6, 3, 3)
+                k6 = torch.arange(6, device=x.device)
+                Hx[:, k6, :, k6, :] += diag.transpose(0, 1)
             N = poses.shape[1]
             side = _SIDE.to(poses.device).expand(C, 6)
             rows = pairs[pair][:, :1] * N + pairs[pair][:, 1:].gather(1, side)
@@ -165,13 +179,8 @@ class SdrsContact:
         x = torch.einsum("cvij,cvj->cvi", R[rows], X) + table[rows, :3]
         if create_graph and len(pair):  # the plane as a differentiable function of the vertices: one implicit
             # Newton step from the optimum (its value is the optimum, its first derivative dp*/dx)
-            def fp(q, v):
-                return sdrs_energy(q[None], v[None], h, dl)[0]
-
-            Hinv = torch.linalg.pinv(
-                torch.func.vmap(torch.func.hessian(fp))(p, xd), hermitian=True, rtol=1e-12
-            )
-            gp = torch.func.vmap(torch.func.grad(fp))(p, x)
+            Hinv = torch.linalg.pinv(_sdrs_plane_derivatives(p, xd, h, dl)[1], hermitian=True, rtol=1e-12)
+            gp = _sdrs_plane_derivatives(p, x, h, dl)[0]
             p = p - (Hinv @ (gp - gp.detach())[..., None])[..., 0]
         n = p[:, :3]
         sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=x.dtype, device=x.device)
