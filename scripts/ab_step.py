@@ -4,10 +4,12 @@
 subprocess; this script removes that asymmetry: every run is a fresh ``python -c`` with one torch and one numba
 thread, the revisions alternate, and the figure is the CPU time per step (``time.process_time``), which a loaded
 machine disturbs less than wall time. Scenes: a 320-face ball resting on a 12-triangle box (without and with
-friction 0.5), and 4 stacked 12-triangle boxes. Uses only the API both revisions share (``Scene``, ``step``,
+friction 0.5), and 4 stacked 12-triangle boxes, with ``--potential``'s contact (this library's, or the baselines'
+``ipc`` or ``sdrs`` at their defaults). Uses only the API both revisions share (``Scene``, ``step``,
 ``rigid_body``).
 
     python scripts/ab_step.py --baseline e5289f1 --runs 3 --out results/ab_step
+    python scripts/ab_step.py --baseline bfee8a2 --potential sdrs --steps 10 --warm 3 --out results/ab_step_sdrs
 """
 
 from __future__ import annotations
@@ -33,12 +35,12 @@ def scenes():
     m = trimesh.creation.box(extents=(1.0, 1.0, 0.1)); m.apply_translation([0, 0, -0.05])
     box = c.rigid_body(m, kind="static")
     q = torch.zeros(2, 6, dtype=torch.float64); q[0, 2] = 0.1 + 2e-3
-    yield "ball_box", c.Scene((ball, box)), q
-    yield "ball_box_friction", c.Scene((ball, box), friction=0.5), q
+    yield "ball_box", c.Scene((ball, box), potential=POT), q
+    yield "ball_box_friction", c.Scene((ball, box), friction=0.5, potential=POT), q
     cube = c.rigid_body(trimesh.creation.box(extents=(0.2, 0.2, 0.2)))
     q = torch.zeros(5, 6, dtype=torch.float64)
     for k in range(4): q[k + 1, 2] = 0.1 + 1.3e-3 + k * (0.2 + 1.3e-3)
-    yield "boxes4", c.Scene((box, cube, cube, cube, cube)), q
+    yield "boxes4", c.Scene((box, cube, cube, cube, cube), potential=POT), q
 out = {}
 for name, sc, q in scenes():
     st = sc.initial_state(q)
@@ -51,9 +53,9 @@ print(json.dumps(out))
 """
 
 
-def run(path: Path, steps: int, warm: int) -> dict:
+def run(path: Path, steps: int, warm: int, potential: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(path), "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    code = CHILD.replace("WARM", str(warm)).replace("STEPS", str(steps))
+    code = CHILD.replace("WARM", str(warm)).replace("STEPS", str(steps)).replace("POT", repr(potential))
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=tempfile.gettempdir(), capture_output=True,
                          text=True, check=True)  # fmt: skip
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -65,6 +67,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3, help="runs per revision (alternating)")
     ap.add_argument("--steps", type=int, default=40, help="timed steps per scene and run")
     ap.add_argument("--warm", type=int, default=10, help="untimed steps first")
+    ap.add_argument("--potential", default="cfd", choices=("cfd", "ipc", "sdrs"), help="the scenes' contact")
     ap.add_argument("--out", type=Path, default=Path("results/ab_step"))
     args = ap.parse_args()
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
@@ -75,15 +78,15 @@ def main() -> None:
         try:
             runs: dict[str, list[dict]] = {"baseline": [], "head": []}
             for _ in tqdm(range(args.runs), desc="A/B runs"):
-                runs["baseline"].append(run(base, args.steps, args.warm))
-                runs["head"].append(run(ROOT, args.steps, args.warm))
+                runs["baseline"].append(run(base, args.steps, args.warm, args.potential))
+                runs["head"].append(run(ROOT, args.steps, args.warm, args.potential))
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
     cases = list(runs["head"][0])
     med = {k: {c: statistics.median(r[c] for r in v) for c in cases} for k, v in runs.items()}
     lines = [
         f"CPU ms per step, median over {args.runs} alternating runs of {args.steps} steps (one thread), "
-        f"{args.baseline} against {head.stdout.strip()}",
+        f"{args.baseline} against {head.stdout.strip()}, potential {args.potential}",
         "",
         f"| case | {args.baseline} | {head.stdout.strip()} | ratio | runs {args.baseline} | runs now |",
         "|---|---:|---:|---:|---|---|",
@@ -97,7 +100,8 @@ def main() -> None:
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ab_step.json").write_text(json.dumps({"runs": runs, "median": med, "baseline": args.baseline,
-                                                        "head": head.stdout.strip()}, indent=1))  # fmt: skip
+                                                        "head": head.stdout.strip(), "potential": args.potential},
+                                                       indent=1))  # fmt: skip
     (args.out / "table.md").write_text(table + "\n")
 
 
