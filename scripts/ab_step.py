@@ -4,9 +4,10 @@
 subprocess; this script removes that asymmetry: every run is a fresh ``python -c`` with one torch and one numba
 thread, the revisions alternate, and the figure is the CPU time per step (``time.process_time``), which a loaded
 machine disturbs less than wall time. Scenes: a 320-face ball resting on a 12-triangle box (without and with
-friction 0.5), and 4 stacked 12-triangle boxes, with ``--potential``'s contact (this library's, or the baselines'
-``ipc`` or ``sdrs`` at their defaults). Uses only the API both revisions share (``Scene``, ``step``,
-``rigid_body``).
+friction 0.5), 4 stacked 12-triangle boxes, and Push's reachable variant (``make_core("cfd_torch/Push-v0",
+distance=1.5, box_density=50, dt=0.04)``) at rest under zero actions, with ``--potential``'s contact (this
+library's, or the baselines' ``ipc`` or ``sdrs`` at their defaults). Uses only the API both revisions share
+(``Scene``, ``step``, ``rigid_body``, ``make_core``).
 
     python scripts/ab_step.py --baseline e5289f1 --runs 3 --out results/ab_step
     python scripts/ab_step.py --baseline bfee8a2 --potential sdrs --steps 10 --warm 3 --out results/ab_step_sdrs
@@ -49,6 +50,14 @@ for name, sc, q in scenes():
     for _ in range(STEPS):
         t0 = time.process_time(); st = c.step(sc, st); ts.append(time.process_time() - t0)
     out[name] = 1e3 * statistics.median(ts)
+from cfd_torch.envs import make_core
+core = make_core("cfd_torch/Push-v0", distance=1.5, box_density=50, dt=0.04, potential=POT)
+st, a, ts = core.reset(0, 1), torch.zeros(1, 2, dtype=torch.float64), []
+with torch.no_grad():
+    for _ in range(WARM): st = core.step(st, a).state
+    for _ in range(STEPS):
+        t0 = time.process_time(); st = core.step(st, a).state; ts.append(time.process_time() - t0)
+out["push_at_rest"] = 1e3 * statistics.median(ts)
 print(json.dumps(out))
 """
 
