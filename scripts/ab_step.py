@@ -50,6 +50,16 @@ for name, sc, q in scenes():
     for _ in range(STEPS):
         t0 = time.process_time(); st = c.step(sc, st); ts.append(time.process_time() - t0)
     out[name] = 1e3 * statistics.median(ts)
+# cfd_torch.envs is the revision's own envs/ folder (the editable install would map it to this checkout's)
+import importlib.util, os, sys
+envs = os.path.join(REV, "envs")
+spec = importlib.util.spec_from_file_location("cfd_torch.envs", os.path.join(envs, "__init__.py"),
+                                              submodule_search_locations=[envs])
+sys.modules["cfd_torch.envs"] = mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+here = os.path.realpath
+assert here(os.path.dirname(mod.__file__)) == here(envs)
+assert here(os.path.dirname(c.__file__)) == here(os.path.join(REV, "cfd_torch"))
 from cfd_torch.envs import make_core
 core = make_core("cfd_torch/Push-v0", distance=1.5, box_density=50, dt=0.04, potential=POT)
 st, a, ts = core.reset(0, 1), torch.zeros(1, 2, dtype=torch.float64), []
@@ -65,6 +75,7 @@ print(json.dumps(out))
 def run(path: Path, steps: int, warm: int, potential: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(path), "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     code = CHILD.replace("WARM", str(warm)).replace("STEPS", str(steps)).replace("POT", repr(potential))
+    code = code.replace("REV", repr(str(path.resolve())))
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=tempfile.gettempdir(), capture_output=True,
                          text=True, check=True)  # fmt: skip
     return json.loads(res.stdout.strip().splitlines()[-1])

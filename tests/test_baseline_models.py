@@ -293,7 +293,7 @@ def test_baseline_friction_rollout_gradient_matches_finite_differences(potential
 
     theta = torch.tensor([60.0, 0.3, 0.5], dtype=F64, requires_grad=True)
     (g,) = torch.autograd.grad(final(theta), theta)
-    assert float(g.abs().min()) > 1e-6
+    assert float(g.abs().min()) > (1e-4 if potential == "ipc" else 1e-6)
     steps, rel = (
         ((1e-4, 1e-6, 1e-6), (1e-6,) * 3) if potential == "ipc" else ((1e-2, 1e-4, 1e-3), (1e-6, 1e-6, 1e-3))
     )
