@@ -25,7 +25,9 @@ masses, friction, gravity and action semantics, with only the contact model (and
 
     twin = MujocoTwin(make_core("cfd_torch/Push-v0"))
     state = core.reset(seed=0, batch_size=1)
-    distances = twin.rollout(state, actions)         # (T,) the task's distance after each step [m]
+    distances, alive = twin.rollout(state, actions)  # (T,) the task's distance after each step [m], (T,) alive
+    nxt, physics, distance, done = twin.step(state, actions[0])  # one step; MuJoCo's exact state after it
+    distances, _ = twin.rollout(nxt, actions[1:], physics)       # continues from that state bit for bit
     xml = twin.xml()                                 # the MJCF
 """
 
