@@ -215,10 +215,9 @@ def test_sdrs_model_equals_the_pairwise_barrier_with_consistent_derivatives():
     assert float(model.evaluate(near[None], PAIR, 0).value[0]) == np.inf
 
 
-@pytest.mark.slow
 def test_sdrs_box_rests_on_a_floor():
     """A 0.2 m box dropped 2 cm onto a floor with potential="sdrs" (dhat 1 cm, kappa 10): it lands and rests
-    above the margin, within the barrier's reach (about a minute)."""
+    above the margin, within the barrier's reach."""
     floor = trimesh.creation.box((2.0, 2.0, 0.2))
     floor.apply_translation((0.0, 0.0, -0.1))
     scene = Scene([_box(0.2, density=500.0), rigid_body(floor, kind="static")], potential="sdrs")

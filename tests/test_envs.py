@@ -234,13 +234,14 @@ def test_ant_push_gradient_from_the_trivial_start_matches_finite_differences():
     ("env_id", "kwargs", "potential"),
     [
         ("cfd_torch/Push-v0", {}, "ipc"),
-        pytest.param("cfd_torch/Push-v0", {}, "sdrs", marks=pytest.mark.slow),
+        ("cfd_torch/Push-v0", {}, "sdrs"),
         *(
-            pytest.param(env_id, kwargs, potential, marks=pytest.mark.slow)
+            (env_id, kwargs, potential)
             for env_id, kwargs in [
                 ("cfd_torch/Billiards-v0", {"target_ball": 0, "pocket": 0}),
                 ("cfd_torch/Sort-v0", {}),
                 ("cfd_torch/Gather-v0", {}),
+                ("cfd_torch/AntPush-v0", {}),
             ]
             for potential in ("ipc", "sdrs")
         ),
@@ -248,8 +249,8 @@ def test_ant_push_gradient_from_the_trivial_start_matches_finite_differences():
 )
 def test_locally_supported_models_give_no_gradient_from_the_trivial_start(env_id, kwargs, potential):
     """The test above with the baselines' contact (``potential="ipc"`` or ``"sdrs"``, dhat 1 cm; Billiards 1 mm):
-    the task loss after 3 steps does not depend on the first action at all, its gradient is exactly zero (the boxes
-    resting within dhat of the floor have active contacts, so the models do act)."""
+    the task loss after 3 steps does not depend on the first action at all, its gradient is exactly zero (the boxes,
+    and the Ant's feet, resting within dhat of the floor have active contacts, so the models do act)."""
     from cfd_torch.sim.energy import scene_pairs
 
     core = make_core(env_id, potential=potential, **kwargs)

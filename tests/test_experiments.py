@@ -21,9 +21,7 @@ finally:
     sys.path.pop(0)
 
 
-@pytest.mark.parametrize(
-    "model", [pytest.param(m, marks=pytest.mark.slow) if m == "sdrs" else m for m in MODELS]
-)
+@pytest.mark.parametrize("model", MODELS)
 def test_two_iterations_per_model(model, tmp_path):
     """Two ngd iterations on 3 actions from Push's trivial start: three evaluations logged, each one rollout and
     its backward (gb: 1 + 2 sampled rollouts, no backward); the files written. The local barriers' and MuJoCo's
