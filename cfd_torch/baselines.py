@@ -31,6 +31,10 @@ __all__ = [
 ]
 
 
+# the sides of a triangle pair's separating plane its six vertices lie on (three of a, then three of b)
+_SIDES = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])
+
+
 def ipc_barrier(x: torch.Tensor, xhat: float) -> torch.Tensor:
     """IPC scalar barrier ``-(x - xhat)^2 ln(x / xhat)`` on (0, xhat), 0 beyond, +inf at x <= 0 (C2 at xhat)."""
     inside = (x > 0) & (x < xhat)
@@ -88,7 +92,7 @@ def _barycentric(tri: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
 
 def sdrs_energy(p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float) -> torch.Tensor:
     """(K,) the SDRS energy (kappa 1) of triangle pairs X (K, 6, 3) for planes p (K, 4)."""
-    sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
+    sg = _SIDES.to(X)
     s = sg * (torch.einsum("kvc,kc->kv", X, p[:, :3]) + p[:, 3:]) - margin / 2
     r = torch.linalg.vector_norm(p[:, :3], dim=-1)
     return sdrs_barrier(1.0 - r, dhat) + sdrs_barrier(s, dhat).sum(-1)
@@ -187,13 +191,17 @@ def _sdrs_barrier_derivatives(y: torch.Tensor, dhat: float) -> tuple[torch.Tenso
     return torch.where(inside, d1, zero), torch.where(inside, d2, zero)
 
 
+def _sdrs_plane_rows(X: torch.Tensor) -> torch.Tensor:
+    """(K, 6, 4) a_k = sg_k [x_k, 1] of triangle pairs X (K, 6, 3): vertex k's gap to plane p is a_k . p."""
+    return _SIDES.to(X)[:, None] * torch.cat([X, torch.ones_like(X[..., :1])], -1)
+
+
 def _sdrs_plane_derivatives(
     p: torch.Tensor, X: torch.Tensor, dhat: float, margin: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(K, 4) gradient and (K, 4, 4) Hessian in the plane p (K, 4) of :func:`sdrs_energy` of triangle pairs X
     (K, 6, 3): sum_k B(a_k . p - delta/2) + B(1 - |n|), a_k = sg_k [x_k, 1]."""
-    sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=X.dtype, device=X.device)
-    A = sg[:, None] * torch.cat([X, torch.ones_like(X[..., :1])], -1)  # (K, 6, 4)
+    A = _sdrs_plane_rows(X)
     b1, b2 = _sdrs_barrier_derivatives((A * p[:, None]).sum(-1) - margin / 2, dhat)
     r = torch.linalg.vector_norm(p[:, :3], dim=-1)
     c1, c2 = _sdrs_barrier_derivatives(1.0 - r, dhat)

@@ -226,10 +226,11 @@ class MujocoTwin:
 
         MuJoCo starts from ``state``'s poses and their finite-difference velocities, or, with ``physics`` (what
         :meth:`step` returned with ``state``), from that exact MuJoCo state."""
-        out = torch.empty(len(self._check_actions(actions)), dtype=torch.float64)
+        a = self._check_actions(actions)
+        out = torch.empty(len(a), dtype=torch.float64)
         alive = torch.ones_like(out)
         done = False
-        for t, (_, dist, term) in enumerate(self._steps(state, actions, physics)):
+        for t, (_, dist, term) in enumerate(self._steps(state, a, physics)):
             out[t] = dist
             alive[t] = 0.0 if done else 1.0
             done = done or term
@@ -245,11 +246,12 @@ class MujocoTwin:
         A = self.core.action_dim
         if not isinstance(action, torch.Tensor) or tuple(action.shape) not in ((A,), (1, A)):
             raise ValueError(f"action must be ({A},) or (1, {A}), got {tuple(getattr(action, 'shape', ()))}")
-        ((nxt, dist, term),) = list(self._steps(state, action.reshape(1, A), physics))
+        ((nxt, dist, term),) = list(self._steps(state, self._check_actions(action.reshape(1, A)), physics))
         return nxt, self._get_physics(), dist, term
 
     # ------------------------------------------------------------------------------------------------ internals
     def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """(T, A) float64 ``actions``, checked for shape and finiteness."""
         A = self.core.action_dim
         if not isinstance(actions, torch.Tensor) or tuple(actions.shape[1:]) not in ((A,), (1, A)):
             raise ValueError(
@@ -283,14 +285,14 @@ class MujocoTwin:
         if gap > 1e-9:
             raise ValueError(f"physics does not hold state's poses (they differ by {gap:.3g})")
 
-    def _steps(self, state: EnvState, actions: torch.Tensor, physics: np.ndarray | None):
-        """Yield (next state, distance term [m], terminated) after each step of ``actions`` from ``state``."""
+    def _steps(self, state: EnvState, a: torch.Tensor, physics: np.ndarray | None):
+        """Yield (next state, distance term [m], terminated) after each step of the checked actions ``a`` (T, A)
+        from ``state``."""
         core = self.core
         if state.batch_size != 1:
             raise ValueError(
                 f"state: MujocoTwin.rollout takes one environment, got a batch of {state.batch_size}"
             )
-        a = self._check_actions(actions)
         if physics is None:
             self._set_state(state)
         else:

@@ -295,10 +295,8 @@ def _mujoco_fd(twin, config: dict, actions):
     sweep = config.setdefault("fd", {})
 
     def loss_at(state, th: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-        if isinstance(state, _TwinState):
-            d, alive = twin.rollout(state.env, actions(th), state.physics)
-        else:
-            d, alive = twin.rollout(state, actions(th))
+        env, physics = (state.env, state.physics) if isinstance(state, _TwinState) else (state, None)
+        d, alive = twin.rollout(env, actions(th), physics)
         return float(task_loss(-d[:, None], alive[:, None], config["loss"]).sum()), d, alive
 
     def fd_gradient(state, th: torch.Tensor, h: float) -> torch.Tensor:

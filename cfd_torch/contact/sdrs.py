@@ -28,8 +28,10 @@ import torch
 from .._geometry import triangle_closest_points
 from .._validate import check_positive
 from ..baselines import (
+    _SIDES,
     _sdrs_barrier_derivatives,
     _sdrs_plane_derivatives,
+    _sdrs_plane_rows,
     sdrs_barrier,
     sdrs_energy,
     sdrs_planes,
@@ -42,7 +44,6 @@ from .model import ContactEval, LaggedContacts
 __all__ = ["SdrsContact"]
 
 _SIDE = torch.tensor([0, 0, 0, 1, 1, 1])  # a triangle pair's six vertices: three of body i, three of body j
-_SIGN = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # their sides of the separating plane
 
 
 class SdrsContact:
@@ -131,7 +132,7 @@ class SdrsContact:
             kappa = self.stiffness
             # f(p, x) = kappa [B(1 - |n|) + sum_k B(s_k)], s_k = sg_k (n . x_k + d) - delta / 2:
             # f_x_k = kappa B'(s_k) sg_k n (f_p = 0 at the optimum)
-            n, sg = p[:, :3], _SIGN.to(x)
+            n, sg, a = p[:, :3], _SIDES.to(x), _sdrs_plane_rows(x)  # a: (C, 6, 4)
             s_k = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
             b1, b2 = _sdrs_barrier_derivatives(s_k, h)  # (C, 6)
             gx = kappa * (b1 * sg)[..., None] * n[:, None]
@@ -140,7 +141,6 @@ class SdrsContact:
                 # f_xx: kappa B''(s_k) n n^T on the diagonal blocks; f_x_k p = kappa sg_k (B''(s_k) n a_k^T +
                 # B'(s_k) [I 0]), a_k = sg_k [x_k, 1]; f_pp the plane solve's Hessian
                 _, Hpp = _sdrs_plane_derivatives(p, x, h, dl)
-                a = sg[:, None] * torch.cat([x, torch.ones_like(x[..., :1])], -1)  # (C, 6, 4)
                 Hxp = (b2 * sg)[..., None, None] * n[:, None, :, None] * a[:, :, None, :]  # (C, 6, 3, 4)
                 Hxp[..., :3] += (b1 * sg)[..., None, None] * torch.eye(3, dtype=x.dtype, device=x.device)
                 Hxp = kappa * Hxp.reshape(C, 18, 4)
@@ -179,11 +179,11 @@ class SdrsContact:
         x = torch.einsum("cvij,cvj->cvi", R[rows], X) + table[rows, :3]
         if create_graph and len(pair):  # the plane as a differentiable function of the vertices: one implicit
             # Newton step from the optimum (its value is the optimum, its first derivative dp*/dx)
-            Hinv = torch.linalg.pinv(_sdrs_plane_derivatives(p, xd, h, dl)[1], hermitian=True, rtol=1e-12)
-            gp = _sdrs_plane_derivatives(p, x, h, dl)[0]
+            gp, Hp = _sdrs_plane_derivatives(p, x, h, dl)
+            Hinv = torch.linalg.pinv(Hp.detach(), hermitian=True, rtol=1e-12)
             p = p - (Hinv @ (gp - gp.detach())[..., None])[..., 0]
         n = p[:, :3]
-        sg = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0], dtype=x.dtype, device=x.device)
+        sg = _SIDES.to(x)
         s = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
         with torch.enable_grad():
             y = s.detach().requires_grad_(True)
