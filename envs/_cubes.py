@@ -16,19 +16,20 @@ __all__ = ["CubesCore"]
 
 
 class CubesCore(TaskCore):
-    """Ten cubes and a pusher on a floor (the manual is in :class:`SortCore` and :class:`GatherCore`).
+    """``num_cubes`` cubes (ten) and a pusher on a floor (the manual is in :class:`SortCore` and
+    :class:`GatherCore`).
 
-    Bodies: 0-9 the cubes, 10 the pusher, 11 the floor. Subclasses define the reward's target regions.
+    Bodies: 0..n-1 the cubes, n the pusher, n + 1 the floor. Subclasses define the reward's target regions and
+    ``_task_obs_dim``, the size of the task's part of the observation for n cubes.
     """
 
     action_dim = 2
     horizon = 300
-    action_body = 10
-    num_cubes = 10
 
     def __init__(
         self,
         *,
+        num_cubes: int = 10,
         cube_size: float = 0.1,
         cube_density: float = 500.0,
         spread: float = 0.8,
@@ -41,6 +42,11 @@ class CubesCore(TaskCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        if isinstance(num_cubes, bool) or not isinstance(num_cubes, int) or num_cubes < 1:
+            raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
+        self.num_cubes = num_cubes
+        self.action_body = num_cubes
+        self.obs_dim = 4 * (num_cubes + 1) + self._task_obs_dim(num_cubes)
         cube = rigid_body(trimesh.creation.box((cube_size,) * 3), density=cube_density)
         self.pusher = Pusher((0.1, 0.1, 0.3), density=500.0, max_speed=max_speed)
         self.cube_size = cube_size
@@ -83,7 +89,7 @@ class CubesCore(TaskCore):
         return self.pusher.action(state, self.num_cubes, action, self.scene.dt, g, self.num_cubes + 2)
 
     def outside(self, state: EnvState) -> torch.Tensor:
-        """(B, 10) how far each cube's centre is outside its target region [m] (0 inside)."""
+        """(B, n) how far each cube's centre is outside its target region [m] (0 inside)."""
         raise NotImplementedError(f"{type(self).__name__} must define outside")
 
     def reward_terms(
@@ -94,12 +100,16 @@ class CubesCore(TaskCore):
     def terminated(self, state: EnvState) -> torch.Tensor:
         return (self.outside(state) == 0).all(1)
 
+    def _task_obs_dim(self, n: int) -> int:
+        """The size of the task's part of the observation with ``n`` cubes."""
+        raise NotImplementedError(f"{type(self).__name__} must define _task_obs_dim")
+
     def _region_distance(self, xy: torch.Tensor, centre: torch.Tensor, radius: float) -> torch.Tensor:
         """(B, n) how far each cube's centre is outside its region (0 inside) [m]."""
         return ((xy - centre).norm(dim=-1) - radius).clamp_min(0.0)
 
     def _planar(self, state: EnvState) -> torch.Tensor:
-        """(B, 10, 4) cube xy and planar velocity."""
+        """(B, n, 4) cube xy and planar velocity."""
         v = self.velocity(state)
         n = self.num_cubes
         return torch.cat([state.q[:, :n, :2], v[:, :n, :2]], 2)
@@ -111,7 +121,7 @@ class CubesCore(TaskCore):
         return torch.cat([self._planar(state).reshape(B, 4 * n), pusher, self._goal_obs(state)], 1)
 
     def _goal_obs(self, state: EnvState) -> torch.Tensor:
-        """(B, obs_dim - 44) the task's part of the observation."""
+        """(B, obs_dim - 4 (n + 1)) the task's part of the observation."""
         raise NotImplementedError(f"{type(self).__name__} must define _goal_obs")
 
     def _goal_high(self) -> float:

@@ -16,15 +16,15 @@ __all__ = ["GatherCore", "GatherEnv", "GatherVectorEnv"]
 
 
 class GatherCore(CubesCore):
-    """Gather: push ten cubes into one region.
+    """Gather: push ten cubes (``num_cubes``) into one region.
 
     Scene: as :class:`~cfd_torch.envs.sort.SortCore` (ten 0.1 m cubes, a PD-driven 0.1 x 0.1 x 0.3 m pusher
     hovering 2 mm above a 6 x 6 m floor, friction 0.5, dt = 0.01 s). Bodies: 0-9 cubes, 10 pusher, 11 floor.
 
     Action: (2,) in [-1, 1], the pusher's planar velocity target, ``max_speed`` (1 m/s) per unit.
 
-    Observation (46,): per cube xy and planar velocity (40), the pusher's xy and planar velocity (4), the region's
-    centre (2).
+    Observation (46,; 4 n + 6 for n cubes): per cube xy and planar velocity (40), the pusher's xy and planar velocity
+    (4), the region's centre (2).
 
     Reward: ``distance`` = -mean over cubes of how far each centre is outside the region (a disc of radius
     ``region_radius``, 0.35 m) [m], plus ``action`` = -``action_cost`` |a|^2 (1e-3). Terminated when every cube is
@@ -32,10 +32,9 @@ class GatherCore(CubesCore):
 
     Initial state: cubes and pusher at rest as in Sort (centres uniform in [-0.8, 0.8]^2, footprints 5 cm apart,
     cubes 2 mm above the floor); the region's centre at distance ``region_distance`` (1.5 m) from the origin at a
-    uniform angle. Task variable: ``state.task["centre"]`` (2,).
+    uniform angle. Task variable: ``state.task["centre"]`` (2,). With ``num_cubes`` n the bodies are 0..n-1 cubes,
+    n pusher, n + 1 floor.
     """
-
-    obs_dim = 46
 
     def __init__(self, *, region_radius: float = 0.35, region_distance: float = 1.5, **kwargs) -> None:
         check_positive(region_radius, "region_radius")
@@ -44,6 +43,9 @@ class GatherCore(CubesCore):
         super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_distance = region_distance
+
+    def _task_obs_dim(self, n: int) -> int:
+        return 2
 
     def _goal_high(self) -> float:
         return abs(self.region_distance)  # the region's centre
@@ -55,7 +57,7 @@ class GatherCore(CubesCore):
         }
 
     def outside(self, state: EnvState) -> torch.Tensor:
-        """(B, 10) how far each cube's centre is outside the region [m]."""
+        """(B, n) how far each cube's centre is outside the region [m]."""
         xy = state.q[:, : self.num_cubes, :2]
         return self._region_distance(xy, state.task["centre"][:, None, :], self.region_radius)
 

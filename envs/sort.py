@@ -14,7 +14,7 @@ __all__ = ["SortCore", "SortEnv", "SortVectorEnv"]
 
 
 class SortCore(CubesCore):
-    """Sort: push each of ten cubes into the region of its class.
+    """Sort: push each of ten cubes (``num_cubes``) into the region of its class.
 
     Scene: ten 0.1 m cubes (``cube_density`` 500 kg/m^3: 0.5 kg) on a static 6 x 6 m floor (top at z = 0) and a
     pusher, a dynamic 0.1 x 0.1 x 0.3 m box driven by a PD law toward planar velocity targets
@@ -23,8 +23,8 @@ class SortCore(CubesCore):
 
     Action: (2,) in [-1, 1], the pusher's planar velocity target, ``max_speed`` (1 m/s) per unit.
 
-    Observation (58,): per cube xy and planar velocity (40), the pusher's xy and planar velocity (4), each cube's
-    class as -1 / +1 (10), the two regions' centres (4).
+    Observation (58,; 5 n + 8 for n cubes): per cube xy and planar velocity (40), the pusher's xy and planar velocity
+    (4), each cube's class as -1 / +1 (10), the two regions' centres (4).
 
     Reward: ``distance`` = -mean over cubes of how far each centre is outside its class's region (discs of radius
     ``region_radius`` 0.4 m centred at (-``region_offset``, 0) for class 0 and (+``region_offset``, 0) for class 1,
@@ -33,11 +33,12 @@ class SortCore(CubesCore):
 
     Initial state: cubes at rest 2 mm above the floor (they land in the first steps), centres uniform in
     [-``spread``, ``spread``]^2 (0.8 m) with footprints 5 cm apart, yaw uniform; the pusher at rest at another such
-    point (the trivial start: zero action leaves everything in place); five cubes of each class, assigned by a
-    random permutation. Task variables: ``state.task["classes"]`` (10,) int64, ``state.task["centres"]`` (2, 2).
-    """
+    point (the trivial start: zero action leaves everything in place); five cubes of each class (n // 2 of class 0),
+    assigned by a random permutation. Task variables: ``state.task["classes"]`` (n,) int64, ``state.task["centres"]``
+    (2, 2).
 
-    obs_dim = 58
+    With ``num_cubes`` n the bodies are 0..n-1 cubes, n pusher, n + 1 floor.
+    """
 
     def __init__(self, *, region_radius: float = 0.4, region_offset: float = 1.2, **kwargs) -> None:
         check_positive(region_radius, "region_radius")
@@ -45,6 +46,9 @@ class SortCore(CubesCore):
         super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_offset = region_offset
+
+    def _task_obs_dim(self, n: int) -> int:
+        return n + 4
 
     def _goal_high(self) -> float:
         return max(1.0, abs(self.region_offset))  # the classes (+-1) and the regions' centres
@@ -55,7 +59,7 @@ class SortCore(CubesCore):
         return {"classes": classes, "centres": centres}
 
     def outside(self, state: EnvState) -> torch.Tensor:
-        """(B, 10) how far each cube's centre is outside its class's region [m]."""
+        """(B, n) how far each cube's centre is outside its class's region [m]."""
         centre = torch.gather(state.task["centres"], 1, state.task["classes"][:, :, None].expand(-1, -1, 2))
         return self._region_distance(state.q[:, : self.num_cubes, :2], centre, self.region_radius)
 

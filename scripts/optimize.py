@@ -49,9 +49,10 @@ the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts diffe
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
 ``--iters`` iterations on the window of the next ``--horizon`` actions from the current state, then the first
 action is executed and the window shifts (its last action repeats); each control step's log row holds the
-optimised window's loss and final distance (``loss``, ``final_distance``) and the executed step's distance
-(``executed_distance``); the summary's ``loss_executed`` is the executed trajectory's loss, next to the same loss
-with zero actions (``loss_zero_actions``, the trivial start's).
+optimised window's loss and final distance (``loss``, ``final_distance``), the executed step's distance
+(``executed_distance``), its action (``action``) and the planar position the driven body reached
+(``action_body_xy``: the cue ball, the pole, the pusher; the Ant's torso); the summary's ``loss_executed`` is the
+executed trajectory's loss, next to the same loss with zero actions (``loss_zero_actions``, the trivial start's).
 
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout of the best iterate, the
@@ -525,14 +526,15 @@ def run_experiment(config: dict) -> dict:
                 cur = opt.step()
                 iters_run += 1
             theta = opt.theta.detach()
+            act = actions(theta)[0]
             if twin is None:
                 with torch.no_grad():
-                    out = core.step(state, actions(theta)[0])
+                    out = core.step(state, act)
                 state, done = out.state.detach(), bool(out.terminated.all())
                 executed.append(float(-out.info["reward_distance"].sum()))
                 qs.append(state.q[0])
             else:
-                env, physics, distance, done = twin.step(state.env, actions(theta)[0], state.physics)
+                env, physics, distance, done = twin.step(state.env, act, state.physics)
                 state = _TwinState(env, physics)
                 executed.append(distance)
                 qs.append(env.q[0])
@@ -543,6 +545,8 @@ def run_experiment(config: dict) -> dict:
                     window_loss_start=window0,
                     executed_distance=executed[-1],
                     iters_run=iters_run,
+                    action=act[0].tolist(),
+                    action_body_xy=qs[-1][core.action_body, :2].tolist(),
                 )
             )
             # shift the window, repeating its last action (with knots the plan's segments stay)

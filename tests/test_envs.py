@@ -406,6 +406,32 @@ def test_observation_bounds_follow_the_task_arguments(env_id, kwargs):
     assert bool(((obs >= low) & (obs <= high)).all())
 
 
+@pytest.mark.parametrize("env_id, task_obs", [("cfd_torch/Gather-v0", 2), ("cfd_torch/Sort-v0", 7)])
+def test_cube_tasks_take_a_number_of_cubes(env_id, task_obs):
+    """Sort and Gather with three cubes: three cube bodies, the pusher after them (the action drives it), an
+    observation of the cubes, the pusher and the task's part sized for three, inside the declared space, and a reward
+    over the three cubes; a count that is not a positive int is refused, naming it."""
+    env = gym.make(env_id, num_cubes=3).unwrapped
+    core = env.core
+    assert core.num_cubes == 3 and core.action_body == 3 and core.scene.num_bodies == 5
+    assert core.obs_dim == 4 * 4 + task_obs and env.observation_space.shape == (core.obs_dim,)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    s = core.reset(0)
+    out = core.step(s, torch.tensor([[1.0, 0.0]], dtype=F64))
+    moved = out.state.q[0, :, :2] - s.q[0, :, :2]
+    assert (
+        float(moved[3, 0]) > 1e-3 and float(moved[:3].abs().max()) < 1e-3
+    )  # the pusher moves, not the cubes
+    assert core.outside(out.state).shape == (1, 3)
+    assert float(out.info["reward_distance"][0]) == pytest.approx(
+        -float(core.outside(out.state).mean()), rel=1e-12
+    )
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match="num_cubes must be an int >= 1"):
+            make_core(env_id, num_cubes=bad)
+
+
 def test_rendered_frames_show_the_scene_and_change_when_it_moves():
     env = gym.make("cfd_torch/Push-v0", render_mode="rgb_array", width=160, height=120)
     env.reset(seed=0)

@@ -278,6 +278,16 @@ def test_mpc_skips_a_control_steps_iterations_only_at_a_zero_gradient():
     assert [row["iters_run"] for row in ipc] == [0, 0] and [row["rollouts"] for row in ipc] == [1, 2]
     assert all(row["grad_norm"] > 0.0 for row in cfd)
     assert [row["iters_run"] for row in cfd] == [2, 2] and [row["rollouts"] for row in cfd] == [3, 6]
+    # each row's executed action and where it took the pole: replaying the logged actions reaches those positions
+    from cfd_torch.envs import make_core
+
+    core = make_core("cfd_torch/Push-v0")
+    s = core.reset(0, 1)
+    assert any(abs(a) > 1e-3 for a in cfd[0]["action"]) and all(row["action"] == [0.0, 0.0] for row in ipc)
+    for row in cfd:
+        assert len(row["action"]) == core.action_dim and all(abs(a) <= 1.0 for a in row["action"])
+        s = core.step(s, torch.tensor([row["action"]], dtype=torch.float64)).state
+        assert s.q[0, core.action_body, :2].tolist() == row["action_body_xy"]
     rows = table(list(runs.values())).splitlines()
     assert "| 2 x 2 steps (0 run) |" in next(r for r in rows if "| ipc |" in r)
     assert "| 2 x 2 steps (4 run) |" in next(r for r in rows if "| cfd |" in r)
