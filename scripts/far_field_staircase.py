@@ -51,6 +51,28 @@ def humps(r: torch.Tensor, force: torch.Tensor, rel: float = 0.05) -> list[dict]
     return out
 
 
+def profile(r: torch.Tensor, eps_values: list[float]) -> dict[str, dict]:
+    """Per eps: the pair's potential, the pole's force on the box (its y component and norm) and the force's humps,
+    with Push's pole beside its box (on the side, at the box's height) at the centre distances ``r``."""
+    core = make_core("cfd_torch/Push-v0")
+    box, pole = core.scene.bodies[:2]
+    s0 = core.reset(0, 1)
+    q = s0.q[0, :2].expand(len(r), -1, -1).clone()  # (R, 2, 6): the box as it starts, the pole beside it
+    q[:, 1, 0], q[:, 1, 1] = 0.0, -r
+    pairs = torch.stack(
+        [torch.arange(len(r)), torch.zeros(len(r), dtype=torch.long), torch.ones(len(r), dtype=torch.long)], 1
+    )
+    rows = {}
+    for eps in eps_values:
+        scene = Scene([box, pole], dt=core.scene.dt, eps=eps)
+        value = scene.contact_model.evaluate(q, pairs, 0).value
+        force = pair_forces(scene, q)[:, 1, 0, :3]  # the pole's force on the box
+        norm = force.norm(dim=1)
+        rows[str(eps)] = {"potential": value.tolist(), "force_y": force[:, 1].tolist(),
+                          "force_norm": norm.tolist(), "force_humps": humps(r, norm)}  # fmt: skip
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--eps", type=float, nargs="+", default=[0.01, 0.1, 1.0, 4.0])
@@ -58,27 +80,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("results/far_field_staircase"))
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    core = make_core("cfd_torch/Push-v0")
-    box, pole = core.scene.bodies[:2]
-    s0 = core.reset(0, 1)
     r = torch.linspace(0.21, 1.5, args.points, dtype=torch.float64)
-    q = s0.q[0, :2].expand(len(r), -1, -1).clone()  # (R, 2, 6): the box as it starts, the pole beside it
-    q[:, 1, 0], q[:, 1, 1] = 0.0, -r
-    pairs = torch.stack(
-        [torch.arange(len(r)), torch.zeros(len(r), dtype=torch.long), torch.ones(len(r), dtype=torch.long)], 1
-    )
-    rows = {}
-    for eps in args.eps:
-        scene = Scene([box, pole], dt=core.scene.dt, eps=eps)
-        value = scene.contact_model.evaluate(q, pairs, 0).value
-        force = pair_forces(scene, q)[:, 1, 0, :3]  # the pole's force on the box
-        norm = force.norm(dim=1)
-        rows[str(eps)] = {"potential": value.tolist(), "force_y": force[:, 1].tolist(),
-                          "force_norm": norm.tolist(), "force_humps": humps(r, norm)}  # fmt: skip
+    rows = profile(r, args.eps)
     result = {
         "commit": git_revision(),
         "distance": r.tolist(),
-        "mu": core.scene.contact.stiffness,
+        "mu": make_core("cfd_torch/Push-v0").scene.contact.stiffness,
         "eps": rows,
     }
     (args.out / "staircase.json").write_text(json.dumps(result, indent=1))
