@@ -51,10 +51,9 @@ def humps(r: torch.Tensor, force: torch.Tensor, rel: float = 0.05) -> list[dict]
     return out
 
 
-def profile(r: torch.Tensor, eps_values: list[float]) -> dict[str, dict]:
+def profile(core, r: torch.Tensor, eps_values: list[float]) -> dict[str, dict]:
     """Per eps: the pair's potential, the pole's force on the box (its y component and norm) and the force's humps,
-    with Push's pole beside its box (on the side, at the box's height) at the centre distances ``r``."""
-    core = make_core("cfd_torch/Push-v0")
+    with the Push ``core``'s pole beside its box (on the side, at the box's height) at the centre distances ``r``."""
     box, pole = core.scene.bodies[:2]
     s0 = core.reset(0, 1)
     q = s0.q[0, :2].expand(len(r), -1, -1).clone()  # (R, 2, 6): the box as it starts, the pole beside it
@@ -80,12 +79,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("results/far_field_staircase"))
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    core = make_core("cfd_torch/Push-v0")
     r = torch.linspace(0.21, 1.5, args.points, dtype=torch.float64)
-    rows = profile(r, args.eps)
+    rows = profile(core, r, args.eps)
     result = {
         "commit": git_revision(),
         "distance": r.tolist(),
-        "mu": make_core("cfd_torch/Push-v0").scene.contact.stiffness,
+        "mu": core.scene.contact.stiffness,
         "eps": rows,
     }
     (args.out / "staircase.json").write_text(json.dumps(result, indent=1))

@@ -419,10 +419,8 @@ def test_cube_tasks_take_a_number_of_cubes(env_id, task_obs):
     assert env.observation_space.contains(obs)
     s = core.reset(0)
     out = core.step(s, torch.tensor([[1.0, 0.0]], dtype=F64))
-    moved = out.state.q[0, :, :2] - s.q[0, :, :2]
-    assert (
-        float(moved[3, 0]) > 1e-3 and float(moved[:3].abs().max()) < 1e-3
-    )  # the pusher moves, not the cubes
+    moved = out.state.q[0, :, :2] - s.q[0, :, :2]  # the pusher moves, not the cubes
+    assert float(moved[3, 0]) > 1e-3 and float(moved[:3].abs().max()) < 1e-3
     assert core.outside(out.state).shape == (1, 3)
     assert float(out.info["reward_distance"][0]) == pytest.approx(
         -float(core.outside(out.state).mean()), rel=1e-12

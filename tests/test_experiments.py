@@ -428,6 +428,8 @@ def test_far_field_force_hump_between_pole_and_box():
     """scripts/far_field_staircase.py: with eps 1.0 (the pushing tasks' band) the pole's force on Push's box peaks at
     the root pair's band (0.8-0.95 m) and is weaker closer in, down to under a third of the peak, before it grows
     again; at eps 4 there is no such hump. ``humps`` finds a synthetic one exactly and none in a monotone profile."""
+    from cfd_torch.envs import make_core
+
     sys.path.insert(0, str(SCRIPTS))
     try:
         from far_field_staircase import humps, profile
@@ -439,7 +441,7 @@ def test_far_field_force_hump_between_pole_and_box():
     assert (h["peak_distance"], h["dip_distance"], h["recovered_at"]) == pytest.approx((0.5, 0.3, 0.1))
     assert humps(x, torch.linspace(5.0, 1.0, 11, dtype=torch.float64)) == []
     r = torch.linspace(0.3, 1.5, 61, dtype=torch.float64)
-    rows = profile(r, [1.0, 4.0])
+    rows = profile(make_core("cfd_torch/Push-v0"), r, [1.0, 4.0])
     (h,) = rows["1.0"]["force_humps"]
     assert 0.8 < h["peak_distance"] < 0.95 and 0.55 < h["dip_distance"] < 0.7
     assert h["dip_force"] < h["peak_force"] / 3 and 0.3 < h["recovered_at"] < 0.45

@@ -132,7 +132,7 @@ class SdrsContact:
             kappa = self.stiffness
             # f(p, x) = kappa [B(1 - |n|) + sum_k B(s_k)], s_k = sg_k (n . x_k + d) - delta / 2:
             # f_x_k = kappa B'(s_k) sg_k n (f_p = 0 at the optimum)
-            n, sg, a = p[:, :3], _SIDES.to(x), _sdrs_plane_rows(x)  # a: (C, 6, 4)
+            n, sg = p[:, :3], _SIDES.to(x)
             s_k = sg * ((x * n[:, None]).sum(-1) + p[:, 3:]) - 0.5 * dl
             b1, b2 = _sdrs_barrier_derivatives(s_k, h)  # (C, 6)
             gx = kappa * (b1 * sg)[..., None] * n[:, None]
@@ -141,6 +141,7 @@ class SdrsContact:
                 # f_xx: kappa B''(s_k) n n^T on the diagonal blocks; f_x_k p = kappa sg_k (B''(s_k) n a_k^T +
                 # B'(s_k) [I 0]), a_k = sg_k [x_k, 1]; f_pp the plane solve's Hessian
                 _, Hpp = _sdrs_plane_derivatives(p, x, h, dl)
+                a = _sdrs_plane_rows(x)  # (C, 6, 4)
                 Hxp = (b2 * sg)[..., None, None] * n[:, None, :, None] * a[:, :, None, :]  # (C, 6, 3, 4)
                 Hxp[..., :3] += (b1 * sg)[..., None, None] * torch.eye(3, dtype=x.dtype, device=x.device)
                 Hxp = kappa * Hxp.reshape(C, 18, 4)
