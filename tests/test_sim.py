@@ -368,6 +368,10 @@ def test_pair_forces_and_step_info_at_rest(bodies):
     assert abs(float(F[1, 0, 2]) - weight) < 1e-3 * weight  # the ground carries the cube
     torch.testing.assert_close(F[0, 1, :3], -F[1, 0, :3], rtol=1e-12, atol=1e-12)  # action = reaction
     torch.testing.assert_close(info.contact_force[0], F[1, 0], rtol=1e-9, atol=1e-9)  # same read-out
+    # within the margin, or sunk into the ground, the potential is +inf and there is no force to report
+    for z in (0.1 + 0.5e-3, 0.05):
+        with pytest.raises(ValueError, match=r"q: bodies penetrate .* pairs \(0, 1\)"):
+            pair_forces(scene, torch.tensor([_pose(0.0, 0.0, z), _pose()], dtype=F64))
 
 
 def test_torch_backend_step_matches_numba(bodies):

@@ -625,6 +625,28 @@ def test_kinematic_pusher_pushes_box_along_ground(cube, ground, pusher):
     assert _height(cube, qs[-1, 0]) < 3e-3  # still on the ground
 
 
+def test_kinematic_pusher_that_sweeps_through_a_box_in_one_step_pushes_it(cube, ground, pusher):
+    """A pusher whose one-step motion passes through the box (its end pose clear of it, behind the box) pushes the
+    box ahead of it, as the same motion in small steps does; the box is not left behind."""
+    scene = Scene((cube, ground, pusher), dt=0.05)
+    x_push = -HALF - 0.025 - 0.02  # 2 cm behind the box
+    q0 = _poses((0.0, 0.0, HALF + 1.4e-3), (), (x_push, 0.0, 0.06))
+    end = 0.15  # the pusher's end pose is past the box's far side (x = 0.1): the end alone is feasible
+    target = q0[2:3].clone()
+    target[0, 0] = end
+    one = step(scene, scene.initial_state(q0), Action(target=target))
+    state = scene.initial_state(q0)
+    for x in torch.linspace(x_push, end, 8)[1:]:
+        t = q0[2:3].clone()
+        t[0, 0] = x
+        state = step(scene, state, Action(target=t))
+    for q in (one.q, state.q):
+        assert float(q[0, 0]) > end + 0.025 + HALF  # the box is ahead of the pusher's front face
+        assert _distance(cube, q[0], pusher, q[2]) > MARGIN
+        assert _height(cube, q[0]) > MARGIN
+    assert abs(float(one.q[0, 0] - state.q[0, 0])) < 0.02  # where the small steps put it (observed: a few mm)
+
+
 @pytest.mark.slow
 def test_pusher_rollout_gradient_matches_finite_differences(cube, ground, pusher):
     """d(final box pose)/d(pusher speed, friction coefficient) through 30 pushing steps (about 40 s)."""

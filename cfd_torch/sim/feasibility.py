@@ -14,6 +14,9 @@ reachable. One contract for all three:
   only if some centre of mass crosses a static surface. With a huge dt the minimiser can lie beyond an obstacle,
   reached by iterates that went around it. Pairs of moving bodies are not checked here: their straight
   interpolation may overlap after a legitimate collision.
+* A **kinematic body's motion** over the step (from its start-of-step pose to its target, the moving bodies at
+  their start-of-step poses) is checked the same way: one that would pass through a moving body makes the start
+  carry the bodies along or push them out of its way (:func:`cfd_torch.sim.solve.start`).
 * The Newton solve **starts** at a feasible configuration (:func:`cfd_torch.sim.solve.start` says how it is
   found); a start state that itself penetrates is a ``ValueError``.
 """
@@ -26,7 +29,15 @@ from .._geometry import segment_hits_triangle
 from ..rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 from .energy import StepProblem
 
-__all__ = ["infeasible_pairs", "feasible", "penetrating", "displacement", "path_clear", "reachable"]
+__all__ = [
+    "infeasible_pairs",
+    "feasible",
+    "penetrating",
+    "displacement",
+    "path_clear",
+    "sweep_clear",
+    "reachable",
+]
 
 
 def infeasible_pairs(scene, poses: torch.Tensor, sel: torch.Tensor | None = None, shrink: float = 0.0):
@@ -72,15 +83,36 @@ def displacement(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: 
     return (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
 
 
+def _spaced(dist: torch.Tensor, spacing: float, x0: torch.Tensor, x1: torch.Tensor):
+    """Points of the straight paths x0 -> x1 (A, ...) of lengths ``dist`` (A,) at most ``spacing`` apart, ends
+    excluded: the points (S, ...) and the index of each one's path (S,)."""
+    n = torch.ceil(dist / spacing).long().clamp_min(1)
+    path = torch.repeat_interleave(torch.arange(len(n), device=x0.device), n - 1)
+    first = torch.cumsum(n - 1, 0) - (n - 1)
+    k = torch.arange(len(path), device=x0.device) - first[path] + 1
+    frac = (k.to(x0.dtype) / n[path].to(x0.dtype)).reshape((-1,) + (1,) * (x0.dim() - 1))
+    return x0[path] + frac * (x1[path] - x0[path]), path
+
+
 def _samples(prob: StepProblem, q0, q1, scenes):
     """Points of the straight paths q0 -> q1 at most ccd_spacing apart, ends excluded: (S, Q) coordinates, the
     scene of each (S,) and the index of its path (S,)."""
-    n = torch.ceil(displacement(prob, q0, q1, scenes) / prob.scene.solver.ccd_spacing).long().clamp_min(1)
-    path = torch.repeat_interleave(torch.arange(len(n), device=q0.device), n - 1)
-    first = torch.cumsum(n - 1, 0) - (n - 1)
-    k = torch.arange(len(path), device=q0.device) - first[path] + 1
-    frac = (k.to(q0.dtype) / n[path].to(q0.dtype))[:, None]
-    return q0[path] + frac * (q1[path] - q0[path]), scenes[path], path
+    qs, path = _spaced(displacement(prob, q0, q1, scenes), prob.scene.solver.ccd_spacing, q0, q1)
+    return qs, scenes[path], path
+
+
+def sweep_clear(scene, p0: torch.Tensor, p1: torch.Tensor) -> torch.Tensor:
+    """(S,) bool: whether the straight paths of every body's pose p0 -> p1 (S, N, 6) are feasible at points at most
+    ccd_spacing apart (ends excluded; p0 feasible, p1 checked by the caller). The kinematic bodies' own motion over a
+    step is checked this way: the Newton moves hold them at their targets."""
+    d = p1 - p0
+    r = scene.extent.to(p0)
+    dist = (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
+    ps, path = _spaced(dist, scene.solver.ccd_spacing, p0, p1)
+    clear = torch.ones(len(p0), dtype=torch.bool, device=p0.device)
+    if len(ps):
+        clear[path[~feasible(scene, ps)]] = False
+    return clear
 
 
 def path_clear(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:

@@ -2,9 +2,10 @@
 
 The start (the configuration the Newton solve begins from, feasible by :mod:`.feasibility`'s contract): the
 constant-velocity extrapolation if it and the path to it are feasible; else q_t; else (a kinematic body moved into
-a dynamic one) the moving bodies carried with each kinematic body's displacement, or a continuation: the kinematic
-motion split into fractions (adaptively halved), the step's problem solved loosely at each fraction from the
-previous solution, so the pushed bodies make room. Only the final solve, at the real targets, is the step.
+or through a dynamic one) the moving bodies carried with each kinematic body's displacement, or a continuation:
+the kinematic motion split into fractions (adaptively halved), the step's problem solved loosely at each fraction
+from the previous solution, so the pushed bodies make room. Only the final solve, at the real targets, is the
+step.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
-from .feasibility import displacement, feasible, path_clear, penetrating, reachable
+from .feasibility import displacement, feasible, path_clear, penetrating, reachable, sweep_clear
 from .newton import NewtonResult, Stop, newton
 from .types import StepError
 
@@ -138,12 +139,18 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     done, inc = 0.0, 0.5
     tol = max(scene.solver.newton_tol, 1e-7)
     work: Work = (0, 0, 0)
+    before = target.clone()
+    before[:, kin] = origin
     while done < 1.0:
         frac = min(1.0, done + inc)
         fixed = target.clone()
         fixed[:, kin] = origin + frac * (target[:, kin] - origin)
         sub = prob._replace(fixed=fixed)
-        if bool(feasible(scene, scene.kinematics.poses(q, fixed))[0]):
+        p1 = scene.kinematics.poses(q, fixed)
+        if bool(feasible(scene, p1)[0]) and bool(
+            sweep_clear(scene, scene.kinematics.poses(q, before), p1)[0]
+        ):
+            before = fixed
             res, w = _newton(sub, q, None, tol)
             work = _add(work, w)
             if int(res.reason[0]) != Stop.CONVERGED:
@@ -174,6 +181,15 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     B = q_t.shape[0]
     dev = q_t.device
     ok_t = feasible(scene, kin.poses(q_t, prob.fixed))
+    kin_idx = scene.kinematic.to(dev)
+    if len(kin_idx):  # a kinematic body that moves through a moving body: its end pose alone does not show it
+        moved = ok_t & (prob.fixed[:, kin_idx] != prob.q_t[:, kin_idx]).flatten(1).any(1)
+        if bool(moved.any()):
+            m = torch.nonzero(moved)[:, 0]
+            p1 = kin.poses(q_t[m], prob.fixed[m])
+            p0 = p1.clone()
+            p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
+            ok_t[m] = sweep_clear(scene, p0, p1)
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)
@@ -193,7 +209,6 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             path_clear(one, q_t[b : b + 1], extrap[b : b + 1], zero)[0]
         ):
             q0[b] = extrap[b]
-    kin_idx = scene.kinematic.to(dev)
     for b in torch.nonzero(~ok_t)[:, 0].tolist():
         bad = penetrating(scene, prob.q_t[b])
         if bad:
@@ -204,9 +219,12 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
         if len(kin_idx) == 0:
             raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
         shift = prob.fixed[b, kin_idx, :3] - prob.q_t[b, kin_idx, :3]  # (K, 3)
+        p0 = kin.poses(q_t[b : b + 1], prob.fixed[b : b + 1])
+        p0[:, kin_idx] = prob.q_t[b : b + 1, kin_idx]
         for k in range(len(kin_idx)):
             cand = kin.carry(q_t[b : b + 1], shift[k : k + 1])
-            if bool(feasible(scene, kin.poses(cand, prob.fixed[b : b + 1]))[0]):
+            p1 = kin.poses(cand, prob.fixed[b : b + 1])
+            if bool(feasible(scene, p1)[0]) and bool(sweep_clear(scene, p0, p1)[0]):
                 q0[b] = cand[0]
                 break
         else:

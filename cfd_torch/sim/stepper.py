@@ -310,14 +310,27 @@ def rollout(
 def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     """Contact forces between every two bodies at poses q ([B,] N, 6): F[..., i, j, :] (N, N, 6) is the generalised
     force of body i on body j, -dP_ij/dq_j (columns 0-2 the world-frame force [N], 3-5 conjugate to the rotation
-    vector); zero for pairs without contact (static-static, excluded). Not differentiable."""
+    vector); zero for pairs without contact (static-static, excluded). Not differentiable.
+
+    Raises:
+        ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force)."""
     check_state_tensor(q, "q", scene.num_bodies)
     poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
     B, N = poses.shape[:2]
     pairs = scene_pairs(scene, B).to(poses.device)
     F = poses.new_zeros(B, N, N, 6)
     if pairs.shape[0]:
-        g = scene.contact_model.evaluate(poses, pairs, 1).grad
+        ev = scene.contact_model.evaluate(poses, pairs, 1)
+        bad = ~torch.isfinite(ev.value)
+        if bool(bad.any()):
+            first = ", ".join(
+                f"({a}, {b})" + (f" of scene {c}" if B > 1 else "") for c, a, b in pairs[bad][:5].tolist()
+            )
+            raise ValueError(
+                f"q: bodies penetrate (are within the margin {scene.contact.margin} of each other), where the "
+                f"potential is +inf and has no force: pairs {first}"
+            )
+        g = ev.grad
         s, i, j = pairs.unbind(1)
         F[s, i, j] = -g[:, 6:]
         F[s, j, i] = -g[:, :6]
