@@ -19,6 +19,11 @@ from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 _DEGENERACY_EPS_MULTIPLE = 100.0
 
 
+# largest coordinate magnitude of a triangle [m]: the pair solve converges for unit triangles up to 1e32 m apart,
+# not from about 1e35 (its tests cannot resolve what is left), and squared distances overflow float64 from 1e154
+_MAX_COORD = 1e30
+
+
 def _index_str(mask: torch.Tensor) -> str:
     idx = torch.nonzero(mask)[0]
     return "(" + ", ".join(str(int(i)) for i in idx) + ")"
@@ -28,7 +33,7 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
     """Require a floating-point tensor without NaN (and without inf unless ``allow_inf``)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if not x.is_floating_point():
+    if x.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
     with outside_transforms():
         x = plain(x)
@@ -65,21 +70,27 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
         kernel = _triangle_codes_nb if flat.shape[0] >= 100_000 else _triangle_codes_serial
         kernel(flat.numpy(), float(tol), code.numpy())
         code = code.reshape(tri.shape[:-2])
-        nonfinite, degenerate = code == 1, code == 2
+        nonfinite, degenerate, huge = code == 1, code == 2, code == 3
     else:
+        huge = tri.abs().flatten(-2).amax(-1) > _MAX_COORD
         e1 = tri[..., 1, :] - tri[..., 0, :]
         e2 = tri[..., 2, :] - tri[..., 0, :]
         e3 = tri[..., 2, :] - tri[..., 1, :]
         area2_sq = (torch.linalg.cross(e1, e2) ** 2).sum(-1)  # (2 area)^2
         longest_sq = torch.maximum(torch.maximum((e1 * e1).sum(-1), (e2 * e2).sum(-1)), (e3 * e3).sum(-1))
         degenerate = ~(area2_sq > (tol * longest_sq) ** 2)  # also True for coincident vertices and for NaN
-        if not bool(degenerate.any()):
+        if not bool(degenerate.any() | huge.any()):
             return
         nonfinite = ~torch.isfinite(tri).flatten(-2).all(-1)
     if bool(nonfinite.any()):
         raise ValueError(
             f"{name} contains NaN or inf coordinates (triangle at batch index {_index_str(nonfinite)}, "
             f"{int(nonfinite.sum())} triangles)"
+        )
+    if bool(huge.any()):
+        raise ValueError(
+            f"{name} has coordinates beyond {_MAX_COORD:g} in magnitude, where the pair solve cannot resolve the "
+            f"potential (triangle at batch index {_index_str(huge)}, {int(huge.sum())} triangles)"
         )
     if bool(degenerate.any()):
         raise ValueError(
@@ -90,16 +101,22 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _triangle_codes_nb(tri, tol, code):
-    """code[k] = 1 if triangle k has a NaN/inf coordinate, 2 if 2 area <= tol * longest edge^2, else 0."""
+    """code[k] = 1 if triangle k has a NaN/inf coordinate, 3 if one beyond _MAX_COORD in magnitude, 2 if 2 area <=
+    tol * longest edge^2, else 0."""
     for k in numba.prange(tri.shape[0]):
         t = tri[k]
         finite = True
+        big = 0.0
         for i in range(3):
             for j in range(3):
                 if not math.isfinite(t[i, j]):
                     finite = False
+                big = max(big, abs(t[i, j]))
         if not finite:
             code[k] = 1
+            continue
+        if big > _MAX_COORD:
+            code[k] = 3
             continue
         ax, ay, az = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
         bx, by, bz = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
@@ -129,6 +146,14 @@ def is_int(value: object) -> bool:
 def check_positive(value: float, name: str) -> None:
     if not (is_real(value) and 0 < value < float("inf")):
         raise ValueError(f"{name} must be a finite positive number (int or float), got {value!r}")
+
+
+def check_tolerance(value: float, name: str) -> None:
+    """A relative tolerance: a number in (0, 1)."""
+    if not (is_real(value) and 0 < value < 1):
+        raise ValueError(
+            f"{name} must be a finite positive number below 1 (a relative tolerance), got {value!r}"
+        )
 
 
 def check_count(value: int, name: str) -> None:

@@ -83,6 +83,10 @@ class ContactConfig:
             raise ValueError(f"ContactConfig.backend must be 'auto' or 'torch', got {self.backend!r}")
         for name in ("stiffness", "margin", "eps", "pair_tol"):
             _positive("ContactConfig", name, getattr(self, name))
+        if not self.pair_tol < 1:
+            raise ValueError(
+                f"ContactConfig.pair_tol must be below 1 (a relative tolerance), got {self.pair_tol!r}"
+            )
         _count("ContactConfig", "pair_max_iter", self.pair_max_iter)
         if self.split not in SPLIT_RULES:
             raise ValueError(f"ContactConfig.split must be one of {SPLIT_RULES}, got {self.split!r}")

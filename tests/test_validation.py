@@ -8,6 +8,7 @@ devices before reading any value, so they fire before a meta tensor could reach 
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -231,6 +232,104 @@ def test_non_mesh_is_a_type_error():
         rigid_body(np.zeros((4, 3)))
     with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
         BSH.from_trimesh(np.zeros((4, 3)))
+
+
+def _says(message: str, err=ValueError):
+    """pytest.raises whose message contains ``message`` literally."""
+    return pytest.raises(err, match=re.escape(message))
+
+
+def test_half_precision_poses_and_distances_are_refused():
+    """float16 and bfloat16 would silently lose the answer (4-12 % off): every entry point takes float32 or float64."""
+    from cfd_torch import contact_potential, mesh_potential
+    from cfd_torch.contact.central import blend_weight, central_potential
+
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    for dt in (torch.float16, torch.bfloat16):
+        qa, qb = torch.zeros(6, dtype=dt), torch.tensor([1.1, 0, 0, 0, 0, 0], dtype=dt)
+        with _says("pose_a must be float32 or float64"):
+            mesh_potential(ball, qa, ball, qb)
+        with _says("poses must be float32 or float64"):
+            contact_potential([ball, ball], torch.stack([qa, qb]))
+        with _says("r must have a floating dtype (float32 or float64)"):
+            central_potential(torch.ones(2, dtype=dt), mu=1e-8)
+        with _says("r must have a floating dtype (float32 or float64)"):
+            blend_weight(torch.ones(2, dtype=dt), 0.5, 0.1)
+
+
+def test_tolerances_and_coordinates_beyond_what_the_solve_resolves_are_refused():
+    from cfd_torch import ContactConfig, mesh_potential, pair_potential
+
+    A = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F64)
+    B = A + torch.tensor([0.0, 0, 0.5], dtype=F64)
+    for tol in (1.0, 10.0, 1e300):
+        with _says("tol must be a finite positive number below 1"):
+            pair_potential(A, B, tol=tol)
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    with _says("tol must be a finite positive number below 1"):
+        mesh_potential(ball, torch.zeros(6, dtype=F64), ball, torch.ones(6, dtype=F64), tol=2.0)
+    with _says("ContactConfig.pair_tol must be below 1"):
+        ContactConfig(pair_tol=1.0)
+    # unit triangles 1e32 m apart still resolve (P -> 12 mu); beyond 1e30 m in magnitude the input is refused
+    far = pair_potential(A, A + torch.tensor([0.0, 0, 1e29], dtype=F64), mu=1.0)
+    assert abs(float(far) - 12.0) < 1e-12
+    for gap in (1e40, 1e154, 1e300):
+        with pytest.raises(ValueError, match=r"tri_b has coordinates beyond 1e\+30 in magnitude"):
+            pair_potential(A, A + torch.tensor([0.0, 0, gap], dtype=F64))
+
+
+def test_blend_weight_names_a_bad_d1():
+    from cfd_torch.contact.central import blend_weight
+
+    r = torch.tensor([0.5, 0.9], dtype=F64)
+    with _says("d1 must be a number or a torch.Tensor, got list", TypeError):
+        blend_weight(r, [0.4, 0.4], 0.1)
+    with _says("d1 of shape (3,) does not broadcast with r of shape (2,)"):
+        blend_weight(r, torch.full((3,), 0.4, dtype=F64), 0.1)
+
+
+def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
+    """A misspelt kind used to hang the body in mid-air; non-integer exclude indices were truncated; a non-bool
+    static flag was read as True; a wrong config type failed deep inside with an AttributeError."""
+    from cfd_torch import RigidBody, contact_potential
+
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    ground = rigid_body(trimesh.creation.box((1.0, 1.0, 0.2)), kind="static")
+    with _says("RigidBody.kind must be one of"):
+        RigidBody(box.bsh, "Dynamic", box.mass, box.second_moment, box.com)
+    with _says("RigidBody.mass must be finite, > 0 for a dynamic body"):
+        RigidBody(box.bsh, "dynamic", 0.0, box.second_moment, box.com)
+    with _says("exclude must hold body pairs (i, j) of integers, got (0, 1.7)"):
+        Scene([box, ground], exclude=[(0, 1.7)])
+    with _says("pair_eps must hold body pairs"):
+        Scene([box, ground], pair_eps={(0, 1, 2): 0.5})
+    with _says("contact must be a ContactConfig or None, got dict", TypeError):
+        Scene([box, ground], contact={"margin": 1e-3})
+    with _says("solver must be a SolverConfig or None, got int", TypeError):
+        Scene([box, ground], solver=3)
+    with _says("friction must be a FrictionConfig or a number", TypeError):
+        Scene([box, ground], friction=torch.tensor(0.5))
+    assert Scene([box, ground], friction=np.float32(0.5)).friction.coefficient == 0.5
+    with _says("max_edge must be a finite number > 0"):
+        BSH.from_trimesh(trimesh.creation.box((1.0, 1.0, 1.0)), max_edge="0.1")
+    P = torch.tensor([[0.0] * 6, [1.1, 0, 0, 0, 0, 0]], dtype=F64)
+    with _says("static must be N = 2 booleans"):
+        contact_potential([box.bsh, box.bsh], P, static=[0.3, 0.0])
+    with _says("bshes must be a sequence of BSH objects", TypeError):
+        contact_potential((b for b in [box.bsh, box.bsh]), P)
+    assert contact_potential([box.bsh, box.bsh], P, static=[1, 0], grad=True).grad[0].abs().max() == 0.0
+
+
+def test_recentre_rotation_checks_its_poses():
+    from cfd_torch import recentre_rotation
+
+    out = recentre_rotation(torch.tensor([1.0, 2.0, 3.0, 4.0, 0.0, 0.0], dtype=F64))
+    torch.testing.assert_close(out, torch.tensor([1.0, 2.0, 3.0, 4.0 - 2 * math.pi, 0.0, 0.0], dtype=F64))
+    for bad in (torch.tensor([0, 0, 0, 4.0]), torch.zeros(2, 7), torch.zeros(3, 6, dtype=torch.long)):
+        with _says("q must be a float tensor of poses (..., 6)"):
+            recentre_rotation(bad)
+    with _says("q contains NaN or inf"):
+        recentre_rotation(torch.full((6,), float("nan")))
 
 
 # ------------------------------------------------------------------------------------------------ the step

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh
+from .._validate import check_mesh, is_real
 
 __all__ = ["BSH"]
 
@@ -98,8 +98,8 @@ class BSH:
         Fc = Fc.astype(np.int64)
         check_mesh(V, Fc, "vertices", "faces")
         if max_edge is not None:
-            if not max_edge > 0:
-                raise ValueError(f"max_edge must be > 0, got {max_edge}")
+            if not (is_real(max_edge) and 0 < max_edge < float("inf")):
+                raise ValueError(f"max_edge must be a finite number > 0 (or None), got {max_edge!r}")
             import trimesh.remesh
 
             V, Fc = trimesh.remesh.subdivide_to_size(V, Fc, max_edge=max_edge, max_iter=64)

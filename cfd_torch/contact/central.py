@@ -99,7 +99,15 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
     check_finite_tensor(r, "r", allow_inf=True)
     if bool((r < 0).any()):
         raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
+    if not (isinstance(d1, torch.Tensor) or is_real(d1)):
+        raise TypeError(f"d1 must be a number or a torch.Tensor, got {type(d1).__name__}")
     d1_t = torch.as_tensor(d1, dtype=r.dtype, device=r.device)
+    try:
+        torch.broadcast_shapes(r.shape, d1_t.shape)
+    except RuntimeError:
+        raise ValueError(
+            f"d1 of shape {tuple(d1_t.shape)} does not broadcast with r of shape {tuple(r.shape)}"
+        ) from None
     if not bool((torch.isfinite(d1_t) & (d1_t > 0)).all()):
         raise ValueError(f"d1 must be finite and > 0 (a sum of two radii), got {d1}")
     w = band_width(d1, eps, margin)

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
-from .._validate import check_count, check_positive
+from .._validate import check_count, check_positive, check_tolerance
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -63,7 +63,7 @@ def _check_pose(pose: object, name: str) -> None:
         raise ValueError(
             f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
         )
-    if not pose.is_floating_point():
+    if pose.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
     with outside_transforms():
         bad = ~torch.isfinite(plain(pose)).all(-1)
@@ -73,8 +73,9 @@ def _check_pose(pose: object, name: str) -> None:
 
 
 def _check_params(mu, margin, eps, split, tol, max_iter):
-    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps"), (tol, "tol")):
+    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
         check_positive(v, n)
+    check_tolerance(tol, "tol")
     check_count(max_iter, "max_iter")
     if split not in SPLIT_RULES:
         raise ValueError(f"split must be one of {SPLIT_RULES}, got {split!r}")

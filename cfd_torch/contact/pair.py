@@ -34,7 +34,7 @@ from .._autograd import (
     vmap_error,
 )
 from .._geometry import frame_origin
-from .._validate import check_count, check_positive, check_triangles
+from .._validate import check_count, check_positive, check_tolerance, check_triangles
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
@@ -320,7 +320,7 @@ def _prepare(tri_a, tri_b, mu, margin, tol, max_iter):
         raise ValueError(f"tri_a and tri_b must be on one device, got {tri_a.device} and {tri_b.device}")
     check_positive(mu, "mu")
     check_positive(margin, "margin")
-    check_positive(tol, "tol")
+    check_tolerance(tol, "tol")
     check_count(max_iter, "max_iter")
     try:
         batch = torch.broadcast_shapes(tri_a.shape[:-2], tri_b.shape[:-2])

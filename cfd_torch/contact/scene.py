@@ -146,6 +146,10 @@ def contact_potential(
     N = poses.shape[0]
     if N == 0:
         raise ValueError("poses must hold at least one body, got a (0, 6) tensor")
+    if not isinstance(bshes, Sequence):
+        raise TypeError(
+            f"bshes must be a sequence of BSH objects (a list or tuple), got {type(bshes).__name__}"
+        )
     if len(bshes) != N:
         raise ValueError(
             f"bshes must be a sequence of N = {N} BSH objects (one per row of poses), got {len(bshes)}"
@@ -153,7 +157,7 @@ def contact_potential(
     for i, b in enumerate(bshes):
         if not isinstance(b, BSH):
             raise ValueError(f"bshes[{i}] must be a cfd_torch.BSH, got {type(b).__name__}")
-    if not poses.is_floating_point():
+    if poses.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
     with outside_transforms():
         bad = ~torch.isfinite(plain(poses)).all(1)
@@ -169,9 +173,19 @@ def contact_potential(
     # Everything but the autograd attachment runs on plain tensors: the traversal's kernels need storage, and the
     # forest cache must not keep tensors wrapped by a torch.func transform.
     with outside_transforms():
-        static_t = (
-            torch.zeros(N, dtype=torch.bool) if static is None else torch.as_tensor(static, dtype=torch.bool)
-        )
+        if static is None:
+            static_t = torch.zeros(N, dtype=torch.bool)
+        else:
+            try:
+                static_t = torch.as_tensor(static)
+            except (TypeError, ValueError, RuntimeError):
+                raise ValueError(f"static must be N = {N} booleans, got {static!r}") from None
+            if static_t.dtype != torch.bool and not (
+                static_t.dtype in (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+                and bool(((static_t == 0) | (static_t == 1)).all())
+            ):
+                raise ValueError(f"static must be N = {N} booleans (or 0/1), got {static!r}")
+            static_t = static_t.to(device="cpu", dtype=torch.bool)
         if static_t.shape != (N,):
             raise ValueError(f"static must have shape ({N},), got {tuple(static_t.shape)}")
         unique: dict[int, int] = {}

@@ -49,6 +49,19 @@ class RigidBody:
     second_moment: torch.Tensor
     com: torch.Tensor
 
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"RigidBody.kind must be one of {KINDS}, got {self.kind!r}")
+        if not isinstance(self.bsh, BSH):
+            raise TypeError(f"RigidBody.bsh must be a cfd_torch.BSH, got {type(self.bsh).__name__}")
+        if not (is_real(self.mass) and 0 <= self.mass < float("inf")) or (self.kind == "dynamic") != (
+            self.mass > 0
+        ):
+            raise ValueError(
+                f"RigidBody.mass must be finite, > 0 for a dynamic body and 0 otherwise, got {self.mass!r} "
+                f"({self.kind})"
+            )
+
     @property
     def inertia(self) -> torch.Tensor:
         """(3, 3) inertia tensor about the COM, body frame [kg m^2]."""

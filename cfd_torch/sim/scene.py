@@ -9,7 +9,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-from .._validate import is_real
+from .._validate import is_int, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact.cfd import CfdContact
 from ..contact.ipc import IpcContact
@@ -46,6 +46,13 @@ _SHORTHAND = {
     "substeps": ("solver", "substeps"),
     "fast": ("solver", "fast"),
 }
+
+
+def _body_pair(p: object, name: str) -> tuple[int, int]:
+    """A body pair (i, j) of integers, as given in ``name``."""
+    if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(x) for x in p)):
+        raise ValueError(f"{name} must hold body pairs (i, j) of integers, got {p!r}")
+    return int(p[0]), int(p[1])
 
 
 class Scene:
@@ -131,8 +138,16 @@ class Scene:
         gravity = tuple(float(x) for x in gravity)
         if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-        if isinstance(friction, (int, float)):
-            friction = FrictionConfig(coefficient=friction)
+        if is_real(friction):
+            friction = FrictionConfig(coefficient=float(friction))
+        for name, value, kind in (
+            ("contact", contact, ContactConfig),
+            ("friction", friction, FrictionConfig),
+            ("solver", solver, SolverConfig),
+        ):
+            if value is not None and not isinstance(value, kind):
+                what = " or a number (the coefficient)" if name == "friction" else ""
+                raise TypeError(f"{name} must be a {kind.__name__}{what} or None, got {type(value).__name__}")
         cfg = {
             "contact": contact or ContactConfig(),
             "friction": friction or FrictionConfig(),
@@ -152,8 +167,8 @@ class Scene:
         self.contact: ContactConfig = cfg["contact"]
         self.friction: FrictionConfig = cfg["friction"]
         self.solver: SolverConfig = cfg["solver"]
-        self.exclude = tuple((int(a), int(b)) for a, b in exclude)
-        self.pair_eps = {(int(a), int(b)): e for (a, b), e in (pair_eps or {}).items()}
+        self.exclude = tuple(_body_pair(p, "exclude") for p in exclude)
+        self.pair_eps = {_body_pair(p, "pair_eps"): e for p, e in (pair_eps or {}).items()}
         N = len(bodies)
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)

@@ -43,7 +43,22 @@ def _whole_turns(w: torch.Tensor, toward: torch.Tensor) -> torch.Tensor:
 def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
     """Map rotation vectors with |omega| > pi to the equivalent omega (1 - 2 pi k / |omega|), k the whole turns
     that bring the norm to at most pi (the same rotation), differentiably; translations and rotation vectors of norm
-    at most pi pass through unchanged."""
+    at most pi pass through unchanged.
+
+    Raises:
+        TypeError, ValueError: q is not a float tensor (..., 6) of finite values."""
+    if not isinstance(q, torch.Tensor):
+        raise TypeError(f"q must be a torch.Tensor, got {type(q).__name__}")
+    if q.dim() == 0 or q.shape[-1] != 6 or not q.is_floating_point():
+        raise ValueError(
+            f"q must be a float tensor of poses (..., 6), got {q.dtype} of shape {tuple(q.shape)}"
+        )
+    if not bool(torch.isfinite(q.detach()).all()):
+        raise ValueError("q contains NaN or inf")
+    return _recentre(q)
+
+
+def _recentre(q: torch.Tensor) -> torch.Tensor:
     w = q[..., 3:]
     return torch.cat([q[..., :3], _whole_turns(w, torch.zeros_like(w))], -1)
 
@@ -85,7 +100,7 @@ def _solve(
     moved[scene.kinematics.bodies] = True
     moved[scene.kinematic] = True
     q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
-    q_next = _shift(torch.where(moved, recentre_rotation(q_next), q_next), c)
+    q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
     ones = torch.ones_like(iters)
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
