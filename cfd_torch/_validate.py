@@ -198,6 +198,45 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
 _TOUCH_REL = 1e-9
 
 
+def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(P,) generalised winding numbers of the closed surface ``triangles`` (T, 3, 3) at ``points`` (P, 3): the
+    summed signed solid angles of the triangles over 4 pi (Van Oosterom and Strackee), an integer (1 inside an
+    outward-wound closed surface, 0 outside) away from the surface."""
+    a = triangles[None, :, 0] - points[:, None]
+    b = triangles[None, :, 1] - points[:, None]
+    c = triangles[None, :, 2] - points[:, None]
+    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+    det = np.einsum("ptk,ptk->pt", a, np.cross(b, c))
+    den = (
+        la * lb * lc
+        + np.einsum("ptk,ptk->pt", a, b) * lc
+        + np.einsum("ptk,ptk->pt", b, c) * la
+        + np.einsum("ptk,ptk->pt", c, a) * lb
+    )
+    return (2.0 * np.arctan2(det, den)).sum(1) / (4.0 * np.pi)
+
+
+def nested_component(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> int | None:
+    """A connected component (``labels`` (F,): each face's) of a closed, outward-wound, self-intersection-free
+    mesh that lies inside another outward-wound one (its solid counted twice); None if there is none. Tested at a
+    point just behind each component's largest face, where the whole mesh's winding number must be 1."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(cross, axis=1)
+    points = []
+    comps = np.unique(labels)
+    for k in comps:
+        f = np.flatnonzero(labels == k)
+        i = f[np.argmax(area2[f])]
+        n = cross[i] / area2[i]
+        points.append(tri[i].mean(0) - 1e-6 * np.sqrt(area2[i]) * n)
+    points = np.asarray(points)
+    step = max(1, 2_000_000 // len(tri))  # points per chunk: (step, T) arrays of a few MB
+    w = np.concatenate([winding_numbers(points[i : i + step], tri) for i in range(0, len(points), step)])
+    bad = np.flatnonzero(np.abs(w - 1.0) > 0.25)
+    return int(comps[bad[0]]) if len(bad) else None
+
+
 def self_intersection(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, int] | None:
     """A pair of faces (i, j), i < j, that share no vertex position and intersect (or touch); None if there is none.
 

@@ -61,6 +61,25 @@ def test_self_intersecting_dynamic_mesh_names_mesh_and_faces():
     rigid_body(mesh, kind="static")  # an obstacle may be any surface
 
 
+def test_a_shell_nested_in_another_is_refused_and_a_cavity_is_not():
+    """Two outward-facing nested shells are watertight, consistently wound and free of self-intersections, but count
+    the inner solid twice (a 1 m box around a 0.5 m box weighed 1125 kg at 1000 kg/m^3); an inward-facing inner
+    shell is a cavity, and separate pieces are two solids."""
+    outer, inner = trimesh.creation.box((1.0, 1.0, 1.0)), trimesh.creation.box((0.5, 0.5, 0.5))
+    nested = trimesh.util.concatenate([outer, inner])
+    assert nested.is_watertight and nested.is_winding_consistent and float(nested.volume) > 0
+    with pytest.raises(
+        ValueError, match=r"mesh of a dynamic body has a closed shell inside another, .*\(component 1,"
+    ):
+        rigid_body(nested)
+    inner.invert()
+    assert rigid_body(trimesh.util.concatenate([outer, inner]), density=1000.0).mass == pytest.approx(875.0)
+    apart = trimesh.creation.box((0.2, 0.2, 0.2))
+    apart.apply_translation([1.0, 0.0, 0.0])
+    two = trimesh.util.concatenate([trimesh.creation.box((0.2, 0.2, 0.2)), apart])
+    assert rigid_body(two, density=1000.0).mass == pytest.approx(16.0)
+
+
 def test_vertex_pushed_through_the_mesh_is_a_self_intersection():
     """One vertex of a sphere pulled through to beyond the other side: its fan pierces the far faces."""
     mesh = trimesh.creation.icosphere(subdivisions=2)

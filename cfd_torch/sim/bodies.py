@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, is_real, self_intersection
+from .._validate import check_mesh, is_real, nested_component, self_intersection
 from ..contact.bsh import BSH
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -121,6 +121,19 @@ def rigid_body(
             f"mesh of a dynamic body intersects itself: faces {hit[0]} and {hit[1]} (which share no vertex) "
             "intersect or touch; its volume and mass properties would be wrong"
         )
+    if mesh.body_count > 1:
+        import trimesh
+
+        labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(Fc))
+        inner = nested_component(V, Fc, labels)
+        if inner is not None:
+            raise ValueError(
+                f"mesh of a dynamic body has a closed shell inside another, both facing outward (component {inner}, "
+                "faces "
+                + str(np.flatnonzero(labels == inner)[:3].tolist())[1:-1]
+                + ", ...): its volume would be "
+                "counted twice; a cavity's shell must face inward"
+            )
     m = mesh.copy()
     m.density = float(density)
     com = np.asarray(m.center_mass, dtype=np.float64)
