@@ -530,3 +530,62 @@ def segment_hits_triangle_nb(P, Q, T, sin_min) -> bool:
         return False
     t = (e2x * qx + e2y * qy + e2z * qz) * inv
     return 0.0 <= t <= 1.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def ray_crossings_nb(centre, radius, child, tri, tris, roots, origins, dirs, out):
+    """out[k] = how many triangles of hierarchy ``roots[k]`` (node table ``centre``, ``radius``, ``child``, ``tri``
+    over body-frame triangles ``tris``) the ray ``origins[k] + s dirs[k]``, s > 0, crosses, or -1 when the count is
+    ambiguous (the ray passes within 1e-9 relative of a triangle's edge or vertex, or starts on a triangle): the
+    caller retries along another direction. Möller-Trumbore per leaf, spheres missed by the ray pruned."""
+    stack = np.empty(256, np.int64)
+    for k in range(roots.shape[0]):
+        ox, oy, oz = origins[k, 0], origins[k, 1], origins[k, 2]
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        count = 0
+        top = 1
+        stack[0] = roots[k]
+        while top > 0:
+            top -= 1
+            n = stack[top]
+            wx, wy, wz = centre[n, 0] - ox, centre[n, 1] - oy, centre[n, 2] - oz
+            proj = wx * dx + wy * dy + wz * dz
+            w2 = wx * wx + wy * wy + wz * wz
+            r = radius[n] * (1.0 + 1e-9)
+            if proj < 0.0:
+                if w2 > r * r:
+                    continue
+            elif w2 - proj * proj > r * r:
+                continue
+            if child[n, 0] < 0:
+                t = tris[tri[n]]
+                e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
+                e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
+                px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+                det = e1x * px + e1y * py + e1z * pz
+                scale = math.sqrt((e1x * e1x + e1y * e1y + e1z * e1z) * (e2x * e2x + e2y * e2y + e2z * e2z))
+                if abs(det) <= 1e-12 * scale:  # the ray is parallel to the triangle's plane
+                    continue
+                sx, sy, sz = ox - t[0, 0], oy - t[0, 1], oz - t[0, 2]
+                u = (sx * px + sy * py + sz * pz) / det
+                qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+                v = (dx * qx + dy * qy + dz * qz) / det
+                s = (e2x * qx + e2y * qy + e2z * qz) / det
+                lo = -1e-9
+                if u < lo or v < lo or u + v > 1.0 - lo:
+                    continue
+                if s < -1e-9 * math.sqrt(scale):
+                    continue
+                if u <= -lo or v <= -lo or u + v >= 1.0 + lo or s <= 1e-9 * math.sqrt(scale):
+                    count = -1
+                    break
+                count += 1
+            else:
+                if top + 2 > stack.shape[0]:
+                    grown = np.empty(2 * stack.shape[0], np.int64)
+                    grown[:top] = stack[:top]
+                    stack = grown
+                stack[top] = child[n, 0]
+                stack[top + 1] = child[n, 1]
+                top += 2
+        out[k] = count

@@ -198,6 +198,21 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
 _TOUCH_REL = 1e-9
 
 
+def closed_surface(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the triangles (vertices welded by position) form closed, consistently wound surfaces: every directed
+    edge occurs once and its reverse once."""
+    _, weld = np.unique(np.asarray(vertices), axis=0, return_inverse=True)
+    f = weld.reshape(-1)[np.asarray(faces)]
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
+    fwd = e[:, 0] * n + e[:, 1]
+    rev = e[:, 1] * n + e[:, 0]
+    fwd_sorted = np.sort(fwd)
+    if len(fwd_sorted) > 1 and bool((fwd_sorted[1:] == fwd_sorted[:-1]).any()):
+        return False
+    return bool(np.isin(rev, fwd_sorted, assume_unique=False).all())
+
+
 def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(P,) generalised winding numbers of the closed surface ``triangles`` (T, 3, 3) at ``points`` (P, 3): the
     summed signed solid angles of the triangles over 4 pi (Van Oosterom and Strackee), an integer (1 inside an

@@ -487,6 +487,44 @@ def test_kinematic_target_clear_of_static_bodies_steps(scene, state):
     torch.testing.assert_close(nxt.q[2], target[0])
 
 
+def test_a_body_wholly_inside_another_is_refused():
+    """Surfaces clear of each other but one body inside the other: the potential is finite and nothing pushes it
+    out (a 0.1 m box at the centre of a 1 m block fell through it for 20 steps); a pusher placed inside a box is
+    refused at its target. Bodies beside and on top of each other step as before."""
+    block = rigid_body(trimesh.creation.box((1.0, 1.0, 1.0)), kind="static")
+    small = rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)))
+    scene = Scene([small, block])
+    inside = torch.tensor([[0.0, 0.0, 0.1, 0.3, 0.2, 0.0], [0.0] * 6], dtype=F64)
+    with _says("state.q: body 0 lies inside body 1"):
+        step(scene, scene.initial_state(inside))
+    batch = torch.stack([inside.clone(), inside.clone()])
+    batch[0, 0, 2] = 0.6  # on top of the block: fine
+    with _says(
+        "state.q: body 0 lies inside body 1 (their surfaces do not touch, so the contact potential cannot "
+    ):
+        step(scene, scene.initial_state(batch))
+    with pytest.raises(ValueError, match=r"lies inside body 1 .*\(scene 1\)"):
+        step(scene, scene.initial_state(batch))
+    on_top = batch[0]
+    assert float(step(scene, scene.initial_state(on_top)).q[0, 2]) > 0.5
+    # a kinematic paddle (5 mm) whose target lies inside a dynamic box, reached by a move shorter than ccd_spacing
+    # (so no sample of its path crosses the box's surface): refused; a 5 cm paddle's longer move into the box
+    # pushes the box
+    box = rigid_body(trimesh.creation.box((0.4, 0.4, 0.4)))
+    paddle = rigid_body(trimesh.creation.box((0.005, 0.005, 0.005)), kind="kinematic")
+    scene = Scene([box, paddle], gravity=(0.0, 0.0, 0.0))
+    q = torch.tensor([[0.0] * 6, [0.2045, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=F64)
+    target = torch.tensor([[0.1965, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=F64)
+    with _says("action.target: body 1 lies inside body 0"):
+        step(scene, scene.initial_state(q), Action(target=target))
+    big = rigid_body(trimesh.creation.box((0.05, 0.05, 0.05)), kind="kinematic")
+    scene = Scene([box, big], gravity=(0.0, 0.0, 0.0))
+    q = torch.tensor([[0.0] * 6, [0.23, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=F64)
+    far = torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=F64)
+    pushed = step(scene, scene.initial_state(q), Action(target=far))
+    assert float(pushed.q[0, 0]) < 0.05 - 0.025 - 0.2  # the box was pushed ahead of the paddle
+
+
 def test_step_refuses_torch_func_transforms(scene, state):
     """The step's autograd Function cannot pass torch.func's transforms: grad and vmap are refused, saying what
     to use instead."""

@@ -23,9 +23,10 @@ reachable. One contract for all three:
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-from .._geometry import segment_hits_triangle
+from .._geometry import ray_crossings_nb, segment_hits_triangle
 from ..rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 from .energy import StepProblem
 
@@ -68,6 +69,62 @@ def penetrating(scene, poses: torch.Tensor) -> str:
     return ", ".join(
         f"({int(i)}, {int(j)})" for i, j in scene.pairs[torch.nonzero(bad)[:5, 0].cpu()].tolist()
     )
+
+
+# directions a ray is cast along when the first (away from the container's centre) grazes an edge or a vertex
+_RAY_DIRECTIONS = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, 0.8018], [0.8944, -0.4472, 0.0001]])
+
+
+def contained(scene, poses: torch.Tensor) -> list[tuple[int, int, int]]:
+    """(s, i, j) for each pose set s of ``poses`` (S, N, 6) and interacting pair whose body i lies inside body j, a
+    closed surface (``scene.closed``), with i's surface clear of j's: the potential is finite there, and nothing
+    else would notice. Tested by the parity of the crossings of a ray from one vertex of i through j's surface
+    (its hierarchy prunes the triangles); only where that vertex is within j's extent of j's frame origin. Pairs
+    whose surfaces cross are not reported (they penetrate: :func:`penetrating`)."""
+    closed = scene.closed
+    pairs = scene.pairs
+    if pairs.shape[0] == 0 or not bool(closed.any()):
+        return []
+    inner = torch.cat([pairs[:, 0], pairs[:, 1]])
+    outer = torch.cat([pairs[:, 1], pairs[:, 0]])
+    keep = closed[outer]
+    inner, outer = inner[keep], outer[keep]
+    q = poses.detach().to("cpu", torch.float64)
+    probe = torch.stack([b.bsh.vertices[0] for b in scene.bodies]).to(torch.float64)  # (N, 3) body frame
+    R = rotation_matrix(q[..., 3:])  # (S, N, 3, 3)
+    x = torch.einsum("snij,nj->sni", R, probe) + q[..., :3]  # (S, N, 3) each body's probe in the world
+    xo = x[:, inner] - q[:, outer, :3]  # (S, C, 3)
+    local = torch.einsum("scji,scj->sci", R[:, outer], xo)  # in the outer body's frame
+    near = local.norm(dim=-1) <= scene.extent[outer]
+    if not bool(near.any()):
+        return []
+    ss, cc = torch.nonzero(near, as_tuple=True)
+    forest = scene.probe_forest
+    roots = scene.probe_root[outer[cc]].numpy()
+    origins = local[ss, cc].contiguous().numpy()
+    dirs = origins - forest.centre[roots].numpy()
+    norm = np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = np.where(norm > 0, dirs / np.where(norm > 0, norm, 1.0), _RAY_DIRECTIONS[0])
+    count = np.empty(len(roots), np.int64)
+    args = [x.numpy() for x in (forest.centre, forest.radius, forest.child, forest.tri, forest.tris)]
+    ray_crossings_nb(*args, roots, origins, dirs, count)
+    for d in _RAY_DIRECTIONS:
+        again = np.flatnonzero(count < 0)
+        if len(again) == 0:
+            break
+        redo = np.empty(len(again), np.int64)
+        ray_crossings_nb(
+            *args, roots[again], origins[again], np.tile(d / np.linalg.norm(d), (len(again), 1)), redo
+        )
+        count[again] = redo
+    hit = np.flatnonzero((count > 0) & (count % 2 == 1))  # (still ambiguous: not reported)
+    out = []
+    for k in hit.tolist():  # (rare) pairs whose surfaces cross are penetration, reported as such elsewhere
+        s, i, j = int(ss[k]), int(inner[cc[k]]), int(outer[cc[k]])
+        sel = ((pairs[:, 0] == min(i, j)) & (pairs[:, 1] == max(i, j))).to(pairs.device)
+        if not bool(infeasible_pairs(scene, poses[s : s + 1].detach(), sel).any()):
+            out.append((s, i, j))
+    return out
 
 
 def displacement(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:

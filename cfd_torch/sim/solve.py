@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
-from .feasibility import displacement, feasible, path_clear, penetrating, reachable, sweep_clear
+from .feasibility import contained, displacement, feasible, path_clear, penetrating, reachable, sweep_clear
 from .newton import NewtonResult, Stop, newton
 from .types import StepError
 
@@ -171,6 +171,18 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     return q, work
 
 
+def _refuse_contained(scene, poses: torch.Tensor, name: str, scenes: torch.Tensor | None = None) -> None:
+    """ValueError naming ``name`` if a body lies wholly inside another at ``poses`` (S, N, 6) (of ``scenes``)."""
+    inside = contained(scene, poses)
+    if inside:
+        s, i, j = inside[0]
+        b = s if scenes is None else int(scenes[s])
+        raise ValueError(
+            f"{name}: body {i} lies inside body {j} (their surfaces do not touch, so the contact potential cannot "
+            f"push it out)" + (f" (scene {b})" if poses.shape[0] > 1 or b > 0 else "")
+        )
+
+
 def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tensor, EnergyEval | None, Work]:
     """A feasible start (B, Q) for every scene, its order-2 evaluation where already done (None if not), and the
     work spent (``warm``: the step's warm starts, updated by the evaluation of the usual start)."""
@@ -180,7 +192,9 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     extrap = kin.extrapolate(q_t, q_p)
     B = q_t.shape[0]
     dev = q_t.device
-    ok_t = feasible(scene, kin.poses(q_t, prob.fixed))
+    _refuse_contained(scene, prob.q_t, "state.q")
+    at_targets = kin.poses(q_t, prob.fixed)
+    ok_t = feasible(scene, at_targets)
     kin_idx = scene.kinematic.to(dev)
     if len(kin_idx):  # a kinematic body that moves through a moving body: its end pose alone does not show it
         moved = ok_t & (prob.fixed[:, kin_idx] != prob.q_t[:, kin_idx]).flatten(1).any(1)
@@ -190,6 +204,10 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             p0 = p1.clone()
             p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
             ok_t[m] = sweep_clear(scene, p0, p1)
+            # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
+            # shorter than ccd_spacing): nothing could push that body out
+            clear = m[ok_t[m]]
+            _refuse_contained(scene, p1[ok_t[m]], "action.target", clear)
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)
