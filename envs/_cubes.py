@@ -15,6 +15,11 @@ from .core import EnvState, TaskCore
 __all__ = ["CubesCore"]
 
 
+# draws of a centre before a scatter gives up (the defaults place 11 footprints in about 20 draws)
+_SCATTER_TRIES = 1000
+_CLEARANCE = 0.05  # between the footprints of the scattered cubes and pusher [m]
+
+
 class CubesCore(TaskCore):
     """``num_cubes`` cubes (ten) and a pusher on a floor (the manual is in :class:`SortCore` and
     :class:`GatherCore`).
@@ -44,6 +49,9 @@ class CubesCore(TaskCore):
     ) -> None:
         if isinstance(num_cubes, bool) or not isinstance(num_cubes, int) or num_cubes < 1:
             raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
+        for name, v in (("cube_size", cube_size), ("cube_density", cube_density), ("spread", spread)):
+            if not (isinstance(v, (int, float)) and 0 < v < math.inf):
+                raise ValueError(f"{name} must be a finite positive number, got {v!r}")
         self.num_cubes = num_cubes
         self.action_body = num_cubes
         self.obs_dim = 4 * (num_cubes + 1) + self._task_obs_dim(num_cubes)
@@ -58,13 +66,23 @@ class CubesCore(TaskCore):
             pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)},
         )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
+        # a layout that cannot be drawn fails here, not in reset
+        self._scatter(torch.Generator().manual_seed(0), num_cubes + 1, _CLEARANCE)
 
     def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:
         """(n, 2) centres uniform in [-spread, spread]^2 whose footprints (circles of the cube's half diagonal)
-        are ``clearance`` apart (rejection sampling)."""
+        are ``clearance`` apart (rejection sampling; a ValueError after _SCATTER_TRIES draws per centre)."""
         r = self.cube_size / math.sqrt(2) + clearance / 2
         pts: list[torch.Tensor] = []
+        tries = 0
         while len(pts) < n:
+            tries += 1
+            if tries > _SCATTER_TRIES * n:
+                raise ValueError(
+                    f"spread {self.spread} m is too small to scatter num_cubes = {self.num_cubes} cubes of cube_size "
+                    f"{self.cube_size} m and the pusher apart ({len(pts)} of {n} placed in {tries - 1} draws): "
+                    "raise spread, or lower num_cubes or cube_size"
+                )
             p = self.spread * (2 * torch.rand(2, generator=gen, dtype=torch.float64) - 1)
             if all(float((p - o).norm()) > 2 * r for o in pts):
                 pts.append(p)
@@ -72,7 +90,7 @@ class CubesCore(TaskCore):
 
     def _initial(self, gen: torch.Generator):
         n = self.num_cubes
-        xy = self._scatter(gen, n + 1, 0.05)  # the last point is the pusher's
+        xy = self._scatter(gen, n + 1, _CLEARANCE)  # the last point is the pusher's
         q = torch.zeros(n + 2, 6, dtype=torch.float64)
         q[:n, :2] = xy[:n]
         q[:n, 2] = self.cube_size / 2 + GAP
@@ -130,10 +148,9 @@ class CubesCore(TaskCore):
         return 1.5
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        # xy: the pusher starts within the spread and runs at up to max_speed (twice that, for the PD law's
-        # overshoot) for the whole horizon, off the floor's edge if told to (it hovers); cubes go where it pushes them
-        reach = self.spread + 2.0 * self.pusher.max_speed * self.horizon * self.scene.dt + 1.0
-        body = [reach, reach, 20.0, 20.0]  # xy [m], planar velocities [m/s]
+        # xy and planar velocities are unbounded: an episode may run past the horizon, the pusher runs off the
+        # floor's edge if told to (it hovers) and the cubes go where it pushes them
+        body = [math.inf] * 4
         extra = self.obs_dim - 4 * (self.num_cubes + 1)
         goal = max(3.0, 2.0 * self._goal_high())
         high = torch.tensor(body * (self.num_cubes + 1) + [goal] * extra, dtype=torch.float64)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import trimesh
 
@@ -132,10 +134,13 @@ class AntPushCore(BoxToTargetCore):
         )
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        half = self.distance + 3.0  # beyond the floor's edges [m]
-        pose = [half, half, 3.0, 4.0, 4.0, 4.0]  # rotation vectors are re-centred below pi
-        vel = [50.0] * 6
-        joints = [4.0] * 8 + [200.0] * 8
+        # positions and velocities are unbounded (an Ant that walks off the floor falls for ever); rotation vectors
+        # are re-centred below pi, joint angles within their limits; the target is the task's
+        inf = math.inf
+        pose = [inf, inf, inf, 4.0, 4.0, 4.0]
+        vel = [inf] * 6
+        joints = [4.0] * 8 + [inf] * 8
+        half = self.distance + 3.0
         high = torch.tensor(pose + vel + joints + pose + vel + [half, half], dtype=torch.float64)
         return -high, high
 

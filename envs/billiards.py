@@ -40,7 +40,9 @@ class BilliardsCore(TaskCore):
 
     Action: (2,) in [-1, 1], the planar force on the cue ball's centre, ``max_force`` (5 N) per unit.
 
-    Observation (66,): the 16 balls' xy positions [m] (32), their xy velocities [m/s] (32), the pocket's xy (2).
+    Observation (70,): the 16 balls' xy positions [m] (32), their xy velocities [m/s] (32), the pocket's xy (2),
+    the object ball's xy position and velocity (4; which ball counts is drawn per reset, and the reward is its
+    distance to the pocket).
 
     Reward: ``distance`` = -|xy of the object ball - pocket| [m] after the step, plus ``action`` =
     -``action_cost`` |a|^2 (1e-3). Terminated when the object ball's centre is within ``pocket_radius``
@@ -60,7 +62,7 @@ class BilliardsCore(TaskCore):
     """
 
     action_dim = 2
-    obs_dim = 66
+    obs_dim = 70
     action_body = 15
     horizon = 100
 
@@ -139,7 +141,18 @@ class BilliardsCore(TaskCore):
     def observe(self, state: EnvState) -> torch.Tensor:
         B = state.batch_size
         v = self.velocity(state)[..., :2]
-        return torch.cat([state.q[..., :2].reshape(B, 32), v.reshape(B, 32), state.task["pocket"]], 1)
+        rows = torch.arange(B, device=state.q.device)
+        target = state.task["target"]
+        return torch.cat(
+            [
+                state.q[..., :2].reshape(B, 32),
+                v.reshape(B, 32),
+                state.task["pocket"],
+                state.q[rows, target, :2],
+                v[rows, target],
+            ],
+            1,
+        )
 
     def reward_terms(
         self, state: EnvState, action: torch.Tensor, next_state: EnvState
@@ -151,13 +164,10 @@ class BilliardsCore(TaskCore):
         return (self.object_ball(state) - state.task["pocket"]).norm(dim=1) < self.pocket_radius
 
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        # a ball pushed by the largest force for the whole horizon moves ~ F T^2 / (2 m) (15 m by default)
-        T = self.horizon * self.scene.dt
-        reach = 1.0 + self.max_force * T * T / (2 * self.scene.bodies[15].mass)
-        speed = 1.0 + self.max_force * T / self.scene.bodies[15].mass
-        high = torch.cat(
-            [torch.full((32,), 4 * reach), torch.full((32,), 4 * speed), torch.full((2,), 4 * reach)]
-        )
+        # the balls' positions and velocities are unbounded (the table has no edge; an episode may run past the
+        # horizon); the pocket is one of POCKETS
+        high = torch.full((70,), math.inf, dtype=torch.float64)
+        high[64:66] = 2.0
         return -high, high
 
     def render_camera(self) -> dict:

@@ -16,7 +16,7 @@ import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .core import EnvState, TaskCore, stack_states, task_at
+from .core import EnvState, TaskCore, _is_int, stack_states, task_at
 
 __all__ = ["CoreEnv", "CoreVectorEnv"]
 
@@ -47,6 +47,10 @@ class _Frames:
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
+
+    def __getstate__(self) -> dict:
+        """Pickled and copied without the renderer (an OpenGL context): the copy makes its own on its first frame."""
+        return {**self.__dict__, "renderer": None}
 
 
 class CoreEnv(gym.Env):
@@ -146,8 +150,9 @@ class CoreVectorEnv(VectorEnv):
         batched: bool = False,
         **task: Any,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        if not (_is_int(num_envs) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        num_envs = int(num_envs)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.core = self.core_class(device=device, dtype=dtype, **task)

@@ -490,3 +490,68 @@ def test_vector_env_renders_one_frame_per_environment():
     assert len(frames) == 2 and all(f.shape == (48, 64, 3) and f.dtype == np.uint8 for f in frames)
     assert not np.array_equal(frames[0], frames[1])  # regions and cubes drawn per environment
     env.close()
+
+
+def test_billiards_observes_which_ball_is_the_object_ball():
+    """The object ball is drawn per reset and the reward is its distance to the pocket: the observation carries
+    its position and velocity (the same rack with another object ball observes differently)."""
+    env = gym.make("cfd_torch/Billiards-v0")
+    obs, _ = env.reset(seed=0)
+    st, core = env.unwrapped.state, env.unwrapped.core
+    k = int(st.task["target"][0])
+    assert obs.shape == (70,) and env.observation_space.contains(obs)
+    np.testing.assert_array_equal(obs[66:68], obs[2 * k : 2 * k + 2])  # the object ball's xy
+    np.testing.assert_array_equal(obs[68:70], obs[32 + 2 * k : 32 + 2 * k + 2])  # its velocity
+    other = EnvState(st.q, st.q_prev, st.t, {**st.task, "target": (st.task["target"] + 1) % 15})
+    assert not torch.equal(core.observe(st), core.observe(other))
+    env.close()
+
+
+def test_cube_layouts_that_cannot_be_scattered_are_refused_at_construction():
+    """Rejection sampling of the cubes' and pusher's footprints used to loop for ever in reset() when they could
+    not fit in the spread; now a ValueError names the arguments, when the environment is made."""
+    for kwargs in ({"spread": 0.2}, {"cube_size": 0.5}, {"num_cubes": 40, "spread": 0.5}):
+        with pytest.raises(ValueError, match=r"spread .* m is too small to scatter num_cubes = \d+ cubes"):
+            gym.make("cfd_torch/Gather-v0", **kwargs)
+    for name in ("spread", "cube_size"):
+        with pytest.raises(ValueError, match=f"{name} must be a finite positive number"):
+            make_core("cfd_torch/Sort-v0", **{name: 0.0})
+    obs, _ = gym.make("cfd_torch/Gather-v0", spread=0.5).reset(seed=3)  # tight, but it fits
+    assert obs.shape == (46,)
+
+
+def test_positions_and_velocities_are_unbounded_in_the_observation_space():
+    """Physical bounds derived from the default horizon were left by longer episodes, faster pushers and an Ant off
+    the floor: the bodies' positions and velocities are unbounded; what is bounded (rotation vectors, joint
+    angles, targets) keeps its bound."""
+    core = make_core("cfd_torch/Gather-v0", num_cubes=1, max_speed=30.0)
+    low, high = core.observation_bounds()
+    assert bool(torch.isinf(high[:8]).all()) and bool(torch.isfinite(high[8:]).all())
+    s = core.reset(0)
+    for _ in range(10):
+        out = core.step(s, torch.tensor([[1.0, 0.0]], dtype=F64))
+        s = out.state
+    assert float(out.obs[0, 6].abs()) > 20.0  # the pusher's speed, beyond the old 20 m/s bound
+    assert bool(((out.obs >= low) & (out.obs <= high)).all())
+    for env_id in envs.IDS:
+        low, high = make_core(env_id).observation_bounds()
+        assert bool(torch.isinf(high).any()) and bool((low == -high).all()) and bool((high > 0).all())
+
+
+def test_vector_env_takes_numpy_integer_counts_and_rendered_envs_pickle():
+    import copy
+    import pickle
+
+    vec = gym.make_vec("cfd_torch/Push-v0", np.int64(2), vectorization_mode="vector_entry_point")
+    assert vec.num_envs == 2 and isinstance(vec.num_envs, int)
+    vec.close()
+    env = gym.make("cfd_torch/Billiards-v0", render_mode="rgb_array", width=48, height=48)
+    env.reset(seed=0)
+    frame = env.render()
+    for twin in (
+        pickle.loads(pickle.dumps(env)),
+        copy.deepcopy(env),
+    ):  # without the renderer, which is remade
+        np.testing.assert_array_equal(twin.render(), frame)
+        twin.close()
+    env.close()
