@@ -12,8 +12,8 @@ import scipy.linalg
 import torch
 import trimesh
 
-from cfd_torch import Action, Scene, State
-from cfd_torch.sim.articulation import Articulation
+from cfd_torch import Action, Scene, State, rigid_body
+from cfd_torch.sim.articulation import Articulation, articulation
 from cfd_torch.sim.stepper import rollout, step
 
 F64 = torch.float64
@@ -1090,3 +1090,28 @@ def test_articulation_inputs_are_checked():
     )
     with pytest.raises(ValueError, match="action.joints drives kinematic robots"):
         step(scene, State(q[0], q[0].clone()), Action(joints=torch.zeros(5, 7, dtype=F64)))
+
+
+def test_link_rows_that_do_not_fit_the_joints_are_refused():
+    """A bar hinged about y: its row moved 0.3 m off the hinge and turned about x (no joint for it) used to be read
+    as another joint angle (-0.535 rad instead of 0.3) and stepped on silently; rows from Articulation.poses pass."""
+    xml = """<mujoco><worldbody><body name="base" pos="0 0 1"><geom type="box" size="0.05 0.05 0.05"/>
+    <body name="bar"><joint name="hinge" type="hinge" axis="0 1 0" range="-60 60"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/></body></body></worldbody></mujoco>"""
+    art = articulation(xml)
+    floor = rigid_body(trimesh.creation.box((3, 3, 0.2)), kind="static")
+    scene = Scene([floor], articulations=[art], dt=0.01, gravity=(0, 0, 0))
+    rows = art.poses(torch.tensor([0.3], dtype=F64), torch.tensor([0, 0, 1.0, 0, 0, 0], dtype=F64))
+    q = torch.cat([torch.tensor([[0, 0, -0.1, 0, 0, 0]], dtype=F64), rows])
+    nxt = step(scene, State(q, q.clone()))
+    assert float((nxt.q - q).abs().max()) < 1e-9  # at rest, no gravity
+    for shift, turn in ((0.3, 0.0), (0.0, 0.5), (1e-4, 0.0)):
+        bad = q.clone()
+        bad[2, 0] += shift
+        bad[2, 3] += turn
+        with pytest.raises(
+            ValueError, match=r"state\.q: the link rows of articulation .* do not fit its joints: link 1"
+        ):
+            step(scene, State(bad, q.clone()))
+        with pytest.raises(ValueError, match=r"state\.q_prev: the link rows"):
+            step(scene, State(q.clone(), bad))

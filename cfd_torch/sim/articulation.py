@@ -940,6 +940,31 @@ class ArticulatedKinematics:
             parts.append(art.coords(poses[:, r : r + art.num_links]))
         return torch.cat(parts, 1)
 
+    def check_rows(self, poses: torch.Tensor, q: torch.Tensor, name: str) -> None:
+        """Raise ValueError naming ``name`` where the link rows of ``poses`` (A, N, 6) are not the forward kinematics
+        of the coordinates q (A, Q) recovered from them (:meth:`coords`): rows moved off their joints (a link
+        displaced from its hinge, turned about an axis it has no joint for) would otherwise be read as some other
+        configuration, silently."""
+        fk = self.poses(q, poses)
+        tol = 1e-6 if poses.dtype == torch.float64 else 1e-3
+        for art, r in zip(self.arts, self.first, strict=True):
+            rows = slice(r + art.first_moving, r + art.num_links)
+            given, want = poses[:, rows], fk[:, rows]
+            off_t = (given[..., :3] - want[..., :3]).norm(dim=-1)  # (A, L)
+            off_r = (
+                (rotation_matrix(given[..., 3:]) - rotation_matrix(want[..., 3:])).flatten(-2).norm(dim=-1)
+            )
+            bad = (off_t > tol) | (off_r > tol)
+            if bool(bad.any()):
+                a, k = (int(i) for i in torch.nonzero(bad)[0])
+                raise ValueError(
+                    f"{name}: the link rows of articulation {art.name!r} do not fit its joints: link "
+                    f"{art.first_moving + k} (row {r + art.first_moving + k}) is {float(off_t[a, k]):.3g} m and "
+                    f"{float(off_r[a, k]):.3g} (rotation) from the forward kinematics of the joint values its rows "
+                    "imply; pose articulations with Articulation.poses"
+                    + (f" (scene {a})" if poses.shape[0] > 1 else "")
+                )
+
     def check_within_limits(self, poses: torch.Tensor, name: str) -> None:
         """Raise ValueError naming the first joint of the poses (A, N, 6) (``name``: the argument) at or beyond one
         of its limits, where the step's limit barrier is infinite (MuJoCo accepts such a state and pushes it
