@@ -198,9 +198,10 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
 _TOUCH_REL = 1e-9
 
 
-def closed_surface(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether the triangles (vertices welded by position) form closed, consistently wound surfaces: every directed
-    edge occurs once and its reverse once."""
+def encloses_solid(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the triangles (vertices welded by position) form closed, consistently wound surfaces (every directed
+    edge occurs once and its reverse once) facing outward (a positive enclosed volume): a solid. An inward-facing
+    closed surface (a room's walls) is not one: its inside is free space."""
     _, weld = np.unique(np.asarray(vertices), axis=0, return_inverse=True)
     f = weld.reshape(-1)[np.asarray(faces)]
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
@@ -210,7 +211,11 @@ def closed_surface(vertices: np.ndarray, faces: np.ndarray) -> bool:
     fwd_sorted = np.sort(fwd)
     if len(fwd_sorted) > 1 and bool((fwd_sorted[1:] == fwd_sorted[:-1]).any()):
         return False
-    return bool(np.isin(rev, fwd_sorted, assume_unique=False).all())
+    if not bool(np.isin(rev, fwd_sorted, assume_unique=False).all()):
+        return False
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    tri = tri - tri.reshape(-1, 3).mean(0)  # about the centroid: the signed volumes' sum keeps its digits
+    return float(np.einsum("fi,fi->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) > 0
 
 
 def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

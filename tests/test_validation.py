@@ -507,6 +507,14 @@ def test_a_body_wholly_inside_another_is_refused():
         step(scene, scene.initial_state(batch))
     on_top = batch[0]
     assert float(step(scene, scene.initial_state(on_top)).q[0, 2]) > 0.5
+    # inside a room (a closed surface facing inward) is free space: the box falls to its floor
+    room = trimesh.creation.box((1.0, 1.0, 1.0))
+    room.invert()
+    scene = Scene([small, rigid_body(room, kind="static")])
+    state = scene.initial_state(inside)
+    for _ in range(3):
+        state = step(scene, state)
+    assert float(state.q[0, 2]) < 0.1
     # a kinematic paddle (5 mm) whose target lies inside a dynamic box, reached by a move shorter than ccd_spacing
     # (so no sample of its path crosses the box's surface): refused; a 5 cm paddle's longer move into the box
     # pushes the box

@@ -77,17 +77,18 @@ _RAY_DIRECTIONS = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, 0.8018],
 
 def contained(scene, poses: torch.Tensor) -> list[tuple[int, int, int]]:
     """(s, i, j) for each pose set s of ``poses`` (S, N, 6) and interacting pair whose body i lies inside body j, a
-    closed surface (``scene.closed``), with i's surface clear of j's: the potential is finite there, and nothing
-    else would notice. Tested by the parity of the crossings of a ray from one vertex of i through j's surface
-    (its hierarchy prunes the triangles); only where that vertex is within j's extent of j's frame origin. Pairs
-    whose surfaces cross are not reported (they penetrate: :func:`penetrating`)."""
-    closed = scene.closed
+    solid (``scene.solid``: a closed surface facing outward; inside an inward-facing one, a room, is free space),
+    with i's surface clear of j's: the potential is finite there, and nothing else would notice. Tested by the
+    parity of the crossings of a ray from one vertex of i through j's surface (its hierarchy prunes the triangles);
+    only where that vertex is within j's extent of j's frame origin. Pairs whose surfaces cross are not reported
+    (they penetrate: :func:`penetrating`)."""
+    solid = scene.solid
     pairs = scene.pairs
-    if pairs.shape[0] == 0 or not bool(closed.any()):
+    if pairs.shape[0] == 0 or not bool(solid.any()):
         return []
     inner = torch.cat([pairs[:, 0], pairs[:, 1]])
     outer = torch.cat([pairs[:, 1], pairs[:, 0]])
-    keep = closed[outer]
+    keep = solid[outer]
     inner, outer = inner[keep], outer[keep]
     q = poses.detach().to("cpu", torch.float64)
     probe = torch.stack([b.bsh.vertices[0] for b in scene.bodies]).to(torch.float64)  # (N, 3) body frame

@@ -9,7 +9,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-from .._validate import closed_surface, is_int, is_real
+from .._validate import encloses_solid, is_int, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact._traverse import build_forest
 from ..contact.cfd import CfdContact
@@ -218,14 +218,14 @@ class Scene:
         self.extent = torch.tensor(
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
         )
-        # which bodies are closed surfaces, and their hierarchies in one node table (CPU, float64; each body's
-        # root ``probe_root``): the start-of-step check that no body lies wholly inside another
+        # which bodies enclose a solid (closed, facing outward), and their hierarchies in one node table (CPU,
+        # float64; each body's root ``probe_root``): the start-of-step check that no body lies wholly inside another
         uniq: dict[int, int] = {}
         for b in bodies:
             uniq.setdefault(id(b.bsh), len(uniq))
         trees = tuple({id(b.bsh): b.bsh for b in bodies}.values())
-        shut = [closed_surface(t.vertices.numpy(), t.faces.numpy()) for t in trees]
-        self.closed = torch.tensor([shut[uniq[id(b.bsh)]] for b in bodies], dtype=torch.bool)
+        shut = [encloses_solid(t.vertices.numpy(), t.faces.numpy()) for t in trees]
+        self.solid = torch.tensor([shut[uniq[id(b.bsh)]] for b in bodies], dtype=torch.bool)
         self.probe_forest = build_forest(trees, torch.float64, torch.device("cpu")) if any(shut) else None
         self.probe_root = (
             self.probe_forest.roots[torch.tensor([uniq[id(b.bsh)] for b in bodies])]
