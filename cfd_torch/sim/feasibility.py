@@ -159,17 +159,18 @@ def _samples(prob: StepProblem, q0, q1, scenes):
     return qs, scenes[path], path
 
 
-def sweep_clear(scene, p0: torch.Tensor, p1: torch.Tensor) -> torch.Tensor:
+def sweep_clear(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None = None) -> torch.Tensor:
     """(S,) bool: whether the straight paths of every body's pose p0 -> p1 (S, N, 6) are feasible at points at most
-    ccd_spacing apart (ends excluded; p0 feasible, p1 checked by the caller). The kinematic bodies' own motion over a
-    step is checked this way: the Newton moves hold them at their targets."""
+    ccd_spacing apart (ends excluded; p0 feasible, p1 checked by the caller), for the pairs the (P,) mask ``sel``
+    selects (default all). The kinematic bodies' own motion over a step is checked this way: the Newton moves hold
+    them at their targets."""
     d = p1 - p0
     r = scene.extent.to(p0)
     dist = (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
     ps, path = _spaced(dist, scene.solver.ccd_spacing, p0, p1)
     clear = torch.ones(len(p0), dtype=torch.bool, device=p0.device)
     if len(ps):
-        clear[path[~feasible(scene, ps)]] = False
+        clear[path[infeasible_pairs(scene, ps, sel).any(1)]] = False
     return clear
 
 

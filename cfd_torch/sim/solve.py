@@ -130,6 +130,13 @@ def _newton(
     return res, _add(work, res.work)
 
 
+def _kinematic_pairs(scene) -> torch.Tensor:
+    """(P,) bool: the interacting pairs with a kinematic body."""
+    kin = torch.zeros(scene.num_bodies, dtype=torch.bool)
+    kin[scene.kinematic] = True
+    return kin[scene.pairs[:, 0]] | kin[scene.pairs[:, 1]]
+
+
 def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Work]:
     """Scene 0 of ``prob`` (one scene): push the moving bodies out of a kinematic body's way."""
     scene = prob.scene
@@ -147,9 +154,8 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
         fixed[:, kin] = origin + frac * (target[:, kin] - origin)
         sub = prob._replace(fixed=fixed)
         p1 = scene.kinematics.poses(q, fixed)
-        if bool(feasible(scene, p1)[0]) and bool(
-            sweep_clear(scene, scene.kinematics.poses(q, before), p1)[0]
-        ):
+        swept = sweep_clear(scene, scene.kinematics.poses(q, before), p1, _kinematic_pairs(scene))
+        if bool(feasible(scene, p1)[0]) and bool(swept[0]):
             before = fixed
             res, w = _newton(sub, q, None, tol)
             work = _add(work, w)
@@ -203,7 +209,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             p1 = kin.poses(q_t[m], prob.fixed[m])
             p0 = p1.clone()
             p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
-            ok_t[m] = sweep_clear(scene, p0, p1)
+            ok_t[m] = sweep_clear(scene, p0, p1, _kinematic_pairs(scene))
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
             # shorter than ccd_spacing): nothing could push that body out
             clear = m[ok_t[m]]
