@@ -282,7 +282,12 @@ class Articulation:
         if not bool(torch.isfinite(th.detach()).all()):
             raise ValueError("joints contains NaN or inf")
         if base is not None:
-            if not isinstance(base, torch.Tensor) or base.dtype != th.dtype or base.shape[-1:] != (6,):
+            if (
+                not isinstance(base, torch.Tensor)
+                or base.dtype != th.dtype
+                or base.shape[-1:] != (6,)
+                or base.dim() > 2
+            ):
                 got = (
                     (base.dtype, tuple(base.shape)) if isinstance(base, torch.Tensor) else type(base).__name__
                 )
