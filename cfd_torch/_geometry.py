@@ -532,12 +532,18 @@ def segment_hits_triangle_nb(P, Q, T, sin_min) -> bool:
     return 0.0 <= t <= 1.0
 
 
+_AMBIGUOUS = -(2**62)  # ray_crossings_nb: the ray grazed an edge or a vertex
+
+
 @numba.njit(cache=True, error_model="numpy")
 def ray_crossings_nb(centre, radius, child, tri, tris, roots, origins, dirs, out):
-    """out[k] = how many triangles of hierarchy ``roots[k]`` (node table ``centre``, ``radius``, ``child``, ``tri``
-    over body-frame triangles ``tris``) the ray ``origins[k] + s dirs[k]``, s > 0, crosses, or -1 when the count is
-    ambiguous (the ray passes within 1e-9 relative of a triangle's edge or vertex, or starts on a triangle): the
-    caller retries along another direction. Möller-Trumbore per leaf, spheres missed by the ray pruned."""
+    """out[k] = the winding number of the surface of hierarchy ``roots[k]`` (node table ``centre``, ``radius``,
+    ``child``, ``tri`` over body-frame triangles ``tris``) about ``origins[k]``, counted along the ray
+    ``origins[k] + s dirs[k]`` (unit), s > 0: +1 for each triangle it crosses from the back (leaving an outward-facing
+    surface), -1 from the front; or _AMBIGUOUS when the ray passes within 1e-9 relative of a triangle's edge or
+    vertex, or starts on a triangle: the caller retries along another direction. Möller-Trumbore per leaf,
+    spheres the ray misses pruned. (For a closed surface: 1 inside an outward-facing one, 0 outside it, -1 inside
+    an inward-facing one.)"""
     stack = np.empty(256, np.int64)
     for k in range(roots.shape[0]):
         ox, oy, oz = origins[k, 0], origins[k, 1], origins[k, 2]
@@ -577,9 +583,9 @@ def ray_crossings_nb(centre, radius, child, tri, tris, roots, origins, dirs, out
                 if s < -1e-9 * math.sqrt(scale):
                     continue
                 if u <= -lo or v <= -lo or u + v >= 1.0 + lo or s <= 1e-9 * math.sqrt(scale):
-                    count = -1
+                    count = _AMBIGUOUS
                     break
-                count += 1
+                count += 1 if det < 0.0 else -1  # det = -d . (e1 x e2): negative leaving an outward face
             else:
                 if top + 2 > stack.shape[0]:
                     grown = np.empty(2 * stack.shape[0], np.int64)

@@ -198,10 +198,9 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
 _TOUCH_REL = 1e-9
 
 
-def encloses_solid(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether the triangles (vertices welded by position) form closed, consistently wound surfaces (every directed
-    edge occurs once and its reverse once) facing outward (a positive enclosed volume): a solid. An inward-facing
-    closed surface (a room's walls) is not one: its inside is free space."""
+def closed_surface(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the triangles (vertices welded by position) form closed, consistently wound surfaces: every directed
+    edge occurs once and its reverse once (their winding number is then an integer away from them)."""
     _, weld = np.unique(np.asarray(vertices), axis=0, return_inverse=True)
     f = weld.reshape(-1)[np.asarray(faces)]
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
@@ -211,11 +210,7 @@ def encloses_solid(vertices: np.ndarray, faces: np.ndarray) -> bool:
     fwd_sorted = np.sort(fwd)
     if len(fwd_sorted) > 1 and bool((fwd_sorted[1:] == fwd_sorted[:-1]).any()):
         return False
-    if not bool(np.isin(rev, fwd_sorted, assume_unique=False).all()):
-        return False
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
-    tri = tri - tri.reshape(-1, 3).mean(0)  # about the centroid: the signed volumes' sum keeps its digits
-    return float(np.einsum("fi,fi->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) > 0
+    return bool(np.isin(rev, fwd_sorted, assume_unique=False).all())
 
 
 def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -243,18 +238,26 @@ def nested_component(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray
     tri = vertices[faces]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area2 = np.linalg.norm(cross, axis=1)
-    points = []
     comps = np.unique(labels)
-    for k in comps:
+    lo = np.array([tri[labels == k].reshape(-1, 3).min(0) for k in comps])
+    hi = np.array([tri[labels == k].reshape(-1, 3).max(0) for k in comps])
+    # a component can lie inside another only within its bounding box: test only those
+    within = ((lo[:, None] >= lo[None]) & (hi[:, None] <= hi[None])).all(2)
+    np.fill_diagonal(within, False)
+    cand = np.flatnonzero(within.any(1))
+    if len(cand) == 0:
+        return None
+    points = []
+    for k in comps[cand]:
         f = np.flatnonzero(labels == k)
         i = f[np.argmax(area2[f])]
         n = cross[i] / area2[i]
         points.append(tri[i].mean(0) - 1e-6 * np.sqrt(area2[i]) * n)
     points = np.asarray(points)
-    step = max(1, 2_000_000 // len(tri))  # points per chunk: (step, T) arrays of a few MB
+    step = max(1, 200_000 // len(tri))  # points per chunk: (step, T, 3) arrays of about 5 MB
     w = np.concatenate([winding_numbers(points[i : i + step], tri) for i in range(0, len(points), step)])
     bad = np.flatnonzero(np.abs(w - 1.0) > 0.25)
-    return int(comps[bad[0]]) if len(bad) else None
+    return int(comps[cand[bad[0]]]) if len(bad) else None
 
 
 def self_intersection(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, int] | None:

@@ -15,8 +15,9 @@ from .core import EnvState, TaskCore
 __all__ = ["CubesCore"]
 
 
-# draws of a centre before a scatter gives up (the defaults place 11 footprints in about 20 draws)
+# draws of one centre before a scatter starts afresh, and fresh starts before it gives up
 _SCATTER_TRIES = 1000
+_SCATTER_RESTARTS = 20
 _CLEARANCE = 0.05  # between the footprints of the scattered cubes and pusher [m]
 
 
@@ -66,27 +67,34 @@ class CubesCore(TaskCore):
             pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)},
         )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
-        # a layout that cannot be drawn fails here, not in reset
+        # a layout that cannot be drawn fails here (a tight one can still fail in reset, by chance)
         self._scatter(torch.Generator().manual_seed(0), num_cubes + 1, _CLEARANCE)
 
     def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:
         """(n, 2) centres uniform in [-spread, spread]^2 whose footprints (circles of the cube's half diagonal)
-        are ``clearance`` apart (rejection sampling; a ValueError after _SCATTER_TRIES draws per centre)."""
+        are ``clearance`` apart: rejection sampling, one draw at a time, started afresh when a centre finds no room
+        in _SCATTER_TRIES draws (the centres placed so far can leave none), a ValueError after _SCATTER_RESTARTS
+        fresh starts."""
         r = self.cube_size / math.sqrt(2) + clearance / 2
-        pts: list[torch.Tensor] = []
-        tries = 0
-        while len(pts) < n:
-            tries += 1
-            if tries > _SCATTER_TRIES * n:
-                raise ValueError(
-                    f"spread {self.spread} m is too small to scatter num_cubes = {self.num_cubes} cubes of cube_size "
-                    f"{self.cube_size} m and the pusher apart ({len(pts)} of {n} placed in {tries - 1} draws): "
-                    "raise spread, or lower num_cubes or cube_size"
-                )
-            p = self.spread * (2 * torch.rand(2, generator=gen, dtype=torch.float64) - 1)
-            if all(float((p - o).norm()) > 2 * r for o in pts):
-                pts.append(p)
-        return torch.stack(pts)
+        best = 0
+        for _ in range(_SCATTER_RESTARTS):
+            pts: list[torch.Tensor] = []
+            misses = 0
+            while len(pts) < n and misses < _SCATTER_TRIES:
+                p = self.spread * (2 * torch.rand(2, generator=gen, dtype=torch.float64) - 1)
+                if all(float((p - o).norm()) > 2 * r for o in pts):
+                    pts.append(p)
+                    misses = 0
+                else:
+                    misses += 1
+            if len(pts) == n:
+                return torch.stack(pts)
+            best = max(best, len(pts))
+        raise ValueError(
+            f"spread {self.spread} m is too small to scatter num_cubes = {self.num_cubes} cubes of cube_size "
+            f"{self.cube_size} m and the pusher apart (at most {best} of {n} placed in {_SCATTER_RESTARTS} tries): "
+            "raise spread, or lower num_cubes or cube_size"
+        )
 
     def _initial(self, gen: torch.Generator):
         n = self.num_cubes

@@ -16,7 +16,9 @@ import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .core import EnvState, TaskCore, _is_int, stack_states, task_at
+from cfd_torch._validate import is_int
+
+from .core import EnvState, TaskCore, stack_states, task_at
 
 __all__ = ["CoreEnv", "CoreVectorEnv"]
 
@@ -150,7 +152,7 @@ class CoreVectorEnv(VectorEnv):
         batched: bool = False,
         **task: Any,
     ) -> None:
-        if not (_is_int(num_envs) and num_envs >= 1):
+        if not (is_int(num_envs) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         num_envs = int(num_envs)
         if render_mode not in (None, "rgb_array"):

@@ -515,6 +515,19 @@ def test_a_body_wholly_inside_another_is_refused():
     for _ in range(3):
         state = step(scene, state)
     assert float(state.q[0, 2]) < 0.1
+    # one static mesh of an outward slab and an inward room (a positive volume overall): the room is free space
+    slab = trimesh.creation.box((4.0, 4.0, 0.5))
+    slab.apply_translation([0.0, 0.0, -0.25])
+    room.apply_translation([0.0, 0.0, 0.51])
+    scene = Scene([small, rigid_body(trimesh.util.concatenate([slab, room]), kind="static")])
+    in_room = torch.tensor([[0.0, 0.0, 0.062, 0.0, 0.0, 0.0], [0.0] * 6], dtype=F64)
+    assert abs(float(step(scene, scene.initial_state(in_room)).q[0, 2]) - 0.062) < 1e-3
+    # the probe is a vertex of a face: a ring whose unused vertex 0 sits at its centre, round a rod, is not inside it
+    ring = trimesh.creation.torus(0.3, 0.05, major_sections=24, minor_sections=8)
+    ring = trimesh.Trimesh(np.vstack([[0.0, 0.0, 0.0], ring.vertices]), ring.faces + 1, process=False)
+    rod = rigid_body(trimesh.creation.box((0.1, 0.1, 2.0)))
+    scene = Scene([rod, rigid_body(ring, kind="kinematic")], gravity=(0.0, 0.0, 0.0))
+    step(scene, scene.initial_state(torch.zeros(2, 6, dtype=F64)))
     # a kinematic paddle (5 mm) whose target lies inside a dynamic box, reached by a move shorter than ccd_spacing
     # (so no sample of its path crosses the box's surface): refused; a 5 cm paddle's longer move into the box
     # pushes the box

@@ -945,13 +945,12 @@ class ArticulatedKinematics:
             parts.append(art.coords(poses[:, r : r + art.num_links]))
         return torch.cat(parts, 1)
 
-    def check_rows(self, poses: torch.Tensor, q: torch.Tensor, name: str) -> None:
+    def check_rows(self, poses: torch.Tensor, q: torch.Tensor, name: str, eps: float) -> None:
         """Raise ValueError naming ``name`` where the link rows of ``poses`` (A, N, 6) are not the forward kinematics
-        of the coordinates q (A, Q) recovered from them (:meth:`coords`): rows moved off their joints (a link
-        displaced from its hinge, turned about an axis it has no joint for) would otherwise be read as some other
-        configuration, silently."""
+        of the coordinates q (A, Q) recovered from them (:meth:`coords`) to 1e-5 [m, rad] plus the rounding of rows
+        given with machine epsilon ``eps``: rows moved off their joints (a link displaced from its hinge, turned
+        about an axis it has no joint for) would otherwise be read as some other configuration, silently."""
         fk = self.poses(q, poses)
-        tol = 1e-6 if poses.dtype == torch.float64 else 1e-3
         for art, r in zip(self.arts, self.first, strict=True):
             rows = slice(r + art.first_moving, r + art.num_links)
             given, want = poses[:, rows], fk[:, rows]
@@ -959,7 +958,8 @@ class ArticulatedKinematics:
             off_r = (
                 (rotation_matrix(given[..., 3:]) - rotation_matrix(want[..., 3:])).flatten(-2).norm(dim=-1)
             )
-            bad = (off_t > tol) | (off_r > tol)
+            tol_t = 1e-5 + 64.0 * eps * given[..., :3].norm(dim=-1)
+            bad = (off_t > tol_t) | (off_r > 1e-5 + 64.0 * eps)
             if bool(bad.any()):
                 a, k = (int(i) for i in torch.nonzero(bad)[0])
                 raise ValueError(

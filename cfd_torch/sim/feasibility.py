@@ -17,6 +17,9 @@ reachable. One contract for all three:
 * A **kinematic body's motion** over the step (from its start-of-step pose to its target, the moving bodies at
   their start-of-step poses) is checked the same way: one that would pass through a moving body makes the start
   carry the bodies along or push them out of its way (:func:`cfd_torch.sim.solve.start`).
+* A body wholly **inside another** (their surfaces clear: the potential is finite, and no force would push it out)
+  is refused at the start of a step (:func:`contained`; kinematic targets too, where their motion crossed no
+  surface).
 * The Newton solve **starts** at a feasible configuration (:func:`cfd_torch.sim.solve.start` says how it is
   found); a start state that itself penetrates is a ``ValueError``.
 """
@@ -26,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .._geometry import ray_crossings_nb, segment_hits_triangle
+from .._geometry import _AMBIGUOUS, ray_crossings_nb, segment_hits_triangle
 from ..rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 from .energy import StepProblem
 
@@ -73,25 +76,27 @@ def penetrating(scene, poses: torch.Tensor) -> str:
 
 # directions a ray is cast along when the first (away from the container's centre) grazes an edge or a vertex
 _RAY_DIRECTIONS = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, 0.8018], [0.8944, -0.4472, 0.0001]])
+_RAY_DIRECTIONS /= np.linalg.norm(_RAY_DIRECTIONS, axis=1, keepdims=True)
 
 
-def contained(scene, poses: torch.Tensor) -> list[tuple[int, int, int]]:
-    """(s, i, j) for each pose set s of ``poses`` (S, N, 6) and interacting pair whose body i lies inside body j, a
-    solid (``scene.solid``: a closed surface facing outward; inside an inward-facing one, a room, is free space),
-    with i's surface clear of j's: the potential is finite there, and nothing else would notice. Tested by the
-    parity of the crossings of a ray from one vertex of i through j's surface (its hierarchy prunes the triangles);
-    only where that vertex is within j's extent of j's frame origin. Pairs whose surfaces cross are not reported
-    (they penetrate: :func:`penetrating`)."""
-    solid = scene.solid
-    pairs = scene.pairs
-    if pairs.shape[0] == 0 or not bool(solid.any()):
+def contained(scene, poses: torch.Tensor, sel: torch.Tensor | None = None) -> list[tuple[int, int, int]]:
+    """(s, i, j) for each pose set s of ``poses`` (S, N, 6) and interacting pair (of those the (P,) mask ``sel``
+    selects, default all) whose body i lies inside body j's solid, with i's surface clear of j's: the potential is
+    finite there, and nothing else would notice. Body j must be a closed, consistently wound surface
+    (``scene.closed``); its solid is where its winding number is positive (inside an outward-facing shell; inside an
+    inward-facing one, a room or a cavity, is free space). The winding number is counted along a ray from one vertex
+    of i through j's surface (its hierarchy prunes the triangles), only where that vertex is within j's extent of
+    j's frame origin. Pairs whose surfaces cross are not reported (they penetrate: :func:`penetrating`)."""
+    pairs = scene.pairs if sel is None else scene.pairs[sel.cpu()]
+    if pairs.shape[0] == 0 or not bool(scene.closed.any()):
         return []
     inner = torch.cat([pairs[:, 0], pairs[:, 1]])
     outer = torch.cat([pairs[:, 1], pairs[:, 0]])
-    keep = solid[outer]
+    keep = scene.closed[outer]
     inner, outer = inner[keep], outer[keep]
     q = poses.detach().to("cpu", torch.float64)
-    probe = torch.stack([b.bsh.vertices[0] for b in scene.bodies]).to(torch.float64)  # (N, 3) body frame
+    # (N, 3) one vertex of a face of each body, in its frame
+    probe = torch.stack([b.bsh.vertices[b.bsh.faces[0, 0]] for b in scene.bodies]).to(torch.float64)
     R = rotation_matrix(q[..., 3:])  # (S, N, 3, 3)
     x = torch.einsum("snij,nj->sni", R, probe) + q[..., :3]  # (S, N, 3) each body's probe in the world
     xo = x[:, inner] - q[:, outer, :3]  # (S, C, 3)
@@ -103,27 +108,25 @@ def contained(scene, poses: torch.Tensor) -> list[tuple[int, int, int]]:
     forest = scene.probe_forest
     roots = scene.probe_root[outer[cc]].numpy()
     origins = local[ss, cc].contiguous().numpy()
-    dirs = origins - forest.centre[roots].numpy()
+    dirs = origins - forest.centre[roots].numpy()  # away from the outer body's root centre: a short way out
     norm = np.linalg.norm(dirs, axis=1, keepdims=True)
     dirs = np.where(norm > 0, dirs / np.where(norm > 0, norm, 1.0), _RAY_DIRECTIONS[0])
     count = np.empty(len(roots), np.int64)
     args = [x.numpy() for x in (forest.centre, forest.radius, forest.child, forest.tri, forest.tris)]
     ray_crossings_nb(*args, roots, origins, dirs, count)
     for d in _RAY_DIRECTIONS:
-        again = np.flatnonzero(count < 0)
+        again = np.flatnonzero(count == _AMBIGUOUS)
         if len(again) == 0:
             break
         redo = np.empty(len(again), np.int64)
-        ray_crossings_nb(
-            *args, roots[again], origins[again], np.tile(d / np.linalg.norm(d), (len(again), 1)), redo
-        )
+        ray_crossings_nb(*args, roots[again], origins[again], np.tile(d, (len(again), 1)), redo)
         count[again] = redo
-    hit = np.flatnonzero((count > 0) & (count % 2 == 1))  # (still ambiguous: not reported)
+    hit = np.flatnonzero((count != _AMBIGUOUS) & (count > 0))  # (still ambiguous: not reported)
     out = []
     for k in hit.tolist():  # (rare) pairs whose surfaces cross are penetration, reported as such elsewhere
         s, i, j = int(ss[k]), int(inner[cc[k]]), int(outer[cc[k]])
-        sel = ((pairs[:, 0] == min(i, j)) & (pairs[:, 1] == max(i, j))).to(pairs.device)
-        if not bool(infeasible_pairs(scene, poses[s : s + 1].detach(), sel).any()):
+        one = (scene.pairs[:, 0] == min(i, j)) & (scene.pairs[:, 1] == max(i, j))
+        if not bool(infeasible_pairs(scene, poses[s : s + 1].detach(), one).any()):
             out.append((s, i, j))
     return out
 

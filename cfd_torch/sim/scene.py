@@ -9,7 +9,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-from .._validate import encloses_solid, is_int, is_real
+from .._validate import closed_surface, is_int, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact._traverse import build_forest
 from ..contact.cfd import CfdContact
@@ -50,10 +50,14 @@ _SHORTHAND = {
 
 
 def _body_pair(p: object, name: str) -> tuple[int, int]:
-    """A body pair (i, j) of integers, as given in ``name``."""
-    if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(x) for x in p)):
+    """A body pair (i, j) of integers (a tuple, list, or a row of an integer array or tensor), as given in ``name``."""
+    try:
+        ij = list(p)
+    except TypeError:
+        ij = []
+    if not (len(ij) == 2 and all(is_int(x) for x in ij)):
         raise ValueError(f"{name} must hold body pairs (i, j) of integers, got {p!r}")
-    return int(p[0]), int(p[1])
+    return int(ij[0]), int(ij[1])
 
 
 class Scene:
@@ -218,14 +222,14 @@ class Scene:
         self.extent = torch.tensor(
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
         )
-        # which bodies enclose a solid (closed, facing outward), and their hierarchies in one node table (CPU,
+        # which bodies are closed, consistently wound surfaces, and their hierarchies in one node table (CPU,
         # float64; each body's root ``probe_root``): the start-of-step check that no body lies wholly inside another
         uniq: dict[int, int] = {}
         for b in bodies:
             uniq.setdefault(id(b.bsh), len(uniq))
         trees = tuple({id(b.bsh): b.bsh for b in bodies}.values())
-        shut = [encloses_solid(t.vertices.numpy(), t.faces.numpy()) for t in trees]
-        self.solid = torch.tensor([shut[uniq[id(b.bsh)]] for b in bodies], dtype=torch.bool)
+        shut = [closed_surface(t.vertices.numpy(), t.faces.numpy()) for t in trees]
+        self.closed = torch.tensor([shut[uniq[id(b.bsh)]] for b in bodies], dtype=torch.bool)
         self.probe_forest = build_forest(trees, torch.float64, torch.device("cpu")) if any(shut) else None
         self.probe_root = (
             self.probe_forest.roots[torch.tensor([uniq[id(b.bsh)] for b in bodies])]

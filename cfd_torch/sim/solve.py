@@ -177,9 +177,12 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     return q, work
 
 
-def _refuse_contained(scene, poses: torch.Tensor, name: str, scenes: torch.Tensor | None = None) -> None:
-    """ValueError naming ``name`` if a body lies wholly inside another at ``poses`` (S, N, 6) (of ``scenes``)."""
-    inside = contained(scene, poses)
+def _refuse_contained(
+    scene, poses: torch.Tensor, name: str, scenes: torch.Tensor | None = None, sel: torch.Tensor | None = None
+) -> None:
+    """ValueError naming ``name`` if a body lies wholly inside another at ``poses`` (S, N, 6) (of ``scenes``; the
+    pairs ``sel``)."""
+    inside = contained(scene, poses, sel)
     if inside:
         s, i, j = inside[0]
         b = s if scenes is None else int(scenes[s])
@@ -213,7 +216,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
             # shorter than ccd_spacing): nothing could push that body out
             clear = m[ok_t[m]]
-            _refuse_contained(scene, p1[ok_t[m]], "action.target", clear)
+            _refuse_contained(scene, p1[ok_t[m]], "action.target", clear, _kinematic_pairs(scene))
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)

@@ -235,6 +235,9 @@ def step(
                     f"{name}: a planar scene's dynamic bodies must have zero roll and pitch (rotation vectors "
                     "(0, 0, yaw))"
                 )
+    if scene.simulates_joints:  # state.q's link rows must be a configuration (q_prev's only approximate one)
+        q64 = state.q.detach().to(torch.float64).reshape(B, N, 6)
+        scene.kinematics.check_rows(q64, scene.kinematics.coords(q64), "state.q", torch.finfo(dtype).eps)
     if action is not None and not isinstance(action, Action):
         raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
     action = Action() if action is None else action
