@@ -320,6 +320,12 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
         RigidBody(box.bsh, "dynamic", 0.0, box.second_moment, box.com)
     with _says("exclude must hold body pairs (i, j) of integers, got (0, 1.7)"):
         Scene([box, ground], exclude=[(0, 1.7)])
+    for rows in (
+        np.array([[0, 1]]),
+        torch.tensor([[0, 1]]),
+        [(np.int64(0), 1)],
+    ):  # integer rows are pairs too
+        assert Scene([box, ground], exclude=rows).exclude == ((0, 1),)
     with _says("pair_eps must hold body pairs"):
         Scene([box, ground], pair_eps={(0, 1, 2): 0.5})
     with _says("contact must be a ContactConfig or None, got dict", TypeError):
