@@ -17,6 +17,7 @@ from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 # A triangle is degenerate when twice its area is below this many machine epsilons of its longest edge squared
 # (scale-free: a tiny well-shaped triangle is valid, a needle or a collinear triple is not).
 _DEGENERACY_EPS_MULTIPLE = 100.0
+FLOATS = (torch.float32, torch.float64)  # the dtypes the public entry points take
 
 
 # largest coordinate magnitude of a triangle [m]: the pair solve converges for unit triangles up to 1e32 m apart,
@@ -33,7 +34,7 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
     """Require a floating-point tensor without NaN (and without inf unless ``allow_inf``)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
+    if x.dtype not in FLOATS:
         raise ValueError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
     with outside_transforms():
         x = plain(x)

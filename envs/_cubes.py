@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
+from cfd_torch._validate import check_positive
 
 from ._pusher import GAP, Pusher, floor_body
 from .core import EnvState, TaskCore
@@ -51,8 +52,7 @@ class CubesCore(TaskCore):
         if isinstance(num_cubes, bool) or not isinstance(num_cubes, int) or num_cubes < 1:
             raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
         for name, v in (("cube_size", cube_size), ("cube_density", cube_density), ("spread", spread)):
-            if not (isinstance(v, (int, float)) and 0 < v < math.inf):
-                raise ValueError(f"{name} must be a finite positive number, got {v!r}")
+            check_positive(v, name)
         self.num_cubes = num_cubes
         self.action_body = num_cubes
         self.obs_dim = 4 * (num_cubes + 1) + self._task_obs_dim(num_cubes)

@@ -166,7 +166,7 @@ class BilliardsCore(TaskCore):
     def observation_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         # the balls' positions and velocities are unbounded (the table has no edge; an episode may run past the
         # horizon); the pocket is one of POCKETS
-        high = torch.full((70,), math.inf, dtype=torch.float64)
+        high = torch.full((self.obs_dim,), math.inf, dtype=torch.float64)
         high[64:66] = 2.0
         return -high, high
 

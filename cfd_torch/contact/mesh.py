@@ -29,7 +29,7 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
-from .._validate import check_count, check_positive, check_tolerance
+from .._validate import FLOATS, check_count, check_positive, check_tolerance
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -63,7 +63,7 @@ def _check_pose(pose: object, name: str) -> None:
         raise ValueError(
             f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
         )
-    if pose.dtype not in (torch.float32, torch.float64):
+    if pose.dtype not in FLOATS:
         raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
     with outside_transforms():
         bad = ~torch.isfinite(plain(pose)).all(-1)

@@ -22,7 +22,7 @@ from .._autograd import (
     tracked,
     vmap_error,
 )
-from .._validate import is_int
+from .._validate import FLOATS, is_int
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -157,7 +157,7 @@ def contact_potential(
     for i, b in enumerate(bshes):
         if not isinstance(b, BSH):
             raise ValueError(f"bshes[{i}] must be a cfd_torch.BSH, got {type(b).__name__}")
-    if poses.dtype not in (torch.float32, torch.float64):
+    if poses.dtype not in FLOATS:
         raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
     with outside_transforms():
         bad = ~torch.isfinite(plain(poses)).all(1)

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import torch
 
+from .._validate import FLOATS
 from .types import Params
 
 __all__ = ["check_state_tensor", "check_params", "check_targets_clear"]
-
-_FLOATS = (torch.float32, torch.float64)
 
 
 def check_state_tensor(
@@ -41,7 +40,7 @@ def check_state_tensor(
         else:
             want = f"({n}, {cols})" + (f" or ({batch}, {n}, {cols})" if batch else f" or (B, {n}, {cols})")
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
-    if x.dtype not in _FLOATS:
+    if x.dtype not in FLOATS:
         raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
     if like is not None:
         if x.device != like.device:
@@ -79,7 +78,7 @@ def check_params(
         x = getattr(params, name)
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"params.{name} must be a torch.Tensor, got {type(x).__name__}")
-        if x.dtype not in _FLOATS:
+        if x.dtype not in FLOATS:
             raise ValueError(f"params.{name} must be float32 or float64, got {x.dtype}")
         if x.device != device:
             raise ValueError(f"params.{name} is on {x.device}, the state on {device}")

@@ -148,13 +148,14 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     work: Work = (0, 0, 0)
     before = target.clone()
     before[:, kin] = origin
+    kp = _kinematic_pairs(scene)
     while done < 1.0:
         frac = min(1.0, done + inc)
         fixed = target.clone()
         fixed[:, kin] = origin + frac * (target[:, kin] - origin)
         sub = prob._replace(fixed=fixed)
         p1 = scene.kinematics.poses(q, fixed)
-        swept = sweep_clear(scene, scene.kinematics.poses(q, before), p1, _kinematic_pairs(scene))
+        swept = sweep_clear(scene, scene.kinematics.poses(q, before), p1, kp)
         if bool(feasible(scene, p1)[0]) and bool(swept[0]):
             before = fixed
             res, w = _newton(sub, q, None, tol)
@@ -212,11 +213,12 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             p1 = kin.poses(q_t[m], prob.fixed[m])
             p0 = p1.clone()
             p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
-            ok_t[m] = sweep_clear(scene, p0, p1, _kinematic_pairs(scene))
+            kp = _kinematic_pairs(scene)
+            ok_t[m] = sweep_clear(scene, p0, p1, kp)
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
             # shorter than ccd_spacing): nothing could push that body out
             clear = m[ok_t[m]]
-            _refuse_contained(scene, p1[ok_t[m]], "action.target", clear, _kinematic_pairs(scene))
+            _refuse_contained(scene, p1[ok_t[m]], "action.target", clear, kp)
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)
