@@ -138,7 +138,11 @@ def _kinematic_pairs(scene) -> torch.Tensor:
 
 
 def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Work]:
-    """Scene 0 of ``prob`` (one scene): push the moving bodies out of a kinematic body's way."""
+    """Scene 0 of ``prob`` (one scene): push the moving bodies out of a kinematic body's way, moving the kinematic
+    bodies to their targets in stages (the stage doubled after a solved one, halved after an infeasible one), each
+    stage solved from the last solution carried along the last stage's motion (a secant predictor: without it a
+    stage could only advance a pusher until it touched the bodies where they were) where that start is feasible and
+    its path clear, else from the last solution."""
     scene = prob.scene
     kin = scene.kinematic.to(q.device)
     target = prob.fixed.clone()
@@ -149,22 +153,35 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
     before = target.clone()
     before[:, kin] = origin
     kp = _kinematic_pairs(scene)
+    rate = None  # d q / d frac over the last stage: the predictor of the next stage's solution
     while done < 1.0:
         frac = min(1.0, done + inc)
         fixed = target.clone()
         fixed[:, kin] = origin + frac * (target[:, kin] - origin)
         sub = prob._replace(fixed=fixed)
-        p1 = scene.kinematics.poses(q, fixed)
-        swept = sweep_clear(scene, scene.kinematics.poses(q, before), p1, kp)
-        if bool(feasible(scene, p1)[0]) and bool(swept[0]):
+        p0 = scene.kinematics.poses(q, before)
+        q1 = q
+        ok = False
+        if (
+            rate is not None
+        ):  # the moving bodies carried along the last stage's motion, their paths checked too
+            q1 = q + (frac - done) * rate
+            p1 = scene.kinematics.poses(q1, fixed)
+            ok = bool(feasible(scene, p1)[0]) and bool(sweep_clear(scene, p0, p1)[0])
+        if not ok:  # the moving bodies where they are: only the kinematic bodies' paths move
+            q1 = q
+            p1 = scene.kinematics.poses(q, fixed)
+            ok = bool(feasible(scene, p1)[0]) and bool(sweep_clear(scene, p0, p1, kp)[0])
+        if ok:
             before = fixed
-            res, w = _newton(sub, q, None, tol)
+            res, w = _newton(sub, q1, None, tol)
             work = _add(work, w)
             if int(res.reason[0]) != Stop.CONVERGED:
                 raise StepError(
                     f"pushing bodies out of a kinematic body's way: the solve at {frac:.3g} of the kinematic motion "
                     f"stopped: {Stop(int(res.reason[0])).name}"
                 )
+            rate = (res.q - q) / (frac - done)
             q = res.q
             done, inc = frac, inc * 2.0
         else:
