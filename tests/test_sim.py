@@ -207,6 +207,37 @@ def test_newton_line_search_failure_is_reported():
     assert res.reason.tolist() == [Stop.LINE_SEARCH_FAILED] and res.iters.tolist() == [1]
 
 
+def test_newton_stops_at_non_finite_derivatives_and_says_so():
+    """A Hessian that overflows to inf in one scene of two: that scene stops with NONFINITE (no factorisation of
+    it is attempted), the other converges."""
+    A = torch.eye(6, dtype=F64).repeat(2, 1, 1)
+    quad = _quadratic(A, torch.ones(2, 6, dtype=F64))
+
+    def overflowing(q, scenes, order):
+        ev = quad(q, scenes, order)
+        hess = ev.hess.clone()
+        hess[scenes == 1, 0, 0] = math.inf
+        return ev._replace(hess=hess)
+
+    res = _run(overflowing, torch.zeros(2, 6, dtype=F64))
+    assert res.reason.tolist() == [Stop.CONVERGED, Stop.NONFINITE] and res.iters.tolist()[1] == 1
+    torch.testing.assert_close(res.q[0], torch.ones(6, dtype=F64), rtol=1e-12, atol=0)
+
+
+def test_overflowing_settings_raise_clear_errors(bodies):
+    """A time step whose 1/dt^2 overflows is refused by the Scene; a friction coefficient whose Hessian overflows
+    raises a StepError naming the overflow (it was linalg.eigh's 'failed to converge')."""
+    cube, ground, _, _ = bodies
+    with pytest.raises(ValueError, match="dt must be a finite number of at least 1e-12"):
+        Scene((cube, ground), dt=1e-200)
+    scene = Scene((cube, ground), friction=1e307)
+    state = scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.125 + 2e-3), _pose()], dtype=F64))  # resting
+    with pytest.raises(
+        StepError, match="non-finite gradient or Hessian at Newton iteration 1.*friction coefficient"
+    ):
+        step(scene, state)
+
+
 def test_step_error_names_the_reason(bodies):
     cube, ground, _, _ = bodies
     scene = Scene((cube, ground), max_newton_iter=1)

@@ -50,6 +50,7 @@ class Stop(enum.IntEnum):
     LINE_SEARCH_FAILED = 1  # no trial along the direction was finite, decreasing and reachable
     MAX_ITER = 2  # the iteration cap was reached
     INFEASIBLE_START = 3  # the energy at the start is +inf
+    NONFINITE = 4  # the gradient or Hessian at an iterate is not finite (a term overflows float64)
 
 
 class NewtonResult(NamedTuple):
@@ -222,6 +223,15 @@ def newton(
         L, g, H = cur.value[idx], cur.grad[idx], cur.hess[idx]
         maj = majorized[idx] & majorize[idx]
         Hd = torch.where(maj[:, None, None], H + cur.majorizer_gap[idx], H) if bool(maj.any()) else H
+        fin = torch.isfinite(g).all(1) & torch.isfinite(Hd).flatten(1).all(1)
+        if not bool(
+            fin.all()
+        ):  # no direction from these: stop them (the factorisations would raise or return NaN)
+            reason[idx[~fin]] = int(Stop.NONFINITE)
+            active[idx[~fin]] = False
+            idx, L, g, H, Hd, maj = idx[fin], L[fin], g[fin], H[fin], Hd[fin], maj[fin]
+            if idx.numel() == 0:
+                continue
         if freeze and not bool(act[idx].all()):  # frozen coordinates: identity rows, no step
             cm = act[idx][:, block]  # (A, Q)
             eye = torch.eye(Hd.shape[1], dtype=Hd.dtype, device=dev)

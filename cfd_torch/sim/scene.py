@@ -25,6 +25,8 @@ from .types import Params, State
 
 __all__ = ["Scene"]
 
+_MIN_DT = 1e-12  # [s]: below it a step's motion is at float64's rounding of the positions
+
 # shorthand keywords of Scene(...) and the config field each one sets
 _SHORTHAND = {
     "mu": ("contact", "stiffness"),
@@ -65,7 +67,7 @@ class Scene:
 
     Args:
         bodies: the N bodies (:func:`cfd_torch.rigid_body`), in state order.
-        dt: time step [s].
+        dt: time step [s], at least 1e-12.
         gravity: (3,) gravitational acceleration [m/s^2].
         contact: the contact potential's settings (default ``ContactConfig()``).
         friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off).
@@ -138,8 +140,11 @@ class Scene:
         self.articulation_rows = tuple(first)
         if not any(b.kind == "dynamic" for b in bodies):
             raise ValueError("a scene needs at least one dynamic body")
-        if not (is_real(dt) and 0 < dt < math.inf):
-            raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+        if not (is_real(dt) and _MIN_DT <= dt < math.inf):
+            raise ValueError(
+                f"dt must be a finite number of at least {_MIN_DT:g} s (a shorter step loses the motion to float64 "
+                f"rounding, and 1/dt^2 overflows below 1e-154), got {dt!r}"
+            )
         gravity = tuple(float(x) for x in gravity)
         if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")

@@ -300,7 +300,18 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
         if r == Stop.INFEASIBLE_START:
             if prob.scene.simulates_joints:  # a joint at or beyond its limit: say which
                 prob.scene.kinematics.check_within_limits(prob.q_t.detach(), "state.q")
-            raise StepError(f"infeasible Newton start (non-finite energy){where}")
+            raise StepError(
+                f"infeasible Newton start (non-finite energy){where}: bodies penetrate, or a term overflows float64 "
+                f"(dt={prob.scene.dt:g}, contact stiffness mu={prob.scene.contact.stiffness:g}: check them and the "
+                "masses and forces)"
+            )
+        if r == Stop.NONFINITE:
+            raise StepError(
+                f"non-finite gradient or Hessian at Newton iteration {int(res.iters[b])}{where}: a term of the "
+                f"incremental potential overflows float64 (dt={prob.scene.dt:g}, contact stiffness "
+                f"mu={prob.scene.contact.stiffness:g}, friction coefficient {prob.scene.friction.coefficient:g}: check "
+                "them and the masses and forces)"
+            )
         what = {
             Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "
             "decreasing, reachable trial along the direction)",
