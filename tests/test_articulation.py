@@ -1025,9 +1025,35 @@ def test_mjcf_physics_the_step_does_not_model_is_refused():
             "tendon 't': tendon limits",
         ),
     ]
+    cases += [
+        ('damping="-1"', "", "joint 'j1': damping must be >= 0, got -1"),
+        ('stiffness="-3"', "", "joint 'j1': stiffness must be >= 0, got -3"),
+        (
+            "",
+            '<actuator><position name="p" joint="j1" kp="-30"/></actuator>',
+            "actuator 'p': kp and kv must be >= 0",
+        ),
+    ]
     for j1, extra, message in cases:
         with pytest.raises(ValueError, match=message):
             articulation(two.format(j1=j1, extra=extra))
+    with pytest.raises(ValueError, match="body 'a1': gravcomp is not supported"):
+        articulation(two.format(j1="", extra="").replace('<body name="a1">', '<body name="a1" gravcomp="1">'))
+    fluid = two.format(j1="", extra="").replace(
+        "<worldbody>", '<option density="1000" viscosity="0.1"/><worldbody>'
+    )
+    with pytest.warns(
+        UserWarning, match=r"<option density=1000.0 viscosity=0.1>: fluid forces are not modelled"
+    ):
+        articulation(fluid)
+    # a link without geoms (valid MJCF: an <inertial> only) has no surface for the contact hierarchy
+    bare = two.format(j1="", extra="").replace(
+        '<geom type="capsule" fromto="0 0 0 0 0 -0.5"\n      size="0.03"/>',
+        '<inertial pos="0 0 0" mass="0.1" diaginertia="1e-4 1e-4 1e-4"/>',
+    )
+    assert "inertial" in bare
+    with pytest.raises(ValueError, match="link 'a1' has no geoms"):
+        articulation(bare)
     # a visual-only geom (contype = conaffinity = 0) beside a colliding one: out of the collision mesh, in the mass;
     # a link with nothing else keeps it, with a warning
     tip = '<geom name="tip" type="sphere" pos="0 0 -0.5" size="0.02" contype="0" conaffinity="0"/>'
@@ -1058,6 +1084,42 @@ def test_mjcf_file_with_an_include_next_to_it(tmp_path):
     )
     art = articulation(tmp_path / "robot.xml")
     assert art.damping.tolist() == [0.2] and art.armature.tolist() == [0.01]
+
+
+def test_mjcf_file_with_a_mesh_asset_next_to_it_loads_from_any_directory(tmp_path, monkeypatch):
+    """A mesh file under the model's meshdir (a table in the worldbody; the robot's own geoms are primitives) is read
+    relative to the model file, as MuJoCo reads it, whatever the working directory."""
+    (tmp_path / "assets").mkdir()
+    trimesh.creation.box(extents=(1.0, 1.0, 0.1)).export(tmp_path / "assets" / "table.stl")
+    (tmp_path / "robot.xml").write_text(
+        '<mujoco><compiler meshdir="assets"/><asset><mesh name="table" file="table.stl"/></asset><worldbody>'
+        '<geom type="mesh" mesh="table" pos="0 0 -0.05"/><body name="bot" pos="0 0 0.5"><freejoint/><geom '
+        'type="sphere" size="0.1"/><body name="arm" pos="0.1 0 0"><joint name="j" axis="0 1 0"/><geom '
+        'type="capsule" fromto="0 0 0 0.2 0 0" size="0.02"/></body></body></worldbody></mujoco>'
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    art = articulation(tmp_path / "robot.xml")
+    assert art.names == ("bot", "arm") and art.num_joints == 1
+
+
+def test_servo_near_a_limit_of_a_narrow_slide_settles_at_its_target():
+    """A gripper finger's 4 cm slide (range [0, 0.04] m) with a position servo (kp 100, kv 10, no gravity): the limit
+    barrier acts within a tenth of the range of each limit, so targets 5 mm from a limit are reached (with the
+    barrier 2 cm wide everywhere, the servo settled at 18.2 mm for a 5 mm target, 21.5 mm for 30 mm)."""
+    xml = """<mujoco><worldbody><body name="palm"><geom type="box" size=".05 .05 .02"/>
+      <body name="finger" pos="0 0 -.05"><joint name="f" type="slide" axis="1 0 0" range="0 0.04"/>
+      <geom type="box" size=".01 .01 .03" mass="0.05"/></body></body></worldbody>
+      <actuator><position name="p" joint="f" kp="100" kv="10"/></actuator></mujoco>"""
+    art = articulation(xml)
+    scene = Scene([], articulations=[art], dt=0.01, gravity=(0.0, 0.0, 0.0))
+    for target in (0.005, 0.035):
+        q = art.poses(torch.tensor([0.02], dtype=F64))
+        s = State(q, q.clone())
+        for _ in range(100):
+            s = step(scene, s, Action(ctrl=torch.tensor([target], dtype=F64)))
+        assert abs(float(scene.kinematics.coords(s.q[None])[0, 0]) - target) < 1e-5
 
 
 def test_mjcf_refusals_look_at_the_loaded_subtree_only_and_a_zero_gear_motor_is_finite():

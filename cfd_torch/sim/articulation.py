@@ -51,7 +51,8 @@ from .mjcf import load_mjcf, quat_to_matrix
 
 __all__ = ["Articulation", "articulation", "ArticulatedKinematics"]
 
-#: the limit barrier's activation width (rad for hinges, m for slides) and stiffness [N m or N]
+#: the limit barrier's activation width (rad for hinges, m for slides; a joint whose range is narrower than ten
+#: times it gets a tenth of its range) and stiffness [N m or N]
 LIMIT_WIDTH = 0.02
 LIMIT_STIFFNESS = 1.0
 
@@ -214,6 +215,11 @@ class Articulation:
         for k, link in enumerate(links):
             V = np.asarray(link.mesh.vertices, dtype=np.float64)
             F = np.asarray(link.mesh.faces, dtype=np.int64)
+            if len(F) == 0:  # every link is a body of the scene, with a hierarchy over its surface
+                raise ValueError(
+                    f"link '{link.name}' has no geoms: every link needs a collision surface; give its MJCF body a geom "
+                    "(a body welded to its parent without a joint is merged into it instead)"
+                )
             if k == 0 and static_root:
                 bodies.append(
                     RigidBody(BSH.build(V, F, max_edge=max_edge), "static", 0.0, torch.zeros(3, 3, dtype=torch.float64),
@@ -837,9 +843,9 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------- joint-space terms
-def _limit_barrier(x: torch.Tensor, order: int):
-    """kappa b(x / w) and its first two derivatives in x (+inf for x <= 0; 0 for x >= w)."""
-    w, k = LIMIT_WIDTH, LIMIT_STIFFNESS
+def _limit_barrier(x: torch.Tensor, w: torch.Tensor, order: int):
+    """kappa b(x / w) and its first two derivatives in x (+inf for x <= 0; 0 for x >= w), w per joint."""
+    k = LIMIT_STIFFNESS
     s = x / w
     inside = (s > 0) & (s < 1)
     ss = torch.where(inside, s, torch.full_like(s, 0.5))
@@ -923,6 +929,9 @@ class ArticulatedKinematics:
         self.hinge = torch.tensor(hinge, dtype=torch.bool)
         self.free_hinge = torch.tensor(free_hinge, dtype=torch.bool)  # hinges without a range
         self.joint_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items()}
+        # the limit barrier's width per joint: LIMIT_WIDTH, or a tenth of a narrower range (a gripper's 4 cm slide)
+        span = self.joint_data["upper"] - self.joint_data["lower"]
+        self.joint_data["limit_width"] = torch.clamp(0.1 * span, max=LIMIT_WIDTH)
         # the actuators of all articulations (U): joint (into joint_index), gear, servo (position actuator or
         # motor), the control's clip and the MJCF's servo gains (zero for motors)
         self.actuator_joint = torch.tensor(act.pop("joint"), dtype=torch.long)
@@ -1073,8 +1082,8 @@ class ArticulatedKinematics:
         servo = turn(th[:, aj] - joint.servo_target, free[aj])  # (A, U) (motors: zero gain)
         vs = th.new_zeros(th.shape).index_add(1, aj, 0.5 * joint.servo_gain * servo**2)
         gs = th.new_zeros(th.shape).index_add(1, aj, joint.servo_gain * servo)
-        vl, gl, hl = _limit_barrier(th - d["lower"], order)
-        vu, gu, hu = _limit_barrier(d["upper"] - th, order)
+        vl, gl, hl = _limit_barrier(th - d["lower"], d["limit_width"], order)
+        vu, gu, hu = _limit_barrier(d["upper"] - th, d["limit_width"], order)
         inv = 1.0 / (dt * dt)
         value = (
             0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2

@@ -244,6 +244,15 @@ def gymnasium_ant_xml(servos: tuple[float, float] | None = None) -> str:
     return patched
 
 
+def _spec(xml: str, base: str | None) -> mujoco.MjSpec:
+    """The MjSpec of the MJCF text ``xml``, its asset files read relative to the folder ``base`` (None: the working
+    directory)."""
+    spec = mujoco.MjSpec.from_string(xml)
+    if base is not None:
+        spec.modelfiledir = base
+    return spec
+
+
 def load_mjcf(
     source: str | os.PathLike,
     *,
@@ -268,29 +277,33 @@ def load_mjcf(
     Raises:
         ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it.
     """
+    base = (
+        None  # the model file's folder: asset files (meshes) are read from it at compile time, as MuJoCo does
+    )
     if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
         with open(source) as f:
             xml = f.read()
+        base = os.path.dirname(os.path.abspath(source))
         try:
-            spec = mujoco.MjSpec.from_string(xml)
+            spec = _spec(xml, base)
         except ValueError:  # <include> or assets relative to the file: MuJoCo's own rewrite holds them inline
             spec = mujoco.MjSpec.from_file(str(source))
             spec.compile()
             xml = spec.to_xml()
-            spec = mujoco.MjSpec.from_string(xml)
+            spec = _spec(xml, base)
     else:
         xml = str(source)
-        spec = mujoco.MjSpec.from_string(xml)
+        spec = _spec(xml, base)
     if _name_bodies(spec.worldbody):  # the text of the model carries the names given
         spec.compile()
         xml = spec.to_xml()
-        spec = mujoco.MjSpec.from_string(xml)
+        spec = _spec(xml, base)
     root = _root_name(spec, root)
     _check_spec(spec)
     geom_source = _tag_geoms(spec)
     mass_scale = 1.0
     if spec.compiler.settotalmass > 0:  # MuJoCo scales every mass and inertia by one factor
-        unscaled = mujoco.MjSpec.from_string(xml)
+        unscaled = _spec(xml, base)
         unscaled.compiler.settotalmass = -1
         mass_scale = spec.compiler.settotalmass / float(unscaled.compile().body_mass.sum())
     explicit_inertial = {b.name: bool(b.explicitinertial) for b in spec.bodies}
@@ -420,7 +433,7 @@ def load_mjcf(
         link_joint=tuple(link_joint),
         actuators=actuators,
         floating=floating,
-        chain=_build_chain(xml, root) if pk_ok else None,
+        chain=_build_chain(xml, root, _asset_files(spec, base)) if pk_ok else None,
         xml=xml,
     )
 
@@ -464,8 +477,19 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
 
 def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
     """Refuse the physics the simulator does not model (it would be silently absent) where it touches the loaded
-    subtree (the bodies ``in_tree``): joint friction loss and actuator force ranges, equality constraints, and
-    tendons with limits, stiffness or damping."""
+    subtree (the bodies ``in_tree``): joint friction loss and actuator force ranges, gravity compensation, equality
+    constraints, and tendons with limits, stiffness or damping; warn of fluid forces (the options density,
+    viscosity and wind), which the step leaves out too."""
+    for b in sorted(in_tree):
+        if float(m.body_gravcomp[b]) != 0:
+            raise ValueError(f"body '{m.body(b).name}': gravcomp is not supported (gravity compensation)")
+    fluid = [f"{k}={getattr(m.opt, k)}" for k in ("density", "viscosity") if float(getattr(m.opt, k)) != 0]
+    fluid += [f"wind={tuple(float(w) for w in m.opt.wind)}"] if bool(np.any(m.opt.wind != 0)) else []
+    if fluid:
+        warnings.warn(
+            f"MJCF <option {' '.join(fluid)}>: fluid forces are not modelled by the step (ignored)",
+            stacklevel=4,
+        )
     joints = {j for j in range(m.njnt) if int(m.jnt_bodyid[j]) in in_tree}
     for j in sorted(joints):
         name = m.joint(j).name
@@ -552,6 +576,13 @@ def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
     if not joint.name:
         raise ValueError(f"unnamed {kind} joint of body '{m.body(m.jnt_bodyid[j]).name}'")
     qadr, dadr = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])
+    for what, value in (
+        ("damping", m.dof_damping[dadr]),
+        ("armature", m.dof_armature[dadr]),
+        ("stiffness", m.jnt_stiffness[j]),
+    ):  # negative values add energy: the step's joint terms would have no minimum
+        if float(value) < 0:
+            raise ValueError(f"joint '{joint.name}': {what} must be >= 0, got {float(value):g}")
     return JointSpec(
         name=joint.name,
         kind=kind,
@@ -711,6 +742,8 @@ def _actuator_spec(m: mujoco.MjModel, a: int, joint_index: dict[int, int]) -> Ac
         raise ValueError(
             f"{label}: only motor and position actuators (without activation dynamics) are supported"
         )
+    if kp < 0 or kv < 0:  # a negative gain adds energy: the step's servo term would have no minimum
+        raise ValueError(f"{label}: kp and kv must be >= 0, got kp={kp:g}, kv={kv:g}")
     return ActuatorSpec(
         name=name,
         joint=joint_index[j],
@@ -723,9 +756,30 @@ def _actuator_spec(m: mujoco.MjModel, a: int, joint_index: dict[int, int]) -> Ac
     )
 
 
-def _build_chain(xml: str, root: str) -> object:
+def _asset_files(spec: mujoco.MjSpec, base: str | None) -> dict[str, bytes] | None:
+    """The model's asset files (meshes, height fields, textures) by the names the MJCF gives them, read relative to
+    the model file's folder ``base`` as MuJoCo reads them (None without a folder or files)."""
+    if base is None:
+        return None
+    out = {}
+    for items, folder in (
+        (spec.meshes, spec.meshdir),
+        (spec.hfields, spec.meshdir),
+        (spec.textures, spec.texturedir),
+    ):
+        for item in items:
+            if item.file:
+                path = os.path.join(base, folder or "", item.file)
+                if os.path.isfile(path):
+                    with open(path, "rb") as f:
+                        out[item.file] = f.read()
+    return out or None
+
+
+def _build_chain(xml: str, root: str, assets: dict[str, bytes] | None = None) -> object:
     """float64 pytorch-kinematics chain of the root's subtree, built by `pk.build_chain_from_mjcf`.
 
+    ``assets``: the asset files by name (the MJCF read from text finds them in the working directory otherwise).
     The root's free joint is removed first: pytorch-kinematics maps hinge and slide joints only (no free joints),
     so the floating base is kept outside the chain. pk builds every offset and axis as a float32 Transform3d /
     tensor (its default dtype), which rounds them to ~1e-8; they are reset here from the same compiled model in
@@ -741,8 +795,8 @@ def _build_chain(xml: str, root: str) -> object:
                 if child.tag == "freejoint" or (child.tag == "joint" and child.get("type") == "free"):
                     body.remove(child)
     stripped = ET.tostring(tree, encoding="unicode")
-    chain = pk.build_chain_from_mjcf(stripped, body=root)
-    m = mujoco.MjModel.from_xml_string(stripped)
+    chain = pk.build_chain_from_mjcf(stripped, body=root, assets=assets)
+    m = mujoco.MjModel.from_xml_string(stripped, assets=assets)
     f64 = torch.float64
     for name in chain.get_frame_names(exclude_fixed=False):
         frame = chain.find_frame(name)
