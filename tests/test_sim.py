@@ -238,6 +238,53 @@ def test_overflowing_settings_raise_clear_errors(bodies):
         step(scene, state)
 
 
+def test_a_gap_of_exactly_one_margin_is_refused_as_penetrating(bodies):
+    """A pusher face exactly one margin (1 mm) from the cube (gap - margin = 9e-19 m): the collision query and the
+    plane solve measure it in different frames; the query errs toward infeasible, so the state is refused naming
+    the pair (before: feasible to the query, +inf to the potential, and a StepError after 200 Newton iterations)."""
+    from cfd_torch.sim.feasibility import feasible
+
+    cube, ground, pusher, _ = bodies
+    scene = Scene((cube, ground, pusher), friction=0.5)
+    q = torch.tensor([_pose(0.0, 0.0, 0.1 + 1.4e-3), _pose(), _pose(-0.126, 0.0, 0.06)], dtype=F64)
+    assert not bool(feasible(scene, q[None])[0])
+    with pytest.raises(ValueError, match=r"state.q: bodies penetrate .* pairs \(0, 2\)"):
+        step(scene, scene.initial_state(q))
+
+
+def test_batch_errors_name_the_scene_and_misuse_is_named(bodies):
+    """A kinematic push-out that fails in scene 1 of a batch says so; a state on the meta device, a tensor of
+    actions for rollout and a gravity tensor that requires grad are refused naming the argument."""
+    cube, ground, pusher, _ = bodies
+    wall = _box((0.05, 0.6, 0.4), kind="static", max_edge=0.1)
+    scene = Scene((cube, ground, pusher, wall), friction=0.3)
+    h = 0.1 + 1.5e-3
+    q = torch.tensor(
+        [
+            [_pose(0, 0, h), _pose(), _pose(-0.2, 0, 0.06), _pose(0.5, 0, 0.2)],
+            [
+                _pose(0, 0, h),
+                _pose(),
+                _pose(-0.2, 0, 0.06),
+                _pose(0.128, 0, 0.2),
+            ],  # the cube 3 mm from the wall
+        ],
+        dtype=F64,
+    )
+    target = q[:, 2:3].clone()
+    target[1, 0, 0] += 0.09  # scene 1's pusher squeezes the cube into the wall
+    with pytest.raises(StepError, match=r"the kinematic targets \(scene 1\): bodies penetrate"):
+        step(scene, scene.initial_state(q), Action(target=target))
+    plain = Scene((cube, ground))
+    q2 = torch.tensor([_pose(0.0, 0.0, 0.2), _pose()], dtype=F64)
+    with pytest.raises(ValueError, match="state.q is on the 'meta' device"):
+        step(plain, State(q2.to("meta"), q2.to("meta")))
+    with pytest.raises(TypeError, match=r"actions must be a sequence .* got a tensor of shape \(3, 2, 3\)"):
+        rollout(plain, plain.initial_state(q2), torch.zeros(3, 2, 3, dtype=F64))
+    with pytest.raises(TypeError, match="gravity must be numbers, not a tensor that requires grad"):
+        Scene((cube, ground), gravity=torch.tensor([0.0, 0.0, -G], dtype=F64, requires_grad=True))
+
+
 def test_step_error_names_the_reason(bodies):
     cube, ground, _, _ = bodies
     scene = Scene((cube, ground), max_newton_iter=1)

@@ -921,6 +921,18 @@ def test_contact_force_read_out_balances_weight_at_rest(cube, ground):
     assert float(f[0, :2].abs().max()) <= 1e-3 * cube.mass * G
     assert abs(float(f[1, 2]) + float(f[0, 2])) <= 1e-9 * cube.mass * G  # action = reaction
     assert float(info.friction_force[0].abs().max()) <= 1e-3 * cube.mass * G  # nothing to resist at rest
+    # in a differentiated step the forces are the same values, and a loss through them refuses to backpropagate
+    # (their adjoint is not implemented; as constants they dropped their part of the gradient: 2e-6 against -0.84)
+    force = torch.zeros(2, 3, dtype=F64, requires_grad=True)
+    out, info_g = step(scene, state, Action(force=force), return_info=True)
+    torch.testing.assert_close(
+        info_g.contact_force.detach(), step(scene, state, return_info=True)[1].contact_force
+    )
+    for name in ("contact_force", "friction_force"):
+        with pytest.raises(RuntimeError, match=f"StepInfo.{name} carries no gradient"):
+            (out.q[0, 2] + getattr(info_g, name)[0, 2]).backward(retain_graph=True)
+    (g,) = torch.autograd.grad(out.q[0, 2], force)
+    assert float(g[0, 2]) > 0  # the poses' gradient is unaffected
 
 
 def test_held_kinematic_body_keeps_its_gradient(ground, pusher):

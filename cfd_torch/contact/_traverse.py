@@ -55,6 +55,7 @@ class Forest(NamedTuple):
 
 _FOREST_CACHE: OrderedDict = OrderedDict()
 _FOREST_CACHE_SIZE = 8
+_QUERY_SLACK = 1e-9  # the CPU collision query's margin is the potential's times 1 + this
 
 
 def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
@@ -575,7 +576,9 @@ def penetrating(
     max_iter: int,
     scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """(P,) bool: the body pairs whose BSH potential is +inf at ``pose`` (some triangle pair within the margin).
+    """(P,) bool: the body pairs whose BSH potential is +inf at ``pose`` (some triangle pair within the margin; on
+    CPU within the margin times 1 + 1e-9, erring toward infeasible: the query measures distances in the world frame,
+    the plane solve about the pair's own origin, and at a gap of exactly one margin their roundings disagree).
 
     On CPU a collision query (``_traverse_numba.penetrating_pairs``: the node pairs the potential descends whose
     spheres are within the margin, no weights or plane solves); elsewhere the potential itself at order 0
@@ -593,8 +596,8 @@ def penetrating(
             forest.centre.to(torch.float64).numpy(), forest.radius.to(torch.float64).numpy(),
             forest.child.numpy(), forest.tri.numpy(), forest.tris.to(torch.float64).numpy(), pair_body.numpy(),
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
-            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(), float(margin),
-            _pair_eps(eps, pair_body.shape[0], torch.device("cpu")).numpy(),
+            pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(),
+            float(margin) * (1.0 + _QUERY_SLACK), _pair_eps(eps, pair_body.shape[0], torch.device("cpu")).numpy(),
             BAND_MARGINS * float(margin), split == "both", out.numpy(),
         )  # fmt: skip
         return out.bool()

@@ -47,6 +47,8 @@ def check_state_tensor(
             raise ValueError(f"{name} is on {x.device} but {like_name} is on {like.device}: they must match")
         if x.dtype != like.dtype:
             raise ValueError(f"{name} is {x.dtype} but {like_name} is {like.dtype}: they must match")
+    if x.device.type == "meta":
+        raise ValueError(f"{name} is on the 'meta' device (shapes without data): a step needs its values")
     bad = ~torch.isfinite(x).all(-1)
     if bool(bad.any()):
         at = tuple(int(i) for i in torch.nonzero(bad)[0])

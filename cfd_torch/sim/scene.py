@@ -145,6 +145,10 @@ class Scene:
                 f"dt must be a finite number of at least {_MIN_DT:g} s (a shorter step loses the motion to float64 "
                 f"rounding, and 1/dt^2 overflows below 1e-154), got {dt!r}"
             )
+        if isinstance(gravity, torch.Tensor) and gravity.requires_grad:
+            raise TypeError(
+                "gravity must be numbers, not a tensor that requires grad: a scene's gravity is not differentiable"
+            )
         gravity = tuple(float(x) for x in gravity)
         if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")

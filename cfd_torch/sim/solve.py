@@ -137,12 +137,12 @@ def _kinematic_pairs(scene) -> torch.Tensor:
     return kin[scene.pairs[:, 0]] | kin[scene.pairs[:, 1]]
 
 
-def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Work]:
+def _continuation(prob: StepProblem, q: torch.Tensor, where: str = "") -> tuple[torch.Tensor, Work]:
     """Scene 0 of ``prob`` (one scene): push the moving bodies out of a kinematic body's way, moving the kinematic
     bodies to their targets in stages (the stage doubled after a solved one, halved after an infeasible one), each
     stage solved from the last solution carried along the last stage's motion (a secant predictor: without it a
     stage could only advance a pusher until it touched the bodies where they were) where that start is feasible and
-    its path clear, else from the last solution."""
+    its path clear, else from the last solution. ``where``: the scene, for the errors (" (scene b)" in a batch)."""
     scene = prob.scene
     kin = scene.kinematic.to(q.device)
     target = prob.fixed.clone()
@@ -178,8 +178,8 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
             work = _add(work, w)
             if int(res.reason[0]) != Stop.CONVERGED:
                 raise StepError(
-                    f"pushing bodies out of a kinematic body's way: the solve at {frac:.3g} of the kinematic motion "
-                    f"stopped: {Stop(int(res.reason[0])).name}"
+                    f"pushing bodies out of a kinematic body's way{where}: the solve at {frac:.3g} of the kinematic "
+                    f"motion stopped: {Stop(int(res.reason[0])).name}"
                 )
             rate = (res.q - q) / (frac - done)
             q = res.q
@@ -188,7 +188,7 @@ def _continuation(prob: StepProblem, q: torch.Tensor) -> tuple[torch.Tensor, Wor
             inc *= 0.5
             if inc < 1e-4:
                 raise StepError(
-                    f"the kinematic targets: bodies penetrate (within the margin {scene.contact.margin}): pairs "
+                    f"the kinematic targets{where}: bodies penetrate (within the margin {scene.contact.margin}): pairs "
                     f"{penetrating(scene, scene.kinematics.poses(q, fixed)[0])}, and pushing them out of the way "
                     "failed; move kinematic bodies less per step"
                 )
@@ -262,8 +262,9 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
                 f"state.q: bodies penetrate (are within the margin {scene.contact.margin} of each other): "
                 f"pairs {bad}" + (f" (scene {b})" if B > 1 else "")
             )
+        where = f" (scene {b})" if B > 1 else ""
         if len(kin_idx) == 0:
-            raise StepError("infeasible step start (non-finite energy at the start-of-step poses)")
+            raise StepError(f"infeasible step start (non-finite energy at the start-of-step poses){where}")
         shift = prob.fixed[b, kin_idx, :3] - prob.q_t[b, kin_idx, :3]  # (K, 3)
         p0 = kin.poses(q_t[b : b + 1], prob.fixed[b : b + 1])
         p0[:, kin_idx] = prob.q_t[b : b + 1, kin_idx]
@@ -274,7 +275,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
                 q0[b] = cand[0]
                 break
         else:
-            q, w = _continuation(select_scenes(prob, torch.tensor([b], device=dev)), q_t[b : b + 1])
+            q, w = _continuation(select_scenes(prob, torch.tensor([b], device=dev)), q_t[b : b + 1], where)
             q0[b], work = q[0], _add(work, w)
     return q0, None, work
 

@@ -102,9 +102,31 @@ def _solve(
     q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
     q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
     ones = torch.ones_like(iters)
+    if (
+        q.requires_grad
+    ):  # a differentiated step: a loss through the forces raises instead of dropping their part
+        fc, ff = _NoGradient.apply(fc, q, "contact_force"), _NoGradient.apply(ff, q, "friction_force")
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
     )
+
+
+class _NoGradient(torch.autograd.Function):
+    """x itself, attached to the graph of ``anchor`` so that a backward through it raises: StepInfo's forces are
+    not differentiated (their Hessian-based adjoint is not implemented), and a constant would drop their part of
+    a loss's gradient silently."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, anchor: torch.Tensor, name: str) -> torch.Tensor:
+        ctx.name = name
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, *_):
+        raise RuntimeError(
+            f"StepInfo.{ctx.name} carries no gradient (the step's adjoint does not differentiate the end-of-step "
+            "forces); use it for logging, or .detach() it to leave it out of the loss"
+        )
 
 
 def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: Params, k: int):
@@ -307,10 +329,13 @@ def rollout(
         The :class:`Trajectory` of the T + 1 states, the first included: fields (T + 1, [B,] N, 6); ``traj[t]`` is
         a State.
     """
-    if isinstance(actions, bool) or not isinstance(actions, (int, Iterable)):
-        raise TypeError(
-            f"actions must be a sequence of Action (or None) or a number of steps, got {actions!r}"
+    if isinstance(actions, (bool, torch.Tensor)) or not isinstance(actions, (int, Iterable)):
+        got = (
+            f"a tensor of shape {tuple(actions.shape)}"
+            if isinstance(actions, torch.Tensor)
+            else repr(actions)
         )
+        raise TypeError(f"actions must be a sequence of Action (or None) or a number of steps, got {got}")
     if isinstance(actions, int) and actions < 0:
         raise ValueError(f"actions must be a number of steps >= 0, got {actions}")
     seq = [None] * actions if isinstance(actions, int) else list(actions)

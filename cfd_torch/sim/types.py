@@ -112,7 +112,8 @@ class StepInfo(NamedTuple):
         friction_contacts: ([B]) lagged friction contacts of each scene.
         contact_force: ([B,] N, 6) -dP/dq at the end-of-step poses: columns 0-2 world-frame forces [N], columns 3-5
             conjugate to the rotation vector (the world torque when the rotation vector is zero); float64, the
-            solve's precision, whatever the state's dtype.
+            solve's precision, whatever the state's dtype. Not differentiated: in a step that records a graph, a
+            backward through it (or through ``friction_force``) raises RuntimeError.
         friction_force: ([B,] N, 6) -dD/dq of the lagged friction potential, same layout and dtype.
         substeps: ([B]) sub-steps each scene's step took (1 unless it was retried after a StepError,
             ``SolverConfig.substeps``).
