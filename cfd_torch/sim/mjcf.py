@@ -277,9 +277,8 @@ def load_mjcf(
     Raises:
         ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it.
     """
-    base = (
-        None  # the model file's folder: asset files (meshes) are read from it at compile time, as MuJoCo does
-    )
+    # the model file's folder: asset files (meshes) are read from it at compile time, as MuJoCo does
+    base = None
     if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
         with open(source) as f:
             xml = f.read()

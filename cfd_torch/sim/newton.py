@@ -224,9 +224,9 @@ def newton(
         maj = majorized[idx] & majorize[idx]
         Hd = torch.where(maj[:, None, None], H + cur.majorizer_gap[idx], H) if bool(maj.any()) else H
         fin = torch.isfinite(g).all(1) & torch.isfinite(Hd).flatten(1).all(1)
-        if not bool(
-            fin.all()
-        ):  # no direction from these: stop them (the factorisations would raise or return NaN)
+        # no direction from scenes whose derivatives overflowed: stop them (the factorisations would raise or
+        # return NaN)
+        if not bool(fin.all()):
             reason[idx[~fin]] = int(Stop.NONFINITE)
             active[idx[~fin]] = False
             idx, L, g, H, Hd, maj = idx[fin], L[fin], g[fin], H[fin], Hd[fin], maj[fin]

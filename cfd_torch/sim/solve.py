@@ -162,9 +162,8 @@ def _continuation(prob: StepProblem, q: torch.Tensor, where: str = "") -> tuple[
         p0 = scene.kinematics.poses(q, before)
         q1 = q
         ok = False
-        if (
-            rate is not None
-        ):  # the moving bodies carried along the last stage's motion, their paths checked too
+        # the moving bodies carried along the last stage's motion, their paths checked too
+        if rate is not None:
             q1 = q + (frac - done) * rate
             p1 = scene.kinematics.poses(q1, fixed)
             ok = bool(feasible(scene, p1)[0]) and bool(sweep_clear(scene, p0, p1)[0])
@@ -280,6 +279,14 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     return q0, None, work
 
 
+def _settings(scene) -> str:
+    """The settings that scale the incremental potential's terms, for the overflow errors."""
+    return (
+        f"(dt={scene.dt:g}, contact stiffness mu={scene.contact.stiffness:g}, friction coefficient "
+        f"{scene.friction.coefficient:g}: check them and the masses and forces)"
+    )
+
+
 def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
     """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
     pairs, leaf pairs); raises StepError saying why it failed."""
@@ -303,15 +310,12 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
                 prob.scene.kinematics.check_within_limits(prob.q_t.detach(), "state.q")
             raise StepError(
                 f"infeasible Newton start (non-finite energy){where}: bodies penetrate, or a term overflows float64 "
-                f"(dt={prob.scene.dt:g}, contact stiffness mu={prob.scene.contact.stiffness:g}: check them and the "
-                "masses and forces)"
+                f"{_settings(prob.scene)}"
             )
         if r == Stop.NONFINITE:
             raise StepError(
                 f"non-finite gradient or Hessian at Newton iteration {int(res.iters[b])}{where}: a term of the "
-                f"incremental potential overflows float64 (dt={prob.scene.dt:g}, contact stiffness "
-                f"mu={prob.scene.contact.stiffness:g}, friction coefficient {prob.scene.friction.coefficient:g}: check "
-                "them and the masses and forces)"
+                f"incremental potential overflows float64 {_settings(prob.scene)}"
             )
         what = {
             Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "

@@ -102,9 +102,8 @@ def _solve(
     q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
     q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
     ones = torch.ones_like(iters)
-    if (
-        q.requires_grad
-    ):  # a differentiated step: a loss through the forces raises instead of dropping their part
+    # a differentiated step: a loss through the forces raises instead of dropping their part
+    if q.requires_grad:
         fc, ff = _NoGradient.apply(fc, q, "contact_force"), _NoGradient.apply(ff, q, "friction_force")
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
