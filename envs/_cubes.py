@@ -8,10 +8,9 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
-from cfd_torch._validate import check_positive
 
 from ._pusher import GAP, Pusher, floor_body
-from .core import EnvState, TaskCore
+from .core import EnvState, TaskCore, check_task_arguments
 
 __all__ = ["CubesCore"]
 
@@ -51,8 +50,10 @@ class CubesCore(TaskCore):
     ) -> None:
         if isinstance(num_cubes, bool) or not isinstance(num_cubes, int) or num_cubes < 1:
             raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
-        for name, v in (("cube_size", cube_size), ("cube_density", cube_density), ("spread", spread)):
-            check_positive(v, name)
+        check_task_arguments(
+            action_cost=action_cost, cube_size=cube_size, cube_density=cube_density, spread=spread,
+            max_speed=max_speed,
+        )  # fmt: skip
         self.num_cubes = num_cubes
         self.action_body = num_cubes
         self.obs_dim = 4 * (num_cubes + 1) + self._task_obs_dim(num_cubes)

@@ -14,7 +14,7 @@ from cfd_torch.sim.mjcf import gymnasium_ant_xml
 
 from ._pusher import GAP, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState
+from .core import EnvState, check_task_arguments
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["AntPushCore", "AntPushEnv", "AntPushVectorEnv"]
@@ -68,6 +68,9 @@ class AntPushCore(BoxToTargetCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        check_task_arguments(
+            action_cost=action_cost, distance=distance, box_density=box_density, success_radius=success_radius
+        )
         if actuation not in ("torque", "position"):
             raise ValueError(f"actuation must be 'torque' or 'position', got {actuation!r}")
         self.actuation = actuation

@@ -9,7 +9,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore, _is_int, disc, marker_rows
+from .core import EnvState, TaskCore, _is_int, check_task_arguments, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -90,9 +90,10 @@ class BilliardsCore(TaskCore):
             raise ValueError(
                 f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket!r}"
             )
-        for name, v in (("ball_radius", ball_radius), ("ball_mass", ball_mass), ("max_force", max_force)):
-            if not v > 0:
-                raise ValueError(f"{name} must be positive, got {v}")
+        check_task_arguments(
+            action_cost=action_cost, ball_radius=ball_radius, ball_mass=ball_mass, max_force=max_force,
+            pocket_radius=pocket_radius,
+        )  # fmt: skip
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=ball_radius)
         ball = rigid_body(mesh, density=ball_mass / mesh.volume)
         scene = Scene(

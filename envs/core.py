@@ -26,10 +26,25 @@ import torch.utils._pytree as pytree
 import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
+from cfd_torch._validate import check_positive, is_real
 from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
 
 __all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_states", "task_at"]
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """The same device ("cuda" matches "cuda:0": an unset index is the current one)."""
+    return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
+
+
+def check_task_arguments(*, action_cost: float, **positive: float) -> None:
+    """A task's constructor arguments: ``action_cost`` a finite number >= 0 and every other one finite and > 0
+    (a clear ValueError naming the argument otherwise)."""
+    if not (is_real(action_cost) and 0 <= action_cost < float("inf")):
+        raise ValueError(f"action_cost must be a finite number >= 0, got {action_cost!r}")
+    for name, value in positive.items():
+        check_positive(value, name)
 
 
 @dataclass(frozen=True)
@@ -322,10 +337,15 @@ class TaskCore(abc.ABC):
         """
         if not isinstance(state, EnvState):
             raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
+        if state.q.dtype != self.dtype or not _same_device(state.q.device, self.device):
+            raise TypeError(
+                f"state is {state.q.dtype} on {state.q.device} but this core is {self.dtype} on {self.device} "
+                "(make_core(..., dtype=, device=)); make the state with core.reset"
+            )
         action = self.check_action(action, state.batch_size)
         sim_action = self._action(state, action.clamp(-1.0, 1.0))
         nxt, info = step(self.scene, state.sim, sim_action, params, return_info=True)
-        next_state = EnvState(nxt.q, nxt.q_prev, state.t + 1, state.task)
+        next_state = EnvState(nxt.q, nxt.q_prev, state.t + 1, dict(state.task))  # (not the caller's dict)
         terms = self.reward_terms(state, action, next_state)
         reward = torch.stack(list(terms.values())).sum(0)
         out_info = {f"reward_{k}": v for k, v in terms.items()}
@@ -334,16 +354,28 @@ class TaskCore(abc.ABC):
         return StepOut(next_state, self.observe(next_state), reward, self.terminated(next_state), out_info)
 
     def check_action(self, action: torch.Tensor, batch_size: int) -> torch.Tensor:
-        """``action`` as a (B, A) tensor of the core's dtype and device; a clear ValueError otherwise."""
+        """``action`` as a (B, A) tensor of the core's dtype and device; a clear TypeError (not real numbers) or
+        ValueError (shape, NaN/inf, overflow) otherwise."""
         if not isinstance(action, torch.Tensor):
-            action = torch.as_tensor(action, dtype=self.dtype, device=self.device)
+            array = np.asarray(action)
+            if array.dtype.kind not in "iuf":
+                raise TypeError(f"action must be an array of real numbers, got dtype {array.dtype}")
+            action = torch.as_tensor(array, dtype=self.dtype, device=self.device)
+        if action.dtype == torch.bool or action.is_complex():
+            raise TypeError(f"action must be a tensor of real numbers, got {action.dtype}")
         if action.shape != (batch_size, self.action_dim):
             raise ValueError(
                 f"action must have shape ({batch_size}, {self.action_dim}), got {tuple(action.shape)}"
             )
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action contains NaN or inf")
-        return action.to(dtype=self.dtype, device=self.device)
+        action = action.to(dtype=self.dtype, device=self.device)
+        if not bool(torch.isfinite((action * action).sum(1)).all()):
+            raise ValueError(
+                f"action: |a|^2 overflows {self.dtype} (largest |a_i| {float(action.abs().max()):.3g}); "
+                "actions are in [-1, 1]"
+            )
+        return action
 
     def _to(self, state: EnvState) -> EnvState:
         def cast(x: torch.Tensor) -> torch.Tensor:

@@ -8,10 +8,11 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
+from cfd_torch._validate import is_real
 
 from ._pusher import GAP, Pusher, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState
+from .core import EnvState, check_task_arguments
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["PushCore", "PushEnv", "PushVectorEnv"]
@@ -68,6 +69,12 @@ class PushCore(BoxToTargetCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        check_task_arguments(
+            action_cost=action_cost, distance=distance, max_speed=max_speed, box_density=box_density,
+            success_radius=success_radius,
+        )  # fmt: skip
+        if not (is_real(angle_range) and 0 <= angle_range <= math.pi):
+            raise ValueError(f"angle_range must be a number in [0, pi] [rad], got {angle_range!r}")
         box = rigid_body(trimesh.creation.box((0.3, 0.3, 0.3)), density=box_density)
         self.pusher = Pusher((0.1, 0.1, 0.8), density=500.0, max_speed=max_speed)
         scene = Scene(

@@ -53,6 +53,8 @@ def _policy_action(core: TaskCore, policy: Policy, obs: torch.Tensor, t: int) ->
         raise ValueError(
             f"policy(obs, {t}) must return actions of shape ({B}, {A}) or ({A},), got {tuple(a.shape)}"
         )
+    if a.is_floating_point() and not bool(torch.isfinite(a).all()):
+        raise ValueError(f"policy(obs, {t}) returned actions with NaN or inf")
     return a
 
 
@@ -166,7 +168,12 @@ def rollout(
         rews = obs0.new_zeros(0, B)
         terms = torch.zeros(0, B, dtype=torch.bool, device=obs0.device)
         qs = state.q[None][:0]
-        info = {}
+        # the keys a step's info has, each (0, B)
+        names = core.reward_terms(state, obs0.new_zeros(B, core.action_dim), state)
+        info = {f"reward_{k}": rews.clone() for k in names}
+        info.update(
+            {k: torch.zeros(0, B, dtype=torch.long, device=obs0.device) for k in ("newton_iters", "substeps")}
+        )
     done_before = torch.cumsum(terms.long(), 0) - terms.long()  # terminal steps strictly before t
     alive = (done_before == 0).to(rews.dtype)
     return Rollout(obs, acts, rews, terms, alive, info, state, torch.cat([q0[None], qs]))

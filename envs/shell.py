@@ -8,6 +8,7 @@ its copy i with s + i, as ``gym.make_vec(..., vectorization_mode="sync")`` does,
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import gymnasium as gym
@@ -23,6 +24,27 @@ from .core import EnvState, TaskCore, stack_states, task_at
 __all__ = ["CoreEnv", "CoreVectorEnv"]
 
 _SEED_HIGH = 2**62
+
+
+def _check_shell_arguments(render_mode: str | None, width: int, height: int) -> None:
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+    for name, v in (("width", width), ("height", height)):
+        if not (is_int(v) and v > 0):
+            raise ValueError(f"{name} must be a positive int [pixels], got {v!r}")
+
+
+def _real_array(x: Any, name: str) -> np.ndarray:
+    """``x`` as a float64 array; a TypeError naming ``name`` if it is not real numbers (complex, bool, text)."""
+    array = np.asarray(x)
+    if array.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
+def _fps(core: TaskCore) -> int:
+    """Frames per second of a rollout played at its own pace (at least 1)."""
+    return max(1, round(1.0 / core.scene.dt))
 
 
 def _spaces(core: TaskCore) -> tuple[gym.spaces.Box, gym.spaces.Box]:
@@ -81,12 +103,11 @@ class CoreEnv(gym.Env):
         height: int = 480,
         **task: Any,
     ) -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        _check_shell_arguments(render_mode, width, height)
         self.core = self.core_class(device=device, dtype=dtype, **task)
         self.render_mode = render_mode
         self.action_space, self.observation_space = _spaces(self.core)
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.core.scene.dt)}
+        self.metadata = {**type(self).metadata, "render_fps": _fps(self.core)}
         self.state: EnvState | None = None
         self._frames = _Frames(self.core, width, height)
 
@@ -100,7 +121,7 @@ class CoreEnv(gym.Env):
     def step(self, action):
         if self.state is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64)
+        action = _real_array(action, "action")
         if action.shape != (self.core.action_dim,):
             raise ValueError(f"action must have shape ({self.core.action_dim},), got {action.shape}")
         a = torch.as_tensor(action, dtype=self.core.dtype, device=self.core.device)
@@ -155,8 +176,7 @@ class CoreVectorEnv(VectorEnv):
         if not (is_int(num_envs) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         num_envs = int(num_envs)
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        _check_shell_arguments(render_mode, width, height)
         self.core = self.core_class(device=device, dtype=dtype, **task)
         self.num_envs = num_envs
         self.batched = bool(batched)
@@ -165,27 +185,37 @@ class CoreVectorEnv(VectorEnv):
         self.single_action_space, self.single_observation_space = _spaces(self.core)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self.core.scene.dt)}
+        self.metadata = {**type(self).metadata, "render_fps": _fps(self.core)}
         self._rngs = [seeding.np_random()[0] for _ in range(num_envs)]
+        self._seeds = [-1] * num_envs
         self.states: list[EnvState | None] = [None] * num_envs
         self._obs = np.zeros((num_envs, self.core.obs_dim), dtype=np.float64)
         self._autoreset = np.zeros(num_envs, dtype=np.bool_)
         self._frames = _Frames(self.core, width, height)
 
-    def _reset_one(self, i: int) -> None:
+    def _initial(self, rng: np.random.Generator) -> tuple[EnvState, np.ndarray]:
+        """A fresh environment's state and observation, its core seed drawn from ``rng``."""
         with torch.no_grad():
-            self.states[i] = self.core.reset(int(self._rngs[i].integers(_SEED_HIGH)))
-            self._obs[i] = self.core.observe(self.states[i])[0].cpu().numpy()
+            state = self.core.reset(int(rng.integers(_SEED_HIGH)))
+            return state, self.core.observe(state)[0].cpu().numpy()
+
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:
+        """The seed each environment's generator was last seeded with (-1: seeded from entropy), as
+        SyncVectorEnv's."""
+        return tuple(self._seeds)
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
         if seed is None:
             seeds: list[int | None] = [None] * self.num_envs
-        elif isinstance(seed, int):
-            seeds = [seed + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
+        elif is_int(seed):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        elif isinstance(seed, (list, tuple, np.ndarray)) and all(s is None or is_int(s) for s in seed):
+            seeds = [None if s is None else int(s) for s in seed]
             if len(seeds) != self.num_envs:
                 raise ValueError(f"seed has {len(seeds)} entries for {self.num_envs} environments")
+        else:
+            raise TypeError(f"seed must be None, an int or a sequence of ints (or None), got {seed!r}")
         mask = np.ones(self.num_envs, dtype=np.bool_)
         if options is not None and "reset_mask" in options:
             mask = np.asarray(options["reset_mask"], dtype=np.bool_)
@@ -195,45 +225,48 @@ class CoreVectorEnv(VectorEnv):
                 )
         for i in np.flatnonzero(mask):
             if seeds[i] is not None:
-                self._rngs[i] = seeding.np_random(seeds[i])[0]
-            self._reset_one(int(i))
+                self._rngs[i], self._seeds[i] = seeding.np_random(seeds[i])
+            self.states[i], self._obs[i] = self._initial(self._rngs[i])
             self._autoreset[i] = False
         return self._obs.copy(), {}
 
     def step(self, actions):
         if any(s is None for s in self.states):
             raise RuntimeError("call reset() before step()")
-        actions = np.asarray(actions, dtype=np.float64)
+        actions = _real_array(actions, "actions")
         if actions.shape != (self.num_envs, self.core.action_dim):
             raise ValueError(
                 f"actions must have shape ({self.num_envs}, {self.core.action_dim}), got {actions.shape}"
             )
-        stepping = (
-            ~self._autoreset
-        )  # (the actions of environments being reset are ignored, as in SyncVectorEnv)
+        # the actions of environments being reset are ignored, as in SyncVectorEnv
+        stepping = ~self._autoreset
         if not np.isfinite(actions[stepping]).all():  # checked before any environment steps
             bad = sorted({int(i) for i in np.nonzero(stepping & ~np.isfinite(actions).all(1))[0]})
             raise ValueError(f"actions: non-finite entries for environments {bad}")
+        # computed into copies, kept only if every environment steps: a StepError leaves the vector environment as
+        # it was (states, observations, autoreset flags and generators)
+        states, obs, rngs = list(self.states), self._obs.copy(), [copy.deepcopy(r) for r in self._rngs]
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
         truncated = np.zeros(self.num_envs, dtype=np.bool_)
         infos: dict[str, Any] = {}
         for i in np.flatnonzero(self._autoreset):
-            self._reset_one(int(i))
-        run = [int(i) for i in np.flatnonzero(~self._autoreset)]
+            states[i], obs[i] = self._initial(rngs[i])
+        run = [int(i) for i in np.flatnonzero(stepping)]
         groups = [run] if self.batched and run else [[i] for i in run]
         for idx in groups:
             a = torch.as_tensor(actions[idx], dtype=self.core.dtype, device=self.core.device)
             with torch.no_grad():
-                out = self.core.step(stack_states([self.states[i] for i in idx]), a)
+                out = self.core.step(stack_states([states[i] for i in idx]), a)
             for k, i in enumerate(idx):
-                self.states[i] = out.state.select(k)
-                self._obs[i] = out.obs[k].cpu().numpy()
+                states[i] = out.state.select(k)
+                obs[i] = out.obs[k].cpu().numpy()
                 rewards[i] = float(out.reward[k])
                 terminated[i] = bool(out.terminated[k])
                 truncated[i] = int(out.state.t[k]) >= self.max_episode_steps
                 # the single env's info (Python scalars) gathered as SyncVectorEnv does (its dtypes follow them)
                 infos = self._add_info(infos, {key: v[k].item() for key, v in out.info.items()}, i)
+        self.states, self._obs, self._rngs = states, obs, rngs
         self._autoreset = terminated | truncated
         return self._obs.copy(), rewards, terminated, truncated, infos
 

@@ -361,6 +361,8 @@ def test_core_checks_its_inputs():
         rollout(core, s, lambda o, t: np.zeros((2, 2)), 2)
     with pytest.raises(ValueError, match=r"policy\(obs, 1\) must return actions of shape \(2, 2\) or \(2,\)"):
         rollout(core, s, lambda o, t: torch.zeros(2 if t == 0 else 1, 2, dtype=F64), 2)
+    with pytest.raises(ValueError, match=r"policy\(obs, 1\) returned actions with NaN or inf"):
+        rollout(core, s, lambda o, t: torch.full((2,), 0.0 if t == 0 else float("nan"), dtype=F64), 2)
     # torch.func's transforms cannot pass a simulator step: refused with the way out
     with pytest.raises(
         NotImplementedError, match="torch.func transforms .* do not pass through a simulation step"
@@ -390,6 +392,96 @@ def test_shells_check_action_shapes_before_stepping():
     with pytest.raises(ValueError, match="num_envs must be a positive int"):
         gym.make_vec("cfd_torch/Push-v0", True, vectorization_mode="vector_entry_point")
     vec.close()
+
+
+def test_native_vector_env_step_is_all_or_nothing_and_seeds_like_sync(monkeypatch):
+    """A step in which one environment's solve fails leaves every environment as it was (no environment stepped
+    twice on a retry); reset takes NumPy integer seeds and np_random_seed reports them as SyncVectorEnv does."""
+    from cfd_torch import StepError
+
+    vec = gym.make_vec("cfd_torch/Push-v0", 3, vectorization_mode="vector_entry_point").unwrapped
+    sync = gym.make_vec("cfd_torch/Push-v0", 3, vectorization_mode="sync")
+    obs, _ = vec.reset(seed=np.int64(3))
+    obs_sync, _ = sync.reset(seed=3)
+    np.testing.assert_array_equal(obs, obs_sync)
+    assert vec.np_random_seed == tuple(sync.np_random_seed) == (3, 4, 5)
+    with pytest.raises(TypeError, match="seed must be None, an int or a sequence of ints"):
+        vec.reset(seed=2.5)
+    vec.reset(seed=3)
+    act = np.full((3, 2), 0.5)
+    vec.step(act)
+    before = [(int(st.t[0]), st.q.clone()) for st in vec.states]
+    obs_before = vec._obs.copy()
+    step, calls = vec.core.step, []
+
+    def fails_second(state, action, params=None):
+        calls.append(1)
+        if len(calls) == 2:
+            raise StepError("injected")
+        return step(state, action, params)
+
+    monkeypatch.setattr(vec.core, "step", fails_second)
+    with pytest.raises(StepError, match="injected"):
+        vec.step(act)
+    assert len(calls) == 2  # the first environment did step, and was not kept
+    for st, (t, q) in zip(vec.states, before, strict=True):
+        assert int(st.t[0]) == t
+        torch.testing.assert_close(st.q, q, rtol=0, atol=0)
+    np.testing.assert_array_equal(vec._obs, obs_before)
+    monkeypatch.setattr(vec.core, "step", step)
+    vec.step(act)
+    assert [int(st.t[0]) for st in vec.states] == [t + 1 for t, _ in before]
+    vec.close()
+    sync.close()
+
+
+def test_task_arguments_actions_and_states_are_checked():
+    """Bad task arguments, render sizes, actions (complex, bool, text, overflowing) and states of another dtype are
+    refused naming the argument; a step's state does not share its task dict with its parent; a rollout of no
+    steps has a step's info keys."""
+    for env_id, kwargs, name in [
+        ("cfd_torch/Push-v0", {"distance": -3.0}, "distance"),
+        ("cfd_torch/Push-v0", {"action_cost": -1.0}, "action_cost"),
+        ("cfd_torch/Push-v0", {"max_speed": 0.0}, "max_speed"),
+        ("cfd_torch/Push-v0", {"angle_range": -0.1}, "angle_range"),
+        ("cfd_torch/Billiards-v0", {"pocket_radius": -0.08}, "pocket_radius"),
+        ("cfd_torch/Sort-v0", {"action_cost": float("nan")}, "action_cost"),
+        ("cfd_torch/AntPush-v0", {"success_radius": 0.0}, "success_radius"),
+    ]:
+        with pytest.raises(ValueError, match=f"{name} must be"):
+            make_core(env_id, **kwargs)
+    with pytest.raises(ValueError, match="width must be a positive int"):
+        gym.make("cfd_torch/Push-v0", width=0)
+    with pytest.raises(ValueError, match="height must be a positive int"):
+        gym.make_vec("cfd_torch/Push-v0", 2, vectorization_mode="vector_entry_point", height=64.5)
+
+    core = make_core("cfd_torch/Push-v0")
+    s0 = core.reset(0, 2)
+    with pytest.raises(TypeError, match="action must be a tensor of real numbers"):
+        core.step(s0, torch.zeros(2, 2, dtype=torch.complex128))
+    with pytest.raises(TypeError, match="action must be a tensor of real numbers"):
+        core.step(s0, torch.zeros(2, 2, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"action: \|a\|\^2 overflows"):
+        core.step(s0, torch.full((2, 2), 1e160, dtype=F64))
+    with pytest.raises(TypeError, match="state is torch.float32 on cpu but this core is torch.float64"):
+        core.step(make_core("cfd_torch/Push-v0", dtype=torch.float32).reset(0, 2), torch.zeros(2, 2))
+    s1 = core.step(s0, torch.zeros(2, 2, dtype=F64)).state
+    assert s1.task is not s0.task and s1.task.keys() == s0.task.keys()
+    s1.task["target"] = s1.task["target"] + 1.0
+    assert float((s1.task["target"] - s0.task["target"]).abs().min()) == 1.0  # the parent's goal unchanged
+
+    env = gym.make("cfd_torch/Push-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match="action must be an array of real numbers, got dtype complex128"):
+        env.step(np.array([0.5 + 1j, 0.0]))
+    with pytest.raises(TypeError, match="action must be an array of real numbers"):
+        env.step(["a", "b"])
+
+    one = rollout(core, s0, torch.zeros(1, 2, 2, dtype=F64))
+    none = rollout(core, s0, torch.zeros(1, 2, 2, dtype=F64), 0)
+    assert none.info.keys() == one.info.keys() and len(one.info) > 2
+    for k, v in none.info.items():
+        assert v.shape == (0, 2) and v.dtype == one.info[k].dtype, k
 
 
 @pytest.mark.parametrize(
