@@ -3,8 +3,9 @@ potentials' contract with torch.func.
 
 A potential ``value(q)`` with a closed-form gradient and Hessian is attached to autograd by
 :class:`ClosedFormPotential`; its backward is :class:`ClosedFormGrad`, whose backward is the closed-form
-Hessian-vector product; a third derivative raises through :class:`RefuseThirdOrder` (also used by
-``pair_potential``, whose Hessian is implicit).
+Hessian-vector product, differentiable in its vector (so ``torch.autograd.functional.hvp``'s double-backward works);
+a third derivative raises through :func:`refuse_third_order` (also used by ``pair_potential``, whose Hessian is
+implicit).
 
 torch.func: the Functions are in the new style (``forward`` without ctx, ``setup_context``), so ``torch.func.grad``
 and ``torch.func.jacrev`` work, nested to second order (grad of grad, jacrev of jacrev) like ``torch.autograd``, and
@@ -156,10 +157,13 @@ class ClosedFormGrad(torch.autograd.Function):
     def backward(ctx, v, _):
         # d (v . g(q)) / dq = v^T H(q), H symmetric
         q, h = ctx.saved_tensors
-        hv = torch.einsum("bi,bij->bj", v, h)
-        # under create_graph H(q) would need its own derivative in q, which is not available: refuse it
+        hv = (v[:, None, :] @ h)[
+            :, 0
+        ]  # (matmul, not einsum: autograd.functional's vectorize has no einsum rule)
+        # under create_graph: differentiable in v (the product is linear in it), while H(q)'s own derivative in q
+        # is not available: refused
         if torch.is_grad_enabled():
-            hv = RefuseThirdOrder.apply(hv, q, v, ctx.name)
+            hv = refuse_third_order(hv, q, ctx.name)
         return hv, None, None
 
     @staticmethod
@@ -171,24 +175,31 @@ class ClosedFormGrad(torch.autograd.Function):
         raise forward_mode_error(ctx.name)
 
 
-class RefuseThirdOrder(torch.autograd.Function):
-    """Identity on a Hessian-vector product ``hv`` computed from the point ``x`` and the vector ``v``; its backward
-    (a third derivative, or the derivative of the product in ``v``) raises a RuntimeError naming ``name``.
+def refuse_third_order(hv: torch.Tensor, x: torch.Tensor, name: str) -> torch.Tensor:
+    """A Hessian-vector product ``hv`` computed from the point ``x``, with its derivative in ``x`` (a third
+    derivative) refused: any backward that reaches ``x`` through it raises a RuntimeError naming ``name``. Its
+    derivative in the vector is ``hv``'s own (a Hessian-vector product is linear in the vector: keep ``hv``
+    differentiable in it, and ``torch.autograd.functional.hvp`` works).
 
     ``x`` must be the differentiable point itself (a tensor that requires grad when the Hessian's own derivative
     would be needed): an input that does not require grad leaves the refusal out of the graph, and the third
-    derivative would silently be dropped. Under vmap (e.g. ``jacrev`` of ``jacrev``) it stays the identity.
+    derivative would silently be dropped. Under vmap (e.g. ``jacrev`` of ``jacrev``) the added term stays zero.
     """
+    return hv + _ThirdOrderGuard.apply(x, name)
+
+
+class _ThirdOrderGuard(torch.autograd.Function):
+    """A 0-d zero that depends on ``x``, whose backward raises (see :func:`refuse_third_order`)."""
 
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(hv: torch.Tensor, x: torch.Tensor, v: torch.Tensor, name: str) -> torch.Tensor:
-        return hv.clone()
+    def forward(x: torch.Tensor, name: str) -> torch.Tensor:
+        return x.new_zeros(())
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        ctx.name = inputs[3]
+        ctx.name = inputs[1]
 
     @staticmethod
     def backward(ctx, grad):

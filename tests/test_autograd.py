@@ -1,7 +1,7 @@
 """The custom autograd Functions: float64 gradcheck of each, gradgradcheck or an asserted refusal of the next
 order, and the torch.func transforms (grad and jacrev work; vmap and forward mode raise saying so).
 
-Functions and where their checks are: ClosedFormPotential, ClosedFormGrad, RefuseThirdOrder (cfd_torch/_autograd.py),
+Functions and where their checks are: ClosedFormPotential, ClosedFormGrad, refuse_third_order (cfd_torch/_autograd.py),
 _KnownGradPotential (contact/scene.py) and _PairGradFn (contact/pair.py) here, on their own; _PairPotentialFn through
 pair_potential in test_pair_potential.py; the closed-form ones also through mesh_potential and contact_potential in
 test_mesh_potential.py.
@@ -17,8 +17,14 @@ import pytest
 import torch
 import trimesh
 
-from cfd_torch import contact_potential, mesh_potential, pair_potential
-from cfd_torch._autograd import ClosedFormGrad, ClosedFormPotential, RefuseThirdOrder
+from cfd_torch import (
+    contact_potential,
+    mesh_potential,
+    mesh_potential_derivatives,
+    pair_potential,
+    pair_potential_derivatives,
+)
+from cfd_torch._autograd import ClosedFormGrad, ClosedFormPotential, refuse_third_order
 from cfd_torch.contact import mesh as mesh_module
 from cfd_torch.contact import pair as pair_module
 from cfd_torch.contact import scene as scene_module
@@ -142,13 +148,61 @@ def test_pair_grad_fn_gradcheck_and_refused_second_backward():
         torch.autograd.gradgradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
-def test_refuse_third_order_is_the_identity_and_refuses_every_backward():
+def test_refuse_third_order_is_the_identity_passes_the_vectors_gradient_and_refuses_the_points():
     hv = torch.randn(2, 4, dtype=F64, requires_grad=True)
-    x, v = _q(), torch.randn(2, 4, dtype=F64)
-    out = RefuseThirdOrder.apply(hv, x, v, "test_potential")
+    x = _q()
+    out = refuse_third_order(hv, x, "test_potential")
     assert torch.equal(out, hv)
+    w = torch.randn(2, 4, dtype=F64)
+    (g,) = torch.autograd.grad(out, hv, w, retain_graph=True)  # the product's own derivative passes
+    assert torch.equal(g, w)
     with pytest.raises(RuntimeError, match="test_potential: third derivatives are not implemented"):
-        torch.autograd.gradcheck(lambda h, y: RefuseThirdOrder.apply(h, y, v, "test_potential"), (hv, x))
+        torch.autograd.grad(out, x, w)
+
+
+def _pair_flat(x: torch.Tensor) -> torch.Tensor:
+    return pair_potential(x[:9].reshape(3, 3), x[9:].reshape(3, 3), mu=1.0)
+
+
+def _mesh_flat(x: torch.Tensor) -> torch.Tensor:
+    return mesh_potential(_ico(), x[:6], _box(), x[6:])
+
+
+def _scene_flat(x: torch.Tensor) -> torch.Tensor:
+    return contact_potential([_ico(), _box()], x.reshape(2, 6)).value
+
+
+def _flat_inputs(name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """A point where the potential is not trivial, and its closed-form Hessian."""
+    if name == "pair":
+        a, b = _pairs()
+        d = pair_potential_derivatives(a[0], b[0], mu=1.0)
+        return torch.cat([a[0].reshape(9), b[0].reshape(9)]), d.hessian.reshape(18, 18)
+    x = torch.tensor(
+        [0.0, 0.0, 0.0, 0.2, -0.1, 0.3, 1.5, 0.1, -0.05, -0.2, 0.4, 0.1], dtype=F64
+    )  # leaf pairs in play
+    d = mesh_potential_derivatives(_ico(), x[:6], _box(), x[6:])
+    return x, d.hessian
+
+
+@pytest.mark.parametrize("name", ["pair", "mesh", "scene"])
+def test_hessian_vector_products_and_vectorized_hessians_of_autograd_functional(name):
+    """torch.autograd.functional's hvp (a double backward: the product differentiated in its vector), vhp and
+    hessian(vectorize=True) (batched gradients) give the closed-form Hessian; a third derivative is still refused."""
+    f = {"pair": _pair_flat, "mesh": _mesh_flat, "scene": _scene_flat}[name]
+    x, H = _flat_inputs(name)
+    assert float(H.abs().max()) > 0
+    v = torch.linspace(-1.0, 1.0, x.numel(), dtype=F64)
+    for fn in (torch.autograd.functional.hvp, torch.autograd.functional.vhp):
+        _assert_close(fn(f, x, v)[1], H @ v, 1e-10, fn.__name__)
+    _assert_close(
+        torch.autograd.functional.hessian(f, x, vectorize=True), H, 1e-10, "hessian(vectorize=True)"
+    )
+    x = x.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(f(x), x, create_graph=True)
+    (hv,) = torch.autograd.grad(g, x, v, create_graph=True)
+    with pytest.raises(RuntimeError, match="third derivatives are not implemented"):
+        torch.autograd.grad(hv.sum(), x)
 
 
 # ------------------------------------------------------------------------------------------------ torch.func

@@ -73,6 +73,19 @@ def test_refinement_keeps_the_surface():
     assert abs(float(area) - box.area) < 1e-9
 
 
+def test_hierarchy_does_not_share_memory_with_the_callers_arrays():
+    """Writing into the arrays a hierarchy was built from (NumPy or torch, float64: no conversion copies them)
+    leaves the hierarchy as it was."""
+    m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
+    for V, F in ((np.array(m.vertices, dtype=np.float64), np.array(m.faces)),
+                 (torch.tensor(m.vertices, dtype=torch.float64), torch.tensor(m.faces))):  # fmt: skip
+        bsh = BSH.build(V, F)
+        before = bsh.vertices.clone(), bsh.faces.clone()
+        V *= 0.5
+        F[0] = F[1]
+        assert torch.equal(bsh.vertices, before[0]) and torch.equal(bsh.faces, before[1])
+
+
 def test_bad_meshes_are_rejected():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0.0]])
     with pytest.raises(ValueError, match="faces has degenerate"):

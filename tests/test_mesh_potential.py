@@ -676,6 +676,61 @@ def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
             torch.testing.assert_close(fast[k], ref[k], rtol=1e-10, atol=1e-12 * float(ref[k].abs().max()))
 
 
+@pytest.mark.parametrize("split", SPLITS)
+def test_swapping_the_bodies_changes_nothing(split):
+    """The potential of two bodies does not depend on their order, whichever split rule (identical meshes tie at
+    every level of their hierarchies: "larger" splits both nodes on a tie); the reference agrees."""
+    ball = _bsh("ico1")
+    qa = torch.tensor([0.0, 0.0, 0.0, 0.2, -0.1, 0.3], dtype=F64)
+    qb = torch.tensor(
+        [2.01, 0.01, -0.01, -0.3, 0.5, 0.1], dtype=F64
+    )  # 1 cm apart, blends open at every level
+    kw = {"split": split, "eps": 0.01}
+    ab = mesh_potential_derivatives(ball, qa, ball, qb, **kw)
+    ba = mesh_potential_derivatives(ball, qb, ball, qa, **kw)
+    assert ab.stats["leaf_pairs"] > 0
+    torch.testing.assert_close(ba.value, ab.value, rtol=1e-13, atol=0)
+    torch.testing.assert_close(
+        torch.cat([ba.grad[6:], ba.grad[:6]]), ab.grad, rtol=1e-10, atol=1e-13 * float(ab.grad.abs().max())
+    )
+    ref = mesh_potential_reference(ball, qb, ball, qa, **kw)
+    torch.testing.assert_close(ref, ab.value, rtol=1e-10, atol=0)
+
+
+def test_both_traversals_agree_where_node_centres_coincide():
+    """Node pairs whose centres coincide (r = 0: a part centred inside a closed housing, or two bodies on top of
+    each other) lie on the blend's near side: both traversals give the same finite potential and derivatives for
+    the nested part and +inf (no NaN) for the coincident bodies, and the collision query flags only the latter."""
+    housing = BSH.from_trimesh(trimesh.creation.box(extents=(2.0, 2.0, 2.0)))
+    part = BSH.from_trimesh(trimesh.creation.box(extents=(0.5, 0.5, 0.5)))
+    ball = _bsh("ico1")
+    forest = _traverse.forest_of((housing, part, ball), F64, torch.device("cpu"))
+    pose = torch.zeros(4, 6, dtype=F64)  # housing, part, ball, ball: all centred at the origin
+    pair_body = torch.tensor([[0, 1], [2, 3]])
+    pair_root = forest.roots[torch.tensor([[0, 1], [2, 2]])]
+    kw = {"margin": MARGIN, "eps": 0.01, "split": "both", "tol": 1e-12, "max_iter": 100}
+    for order in (0, 1, 2):
+        fast = _traverse.traverse(
+            forest, pair_body, pair_root, pose, mu=1.0, order=order, backend="auto", **kw
+        )
+        ref = _traverse.traverse(
+            forest, pair_body, pair_root, pose, mu=1.0, order=order, backend="torch", **kw
+        )
+        assert 0 < float(ref[0][0]) < float("inf") and float(ref[0][1]) == float("inf")
+        torch.testing.assert_close(fast[0], ref[0], rtol=1e-12, atol=0)
+        for k in (1, 2)[:order]:
+            assert not bool(torch.isnan(ref[k]).any()) and not bool(torch.isnan(fast[k]).any())
+        if order >= 1:  # centred by symmetry: no net force or torque, to rounding
+            assert float(ref[1][0].abs().max()) < 1e-6 * float(ref[0][0])
+            assert float(fast[1][0].abs().max()) < 1e-6 * float(ref[0][0])
+        if order == 2:
+            h = float(ref[2][0].abs().max())
+            assert h > 0
+            torch.testing.assert_close(fast[2][0], ref[2][0], rtol=1e-10, atol=1e-10 * h)
+    flags = _traverse.penetrating(forest, pair_body, pair_root, pose, **kw)
+    assert flags.tolist() == [False, True]
+
+
 @pytest.mark.parametrize("names", [("ico1", "box"), ("box", "box")])
 def test_collision_query_marks_exactly_the_infinite_pairs(names):
     """The simulator's feasibility check (``_penetrating``: a sphere-pruned collision query) flags exactly the body

@@ -313,6 +313,9 @@ def test_unconverged_solve_raises():
         pair_potential(a, b, max_iter=1)
     with pytest.raises(PairSolveError, match="did not converge"):
         pair_potential(a, b, max_iter=1, backend="torch")
+    # the count is of the feasible pairs: an intersecting pair is not one
+    with pytest.raises(PairSolveError, match="did not converge for 1 of 1 feasible pairs"):
+        pair_potential(torch.stack([a[0], a[1]]), torch.stack([a[0], b[1]]), max_iter=1)
 
 
 # ---------------------------------------------------------------- input validation

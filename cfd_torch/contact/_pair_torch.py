@@ -429,6 +429,7 @@ def pair_hessian_vjp(
     n = P[:, :3]
     v6 = v.reshape(-1, 6, 3)
     direct = (2.0 / s**3 * (v6 * n[:, None, :]).sum(-1))[..., None] * n[:, None, :]  # (K, 6, 3)
-    y = torch.einsum("ki,kij->kj", v, Exp)  # (K, 4)
-    z = torch.cholesky_solve(y[..., None], L).squeeze(-1)
-    return mu * (direct.reshape(-1, 18) - torch.einsum("kij,kj->ki", Exp, z))
+    # (matmuls, not einsums: autograd.functional's vectorize=True has batching rules for these only)
+    y = (v[:, None, :] @ Exp)[:, 0]  # (K, 4)
+    z = torch.cholesky_solve(y[..., None], L)
+    return mu * (direct.reshape(-1, 18) - (Exp @ z)[..., 0])

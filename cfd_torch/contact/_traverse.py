@@ -361,12 +361,14 @@ def traverse(
         CI, CJ = forest.centre[I], forest.centre[J]
         d = torch.einsum("eij,ej->ei", R[ba], CI) + t[ba] - torch.einsum("eij,ej->ei", R[bb], CJ) - t[bb]
         r = torch.linalg.vector_norm(d, dim=-1)
+        # r = 0 (coincident centres) lies on the near side (phi = 0, every term below zero): any finite u there
+        r_safe = torch.where(r > 0, r, torch.ones_like(r))
         d1 = forest.radius[I] + forest.radius[J]
         width = torch.clamp(eps[pid] * d1, min=min_width)
         s = (r - d1) / width
         dr = d2r = None
         if order >= 1:
-            u = d / r[:, None]
+            u = d / r_safe[:, None]
             dd = torch.cat(
                 [
                     eye.expand(len(I), 3, 3),
@@ -378,7 +380,7 @@ def traverse(
             )  # (E, 3, 12)  fmt: skip
             dr = torch.einsum("ei,eik->ek", u, dd)
             if order >= 2:
-                d2r = (torch.einsum("eik,eil->ekl", dd, dd) - dr[:, :, None] * dr[:, None, :]) / r[
+                d2r = (torch.einsum("eik,eil->ekl", dd, dd) - dr[:, :, None] * dr[:, None, :]) / r_safe[
                     :, None, None
                 ]
                 d2r[:, 3:6, 3:6] += rot_second(d2R[ba], CI, u)
@@ -387,7 +389,7 @@ def traverse(
         phi1, phi2 = phi1 / width, phi2 / (width * width)
         # Every element is evaluated unmasked (cheaper than gathering subsets): the central term W phi P_c(r)
         # is zero where phi = 0 (near), the inherited weight W (1 - phi) is zero where phi = 1 (far).
-        pc, pc1, pc2 = _central_derivs(r, mu)
+        pc, pc1, pc2 = _central_derivs(torch.where(s > 0, r, d1), mu)  # (finite where phi = 0)
         g = phi * pc
         g1 = phi1 * pc + phi * pc1
         g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
@@ -421,8 +423,9 @@ def traverse(
         if split == "both":
             split_i, split_j = ~leaf_i, ~leaf_j
         else:
-            split_i = ~leaf_i & (leaf_j | (forest.radius[If] >= forest.radius[Jf]))
-            split_j = ~split_i
+            ri, rj = forest.radius[If], forest.radius[Jf]  # (ties: both, as the numba traversal)
+            split_i = ~leaf_i & (leaf_j | (ri >= rj))
+            split_j = ~leaf_j & (leaf_i | (rj >= ri))
         ci = torch.stack([torch.where(split_i, forest.child[If, 0], If), forest.child[If, 1]], 1)  # (E, 2)
         cj = torch.stack([torch.where(split_j, forest.child[Jf, 0], Jf), forest.child[Jf, 1]], 1)
         vi = torch.stack([torch.ones_like(split_i), split_i], 1)

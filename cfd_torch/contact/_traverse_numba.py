@@ -29,10 +29,11 @@ def _grow(a, n):
 
 @numba.njit(**_JIT)
 def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
-    """Which sides of a node pair to split: both non-leaves, or (``larger``) the larger non-leaf side."""
-    if split_both:
+    """Which sides of a node pair to split: both non-leaves, or (``larger``) the larger non-leaf side, both
+    non-leaves on a tie (a rule symmetric under swapping the two bodies)."""
+    if split_both or radius_i == radius_j:
         return not leaf_i, not leaf_j
-    si = (not leaf_i) and (leaf_j or radius_i >= radius_j)
+    si = (not leaf_i) and (leaf_j or radius_i > radius_j)
     return si, not si
 
 

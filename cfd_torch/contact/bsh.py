@@ -85,10 +85,12 @@ class BSH:
                 "a mesh's vertices (only to body poses)",
                 stacklevel=2,
             )
-        V = np.asarray(
-            vertices.detach().cpu() if isinstance(vertices, torch.Tensor) else vertices, dtype=np.float64
+        # copies: the hierarchy must not change when the caller later writes into its arrays
+        V = np.array(
+            vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices,
+            dtype=np.float64,
         )
-        Fc = np.asarray(faces.detach().cpu() if isinstance(faces, torch.Tensor) else faces)
+        Fc = np.array(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces)
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 3:
             raise ValueError(f"vertices must have shape (V, 3) with V >= 3, got {V.shape}")
         if Fc.ndim != 2 or Fc.shape[1] != 3 or Fc.shape[0] < 1:

@@ -8,7 +8,7 @@ recursion of SPEC section 4, started at the two roots::
     F(I, J) = P_exact(tri_I, tri_J)                   if both are leaves
             = sum of P over the child pairs           otherwise (split both, or the larger)
 
-with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / (eps d1).
+with r = |c_I - c_J| (world centres), d1 = R_I + R_J, s = (r - d1) / w, w = max(eps d1, 2 margin) (``band_width``).
 
 Unrolled, P is a sum of terms ``w * V`` where V is P_c(r) or P_exact and w is the node pair's own phi (central
 terms) times the (1 - phi) of all its ancestors. The traversal is breadth-first and batched: the frontier of node

@@ -26,10 +26,10 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import (
-    RefuseThirdOrder,
     forward_mode_error,
     outside_transforms,
     plain,
+    refuse_third_order,
     refuse_vmap,
     vmap_error,
 )
@@ -111,8 +111,9 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
     if bool(bad.any()):
         worst = float(resid[bad].max())
         idx = int(torch.nonzero(bad)[0])
+        feasible = int((status != _pair_torch.INFEASIBLE).sum())
         raise PairSolveError(
-            f"pair potential: the plane solve did not converge for {int(bad.sum())} of {status.numel()} feasible "
+            f"pair potential: the plane solve did not converge for {int(bad.sum())} of {feasible} feasible "
             f"pairs (worst relative gradient {worst:.3e} > tol {tol:.1e} after max_iter={max_iter}; first at "
             f"flattened pair index {idx})"
         )
@@ -232,6 +233,41 @@ def _local(X: torch.Tensor, C: torch.Tensor, O: torch.Tensor) -> torch.Tensor:
     return (X - C[:, None, :]) - O[:, None, :]
 
 
+def _hessian_vector(v, X, P, C, O, feasible, mu, margin) -> torch.Tensor:
+    """(K, 6, 3) v^T hess_x P at the optimal planes (no graph)."""
+    with torch.no_grad():
+        Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
+        hv = _pair_torch.pair_hessian_vjp(Xs, Ps, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
+        hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
+    return hv.reshape(-1, 6, 3)
+
+
+class _PairHessianVectorFn(torch.autograd.Function):
+    """v -> v^T hess_x P at fixed X: linear in v with a symmetric matrix, so its backward is itself (the derivative
+    in X, a third derivative, is the caller's to refuse). What makes ``torch.autograd.functional.hvp`` work."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(v, X, P, C, O, feasible, mu, margin):
+        return _hessian_vector(v, X, P, C, O, feasible, mu, margin)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(*inputs[1:6])
+        ctx.params = inputs[6:]
+
+    @staticmethod
+    def backward(ctx, w):
+        args = (*ctx.saved_tensors, *ctx.params)
+        hw = _PairHessianVectorFn.apply(w, *args) if torch.is_grad_enabled() else _hessian_vector(w, *args)
+        return hw, None, None, None, None, None, None, None
+
+    @staticmethod
+    def jvp(ctx, *tangents):
+        raise forward_mode_error("pair_potential")
+
+
 class _PairGradFn(torch.autograd.Function):
     """grad_x P at the optimal plane; its backward is the IFT Hessian-vector product (second order).
 
@@ -255,15 +291,11 @@ class _PairGradFn(torch.autograd.Function):
     def backward(ctx, v):
         # d/dx (v . grad_x P) = v^T hess_x P; with p*(x) implicit: hess = mu (E_xx - E_xp E_pp^-1 E_px).
         X, P, C, O, feasible = ctx.saved_tensors
-        mu, margin = ctx.params
-        with torch.no_grad():
-            Xs, Ps = _safe_rows(_local(X, C, O), P, feasible)
-            hv = _pair_torch.pair_hessian_vjp(Xs, Ps, v.reshape(-1, 18), mu, 0.5 * margin, LAMBDA)
-            hv = torch.where(feasible[:, None], hv, torch.zeros((), dtype=X.dtype, device=X.device))
-        hv = hv.reshape(-1, 6, 3)
-        if torch.is_grad_enabled():  # create_graph=True: the result must not pretend to be differentiable
-            hv = RefuseThirdOrder.apply(hv, X, v, "pair_potential")
-        return hv, None, None, None, None, None, None
+        if not torch.is_grad_enabled():
+            return _hessian_vector(v, X, P, C, O, feasible, *ctx.params), None, None, None, None, None, None
+        # create_graph=True: differentiable in v, the derivative in X (third order) refused
+        hv = _PairHessianVectorFn.apply(v, X.detach(), P, C, O, feasible, *ctx.params)
+        return refuse_third_order(hv, X, "pair_potential"), None, None, None, None, None, None
 
     @staticmethod
     def vmap(info, in_dims, *args):

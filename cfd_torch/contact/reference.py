@@ -9,7 +9,7 @@ where the potential is C2 (the quintic blend has zero first and second derivativ
 
 For two nodes I, J (world centres c, radii R)::
 
-    P(I, J): r = |c_I - c_J|, d1 = R_I + R_J, s = (r - d1) / (eps d1)
+    P(I, J): r = |c_I - c_J|, d1 = R_I + R_J, s = (r - d1) / max(eps d1, 2 margin)
              s >= 1:  P_c(r)                                   (far: no descent)
              else:    phi P_c(r) + (1 - phi) F,  phi = Phi(s) if s > 0 else 0
              F = pair_potential(tri_I, tri_J)                  both leaves
@@ -80,8 +80,14 @@ def _child_pairs(a: _Body, i: int, b: _Body, j: int, split: str) -> list[tuple[i
         if not leaf_i and not leaf_j:
             return [(ci, cj) for ci in a.child[i] for cj in b.child[j]]
         split_i = not leaf_i
-    else:  # "larger": the larger sphere (ties: I), unless it is a leaf
-        split_i = a.radius[i] >= b.radius[j]
+    elif (
+        a.radius[i] == b.radius[j]
+    ):  # "larger" on a tie: both non-leaves (symmetric under swapping the bodies)
+        if not leaf_i and not leaf_j:
+            return [(ci, cj) for ci in a.child[i] for cj in b.child[j]]
+        split_i = not leaf_i
+    else:  # "larger": the larger sphere, unless it is a leaf
+        split_i = a.radius[i] > b.radius[j]
         if (split_i and leaf_i) or (not split_i and leaf_j):
             split_i = not split_i
     if split_i:
