@@ -25,7 +25,7 @@ import gymnasium as gym
 from .core import EnvState, StepOut, TaskCore
 from .rollout import Rollout, rollout
 
-__all__ = ["EnvState", "IDS", "Rollout", "StepOut", "TaskCore", "make_core", "rollout"]
+__all__ = ["EnvState", "IDS", "Rollout", "StepOut", "TaskCore", "core_class", "make_core", "rollout"]
 
 # id -> (module, class prefix, max_episode_steps)
 _TASKS = {
@@ -47,10 +47,14 @@ for _id, (_module, _name, _steps) in _TASKS.items():
         )
 
 
-def make_core(env_id: str, **kwargs) -> TaskCore:
-    """The differentiable torch core of a registered task (``kwargs``: the core's arguments, e.g. ``dtype``)."""
+def core_class(env_id: str) -> type[TaskCore]:
+    """The :class:`TaskCore` subclass of a registered task (its constructor's arguments are the task's)."""
     if env_id not in _TASKS:
         raise ValueError(f"unknown environment id {env_id!r}; known: {', '.join(IDS)}")
     module, name, _ = _TASKS[env_id]
-    cls = getattr(importlib.import_module(f"cfd_torch.envs.{module}"), f"{name}Core")
-    return cls(**kwargs)
+    return getattr(importlib.import_module(f"cfd_torch.envs.{module}"), f"{name}Core")
+
+
+def make_core(env_id: str, **kwargs) -> TaskCore:
+    """The differentiable torch core of a registered task (``kwargs``: the core's arguments, e.g. ``dtype``)."""
+    return core_class(env_id)(**kwargs)

@@ -900,8 +900,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
     args = ap.parse_args(argv)
+    for name in ("steps", "billiards_steps", "threads", "numba_threads"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {v}")
     if args.obstacle is not None:  # a --baseline worker runs in its checkout's directory
         args.obstacle = args.obstacle.resolve()
+        if not args.obstacle.is_file():
+            ap.error(f"--obstacle {args.obstacle}: no such file")
+    if args.out.is_file():
+        ap.error(f"--out {args.out} is a file; give a folder")
+    if args.replot and not (args.out / "bench_step.json").is_file():
+        ap.error(f"--replot: {args.out / 'bench_step.json'} does not exist")
     steps = args.steps or (3 if args.quick else 20)
     args.steps_ball = args.steps_boxes = args.steps_push = steps
     args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps
@@ -956,6 +966,12 @@ def main() -> None:
     }  # fmt: skip
     cases = make_cases(args)
     if args.only:
+        unknown = sorted(set(args.only) - {c.name for c in cases})
+        if unknown:
+            raise SystemExit(
+                f"--only: no case {', '.join(unknown)} among --cases {' '.join(args.cases)} (they make: "
+                f"{', '.join(c.name for c in cases)})"
+            )
         cases = [c for c in cases if c.name in args.only]
     baseline = Baseline(args.baseline) if args.baseline else None
     if baseline:

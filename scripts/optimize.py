@@ -57,7 +57,8 @@ executed trajectory's loss, next to the same loss with zero actions (``loss_zero
 Writes ``log.json`` (the configuration, the commit, and per iteration or control step: loss, gradient norm, wall
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout of the best iterate, the
 smallest loss, none for mujoco-fd; MPC: the executed trajectory, MuJoCo's for mujoco-fd) under ``--out``, and
-while an open-loop run goes, ``progress.jsonl`` (one line per finished iteration: what an interrupted run keeps).
+while a run goes, ``progress.jsonl`` (one line per finished iteration, or per executed control step with ``--mpc``:
+what an interrupted run keeps).
 :func:`run_experiment` (a config dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs
 it over a grid.
 
@@ -69,6 +70,7 @@ it over a grid.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import time
@@ -85,7 +87,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402
-from cfd_torch.envs import make_core, rollout  # noqa: E402
+from cfd_torch.envs import core_class, make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import EnvState, task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
 
@@ -350,6 +352,17 @@ class _TwinRollout:
         self.q = None
 
 
+def _json_object(text: str) -> dict:
+    """--task-args: a JSON object."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"not JSON ({err}): {text!r}") from err
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"must be a JSON object of the task's arguments, got {text!r}")
+    return value
+
+
 def _check_settings(cfg: dict) -> None:
     """Raise ValueError naming the first setting of ``cfg`` out of its range."""
 
@@ -369,6 +382,8 @@ def _check_settings(cfg: dict) -> None:
 
     count("iters", 1)
     count("horizon", 1)
+    if cfg["seed"] is not None and not is_int(cfg["seed"]):
+        raise ValueError(f"config['seed'] (--seed) must be an int, got {cfg['seed']!r}")
     count("smooth_samples", 0)
     if cfg["smooth_samples"] and cfg["model"] not in ("cfd", "ipc", "sdrs"):
         raise ValueError(
@@ -393,6 +408,26 @@ def _check_settings(cfg: dict) -> None:
         raise ValueError(
             f"config['task_args'] (--task-args) must be a dict of the task core's arguments, got {cfg['task_args']!r}"
         )
+    if cfg["knots"] is not None and not (is_int(cfg["knots"]) and 1 <= cfg["knots"] <= cfg["horizon"]):
+        raise ValueError(
+            f"config['knots'] (--knots) must be an int in [1, horizon = {cfg['horizon']}], got {cfg['knots']!r}"
+        )
+    for key in ("dt", "eps"):
+        if cfg[key] is not None:
+            positive(key)
+    if cfg["model"] == "gb":
+        count("gb_samples", 1)
+        positive("gb_sigma")
+    if cfg["model"] == "mujoco-fd":
+        count("mj_substeps", 1)
+    if cfg["task"] in TASKS:  # the task's own arguments: names its constructor takes
+        params = inspect.signature(core_class(f"cfd_torch/{cfg['task']}-v0")).parameters
+        unknown = sorted(set(cfg["task_args"] or {}) - set(params))
+        if unknown:
+            raise ValueError(
+                f"config['task_args'] (--task-args): {cfg['task']} takes no argument {', '.join(unknown)} "
+                f"(it takes {', '.join(k for k in params if k not in ('device', 'dtype'))})"
+            )
 
 
 def run_experiment(config: dict) -> dict:
@@ -429,8 +464,6 @@ def run_experiment(config: dict) -> dict:
     s0 = core.reset(cfg["seed"], 1)
     horizon = cfg["horizon"]
     knots = horizon if cfg["knots"] is None else cfg["knots"]
-    if not 1 <= knots <= horizon:
-        raise ValueError(f"config['knots'] must be in [1, horizon], got {knots}")
     segment = torch.arange(horizon) * knots // horizon  # the knot each step's action comes from
 
     def actions(th: torch.Tensor) -> torch.Tensor:
@@ -549,6 +582,9 @@ def run_experiment(config: dict) -> dict:
                     action_body_xy=qs[-1][core.action_body, :2].tolist(),
                 )
             )
+            if out_dir is not None:  # an interrupted run keeps the control steps it executed
+                with open(out_dir / "progress.jsonl", "a" if t else "w") as f:
+                    f.write(json.dumps(log[-1]) + "\n")
             # shift the window, repeating its last action (with knots the plan's segments stay)
             if knots == horizon:
                 theta = torch.cat([theta[1:], theta[-1:]])
@@ -610,7 +646,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--eps", type=float, default=d["eps"],
                     help="the blend width between the actuated body and the objects (the task's eps; default: "
                     "the task's, 1.0 for the pushing tasks, 0.01 for Billiards)")  # fmt: skip
-    ap.add_argument("--task-args", type=json.loads, default=d["task_args"],
+    ap.add_argument("--task-args", type=_json_object, default=d["task_args"],
                     help='the task core\'s arguments as a JSON object, e.g. \'{"distance": 1.5}\' (Push)')  # fmt: skip
     ap.add_argument("--lr", type=float, default=d["lr"])
     ap.add_argument("--lr-final", type=float, default=d["lr_final"],
@@ -659,6 +695,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("results/optimize"))
     add_arguments(ap)
     config = vars(ap.parse_args())
+    if config["out"].is_file():
+        ap.error(f"--out {config['out']} is a file; give a folder")
+    try:
+        _check_settings({**DEFAULTS, **config})
+    except ValueError as err:
+        ap.error(str(err))
     result = run_experiment(config)
     for r in result["log"]:
         x = f"step {r['step']}" if config["mpc"] else f"iter {r['iter']}"

@@ -132,13 +132,20 @@ def main() -> None:
     )
     args = ap.parse_args()
     runs, where = [], {}
+    folders = [d.resolve() for d in args.sweeps]
+    if len(set(folders)) != len(folders):
+        ap.error("a folder is given more than once (its runs would count twice)")
     for d in args.sweeps:
+        if not (d / "sweep.json").is_file():
+            ap.error(f"{d} has no sweep.json (a folder written by scripts/sweep.py --out)")
         for r in json.loads((d / "sweep.json").read_text())["runs"]:
             c = r["config"]
             key = (c["task"], c["model"], c["seed"])
             if key in where:
                 raise SystemExit(
-                    f"{key[0]} {key[1]} seed {key[2]} is in both {where[key]} and {d}: pass one of them"
+                    f"{key[0]} {key[1]} seed {key[2]} is in {d / 'sweep.json'} twice: pass each run once"
+                    if where[key] == d
+                    else f"{key[0]} {key[1]} seed {key[2]} is in both {where[key]} and {d}: pass one of them"
                 )
             where[key] = d
             runs.append(r)

@@ -10,7 +10,8 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
 as runs finish (through a temporary file), so an interrupted sweep keeps what it finished (``--resume`` skips the
 cells already in it, and refuses a cell there that ran with other settings); a run that raises is reported and
-kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on. On Ray,
+kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on (and exits
+with status 1 at the end). Every cell's settings are checked before any run starts. On Ray,
 the scripts folder travels with the job (``runtime_env`` working_dir), so cluster nodes need cfd_torch installed
 but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
@@ -33,7 +34,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from optimize import DEFAULTS, MODELS, TASKS, add_arguments, run_experiment  # noqa: E402
+from optimize import DEFAULTS, MODELS, TASKS, _check_settings, add_arguments, run_experiment  # noqa: E402
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
@@ -121,11 +122,24 @@ def main() -> None:
     ap.set_defaults(threads=1, gif=False)
     ap.add_argument("--gif", dest="gif", action="store_true", help="write each run's best.gif")
     args = ap.parse_args()
+    for name in ("tasks", "models", "seeds"):  # a cell twice would run twice into one folder
+        values = getattr(args, name)
+        if len(set(values)) != len(values):
+            ap.error(f"--{name} lists {sorted({v for v in values if values.count(v) > 1})} more than once")
+    if args.workers < 1:
+        ap.error(f"--workers must be >= 1, got {args.workers}")
+    if args.out.is_file():
+        ap.error(f"--out {args.out} is a file; give a folder")
+    grid = configs(args)
+    for c in grid:  # every cell's settings checked before any runs
+        try:
+            _check_settings({**DEFAULTS, **c})
+        except ValueError as err:
+            ap.error(f"{c['task']} {c['model']}: {err}")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "sweep.json"
     runs = json.loads(path.read_text())["runs"] if args.resume and path.exists() else []
     earlier = {_key(r["config"]): r["config"] for r in runs}
-    grid = configs(args)
     for (
         c
     ) in grid:  # --resume continues the same experiment: a finished cell run with other settings is an error
@@ -161,6 +175,8 @@ def main() -> None:
         f"{len(runs)} runs in {path}"
         + (f"; {len(failed)} failed, in {args.out / 'failed.json'}" if failed else "")
     )
+    if failed:  # (the exit status says it too, for scripts that chain sweeps)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

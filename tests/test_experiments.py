@@ -177,6 +177,18 @@ def test_run_experiment_refuses_unknown_keys_and_models():
     ):  # fmt: skip
         with pytest.raises(ValueError, match=f"config\\['{key}'\\] \\(--{key.replace('_', '-')}\\) must be"):
             run_experiment({"task": "Push", "iters": 1, "horizon": 2, key: value})
+    for model, key, value in (
+        ("cfd", "knots", 0), ("cfd", "knots", 3), ("cfd", "dt", -0.01), ("cfd", "eps", 0.0), ("gb", "gb_samples", 0),
+        ("gb", "gb_sigma", -1.0), ("mujoco-fd", "mj_substeps", 0),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=f"config\\['{key}'\\] \\(--{key.replace('_', '-')}\\) must be"):
+            run_experiment({"task": "Push", "model": model, "iters": 1, "horizon": 2, key: value})
+    # the command line turns them into usage errors before anything runs
+    bad = subprocess.run(
+        [sys.executable, str(SCRIPTS / "optimize.py"), "--task", "Push", "--knots", "0", "--out", "/nonexistent"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert bad.returncode == 2 and "--knots" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_sweep_and_plot_results(tmp_path):
@@ -210,7 +222,27 @@ def test_sweep_and_plot_results(tmp_path):
         [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), str(tmp_path), "--out", str(tmp_path / "p")],
         capture_output=True, text=True,
     )  # fmt: skip
-    assert twice.returncode != 0 and "is in both" in twice.stderr
+    assert twice.returncode == 2 and "a folder is given more than once" in twice.stderr
+    (tmp_path / "copy").mkdir()
+    (tmp_path / "copy" / "sweep.json").write_text((tmp_path / "sweep.json").read_text())
+    both = subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), str(tmp_path / "copy"), "--out",
+         str(tmp_path / "p")], capture_output=True, text=True,
+    )  # fmt: skip
+    assert both.returncode != 0 and "is in both" in both.stderr
+    no_sweep = subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path / "Push")],
+        capture_output=True,
+        text=True,
+    )
+    assert no_sweep.returncode == 2 and "has no sweep.json" in no_sweep.stderr
+    # a cell twice, or settings out of range, are refused before any run (usage errors, exit status 2)
+    for args, message in (
+        (["--seeds", "3", "3"], "--seeds lists [3] more than once"),
+        (["--iters", "-1"], "config['iters'] (--iters) must be an int >= 1"),
+    ):
+        ref = subprocess.run([*cmd[:-2], *args, "--out", str(tmp_path / "r")], capture_output=True, text=True)
+        assert ref.returncode == 2 and message in ref.stderr and not (tmp_path / "r").exists()
 
 
 def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
@@ -303,7 +335,7 @@ def test_task_args_reach_the_task():
     assert r["config"]["task_args"] == {"distance": 1.5}
     with pytest.raises(ValueError, match="config\\['task_args'\\] \\(--task-args\\) must be a dict"):
         run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": [1.5]})
-    with pytest.raises(TypeError, match="distanse"):
+    with pytest.raises(ValueError, match="Push takes no argument distanse"):
         run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": {"distanse": 1.5}})
 
 
