@@ -185,29 +185,36 @@ def refuse_third_order(hv: torch.Tensor, x: torch.Tensor, name: str) -> torch.Te
     would be needed): an input that does not require grad leaves the refusal out of the graph, and the third
     derivative would silently be dropped. Under vmap (e.g. ``jacrev`` of ``jacrev``) the added term stays zero.
     """
-    return hv + _ThirdOrderGuard.apply(x, name)
+    message = (
+        f"{name}: third derivatives are not implemented; the second derivative is exact but cannot be "
+        "differentiated again"
+    )
+    return refuse_derivative(hv, x, message)
 
 
-class _ThirdOrderGuard(torch.autograd.Function):
-    """A 0-d zero that depends on ``x``, whose backward raises (see :func:`refuse_third_order`)."""
+def refuse_derivative(y: torch.Tensor, x: torch.Tensor, message: str) -> torch.Tensor:
+    """``y`` unchanged, with a zero term added whose derivative in ``x`` raises ``RuntimeError(message)``: a
+    backward that reaches ``x`` through the result raises, one that reaches only ``y``'s other inputs does not."""
+    return y + _Refusal.apply(x, message)
+
+
+class _Refusal(torch.autograd.Function):
+    """A 0-d zero that depends on ``x``, whose backward raises (see :func:`refuse_derivative`)."""
 
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(x: torch.Tensor, name: str) -> torch.Tensor:
+    def forward(x: torch.Tensor, message: str) -> torch.Tensor:
         return x.new_zeros(())
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        ctx.name = inputs[1]
+        ctx.message = inputs[1]
 
     @staticmethod
     def backward(ctx, grad):
-        raise RuntimeError(
-            f"{ctx.name}: third derivatives are not implemented; the second derivative is exact but cannot be "
-            "differentiated again"
-        )
+        raise RuntimeError(ctx.message)
 
     @staticmethod
     def jvp(ctx, *tangents):
-        raise forward_mode_error(ctx.name)
+        raise NotImplementedError(f"forward-mode AD: {ctx.message}")

@@ -10,15 +10,24 @@ long-range potential of this library fixes (SPEC sections 1-2).
 
       P_sdrs = kappa * min_p [ B(1 - |n|) + sum_k B(sg_k (n.x_k + d) - delta/2) ]
 
-  Once some plane leaves every vertex more than dhat + delta/2 away (and |n| <= 1 - dhat) the minimum is exactly 0.
+  Once some plane leaves every vertex more than dhat + delta/2 away (and |n| <= 1 - dhat) the minimum is exactly 0:
+  for two parallel faces, beyond a gap of (2 dhat + delta) / (1 - dhat), about 2.1 dhat.
+
+Both pair functions are differentiable once (a second derivative raises: autograd through them would hold the
+closest points or the plane fixed, which is exact to first order only); the simulator's contact models
+(``contact/ipc.py``, ``contact/sdrs.py``) have the exact Hessians. ``ipc_pair_barrier`` is the barrier of the
+pair's distance, ``b(d^2)`` of the closest points: ipc-toolkit sums the barrier over the pair's 6 point-triangle
+and 9 edge-edge distances (and mollifies nearly parallel edges), which ``IpcContact`` does; the two agree where one
+feature pair is within ``dhat`` and differ by up to several times where more are (parallel faces, edges on faces).
 """
 
 from __future__ import annotations
 
 import torch
 
-from ._geometry import triangle_closest_points
-from ._validate import check_positive, check_triangles
+from ._autograd import refuse_derivative
+from ._geometry import segment_hits_triangle, triangle_closest_points
+from ._validate import check_count, check_positive, check_triangles
 from .config import DEFAULT_CONTACT
 
 __all__ = [
@@ -36,47 +45,109 @@ _SIDES = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])
 
 
 def ipc_barrier(x: torch.Tensor, xhat: float) -> torch.Tensor:
-    """IPC scalar barrier ``-(x - xhat)^2 ln(x / xhat)`` on (0, xhat), 0 beyond, +inf at x <= 0 (C2 at xhat)."""
+    """IPC scalar barrier ``-(x - xhat)^2 ln(x / xhat)`` on (0, xhat), 0 beyond, +inf at x <= 0 (C2 at xhat);
+    NaN stays NaN."""
+    check_positive(xhat, "xhat")
     inside = (x > 0) & (x < xhat)
     xs = torch.where(inside, x, torch.full_like(x, xhat))
     b = -((xs - xhat) ** 2) * torch.log(xs / xhat)
-    return torch.where(x <= 0, torch.full_like(x, float("inf")), b)
+    return torch.where(x <= 0, torch.full_like(x, float("inf")), torch.where(torch.isnan(x), x, b))
 
 
 def sdrs_barrier(y: torch.Tensor, dhat: float) -> torch.Tensor:
-    """SDRS barrier ``-(y - dhat)^2 ln(y / dhat) / y`` on (0, dhat), 0 beyond, +inf at y <= 0 (C2 at dhat)."""
+    """SDRS barrier ``-(y - dhat)^2 ln(y / dhat) / y`` on (0, dhat), 0 beyond, +inf at y <= 0 (C2 at dhat); NaN
+    stays NaN."""
+    check_positive(dhat, "dhat")
     inside = (y > 0) & (y < dhat)
     ys = torch.where(inside, y, torch.full_like(y, dhat))
     b = -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys
-    return torch.where(y <= 0, torch.full_like(y, float("inf")), b)
+    return torch.where(y <= 0, torch.full_like(y, float("inf")), torch.where(torch.isnan(y), y, b))
+
+
+class _FirstOrder(torch.autograd.Function):
+    """``f(tri_a, tri_b)`` (K,) differentiable once: the backward is autograd's gradient of ``f`` (exact), and its
+    own derivative in the triangles raises (autograd's second derivative of ``f`` is not the exact one)."""
+
+    @staticmethod
+    def forward(ctx, tri_a, tri_b, f, name):
+        with torch.enable_grad():
+            a, b = tri_a.detach().requires_grad_(True), tri_b.detach().requires_grad_(True)
+            value = f(a, b)
+            ga, gb = torch.autograd.grad(value.sum(), (a, b), allow_unused=True, materialize_grads=True)
+        ctx.save_for_backward(tri_a, tri_b, ga, gb)
+        ctx.name = name
+        return value.detach()
+
+    @staticmethod
+    def backward(ctx, gout):
+        tri_a, tri_b, ga, gb = ctx.saved_tensors
+        w = gout[:, None, None]
+        da, db = w * ga, w * gb
+        if torch.is_grad_enabled():  # create_graph: linear in gout, its derivative in the triangles refused
+            message = (
+                f"{ctx.name}: second derivatives are not implemented (autograd through it holds the closest "
+                "points or the plane fixed, exact to first order only); the simulator's contact model has the "
+                "exact Hessian"
+            )
+            da, db = refuse_derivative(da, tri_a, message), refuse_derivative(db, tri_b, message)
+        return da, db, None, None
+
+
+def _check_pair(tri_a: torch.Tensor, tri_b: torch.Tensor, dhat: float, kappa: float) -> None:
+    check_triangles(tri_a, "tri_a")
+    check_triangles(tri_b, "tri_b")
+    if tri_a.dim() != 3 or tri_a.shape != tri_b.shape:
+        raise ValueError(
+            f"tri_a and tri_b must both be (K, 3, 3), got {tuple(tri_a.shape)} and {tuple(tri_b.shape)}"
+        )
+    if tri_a.dtype != tri_b.dtype or tri_a.device != tri_b.device:
+        raise ValueError(
+            f"tri_a and tri_b must share dtype and device, got {tri_a.dtype} on {tri_a.device} and "
+            f"{tri_b.dtype} on {tri_b.device}"
+        )
+    check_positive(dhat, "dhat")
+    check_positive(kappa, "kappa")
+
+
+def _intersecting(tri_a: torch.Tensor, tri_b: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """(K,) bool: the triangles intersect or touch (an edge of one crosses the other, or their distance is within
+    rounding of 0: coplanar overlaps too)."""
+    hit = torch.zeros(tri_a.shape[0], dtype=torch.bool, device=tri_a.device)
+    for s, t in ((tri_a, tri_b), (tri_b, tri_a)):
+        for i in range(3):
+            hit = hit | segment_hits_triangle(s[:, i], s[:, (i + 1) % 3], t)
+    size = torch.cat([tri_a, tri_b], 1).abs().amax((1, 2)).clamp(min=1.0)
+    return hit | (dist <= 64 * torch.finfo(dist.dtype).eps * size)
 
 
 def ipc_pair_barrier(
     tri_a: torch.Tensor, tri_b: torch.Tensor, *, dhat: float = 1e-2, kappa: float = 1.0
 ) -> torch.Tensor:
-    """IPC barrier on the triangle-triangle distance, ``kappa b(d^2; dhat^2)``; differentiable by autograd.
+    """IPC barrier on the triangle-triangle distance, ``kappa b(d^2; dhat^2)`` (module docstring: the closest
+    points' distance, not ipc-toolkit's sum over the pair's features); differentiable once.
 
     Args:
-        tri_a, tri_b: (K, 3, 3) triangles [m].
+        tri_a, tri_b: (K, 3, 3) triangles [m], same dtype and device.
         dhat: activation distance [m]; value and gradient are exactly 0 for d >= dhat.
-        kappa: stiffness.
+        kappa: stiffness, > 0.
 
     Returns:
-        (K,) barrier values.
+        (K,) barrier values, +inf for intersecting or touching triangles.
     """
-    check_triangles(tri_a, "tri_a")
-    check_triangles(tri_b, "tri_b")
-    check_positive(dhat, "dhat")
+    _check_pair(tri_a, tri_b, dhat, kappa)
     with torch.no_grad():
-        _, qa, qb = triangle_closest_points(tri_a.detach(), tri_b.detach())
-    # Distance as a differentiable function of the vertices: express the closest points by their barycentric
-    # coordinates (held fixed: first-order exact, since the distance is stationary in them).
-    wa = _barycentric(tri_a.detach(), qa)
-    wb = _barycentric(tri_b.detach(), qb)
-    pa = torch.einsum("kv,kvc->kc", wa, tri_a)
-    pb = torch.einsum("kv,kvc->kc", wb, tri_b)
-    d2 = ((pa - pb) ** 2).sum(-1)
-    return kappa * ipc_barrier(d2, dhat * dhat)
+        dist, qa, qb = triangle_closest_points(tri_a.detach(), tri_b.detach())
+        hit = _intersecting(tri_a.detach(), tri_b.detach(), dist)
+
+    def barrier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        # the distance as a function of the vertices: the closest points by their barycentric coordinates (held
+        # fixed: first-order exact, since the distance is stationary in them)
+        pa = torch.einsum("kv,kvc->kc", _barycentric(a.detach(), qa), a)
+        pb = torch.einsum("kv,kvc->kc", _barycentric(b.detach(), qb), b)
+        value = kappa * ipc_barrier(((pa - pb) ** 2).sum(-1), dhat * dhat)
+        return torch.where(hit, torch.full_like(value, float("inf")), value)
+
+    return _FirstOrder.apply(tri_a, tri_b, barrier, "ipc_pair_barrier")
 
 
 def _barycentric(tri: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -113,33 +184,43 @@ def sdrs_pair_potential(
     at the optimum and the energy re-evaluated, so autograd gives ``kappa sum_k B'(s_k) sg_k n``.
 
     Args:
-        tri_a, tri_b: (K, 3, 3) triangles [m], separated by more than ``margin``.
-        dhat: support of the barrier [m]; beyond it value and gradient are exactly zero.
-        margin: delta, as in the exact potential.
-        kappa: stiffness.
-        iters: Newton iterations (the demo's configurations converge in far fewer).
+        tri_a, tri_b: (K, 3, 3) triangles [m], same dtype and device, separated by more than ``margin``.
+        dhat: support of the barrier [m], in (0, 1); the value and gradient are exactly zero once a plane leaves
+            every vertex dhat + margin / 2 away at |n| <= 1 - dhat (module docstring: two parallel faces beyond a
+            gap of about 2.1 dhat).
+        margin: delta, as in the exact potential, > 0.
+        kappa: stiffness, > 0.
+        iters: Newton iterations, >= 1 (the demo's configurations converge in far fewer).
 
     Returns:
-        (K,) values; first-order differentiable in the vertices.
+        (K,) values; differentiable once in the vertices.
     """
-    check_triangles(tri_a, "tri_a")
-    check_triangles(tri_b, "tri_b")
-    X = torch.cat([tri_a, tri_b], 1).to(torch.float64)
-    p = sdrs_planes(X.detach(), dhat, margin, iters)
-    return kappa * sdrs_energy(p, X, dhat, margin).to(tri_a.dtype)
+    _check_pair(tri_a, tri_b, dhat, kappa)
+    if not dhat < 1:
+        raise ValueError(f"dhat must be below 1 (|n| <= 1 - dhat), got {dhat!r}")
+    check_positive(margin, "margin")
+    check_count(iters, "iters")
+    p = sdrs_planes(torch.cat([tri_a, tri_b], 1).detach().to(torch.float64), dhat, margin, iters)
+
+    def potential(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return kappa * sdrs_energy(p, torch.cat([a, b], 1).to(torch.float64), dhat, margin).to(a.dtype)
+
+    return _FirstOrder.apply(tri_a, tri_b, potential, "sdrs_pair_potential")
 
 
 def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -> torch.Tensor:
     """(K, 4) the planes (n, d) minimising the SDRS energy of triangle pairs Xd (K, 6, 3) (float64, vertices of a
-    then b), by damped Newton from this library's feasible start, enlarged toward |n| = 1 - dhat / 2 so that far
+    then b), by damped Newton from this library's feasible start, enlarged toward |n| = 1 - dhat so that far
     pairs start where the energy is exactly zero. Raises ValueError if a pair is within the margin."""
     from .contact._pair_torch import start_planes
 
     p, dist = start_planes(Xd, margin)
     if bool((dist <= margin).any()):
         raise ValueError("sdrs_pair_potential: some triangle pairs are within the margin")
-    # The start has |n| < 1 and all gaps > 0; enlarge |n| toward 1 - dhat/2 so far pairs start in the zero region.
-    p = p * ((1.0 - 0.5 * dhat) / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
+    # The start has |n| < 1 and all gaps > 0; enlarge |n| toward 1 - dhat (just inside, against rounding), where
+    # B(1 - |n|) = 0, so that far pairs start in the zero region.
+    reach = (1.0 - dhat) * (1.0 - 1e-12)
+    p = p * (reach / torch.linalg.vector_norm(p[:, :3], dim=-1)).clamp(min=1.0)[:, None]
     p = torch.where(torch.isfinite(sdrs_energy(p, Xd, dhat, margin))[:, None], p, start_planes(Xd, margin)[0])
 
     done = torch.zeros(

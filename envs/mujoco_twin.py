@@ -244,16 +244,21 @@ class MujocoTwin:
         after the step (``mj_getState``, ``mjSTATE_INTEGRATION``: what the next :meth:`step` or :meth:`rollout`
         continues from exactly), the task's distance term [m] and whether the task terminated."""
         A = self.core.action_dim
-        if not isinstance(action, torch.Tensor) or tuple(action.shape) not in ((A,), (1, A)):
-            raise ValueError(f"action must be ({A},) or (1, {A}), got {tuple(getattr(action, 'shape', ()))}")
+        if not isinstance(action, torch.Tensor):
+            raise TypeError(f"action must be a torch tensor, got {type(action).__name__}")
+        if tuple(action.shape) not in ((A,), (1, A)):
+            raise ValueError(f"action must be ({A},) or (1, {A}), got {tuple(action.shape)}")
         ((nxt, dist, term),) = list(self._steps(state, self._check_actions(action.reshape(1, A)), physics))
-        return nxt, self._get_physics(), dist, term
+        # in the core's dtype and device, so that the core can step on from it
+        return self.core._to(nxt), self._get_physics(), dist, term
 
     # ------------------------------------------------------------------------------------------------ internals
     def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """(T, A) float64 ``actions``, checked for shape and finiteness."""
         A = self.core.action_dim
-        if not isinstance(actions, torch.Tensor) or tuple(actions.shape[1:]) not in ((A,), (1, A)):
+        if not isinstance(actions, torch.Tensor):
+            raise TypeError(f"actions must be a torch tensor, got {type(actions).__name__}")
+        if tuple(actions.shape[1:]) not in ((A,), (1, A)):
             raise ValueError(
                 f"actions must be (T, {A}) or (T, 1, {A}), got {tuple(getattr(actions, 'shape', ()))}"
             )

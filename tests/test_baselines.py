@@ -1,3 +1,4 @@
+import pytest
 import torch
 from conftest import F64, feature_pairs
 
@@ -30,3 +31,68 @@ def test_peers_lose_the_gradient_where_ours_keeps_it():
                 assert (fz > 0).all(), (name, gap, fz)  # pushes b up, away from a
             else:
                 assert (g == 0).all(), (name, gap)
+
+
+def test_ipc_pair_barrier_is_infinite_for_intersecting_and_touching_triangles():
+    """+inf where an edge of one triangle crosses the other or they touch; two parallel faces on either side of
+    each other (no intersection) stay finite."""
+    for name in ("vertex-face", "edge-edge"):
+        for gap in (0.0, -1e-3, -5e-2):
+            a, b = feature_pairs(gap)[name]
+            assert torch.isinf(ipc_pair_barrier(a[None], b[None])).all(), (name, gap)
+    a, b = feature_pairs(-1e-3)["face-face"]  # parallel planes 1 mm apart, b below a: disjoint
+    assert 0 < float(ipc_pair_barrier(a[None], b[None])[0]) < float("inf")
+
+
+def test_pair_baselines_are_differentiable_once_and_refuse_the_second_derivative():
+    a, b = feature_pairs(3e-3)["vertex-face"]
+    a, b = a[None].clone().requires_grad_(True), b[None].clone().requires_grad_(True)
+    for name, fn in (
+        ("ipc_pair_barrier", lambda x, y: ipc_pair_barrier(x, y, dhat=1e-2)),
+        ("sdrs_pair_potential", lambda x, y: sdrs_pair_potential(x, y, dhat=1e-2, margin=1e-3)),
+    ):
+        (g,) = torch.autograd.grad(fn(a, b).sum(), b)
+        assert float(g.abs().max()) > 0
+        assert torch.autograd.gradcheck(fn, (a, b), eps=1e-7, atol=1e-6, rtol=1e-5)
+        (g,) = torch.autograd.grad(fn(a, b).sum(), b, create_graph=True)
+        with pytest.raises(RuntimeError, match=f"{name}: second derivatives are not implemented"):
+            torch.autograd.grad(g.sum(), b)
+
+
+def test_baselines_check_their_arguments():
+    a, b = feature_pairs(3e-3)["vertex-face"]
+    a, b = a[None], b[None]
+    for fn in (ipc_pair_barrier, sdrs_pair_potential):
+        with pytest.raises(ValueError, match="kappa must be a finite positive number"):
+            fn(a, b, kappa=0.0)
+        with pytest.raises(ValueError, match="dhat must be a finite positive number"):
+            fn(a, b, dhat=float("nan"))
+        with pytest.raises(ValueError, match="tri_a and tri_b must both be"):
+            fn(a.expand(2, 3, 3), b)
+        with pytest.raises(ValueError, match="must share dtype and device"):
+            fn(a, b.float())
+    with pytest.raises(ValueError, match="dhat must be below 1"):
+        sdrs_pair_potential(a, b, dhat=1.5)
+    with pytest.raises(ValueError, match="margin must be a finite positive number"):
+        sdrs_pair_potential(a, b, margin=0.0)
+    with pytest.raises(ValueError, match="iters must be a positive int"):
+        sdrs_pair_potential(a, b, iters=0)
+    with pytest.raises(ValueError, match="xhat must be a finite positive number"):
+        ipc_barrier(torch.ones(1, dtype=F64), 0.0)
+    nan = torch.tensor([float("nan")], dtype=F64)
+    assert torch.isnan(ipc_barrier(nan, 1.0)).all() and torch.isnan(sdrs_barrier(nan, 1.0)).all()
+
+
+def test_sdrs_pair_potential_is_exactly_zero_beyond_its_reach():
+    """Parallel faces beyond (2 dhat + margin) / (1 - dhat) apart: value and gradient exactly 0 (the plane search
+    starts in the zero region, |n| <= 1 - dhat)."""
+    dhat, margin = 1e-2, 1e-3
+    reach = (2 * dhat + margin) / (1 - dhat)
+    for gap in (1.01 * reach, 0.1, 10.0):
+        a, b = feature_pairs(gap)["face-face"]
+        b = b[None].clone().requires_grad_(True)
+        v = sdrs_pair_potential(a[None], b, dhat=dhat, margin=margin, kappa=1e6)
+        (g,) = torch.autograd.grad(v.sum(), b)
+        assert float(v[0]) == 0.0 and float(g.abs().max()) == 0.0, gap
+    a, b = feature_pairs(0.9 * reach)["face-face"]
+    assert float(sdrs_pair_potential(a[None], b[None], dhat=dhat, margin=margin)[0]) > 0

@@ -111,6 +111,24 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
         twin.step(s, torch.zeros(3, dtype=torch.float64))
 
 
+def test_mujoco_twin_of_a_float32_core_hands_back_states_the_core_steps_on():
+    """twin.step returns the next state in the core's dtype (float32 here), so the core can step on from it; a
+    non-tensor action is refused as such."""
+    import numpy as np
+    import torch
+
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.mujoco_twin import MujocoTwin
+
+    core = make_core("cfd_torch/Push-v0", dtype=torch.float32)
+    twin = MujocoTwin(core)
+    nxt, _, _, _ = twin.step(core.reset(0, 1), torch.full((2,), 0.5))
+    assert nxt.q.dtype == nxt.q_prev.dtype == torch.float32
+    assert core.step(nxt, torch.zeros(1, 2)).state.q.dtype == torch.float32
+    with pytest.raises(TypeError, match="actions must be a torch tensor, got ndarray"):
+        twin.rollout(core.reset(0, 1), np.zeros((2, 2)))
+
+
 def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):
     """mujoco-fd under --mpc: at Push's trivial start its finite differences are exactly zero in every control
     step (the pole 0.5 m from the box), so no iteration runs and the executed actions are zero: the executed
