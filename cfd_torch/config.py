@@ -112,11 +112,11 @@ class FrictionConfig:
 
     def __post_init__(self) -> None:
         c = self.coefficient
-        if not (isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c < math.inf):
+        if not (is_real(c) and 0 <= c < math.inf):
             raise ValueError(f"FrictionConfig.coefficient must be a finite number >= 0, got {c!r}")
         _positive("FrictionConfig", "eps_v", self.eps_v)
         a = self.active
-        if not (isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a < 1):
+        if not (is_real(a) and 0 <= a < 1):
             raise ValueError(f"FrictionConfig.active must be a number in [0, 1), got {a!r}")
 
 
@@ -156,7 +156,7 @@ class SolverConfig:
         _positive("SolverConfig", "ccd_spacing", self.ccd_spacing)
         _count("SolverConfig", "max_newton_iter", self.max_newton_iter)
         _count("SolverConfig", "substeps", self.substeps)
-        if not (isinstance(self.reach_shrink, (int, float)) and 0 <= self.reach_shrink < 1):
+        if not (is_real(self.reach_shrink) and 0 <= self.reach_shrink < 1):
             raise ValueError(
                 f"SolverConfig.reach_shrink must be a number in [0, 1), got {self.reach_shrink!r}"
             )

@@ -345,6 +345,60 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
     assert contact_potential([box.bsh, box.bsh], P, static=[1, 0], grad=True).grad[0].abs().max() == 0.0
 
 
+def test_gravity_pair_eps_contact_model_and_body_inertia_are_checked():
+    """gravity: a string was read digit by digit, a scalar or a (2, 3) tensor failed without naming it, an entry
+    requiring grad lost its gradient silently; pair_eps was unchecked with the baselines' potentials; a contact model
+    built for other bodies (or another order) gave wrong physics silently; a RigidBody with a negative second
+    moment failed only at the step, naming params; NumPy scalars are numbers everywhere."""
+    from cfd_torch import FrictionConfig, RigidBody
+    from cfd_torch.contact import CfdContact
+
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    ground = rigid_body(trimesh.creation.box((1.0, 1.0, 0.2)), kind="static")
+    for bad, kind in (
+        ("981", TypeError),
+        (9.81, TypeError),
+        (torch.zeros(2, 3), ValueError),
+        ((0, 0), ValueError),
+    ):
+        with _says("gravity must be", kind):
+            Scene([box, ground], gravity=bad)
+    with _says("gravity must be numbers, not a tensor that requires grad", TypeError):
+        Scene([box, ground], gravity=(torch.tensor(0.1, requires_grad=True), 0.0, -9.81))
+    assert Scene([box, ground], gravity=np.array([0.0, 0.0, -9.81])).gravity == (0.0, 0.0, -9.81)
+    for potential in ("cfd", "ipc", "sdrs"):
+        with _says("pair_eps: the blend width of (0, 1) must be a finite positive number"):
+            Scene([box, ground], potential=potential, pair_eps={(0, 1): -1.0})
+        with _says("pair_eps: (0, 9) is not a pair of two body indices in [0, 2)"):
+            Scene([box, ground], potential=potential, pair_eps={(0, 9): 0.5})
+    with _says("pair_eps must be a mapping", TypeError):
+        Scene([box, ground], pair_eps=[((0, 1), 0.5)])
+    with _says("pair_eps: (1, 0) and (0, 1) are one pair, given 0.2 and 0.5"):
+        Scene([box, ground], pair_eps={(0, 1): 0.5, (1, 0): 0.2})
+    assert Scene([box, ground], pair_eps={(0, 1): np.float32(0.5)}).pair_eps == {(0, 1): 0.5}
+    with _says("contact_model must implement cfd_torch.contact.ContactModel", TypeError):
+        Scene([box, ground], contact_model="ipc")
+    with _says("contact_model was built for 3 bodies, the scene has 2"):
+        Scene([box, ground], contact_model=CfdContact([box.bsh, ground.bsh, box.bsh]))
+    with _says("contact_model's hierarchy 0 is not body 0's mesh"):
+        Scene([box, ground], contact_model=CfdContact([ground.bsh, box.bsh]))
+    Scene(
+        [box, ground],
+        contact_model=CfdContact([BSH.from_trimesh(trimesh.creation.box((0.2, 0.2, 0.2))), ground.bsh]),
+    )
+    with _says("RigidBody.second_moment must be symmetric positive semi-definite"):
+        RigidBody(box.bsh, "dynamic", box.mass, -box.second_moment, box.com)
+    with _says("RigidBody.second_moment must be a finite tensor of shape (3, 3)"):
+        RigidBody(box.bsh, "dynamic", box.mass, box.second_moment[0], box.com)
+    with _says("RigidBody.com must be a float tensor", TypeError):
+        RigidBody(box.bsh, "dynamic", box.mass, box.second_moment, np.zeros(3))
+    assert FrictionConfig(coefficient=np.float32(0.5), active=np.float64(1e-6)).coefficient == 0.5
+    scene = Scene([box, ground])
+    q = torch.zeros(2, 6, dtype=F64)
+    q[0, 2], q[1, 2] = 0.2, -0.1
+    assert len(rollout(scene, State(q, q.clone()), np.int64(1))) == 2
+
+
 def test_recentre_rotation_checks_its_poses():
     from cfd_torch import recentre_rotation
 

@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
+from .._validate import is_real
 from ..config import ContactConfig
 from ..rotation import rotation_matrix
 from ._traverse import Forest, build_forest, penetrating, traverse
@@ -56,6 +57,7 @@ class CfdContact:
         self.config = ContactConfig() if config is None else config
         self._bshes, self._which = unique_hierarchies(bshes)
         self.num_bodies = N = len(bshes)
+        self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._forests: dict[torch.device, tuple[Forest, torch.Tensor]] = {}  # built once per device
         self._eps = None  # (N, N) blend width of each body pair, when some pair has its own
         if pair_eps:
@@ -64,7 +66,7 @@ class CfdContact:
                 i, j = key
                 if not (0 <= i < N and 0 <= j < N and i != j):
                     raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {N})")
-                if not (isinstance(e, (int, float)) and not isinstance(e, bool) and 0 < e < math.inf):
+                if not (is_real(e) and 0 < e < math.inf):
                     raise ValueError(
                         f"pair_eps: the blend width of {key!r} must be a positive number, got {e!r}"
                     )

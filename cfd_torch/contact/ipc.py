@@ -240,6 +240,7 @@ class IpcContact:
         check_positive(stiffness, "stiffness")
         self.dhat, self.stiffness = float(dhat), float(stiffness)
         self.num_bodies = len(bshes)
+        self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._meshes = Meshes.build(bshes)
         self._query = CollisionQuery(bshes, 0.0)
 

@@ -73,6 +73,7 @@ class SdrsContact:
         # optimal plane keeps its gaps positive in float64 (at the margin itself they round to 0: +inf)
         self._infeasible_within = self.margin * (1.0 + 1e-6)
         self.num_bodies = len(bshes)
+        self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._meshes = Meshes.build(bshes)
         self._query = CollisionQuery(bshes, self._infeasible_within)
 

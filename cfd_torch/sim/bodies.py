@@ -61,6 +61,27 @@ class RigidBody:
                 f"RigidBody.mass must be finite, > 0 for a dynamic body and 0 otherwise, got {self.mass!r} "
                 f"({self.kind})"
             )
+        for name, x, shape in (("second_moment", self.second_moment, (3, 3)), ("com", self.com, (3,))):
+            if not (isinstance(x, torch.Tensor) and x.is_floating_point()):
+                raise TypeError(
+                    f"RigidBody.{name} must be a float tensor of shape {shape}, got {type(x).__name__}"
+                )
+            if tuple(x.shape) != shape or not bool(torch.isfinite(x).all()):
+                raise ValueError(
+                    f"RigidBody.{name} must be a finite tensor of shape {shape}, got {tuple(x.shape)}"
+                )
+        if self.kind == "dynamic":
+            S = self.second_moment.detach().double()
+            inertia = torch.trace(S) * torch.eye(3, dtype=S.dtype) - S
+            if (
+                not torch.allclose(S, S.T, rtol=1e-12, atol=0)
+                or bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().max()).any())
+                or not bool((torch.linalg.eigvalsh(inertia) > 0).all())
+            ):
+                raise ValueError(
+                    "RigidBody.second_moment must be symmetric positive semi-definite with a positive definite "
+                    "inertia tr(S) I - S (a dynamic body)"
+                )
 
     @property
     def inertia(self) -> torch.Tensor:

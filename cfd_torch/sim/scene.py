@@ -7,6 +7,7 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
+import numpy as np
 import torch
 
 from .._validate import closed_surface, is_int, is_real
@@ -60,6 +61,75 @@ def _body_pair(p: object, name: str) -> tuple[int, int]:
     if not (len(ij) == 2 and all(is_int(x) for x in ij)):
         raise ValueError(f"{name} must hold body pairs (i, j) of integers, got {p!r}")
     return int(ij[0]), int(ij[1])
+
+
+def _gravity(gravity: object) -> tuple[float, float, float]:
+    """``gravity`` as 3 finite floats; a clear error naming it otherwise (its gradient is not kept: refused)."""
+    if isinstance(gravity, (str, bytes)) or not isinstance(gravity, (Sequence, np.ndarray, torch.Tensor)):
+        raise TypeError(f"gravity must be 3 numbers (a sequence, array or tensor), got {gravity!r}")
+    if isinstance(gravity, torch.Tensor):
+        grads = gravity.requires_grad
+    else:
+        grads = any(isinstance(x, torch.Tensor) and x.requires_grad for x in gravity)
+    if grads:
+        raise TypeError(
+            "gravity must be numbers, not a tensor that requires grad: a scene's gravity is not differentiable"
+        )
+    try:
+        g = np.asarray(
+            gravity.detach().cpu() if isinstance(gravity, torch.Tensor) else
+            [float(x.detach()) if isinstance(x, torch.Tensor) else x for x in gravity],
+            dtype=np.float64,
+        )  # fmt: skip
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"gravity must be 3 numbers, got {gravity!r}") from err
+    if g.shape != (3,) or not np.isfinite(g).all():
+        raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+    return float(g[0]), float(g[1]), float(g[2])
+
+
+def _pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
+    """``pair_eps`` checked: body pairs of two different indices in [0, n), each with one positive blend width
+    ((i, j) and (j, i) are one pair: given both, they must agree)."""
+    if pair_eps is None:
+        return {}
+    if not isinstance(pair_eps, Mapping):
+        raise TypeError(f"pair_eps must be a mapping {{(i, j): eps}}, got {type(pair_eps).__name__}")
+    out: dict[tuple[int, int], float] = {}
+    for key, e in pair_eps.items():
+        i, j = _body_pair(key, "pair_eps")
+        if not (0 <= i < n and 0 <= j < n and i != j):
+            raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {n})")
+        if not (is_real(e) and 0 < e < math.inf):
+            raise ValueError(
+                f"pair_eps: the blend width of {key!r} must be a finite positive number, got {e!r}"
+            )
+        other = out.get((j, i))
+        if other is not None and other != float(e):
+            raise ValueError(f"pair_eps: {(i, j)} and {(j, i)} are one pair, given {float(e)} and {other}")
+        out[(i, j)] = float(e)
+    return out
+
+
+def _check_contact_model(model: object, bodies: Sequence[RigidBody]) -> None:
+    """A given contact model implements :class:`ContactModel` and was built for these bodies, in this order (its
+    ``num_bodies``, and the hierarchies of the built-in models)."""
+    if not isinstance(model, ContactModel):
+        raise TypeError(
+            f"contact_model must implement cfd_torch.contact.ContactModel, got {type(model).__name__} (to choose a "
+            "built-in model, pass potential='cfd', 'ipc' or 'sdrs')"
+        )
+    n = getattr(model, "num_bodies", len(bodies))
+    if n != len(bodies):
+        raise ValueError(f"contact_model was built for {n} bodies, the scene has {len(bodies)}")
+    for i, (mine, body) in enumerate(zip(getattr(model, "bshes", ()), bodies, strict=False)):
+        if mine is not body.bsh and not (
+            mine.vertices.shape == body.bsh.vertices.shape and torch.equal(mine.vertices, body.bsh.vertices)
+        ):
+            raise ValueError(
+                f"contact_model's hierarchy {i} is not body {i}'s mesh: build it from [b.bsh for b in bodies], in "
+                "the scene's order"
+            )
 
 
 class Scene:
@@ -145,13 +215,7 @@ class Scene:
                 f"dt must be a finite number of at least {_MIN_DT:g} s (a shorter step loses the motion to float64 "
                 f"rounding, and 1/dt^2 overflows below 1e-154), got {dt!r}"
             )
-        if isinstance(gravity, torch.Tensor) and gravity.requires_grad:
-            raise TypeError(
-                "gravity must be numbers, not a tensor that requires grad: a scene's gravity is not differentiable"
-            )
-        gravity = tuple(float(x) for x in gravity)
-        if len(gravity) != 3 or not all(math.isfinite(x) for x in gravity):
-            raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        gravity = _gravity(gravity)
         if is_real(friction):
             friction = FrictionConfig(coefficient=float(friction))
         for name, value, kind in (
@@ -182,8 +246,8 @@ class Scene:
         self.friction: FrictionConfig = cfg["friction"]
         self.solver: SolverConfig = cfg["solver"]
         self.exclude = tuple(_body_pair(p, "exclude") for p in exclude)
-        self.pair_eps = {_body_pair(p, "pair_eps"): e for p, e in (pair_eps or {}).items()}
         N = len(bodies)
+        self.pair_eps = _pair_eps(pair_eps, N)
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
@@ -216,6 +280,7 @@ class Scene:
             self.kinematics = FreeBodies(self.dynamic, N, planar)
         self._given_contact_model = contact_model
         if contact_model is not None:
+            _check_contact_model(contact_model, bodies)
             self.contact_model = contact_model
         elif self.contact.potential != "cfd":
             c = self.contact
@@ -305,7 +370,7 @@ class Scene:
             "contact_model": self._given_contact_model,
             "articulations": self.articulations, "planar": self.planar,
         }  # fmt: skip
-        if isinstance(changes.get("friction"), (int, float)) and not isinstance(changes["friction"], bool):
+        if is_real(changes.get("friction")):
             changes = {
                 **changes,
                 "friction": dataclasses.replace(self.friction, coefficient=changes["friction"]),

@@ -19,6 +19,7 @@ import torch
 
 from .._autograd import refuse_transforms
 from .._geometry import frame_origin
+from .._validate import is_int
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
@@ -328,6 +329,8 @@ def rollout(
         The :class:`Trajectory` of the T + 1 states, the first included: fields (T + 1, [B,] N, 6); ``traj[t]`` is
         a State.
     """
+    if is_int(actions) and not isinstance(actions, torch.Tensor):
+        actions = int(actions)
     if isinstance(actions, (bool, torch.Tensor)) or not isinstance(actions, (int, Iterable)):
         got = (
             f"a tensor of shape {tuple(actions.shape)}"

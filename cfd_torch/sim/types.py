@@ -110,7 +110,9 @@ class StepInfo(NamedTuple):
         node_pairs: hierarchy node pairs visited over those evaluations.
         leaf_pairs: exact leaf pairs solved over those evaluations.
         friction_contacts: ([B]) lagged friction contacts of each scene.
-        contact_force: ([B,] N, 6) -dP/dq at the end-of-step poses: columns 0-2 world-frame forces [N], columns 3-5
+        contact_force: ([B,] N, 6) -dP/dq at the solve's last evaluated iterate (the end-of-step poses but for
+            Newton's last step, at most ``newton_tol`` per coordinate: relative differences around 1e-6 from
+            ``pair_forces`` at the returned poses): columns 0-2 world-frame forces [N], columns 3-5
             conjugate to the rotation vector (the world torque when the rotation vector is zero); float64, the
             solve's precision, whatever the state's dtype. Not differentiated: in a step that records a graph, a
             backward through it (or through ``friction_force``) raises RuntimeError.
