@@ -77,7 +77,9 @@ def run(path: Path, steps: int, warm: int, potential: str) -> dict:
     code = CHILD.replace("WARM", str(warm)).replace("STEPS", str(steps)).replace("POT", repr(potential))
     code = code.replace("REV", repr(str(path.resolve())))
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=tempfile.gettempdir(), capture_output=True,
-                         text=True, check=True)  # fmt: skip
+                         text=True)  # fmt: skip
+    if res.returncode != 0:  # the child's own error, not the script it ran
+        raise SystemExit(f"the timing run of {path} failed:\n{res.stderr.strip()}")
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
@@ -90,11 +92,20 @@ def main() -> None:
     ap.add_argument("--potential", default="cfd", choices=("cfd", "ipc", "sdrs"), help="the scenes' contact")
     ap.add_argument("--out", type=Path, default=Path("results/ab_step"))
     args = ap.parse_args()
+    if args.runs < 1 or args.steps < 1 or args.warm < 0:
+        ap.error(
+            f"--runs and --steps must be >= 1 and --warm >= 0, got {args.runs}, {args.steps}, {args.warm}"
+        )
+    if args.out.is_file():
+        ap.error(f"--out {args.out} is a file; give a folder")
+    args.out.mkdir(parents=True, exist_ok=True)  # before the runs: a bad --out fails now, not after them
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp) / "baseline"
-        subprocess.run(["git", "worktree", "add", "--detach", str(base), args.baseline], cwd=ROOT, check=True,
-                       capture_output=True)  # fmt: skip
+        added = subprocess.run(["git", "worktree", "add", "--detach", str(base), args.baseline], cwd=ROOT,
+                               capture_output=True, text=True)  # fmt: skip
+        if added.returncode != 0:
+            ap.error(f"--baseline {args.baseline}: {added.stderr.strip()}")
         try:
             runs: dict[str, list[dict]] = {"baseline": [], "head": []}
             for _ in tqdm(range(args.runs), desc="A/B runs"):
@@ -118,7 +129,6 @@ def main() -> None:
         lines.append(f"| {c} | {b:.2f} | {h:.2f} | {h / b:.2f} | {rb} | {rh} |")
     table = "\n".join(lines)
     print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ab_step.json").write_text(json.dumps({"runs": runs, "median": med, "baseline": args.baseline,
                                                         "head": head.stdout.strip(), "potential": args.potential},
                                                        indent=1))  # fmt: skip

@@ -56,11 +56,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("results/bench_pair"))
     ap.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000, 1_000_000])
-    ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
+    ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"], choices=["float64", "float32"])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args()
+    if min(args.sizes) < 1 or args.repeats < 1:
+        ap.error(f"--sizes and --repeats must be >= 1, got {args.sizes} and {args.repeats}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     rows = []

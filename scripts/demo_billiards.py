@@ -48,6 +48,8 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=0.3, help="Adam learning rate [m/s]")
     ap.add_argument("--mu", type=float, default=1e-8)
     args = ap.parse_args()
+    if args.iters < 1 or args.steps < 1:
+        ap.error(f"--iters and --steps must be >= 1, got {args.iters} and {args.steps}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     radius = 0.1

@@ -62,6 +62,8 @@ def main() -> None:
     ap.add_argument("--dhat", type=float, default=1e-2)
     ap.add_argument("--points", type=int, default=200)
     args = ap.parse_args()
+    if args.points < 2:
+        ap.error(f"--points must be >= 2, got {args.points}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     gaps = torch.logspace(math.log10(args.margin * 1.5), 4, args.points, dtype=torch.float64)

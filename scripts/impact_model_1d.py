@@ -144,10 +144,18 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--gap0", type=float, default=0.01, help="gap at phase 0 [m]")
     p.add_argument("--contact-gap", type=float, default=0.004, help="impact:K sub-steps below this gap [m]")
     p.add_argument("--resolved", type=int, default=1000, help="sub-steps of the resolved reference (0: skip)")
-    p.add_argument("--quick", action="store_true", help="8 phases, plain / sub:4 / aligned:0.008:1")
+    p.add_argument(
+        "--quick", action="store_true", help="8 phases, plain / sub:4 / aligned:0.008:1 (where not given)"
+    )
     args = p.parse_args(argv)
-    if args.quick:
-        args.phases, args.schemes, args.resolved = 8, ["plain", "sub:4", "aligned:0.008:1"], 0
+    if args.quick:  # its values for the settings not given
+        for name, value in {
+            "phases": 8,
+            "schemes": ["plain", "sub:4", "aligned:0.008:1"],
+            "resolved": 0,
+        }.items():
+            if getattr(args, name) == p.get_default(name):
+                setattr(args, name, value)
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     P = GapPotential()

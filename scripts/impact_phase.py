@@ -100,10 +100,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--substeps", nargs="+", type=int, default=[1])
     p.add_argument("--duration", type=float, default=0.3)
     p.add_argument("--gap0", type=float, default=0.01, help="gap at phase 0 [m]")
-    p.add_argument("--quick", action="store_true", help="1 m/s, dt 0.01, 8 phases, cubes")
+    p.add_argument("--quick", action="store_true", help="1 m/s, dt 0.01, 8 phases, cubes (where not given)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.scenes, args.speeds, args.dts, args.phases = ["cubes"], [1.0], [0.01], 8
+    if args.quick:  # its values for the settings not given
+        for name, value in {"scenes": ["cubes"], "speeds": [1.0], "dts": [0.01], "phases": 8}.items():
+            if getattr(args, name) == p.get_default(name):
+                setattr(args, name, value)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", category=UserWarning)
     args.out.mkdir(parents=True, exist_ok=True)

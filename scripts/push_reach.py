@@ -59,6 +59,11 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=3.0, help="the horizon [s] (Push's episode: 3)")
     ap.add_argument("--seed", type=int, default=0, help="the reset whose target direction is used")
     args = ap.parse_args()
+    shortest = 0.25 + max(args.dt)  # the best speed is taken over 0.25 s windows
+    if not args.seconds >= shortest:
+        ap.error(
+            f"--seconds must be at least {shortest:g} (0.25 s of speed window plus a step), got {args.seconds}"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     runs = [
         push_straight(dt, rho, args.distance, args.seconds, args.seed)
@@ -75,14 +80,17 @@ def main() -> None:
     ]
     for r in runs:
         a, dt = r["advance"], r["dt"]
-        at = [a[min(len(a), int(round(t / dt))) - 1] for t in (1.0, 2.0)] + [a[-1]]
+        # (a time past the horizon has no value: "-")
+        at = [a[int(round(t / dt)) - 1] if int(round(t / dt)) <= len(a) else None for t in (1.0, 2.0)] + [
+            a[-1]
+        ]
         k = max(1, int(round(0.25 / dt)))
         r["best_speed"] = max((a[i] - a[i - k]) / (k * dt) for i in range(k, len(a)))
         r["distance_left"] = args.distance - max(a)
         r["decrease"] = 1.0 - r["distance_left"] / args.distance
         lines.append(
             f"| {dt:g} | {r['box_density']:g} ({r['box_mass']:.2f} kg) | "
-            + " / ".join(f"{x:.3f}" for x in at)
+            + " / ".join("-" if x is None else f"{x:.3f}" for x in at)
             + f" | {r['best_speed']:.3f} | {r['distance_left']:.3f} | {100 * r['decrease']:.1f} % |"
         )
     text = "\n".join(lines)

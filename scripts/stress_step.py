@@ -138,6 +138,12 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs=2, default=(0, 30), metavar=("FIRST", "END"))
     ap.add_argument("--duration", type=float, default=1.0, help="simulated time per scene [s]")
     args = ap.parse_args()
+    if not args.duration > 0:
+        ap.error(f"--duration must be > 0, got {args.duration}")
+    if not args.seeds[1] > args.seeds[0]:
+        ap.error(
+            f"--seeds FIRST END must have END > FIRST (seeds FIRST..END-1), got {args.seeds[0]} {args.seeds[1]}"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     kinds, ground = shapes(), floor()
     rows = []
