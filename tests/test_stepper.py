@@ -1167,3 +1167,8 @@ def test_planar_scene_refuses_roll_and_pitch_and_articulations(small_sphere):
         step(scene, State(q, q))
     with pytest.raises(ValueError, match="planar must be a bool"):
         Scene([small_sphere], planar=1)
+    v = _poses((1.0, 0.0, 2.0, 0.0, 0.0, 0.0))  # a vertical velocity would be dropped: refused
+    with pytest.raises(ValueError, match="velocities: a planar scene's bodies move in x, y and yaw only"):
+        scene.initial_state(_poses((0.0,) * 6), v)
+    v[..., 2] = 0.0
+    assert float(scene.initial_state(_poses((0.0,) * 6), v).q_prev[..., 0].min()) < 0

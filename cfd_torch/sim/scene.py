@@ -409,6 +409,11 @@ class Scene:
             raise ValueError(f"velocities must have the shape of poses {tuple(poses.shape)}")
         v = velocities.clone()
         v[..., self.static_mask | _mask(self.kinematic, self.num_bodies), :] = 0.0
+        if self.planar and bool((v[..., 2:5] != 0).any()):
+            raise ValueError(
+                "velocities: a planar scene's bodies move in x, y and yaw only; columns 2-4 (z, and the rotation "
+                "vector's x and y) must be 0 for its dynamic bodies"
+            )
         return State(poses, poses - self.dt * v)
 
 
