@@ -51,6 +51,15 @@ def test_open_dynamic_mesh_names_mesh():
     box.update_faces(np.arange(len(box.faces)) != 0)  # one triangle missing
     with pytest.raises(ValueError, match="mesh of a dynamic body must be watertight"):
         rigid_body(box)
+    # a closed box as a triangle soup (every face its own vertices): the message says how to weld it
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    soup = trimesh.Trimesh(box.triangles.reshape(-1, 3), np.arange(36).reshape(-1, 3), process=False)
+    with pytest.raises(
+        ValueError, match=r"closed once its coincident vertices are merged: call mesh.merge_vertices"
+    ):
+        rigid_body(soup)
+    soup.merge_vertices()
+    assert rigid_body(soup).mass > 0
 
 
 def test_self_intersecting_dynamic_mesh_names_mesh_and_faces():

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, is_real, nested_component, self_intersection
+from .._validate import check_mesh, closed_surface, is_real, nested_component, self_intersection
 from ..contact.bsh import BSH
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -128,8 +128,11 @@ def rigid_body(
     if not (is_real(density) and 0 < density < float("inf")):
         raise ValueError(f"density must be a finite positive number, got {density!r}")
     if not mesh.is_watertight or not mesh.is_winding_consistent:
+        hint = ""
+        if closed_surface(V, Fc):  # closed once coincident vertices are welded: a triangle soup
+            hint = "; it is closed once its coincident vertices are merged: call mesh.merge_vertices() first"
         raise ValueError(
-            "mesh of a dynamic body must be watertight with consistent winding (a closed volume)"
+            f"mesh of a dynamic body must be watertight with consistent winding (a closed volume){hint}"
         )
     volume = float(mesh.volume)
     if not volume > 0:
