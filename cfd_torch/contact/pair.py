@@ -74,7 +74,7 @@ def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     A fresh (K, 18, 18) float64 Hessian at K = 1e5 is 260 MB; having the kernel fault in and zero that much
     memory costs as much as the arithmetic that fills it. Large outputs therefore live in anonymous mappings
     advised MADV_HUGEPAGE, and up to two such buffers are kept and reused once no tensor refers to them any more
-    (the pool holds at most the two largest recent outputs).
+    (the pool holds the two most recently allocated large buffers).
     """
     numel = 1
     for d in shape:
