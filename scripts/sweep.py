@@ -60,10 +60,15 @@ def _key(config: dict) -> tuple:
     return config["task"], config["model"], config["seed"]
 
 
+# what a run writes where and how fast, not what it computes: free to differ on --resume
+_NOT_SETTINGS = ("out", "threads", "gif")
+
+
 def _settings_differ(old: dict, new: dict) -> list[str]:
-    """The settings (keys of ``new`` but the output folder) in which an earlier run's config differs."""
+    """The settings (keys of ``new`` but the output folder, threads and GIF) in which an earlier run's config
+    differs."""
     old = DEFAULTS | old  # keys added since that run: their defaults
-    return [k for k in new if k != "out" and old.get(k) != new[k]]
+    return [k for k in new if k not in _NOT_SETTINGS and old.get(k) != new[k]]
 
 
 def _write(path: Path, data) -> None:

@@ -457,6 +457,9 @@ def test_resume_takes_missing_settings_as_defaults():
     old = {k: v for k, v in DEFAULTS.items() if k not in ("loss", "lr_final")}
     assert _settings_differ(old, dict(DEFAULTS)) == []
     assert _settings_differ(old, {**DEFAULTS, "loss": "final"}) == ["loss"]
+    assert (
+        _settings_differ(old, {**DEFAULTS, "threads": 2, "gif": not DEFAULTS["gif"]}) == []
+    )  # no result changes
 
 
 def test_first_order_smoothing(tmp_path):
