@@ -37,7 +37,7 @@ def run(task: str, seed: int, horizon: int, iters: int, lr: float) -> dict:
     U = torch.zeros(horizon, 1, core.action_dim, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.Adam([U], lr=lr)
     losses, grads, seconds = [], [], []
-    for _ in tqdm(range(iters), desc=f"{task} seed {seed}", leave=False):
+    for it in tqdm(range(iters), desc=f"{task} seed {seed}", leave=False):
         t0 = time.perf_counter()
         out = rollout(core, state, U.clamp(-1, 1))
         loss = -(out.info["reward_distance"] * out.alive).sum()
@@ -46,7 +46,8 @@ def run(task: str, seed: int, horizon: int, iters: int, lr: float) -> dict:
         losses.append(float(loss.detach()))
         grads.append(float(U.grad.norm()))
         seconds.append(time.perf_counter() - t0)
-        opt.step()
+        if it + 1 < iters:  # (a step after the last evaluation would never be measured)
+            opt.step()
     return {
         "task": task, "seed": seed, "losses": losses, "grad_norms": grads, "seconds": seconds,
         "decrease": (losses[0] - min(losses)) / abs(losses[0]),
