@@ -64,22 +64,36 @@ def sdrs_barrier(y: torch.Tensor, dhat: float) -> torch.Tensor:
     return torch.where(y <= 0, torch.full_like(y, float("inf")), torch.where(torch.isnan(y), y, b))
 
 
+def _first_order(tri_a: torch.Tensor, tri_b: torch.Tensor, f, name: str) -> torch.Tensor:
+    """``f(tri_a, tri_b)`` (K,), differentiable once (:class:`_FirstOrder`) where a gradient is wanted."""
+    if torch.is_grad_enabled() and (tri_a.requires_grad or tri_b.requires_grad):
+        return _FirstOrder.apply(tri_a, tri_b, f, name)[0]
+    with torch.no_grad():
+        return f(tri_a, tri_b)
+
+
 class _FirstOrder(torch.autograd.Function):
-    """``f(tri_a, tri_b)`` (K,) differentiable once: the backward is autograd's gradient of ``f`` (exact), and its
-    own derivative in the triangles raises (autograd's second derivative of ``f`` is not the exact one)."""
+    """(``f(tri_a, tri_b)`` (K,), its gradients): the backward is autograd's gradient of ``f`` (exact), and its own
+    derivative in the triangles raises (autograd's second derivative of ``f`` is not the exact one). New style:
+    the forward runs on plain tensors, so torch.func.grad works too."""
 
     @staticmethod
-    def forward(ctx, tri_a, tri_b, f, name):
+    def forward(tri_a, tri_b, f, name):
         with torch.enable_grad():
             a, b = tri_a.detach().requires_grad_(True), tri_b.detach().requires_grad_(True)
             value = f(a, b)
             ga, gb = torch.autograd.grad(value.sum(), (a, b), allow_unused=True, materialize_grads=True)
-        ctx.save_for_backward(tri_a, tri_b, ga, gb)
-        ctx.name = name
-        return value.detach()
+        return value.detach(), ga, gb
 
     @staticmethod
-    def backward(ctx, gout):
+    def setup_context(ctx, inputs, output):
+        tri_a, tri_b, _, ctx.name = inputs
+        _, ga, gb = output
+        ctx.mark_non_differentiable(ga, gb)
+        ctx.save_for_backward(tri_a, tri_b, ga, gb)
+
+    @staticmethod
+    def backward(ctx, gout, _ga, _gb):
         tri_a, tri_b, ga, gb = ctx.saved_tensors
         w = gout[:, None, None]
         da, db = w * ga, w * gb
@@ -116,7 +130,7 @@ def _intersecting(tri_a: torch.Tensor, tri_b: torch.Tensor, dist: torch.Tensor) 
     for s, t in ((tri_a, tri_b), (tri_b, tri_a)):
         for i in range(3):
             hit = hit | segment_hits_triangle(s[:, i], s[:, (i + 1) % 3], t)
-    size = torch.cat([tri_a, tri_b], 1).abs().amax((1, 2)).clamp(min=1.0)
+    size = torch.cat([tri_a, tri_b], 1).abs().amax((1, 2))  # the coordinates' rounding scale
     return hit | (dist <= 64 * torch.finfo(dist.dtype).eps * size)
 
 
@@ -147,7 +161,7 @@ def ipc_pair_barrier(
         value = kappa * ipc_barrier(((pa - pb) ** 2).sum(-1), dhat * dhat)
         return torch.where(hit, torch.full_like(value, float("inf")), value)
 
-    return _FirstOrder.apply(tri_a, tri_b, barrier, "ipc_pair_barrier")
+    return _first_order(tri_a, tri_b, barrier, "ipc_pair_barrier")
 
 
 def _barycentric(tri: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -205,7 +219,7 @@ def sdrs_pair_potential(
     def potential(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return kappa * sdrs_energy(p, torch.cat([a, b], 1).to(torch.float64), dhat, margin).to(a.dtype)
 
-    return _FirstOrder.apply(tri_a, tri_b, potential, "sdrs_pair_potential")
+    return _first_order(tri_a, tri_b, potential, "sdrs_pair_potential")
 
 
 def sdrs_planes(Xd: torch.Tensor, dhat: float, margin: float, iters: int = 60) -> torch.Tensor:

@@ -37,7 +37,7 @@ class ContactConfig:
         margin: delta, the distance below which the potential is +inf [m].
         eps: relative width of the hierarchy's blend band, d2 = d1 + max(eps d1, 2 margin) (never narrower than
             twice the margin: see :mod:`cfd_torch.contact.central`).
-        split: which node of a node pair the traversal descends: "both", or the "larger" sphere.
+        split: which node of a node pair the traversal descends: "both", or the "larger" sphere (both on a tie).
         pair_tol: relative gradient tolerance of each leaf pair's plane solve.
         pair_max_iter: Newton iteration cap of the plane solve (a pair that does not converge raises).
         backend: "auto" (numba kernels on the CPU, batched tensors elsewhere) or "torch" (batched tensors

@@ -363,6 +363,19 @@ def _json_object(text: str) -> dict:
     return value
 
 
+def _constructor_parameters(cls: type) -> dict:
+    """The keyword arguments ``cls(...)`` takes: its ``__init__``'s, and its bases' where it passes ``**kwargs`` on."""
+    params: dict = {}
+    for klass in cls.__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        own = inspect.signature(klass.__init__).parameters
+        params.update({k: v for k, v in own.items() if k != "self" and v.kind != v.VAR_KEYWORD})
+        if not any(v.kind == v.VAR_KEYWORD for v in own.values()):
+            break
+    return params
+
+
 def _check_settings(cfg: dict) -> None:
     """Raise ValueError naming the first setting of ``cfg`` out of its range."""
 
@@ -421,7 +434,7 @@ def _check_settings(cfg: dict) -> None:
     if cfg["model"] == "mujoco-fd":
         count("mj_substeps", 1)
     if cfg["task"] in TASKS:  # the task's own arguments: names its constructor takes
-        params = inspect.signature(core_class(f"cfd_torch/{cfg['task']}-v0")).parameters
+        params = _constructor_parameters(core_class(f"cfd_torch/{cfg['task']}-v0"))
         unknown = sorted(set(cfg["task_args"] or {}) - set(params))
         if unknown:
             raise ValueError(

@@ -96,3 +96,18 @@ def test_sdrs_pair_potential_is_exactly_zero_beyond_its_reach():
         assert float(v[0]) == 0.0 and float(g.abs().max()) == 0.0, gap
     a, b = feature_pairs(0.9 * reach)["face-face"]
     assert float(sdrs_pair_potential(a[None], b[None], dhat=dhat, margin=margin)[0]) > 0
+
+
+def test_pair_baselines_under_inference_mode_and_torch_func_grad():
+    """Value-only calls (no_grad, inference_mode) compute no gradient and agree with the differentiable call;
+    torch.func.grad equals autograd's gradient."""
+    a, b = feature_pairs(3e-3)["vertex-face"]
+    a, b = a[None].expand(3, 3, 3).clone(), b[None].expand(3, 3, 3).clone()
+    for fn in (ipc_pair_barrier, sdrs_pair_potential):
+        x = b.clone().requires_grad_(True)
+        v = fn(a, x)
+        (g,) = torch.autograd.grad(v.sum(), x)
+        assert float(g.abs().max()) > 0
+        with torch.inference_mode():
+            torch.testing.assert_close(fn(a, b), v.detach(), rtol=0, atol=0)
+        torch.testing.assert_close(torch.func.grad(lambda y: fn(a, y).sum())(b), g, rtol=1e-12, atol=0)

@@ -15,7 +15,7 @@ import torch
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
-    from optimize import FD_STEPS, MODELS, OPTIMISERS, Optimiser, run_experiment
+    from optimize import DEFAULTS, FD_STEPS, MODELS, OPTIMISERS, Optimiser, run_experiment
     from plot_results import _curves, table
 finally:
     sys.path.pop(0)
@@ -355,6 +355,13 @@ def test_task_args_reach_the_task():
         run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": [1.5]})
     with pytest.raises(ValueError, match="Push takes no argument distanse"):
         run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": {"distanse": 1.5}})
+    # Sort and Gather pass their base's arguments on (**kwargs): those are arguments too
+    from optimize import _check_settings
+
+    for task, args in (("Sort", {"num_cubes": 2}), ("Gather", {"cube_size": 0.1})):
+        _check_settings({**DEFAULTS, "task": task, "task_args": args})
+    with pytest.raises(ValueError, match="Sort takes no argument num_cubez"):
+        _check_settings({**DEFAULTS, "task": "Sort", "task_args": {"num_cubez": 2}})
 
 
 def test_task_losses():

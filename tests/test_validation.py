@@ -355,10 +355,10 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
 
 
 def test_gravity_pair_eps_contact_model_and_body_inertia_are_checked():
-    """gravity: a string was read digit by digit, a scalar or a (2, 3) tensor failed without naming it, an entry
-    requiring grad lost its gradient silently; pair_eps was unchecked with the baselines' potentials; a contact model
-    built for other bodies (or another order) gave wrong physics silently; a RigidBody with a negative second
-    moment failed only at the step, naming params; NumPy scalars are numbers everywhere."""
+    """gravity is 3 finite numbers (a string, a scalar, a (2, 3) tensor or an entry requiring grad is refused naming
+    it); pair_eps is checked whatever the potential; a contact model must be built for the scene's bodies in its
+    order (a refined obstacle's hierarchy is the same surface); a RigidBody's second moment must be symmetric (to its
+    dtype's rounding) positive semi-definite; NumPy scalars are numbers everywhere."""
     from cfd_torch import FrictionConfig, RigidBody
     from cfd_torch.contact import CfdContact
 
@@ -389,12 +389,22 @@ def test_gravity_pair_eps_contact_model_and_body_inertia_are_checked():
         Scene([box, ground], contact_model="ipc")
     with _says("contact_model was built for 3 bodies, the scene has 2"):
         Scene([box, ground], contact_model=CfdContact([box.bsh, ground.bsh, box.bsh]))
-    with _says("contact_model's hierarchy 0 is not body 0's mesh"):
+    with _says("contact_model's hierarchy 0 is not body 0's surface"):
         Scene([box, ground], contact_model=CfdContact([ground.bsh, box.bsh]))
     Scene(
         [box, ground],
         contact_model=CfdContact([BSH.from_trimesh(trimesh.creation.box((0.2, 0.2, 0.2))), ground.bsh]),
     )
+    refined = Scene([box, ground])  # the ground refined to the box's scale: the same surface, accepted
+    assert refined.bodies[1].bsh.num_faces > ground.bsh.num_faces
+    Scene([box, ground], contact_model=refined.contact_model)
+    assert Scene([box, ground], gravity=(g for g in (0.0, 0.0, -9.81))).gravity == (0.0, 0.0, -9.81)
+    assert Scene([box, ground], pair_eps={(0, 1): np.float32(0.3), (1, 0): 0.3}).pair_eps[(1, 0)] == 0.3
+    c, s_ = math.cos(0.7), math.sin(0.7)
+    R = torch.tensor([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    S = R @ torch.diag(torch.tensor([1.0, 1.0, 2.0], dtype=F64)) * 1e-3 @ R.T  # symmetric to rounding
+    for dt in (F64, F32):
+        RigidBody(box.bsh, "dynamic", box.mass, S.to(dt), box.com.to(dt))
     with _says("RigidBody.second_moment must be symmetric positive semi-definite"):
         RigidBody(box.bsh, "dynamic", box.mass, -box.second_moment, box.com)
     with _says("RigidBody.second_moment must be a finite tensor of shape (3, 3)"):

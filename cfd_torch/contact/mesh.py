@@ -139,7 +139,7 @@ def mesh_potential_derivatives(
         bsh_a, bsh_b: the bodies' hierarchies.
         pose_a, pose_b: (..., 6) poses (translation [m], rotation vector [rad]); leading dims broadcast.
         mu: contact coefficient. margin: delta [m]. eps: relative width of the blend band.
-        split: "both" (descend both nodes of a pair) or "larger" (only the larger sphere).
+        split: "both" (descend both nodes of a pair) or "larger" (only the larger sphere; both on a tie).
         hessian: form the (..., 12, 12) Hessian.
         tol, max_iter: inner plane-solve settings of the leaf pairs (see ``pair_potential``).
 

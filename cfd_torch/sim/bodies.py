@@ -71,10 +71,11 @@ class RigidBody:
                     f"RigidBody.{name} must be a finite tensor of shape {shape}, got {tuple(x.shape)}"
                 )
         if self.kind == "dynamic":
+            eps = torch.finfo(self.second_moment.dtype).eps  # symmetric to the rounding of its dtype
             S = self.second_moment.detach().double()
-            inertia = torch.trace(S) * torch.eye(3, dtype=S.dtype) - S
+            inertia = torch.trace(S) * torch.eye(3, dtype=S.dtype, device=S.device) - S
             if (
-                not torch.allclose(S, S.T, rtol=1e-12, atol=0)
+                float((S - S.T).abs().max()) > 64 * eps * float(S.abs().max())
                 or bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().max()).any())
                 or not bool((torch.linalg.eigvalsh(inertia) > 0).all())
             ):

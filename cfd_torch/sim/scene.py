@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
-import numpy as np
 import torch
 
 from .._validate import closed_surface, is_int, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact._traverse import build_forest
+from ..contact.bsh import BSH
 from ..contact.cfd import CfdContact
 from ..contact.ipc import IpcContact
 from ..contact.model import ContactModel
@@ -65,27 +65,24 @@ def _body_pair(p: object, name: str) -> tuple[int, int]:
 
 def _gravity(gravity: object) -> tuple[float, float, float]:
     """``gravity`` as 3 finite floats; a clear error naming it otherwise (its gradient is not kept: refused)."""
-    if isinstance(gravity, (str, bytes)) or not isinstance(gravity, (Sequence, np.ndarray, torch.Tensor)):
-        raise TypeError(f"gravity must be 3 numbers (a sequence, array or tensor), got {gravity!r}")
-    if isinstance(gravity, torch.Tensor):
-        grads = gravity.requires_grad
-    else:
-        grads = any(isinstance(x, torch.Tensor) and x.requires_grad for x in gravity)
-    if grads:
+    if isinstance(gravity, (str, bytes)) or not isinstance(gravity, Iterable):
+        raise TypeError(f"gravity must be 3 numbers, got {gravity!r}")
+    if isinstance(gravity, torch.Tensor) and gravity.shape != (3,):
+        raise ValueError(f"gravity must be 3 finite numbers, got a tensor of shape {tuple(gravity.shape)}")
+    items = list(gravity)
+    if any(isinstance(x, torch.Tensor) and x.requires_grad for x in items) or (
+        isinstance(gravity, torch.Tensor) and gravity.requires_grad
+    ):
         raise TypeError(
             "gravity must be numbers, not a tensor that requires grad: a scene's gravity is not differentiable"
         )
     try:
-        g = np.asarray(
-            gravity.detach().cpu() if isinstance(gravity, torch.Tensor) else
-            [float(x.detach()) if isinstance(x, torch.Tensor) else x for x in gravity],
-            dtype=np.float64,
-        )  # fmt: skip
-    except (TypeError, ValueError) as err:
+        g = tuple(float(x) for x in items)
+    except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"gravity must be 3 numbers, got {gravity!r}") from err
-    if g.shape != (3,) or not np.isfinite(g).all():
+    if len(g) != 3 or not all(math.isfinite(x) for x in g):
         raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-    return float(g[0]), float(g[1]), float(g[2])
+    return g
 
 
 def _pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
@@ -105,7 +102,7 @@ def _pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
                 f"pair_eps: the blend width of {key!r} must be a finite positive number, got {e!r}"
             )
         other = out.get((j, i))
-        if other is not None and other != float(e):
+        if other is not None and not math.isclose(other, float(e), rel_tol=1e-6):
             raise ValueError(f"pair_eps: {(i, j)} and {(j, i)} are one pair, given {float(e)} and {other}")
         out[(i, j)] = float(e)
     return out
@@ -123,13 +120,25 @@ def _check_contact_model(model: object, bodies: Sequence[RigidBody]) -> None:
     if n != len(bodies):
         raise ValueError(f"contact_model was built for {n} bodies, the scene has {len(bodies)}")
     for i, (mine, body) in enumerate(zip(getattr(model, "bshes", ()), bodies, strict=False)):
-        if mine is not body.bsh and not (
-            mine.vertices.shape == body.bsh.vertices.shape and torch.equal(mine.vertices, body.bsh.vertices)
-        ):
+        if mine is not body.bsh and not _same_surface(mine, body.bsh):
             raise ValueError(
-                f"contact_model's hierarchy {i} is not body {i}'s mesh: build it from [b.bsh for b in bodies], in "
-                "the scene's order"
+                f"contact_model's hierarchy {i} is not body {i}'s surface: build it from the scene's bodies' "
+                "hierarchies (refined or not), in the scene's order"
             )
+
+
+def _same_surface(a: BSH, b: BSH) -> bool:
+    """Whether two hierarchies hold the same surface, one possibly a refinement of the other (midpoint splits keep
+    the surface): the same bounding box and area, to rounding."""
+    box_a = torch.stack([a.vertices.amin(0), a.vertices.amax(0)]).double()
+    box_b = torch.stack([b.vertices.amin(0), b.vertices.amax(0)]).double()
+    scale = float(box_a.abs().max()) + 1e-300
+
+    def area(h: BSH) -> float:
+        t = h.triangles.double()
+        return float(0.5 * torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]).norm(dim=-1).sum())
+
+    return bool((box_a - box_b).abs().max() <= 1e-9 * scale) and math.isclose(area(a), area(b), rel_tol=1e-9)
 
 
 class Scene:
