@@ -110,4 +110,4 @@ def test_pair_baselines_under_inference_mode_and_torch_func_grad():
         assert float(g.abs().max()) > 0
         with torch.inference_mode():
             torch.testing.assert_close(fn(a, b), v.detach(), rtol=0, atol=0)
-        torch.testing.assert_close(torch.func.grad(lambda y: fn(a, y).sum())(b), g, rtol=1e-12, atol=0)
+        torch.testing.assert_close(torch.func.grad(lambda y, f=fn: f(a, y).sum())(b), g, rtol=1e-12, atol=0)
