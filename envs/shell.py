@@ -245,7 +245,9 @@ class CoreVectorEnv(VectorEnv):
             raise ValueError(f"actions: non-finite entries for environments {bad}")
         # computed into copies, kept only if every environment steps: a StepError leaves the vector environment as
         # it was (states, observations, autoreset flags and generators)
-        states, obs, rngs = list(self.states), self._obs.copy(), [copy.deepcopy(r) for r in self._rngs]
+        states, obs, rngs = list(self.states), self._obs.copy(), list(self._rngs)
+        for i in np.flatnonzero(self._autoreset):  # (only these draw from their generators)
+            rngs[i] = copy.deepcopy(self._rngs[i])
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
         truncated = np.zeros(self.num_envs, dtype=np.bool_)
