@@ -157,9 +157,8 @@ class ClosedFormGrad(torch.autograd.Function):
     def backward(ctx, v, _):
         # d (v . g(q)) / dq = v^T H(q), H symmetric
         q, h = ctx.saved_tensors
-        hv = (v[:, None, :] @ h)[
-            :, 0
-        ]  # (matmul, not einsum: autograd.functional's vectorize has no einsum rule)
+        # (a matmul, not einsum: autograd.functional's vectorize=True has no batching rule for einsum)
+        hv = (v[:, None, :] @ h)[:, 0]
         # under create_graph: differentiable in v (the product is linear in it), while H(q)'s own derivative in q
         # is not available: refused
         if torch.is_grad_enabled():

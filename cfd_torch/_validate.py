@@ -6,6 +6,7 @@ checks, run once when a body is built: :func:`check_mesh` and :func:`self_inters
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numba
 import numpy as np
@@ -163,6 +164,40 @@ def check_count(value: int, name: str) -> None:
 
 
 _triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)
+
+
+def body_pair(p: object, name: str) -> tuple[int, int]:
+    """A body pair (i, j) of integers (a tuple, list, or a row of an integer array or tensor), as given in ``name``."""
+    try:
+        ij = list(p)
+    except TypeError:
+        ij = []
+    if not (len(ij) == 2 and all(is_int(x) for x in ij)):
+        raise ValueError(f"{name} must hold body pairs (i, j) of integers, got {p!r}")
+    return int(ij[0]), int(ij[1])
+
+
+def check_pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
+    """``pair_eps`` checked: body pairs of two different indices in [0, n), each with one positive blend width
+    ((i, j) and (j, i) are one pair: given both, they must agree)."""
+    if pair_eps is None:
+        return {}
+    if not isinstance(pair_eps, Mapping):
+        raise TypeError(f"pair_eps must be a mapping {{(i, j): eps}}, got {type(pair_eps).__name__}")
+    out: dict[tuple[int, int], float] = {}
+    for key, e in pair_eps.items():
+        i, j = body_pair(key, "pair_eps")
+        if not (0 <= i < n and 0 <= j < n and i != j):
+            raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {n})")
+        if not (is_real(e) and 0 < e < math.inf):
+            raise ValueError(
+                f"pair_eps: the blend width of {key!r} must be a finite positive number, got {e!r}"
+            )
+        other = out.get((j, i))
+        if other is not None and not math.isclose(other, float(e), rel_tol=1e-6):
+            raise ValueError(f"pair_eps: {(i, j)} and {(j, i)} are one pair, given {float(e)} and {other}")
+        out[(i, j)] = float(e)
+    return out
 
 
 def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) -> None:

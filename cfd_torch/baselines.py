@@ -126,10 +126,10 @@ def _check_pair(tri_a: torch.Tensor, tri_b: torch.Tensor, dhat: float, kappa: fl
 def _intersecting(tri_a: torch.Tensor, tri_b: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """(K,) bool: the triangles intersect or touch (an edge of one crosses the other, or their distance is within
     rounding of 0: coplanar overlaps too)."""
-    hit = torch.zeros(tri_a.shape[0], dtype=torch.bool, device=tri_a.device)
-    for s, t in ((tri_a, tri_b), (tri_b, tri_a)):
-        for i in range(3):
-            hit = hit | segment_hits_triangle(s[:, i], s[:, (i + 1) % 3], t)
+    edges = torch.cat([tri_a, tri_b], 1)  # (K, 6, 3): the 3 edges of a, then of b, as (start, end)
+    ends = torch.cat([tri_a.roll(-1, 1), tri_b.roll(-1, 1)], 1)
+    other = torch.stack([tri_b] * 3 + [tri_a] * 3, 1)  # (K, 6, 3, 3): the triangle each edge may cross
+    hit = segment_hits_triangle(edges, ends, other).any(1)
     size = torch.cat([tri_a, tri_b], 1).abs().amax((1, 2))  # the coordinates' rounding scale
     return hit | (dist <= 64 * torch.finfo(dist.dtype).eps * size)
 

@@ -33,6 +33,14 @@ from cfd_torch.sim.bodies import RigidBody
 __all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_states", "task_at"]
 
 
+def real_array(x: object, name: str) -> np.ndarray:
+    """``x`` as a float64 array; a TypeError naming ``name`` if it is not real numbers (complex, bool, text)."""
+    array = np.asarray(x)
+    if array.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
 def _same_device(a: torch.device, b: torch.device) -> bool:
     """The same device ("cuda" matches "cuda:0": an unset index is the current one)."""
     return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
@@ -357,10 +365,7 @@ class TaskCore(abc.ABC):
         """``action`` as a (B, A) tensor of the core's dtype and device; a clear TypeError (not real numbers) or
         ValueError (shape, NaN/inf, overflow) otherwise."""
         if not isinstance(action, torch.Tensor):
-            array = np.asarray(action)
-            if array.dtype.kind not in "iuf":
-                raise TypeError(f"action must be an array of real numbers, got dtype {array.dtype}")
-            action = torch.as_tensor(array, dtype=self.dtype, device=self.device)
+            action = torch.as_tensor(real_array(action, "action"), dtype=self.dtype, device=self.device)
         if action.dtype == torch.bool or action.is_complex():
             raise TypeError(f"action must be a tensor of real numbers, got {action.dtype}")
         if action.shape != (batch_size, self.action_dim):

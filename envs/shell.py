@@ -19,7 +19,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from cfd_torch._validate import is_int
 
-from .core import EnvState, TaskCore, stack_states, task_at
+from .core import EnvState, TaskCore, real_array, stack_states, task_at
 
 __all__ = ["CoreEnv", "CoreVectorEnv"]
 
@@ -32,14 +32,6 @@ def _check_shell_arguments(render_mode: str | None, width: int, height: int) -> 
     for name, v in (("width", width), ("height", height)):
         if not (is_int(v) and v > 0):
             raise ValueError(f"{name} must be a positive int [pixels], got {v!r}")
-
-
-def _real_array(x: Any, name: str) -> np.ndarray:
-    """``x`` as a float64 array; a TypeError naming ``name`` if it is not real numbers (complex, bool, text)."""
-    array = np.asarray(x)
-    if array.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")
-    return array.astype(np.float64)
 
 
 def _fps(core: TaskCore) -> int:
@@ -121,7 +113,7 @@ class CoreEnv(gym.Env):
     def step(self, action):
         if self.state is None:
             raise RuntimeError("call reset() before step()")
-        action = _real_array(action, "action")
+        action = real_array(action, "action")
         if action.shape != (self.core.action_dim,):
             raise ValueError(f"action must have shape ({self.core.action_dim},), got {action.shape}")
         a = torch.as_tensor(action, dtype=self.core.dtype, device=self.core.device)
@@ -233,7 +225,7 @@ class CoreVectorEnv(VectorEnv):
     def step(self, actions):
         if any(s is None for s in self.states):
             raise RuntimeError("call reset() before step()")
-        actions = _real_array(actions, "actions")
+        actions = real_array(actions, "actions")
         if actions.shape != (self.num_envs, self.core.action_dim):
             raise ValueError(
                 f"actions must have shape ({self.num_envs}, {self.core.action_dim}), got {actions.shape}"

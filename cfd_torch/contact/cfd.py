@@ -17,12 +17,11 @@ previous state; only the discrete leaf set is fixed.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import torch
 
-from .._validate import is_real
+from .._validate import check_pair_eps
 from ..config import ContactConfig
 from ..rotation import rotation_matrix
 from ._traverse import Forest, build_forest, penetrating, traverse
@@ -60,17 +59,11 @@ class CfdContact:
         self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._forests: dict[torch.device, tuple[Forest, torch.Tensor]] = {}  # built once per device
         self._eps = None  # (N, N) blend width of each body pair, when some pair has its own
+        pair_eps = check_pair_eps(pair_eps, N)
         if pair_eps:
             table = torch.full((N, N), float(self.config.eps), dtype=torch.float64)
-            for key, e in pair_eps.items():
-                i, j = key
-                if not (0 <= i < N and 0 <= j < N and i != j):
-                    raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {N})")
-                if not (is_real(e) and 0 < e < math.inf):
-                    raise ValueError(
-                        f"pair_eps: the blend width of {key!r} must be a positive number, got {e!r}"
-                    )
-                table[i, j] = table[j, i] = float(e)
+            for (i, j), e in pair_eps.items():
+                table[i, j] = table[j, i] = e
             self._eps = table
 
     def _pair_eps(self, pairs: torch.Tensor) -> float | torch.Tensor:

@@ -80,13 +80,12 @@ def _child_pairs(a: _Body, i: int, b: _Body, j: int, split: str) -> list[tuple[i
         if not leaf_i and not leaf_j:
             return [(ci, cj) for ci in a.child[i] for cj in b.child[j]]
         split_i = not leaf_i
-    elif (
-        a.radius[i] == b.radius[j]
-    ):  # "larger" on a tie: both non-leaves (symmetric under swapping the bodies)
+    # "larger": on a tie both non-leaves (symmetric under swapping the bodies), else the larger sphere
+    elif a.radius[i] == b.radius[j]:
         if not leaf_i and not leaf_j:
             return [(ci, cj) for ci in a.child[i] for cj in b.child[j]]
         split_i = not leaf_i
-    else:  # "larger": the larger sphere, unless it is a leaf
+    else:  # (unless it is a leaf)
         split_i = a.radius[i] > b.radius[j]
         if (split_i and leaf_i) or (not split_i and leaf_j):
             split_i = not split_i

@@ -103,17 +103,23 @@ def check_params(
     for name in ("kp", "kv"):
         if bool((getattr(params, name).detach() < 0).any()):
             raise ValueError(f"params.{name} must be >= 0 (a servo gain)")
-    S = params.second_moment.detach().to(torch.float64).reshape(-1, 3, 3)
-    S = 0.5 * (S + S.transpose(1, 2))  # the step uses the symmetric part
-    eye = torch.eye(3, dtype=S.dtype, device=S.device)
-    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
-    if bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) or not bool(
-        (torch.linalg.eigvalsh(inertia) > 0).all()
-    ):
+    if not physical_second_moment(params.second_moment):
         raise ValueError(
             "params.second_moment must be positive semi-definite with a positive definite inertia"
         )
     return params
+
+
+def physical_second_moment(S: torch.Tensor) -> bool:
+    """Whether every (3, 3) second moment in ``S`` (..., 3, 3) is, in its symmetric part (what the step uses),
+    positive semi-definite with a positive definite inertia tr(S) I - S."""
+    S = S.detach().to(torch.float64).reshape(-1, 3, 3)
+    S = 0.5 * (S + S.transpose(1, 2))
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
+    return not bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) and bool(
+        (torch.linalg.eigvalsh(inertia) > 0).all()
+    )
 
 
 def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:

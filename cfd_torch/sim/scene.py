@@ -9,7 +9,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 
-from .._validate import closed_surface, is_int, is_real
+from .._validate import body_pair, check_pair_eps, closed_surface, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig
 from ..contact._traverse import build_forest
 from ..contact.bsh import BSH
@@ -52,17 +52,6 @@ _SHORTHAND = {
 }
 
 
-def _body_pair(p: object, name: str) -> tuple[int, int]:
-    """A body pair (i, j) of integers (a tuple, list, or a row of an integer array or tensor), as given in ``name``."""
-    try:
-        ij = list(p)
-    except TypeError:
-        ij = []
-    if not (len(ij) == 2 and all(is_int(x) for x in ij)):
-        raise ValueError(f"{name} must hold body pairs (i, j) of integers, got {p!r}")
-    return int(ij[0]), int(ij[1])
-
-
 def _gravity(gravity: object) -> tuple[float, float, float]:
     """``gravity`` as 3 finite floats; a clear error naming it otherwise (its gradient is not kept: refused)."""
     if isinstance(gravity, (str, bytes)) or not isinstance(gravity, Iterable):
@@ -83,29 +72,6 @@ def _gravity(gravity: object) -> tuple[float, float, float]:
     if len(g) != 3 or not all(math.isfinite(x) for x in g):
         raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
     return g
-
-
-def _pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
-    """``pair_eps`` checked: body pairs of two different indices in [0, n), each with one positive blend width
-    ((i, j) and (j, i) are one pair: given both, they must agree)."""
-    if pair_eps is None:
-        return {}
-    if not isinstance(pair_eps, Mapping):
-        raise TypeError(f"pair_eps must be a mapping {{(i, j): eps}}, got {type(pair_eps).__name__}")
-    out: dict[tuple[int, int], float] = {}
-    for key, e in pair_eps.items():
-        i, j = _body_pair(key, "pair_eps")
-        if not (0 <= i < n and 0 <= j < n and i != j):
-            raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {n})")
-        if not (is_real(e) and 0 < e < math.inf):
-            raise ValueError(
-                f"pair_eps: the blend width of {key!r} must be a finite positive number, got {e!r}"
-            )
-        other = out.get((j, i))
-        if other is not None and not math.isclose(other, float(e), rel_tol=1e-6):
-            raise ValueError(f"pair_eps: {(i, j)} and {(j, i)} are one pair, given {float(e)} and {other}")
-        out[(i, j)] = float(e)
-    return out
 
 
 def _check_contact_model(model: object, bodies: Sequence[RigidBody]) -> None:
@@ -254,9 +220,9 @@ class Scene:
         self.contact: ContactConfig = cfg["contact"]
         self.friction: FrictionConfig = cfg["friction"]
         self.solver: SolverConfig = cfg["solver"]
-        self.exclude = tuple(_body_pair(p, "exclude") for p in exclude)
+        self.exclude = tuple(body_pair(p, "exclude") for p in exclude)
         N = len(bodies)
-        self.pair_eps = _pair_eps(pair_eps, N)
+        self.pair_eps = check_pair_eps(pair_eps, N)
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
