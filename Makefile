@@ -24,11 +24,12 @@ demo: $(BIN)/.installed
 	$(BIN)/python scripts/optimize.py --task Billiards --seed 1 --loss final --horizon 200 --knots 10 --iters 15 \
 		--lr 0.05 --optimizer adam --threads 1 --out results/demo/billiards_env
 
+# one pytest-xdist worker per core, each computing on one thread (tests/conftest.py)
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 test-slow: $(BIN)/.installed
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -n auto -m slow
 
 bench: $(BIN)/.installed
 	$(BIN)/python -m pip install -q -e '.[bench]'

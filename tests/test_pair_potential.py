@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -199,6 +200,25 @@ def test_batch_equals_per_item_and_broadcasts():
     for i in range(4):
         for j in range(3):
             assert grid[i, j] == pair_potential(a[i], far[j])
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="numba has one thread on this machine")
+def test_threaded_pair_solves_equal_one_thread():
+    """The numba solver's parallel loop over chunks of pairs gives with two threads exactly what one thread gives
+    (the test workers compute on one thread, tests/conftest.py, so this test raises the count itself)."""
+    a, b, _ = random_separated_pairs(3000, seed=37)
+    before = numba.get_num_threads()
+    out = {}
+    try:
+        for k in (1, 2):
+            numba.set_num_threads(k)
+            out[k] = pair_potential_derivatives(a, b, backend="numba")
+    finally:
+        numba.set_num_threads(before)
+    one, two = out[1], out[2]
+    assert bool(torch.isfinite(one.value).all()) and float(one.grad.abs().max()) > 0
+    for x, y in ((one.value, two.value), (one.grad, two.grad), (one.hessian, two.hessian), (one.plane, two.plane)):
+        assert torch.equal(x, y)
 
 
 def test_float32_inputs_solve_in_float64_and_return_float32():
