@@ -217,7 +217,12 @@ def test_threaded_pair_solves_equal_one_thread():
         numba.set_num_threads(before)
     one, two = out[1], out[2]
     assert bool(torch.isfinite(one.value).all()) and float(one.grad.abs().max()) > 0
-    for x, y in ((one.value, two.value), (one.grad, two.grad), (one.hessian, two.hessian), (one.plane, two.plane)):
+    for x, y in (
+        (one.value, two.value),
+        (one.grad, two.grad),
+        (one.hessian, two.hessian),
+        (one.plane, two.plane),
+    ):
         assert torch.equal(x, y)
 
 
