@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from _cli import apply_preset
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -149,13 +150,9 @@ def main(argv: list[str] | None = None) -> dict:
     )
     args = p.parse_args(argv)
     if args.quick:  # its values for the settings not given
-        for name, value in {
-            "phases": 8,
-            "schemes": ["plain", "sub:4", "aligned:0.008:1"],
-            "resolved": 0,
-        }.items():
-            if getattr(args, name) == p.get_default(name):
-                setattr(args, name, value)
+        apply_preset(
+            p, args, {"phases": 8, "schemes": ["plain", "sub:4", "aligned:0.008:1"], "resolved": 0}, argv
+        )
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     P = GapPotential()

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from _cli import apply_preset
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -103,9 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--quick", action="store_true", help="1 m/s, dt 0.01, 8 phases, cubes (where not given)")
     args = p.parse_args(argv)
     if args.quick:  # its values for the settings not given
-        for name, value in {"scenes": ["cubes"], "speeds": [1.0], "dts": [0.01], "phases": 8}.items():
-            if getattr(args, name) == p.get_default(name):
-                setattr(args, name, value)
+        apply_preset(p, args, {"scenes": ["cubes"], "speeds": [1.0], "dts": [0.01], "phases": 8}, argv)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", category=UserWarning)
     args.out.mkdir(parents=True, exist_ok=True)

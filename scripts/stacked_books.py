@@ -108,6 +108,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _cli import apply_preset  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -128,7 +129,7 @@ GRAVITY = (0.0, 0.0, -9.81)
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=Path("results/stacked_books"))
-    p.add_argument("--quick", action="store_true", help="5 boards instead of 20: a smoke run")
+    p.add_argument("--quick", action="store_true", help="5 boards (where --boards is not given): a smoke run")
     p.add_argument("--mu", type=float, nargs="+", default=sorted(PAPER, reverse=True))
     p.add_argument("--boards", type=int, default=20)
     p.add_argument("--length", type=float, default=1.0, help="board length L [m] (along the overhang)")
@@ -177,8 +178,8 @@ def parse_args() -> argparse.Namespace:
     )  # fmt: skip
     p.add_argument("--bisect-min", type=float, default=1e-6, help="smallest retraction probed when shrinking")
     a = p.parse_args()
-    if a.quick:
-        a.boards = 5
+    if a.quick:  # unless --boards is given
+        apply_preset(p, a, {"boards": 5})
     return a
 
 

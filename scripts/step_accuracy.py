@@ -420,16 +420,21 @@ def plot(out: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _positive(x: float | None) -> bool:
+    """An unset option, or a finite positive number."""
+    return x is None or (math.isfinite(x) and x > 0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("results/step_accuracy"))
     ap.add_argument("--quick", action="store_true", help="a smoke run: few steps, two values per sweep")
     ap.add_argument("--scenes", nargs="+", choices=("billiards", "stack"), default=["billiards", "stack"])
     ap.add_argument("--rack-rows", type=int, default=None, help="billiards rack rows (default 2)")
-    ap.add_argument("--billiards-duration", type=float, default=None, help="[s] (default 0.4, quick 0.08)")
+    ap.add_argument("--billiards-duration", type=float, default=None, help="[s] (default 0.4, quick 0.06)")
     ap.add_argument("--stack-boxes", type=int, default=4)
     ap.add_argument("--settle", type=float, default=0.3, help="stack: settling time before the runs [s]")
-    ap.add_argument("--stack-duration", type=float, default=None, help="[s] (default 0.5, quick 0.08)")
+    ap.add_argument("--stack-duration", type=float, default=None, help="[s] (default 0.5, quick 0.06)")
     ap.add_argument("--ref-dt-factor", type=int, default=4, help="reference dt = smallest swept dt / this")
     ap.add_argument(
         "--perturb",
@@ -439,15 +444,30 @@ def main() -> None:
     )
     ap.add_argument("--replot", action="store_true", help="rewrite the table and figure from the JSON")
     args = ap.parse_args()
+    bad = [
+        f"{flag} must be {what}, got {value}"
+        for flag, value, ok, what in (
+            ("--rack-rows", args.rack_rows, args.rack_rows is None or 1 <= args.rack_rows <= 5, "in 1..5"),
+            ("--billiards-duration", args.billiards_duration, _positive(args.billiards_duration), "> 0"),
+            ("--stack-duration", args.stack_duration, _positive(args.stack_duration), "> 0"),
+            ("--stack-boxes", args.stack_boxes, args.stack_boxes >= 1, ">= 1"),
+            ("--settle", args.settle, math.isfinite(args.settle) and args.settle >= 0, "finite and >= 0"),
+            ("--ref-dt-factor", args.ref_dt_factor, args.ref_dt_factor >= 1, ">= 1"),
+            ("--perturb", args.perturb, math.isfinite(args.perturb) and args.perturb >= 0, "finite and >= 0"),
+        )
+        if not ok
+    ]
+    if bad:
+        ap.error("; ".join(bad))
     path = args.out / "step_accuracy.json"
     if args.replot:
         out = json.loads(path.read_text())
     else:
         args.out.mkdir(parents=True, exist_ok=True)
         sweeps = QUICK_SWEEPS if args.quick else SWEEPS
-        rows = args.rack_rows or 2
-        b_dur = args.billiards_duration or (0.06 if args.quick else 0.4)
-        s_dur = args.stack_duration or (0.06 if args.quick else 0.5)
+        rows = 2 if args.rack_rows is None else args.rack_rows
+        b_dur = (0.06 if args.quick else 0.4) if args.billiards_duration is None else args.billiards_duration
+        s_dur = (0.06 if args.quick else 0.5) if args.stack_duration is None else args.stack_duration
         out = {
             "meta": {
                 "git": git_revision(), "torch": torch.__version__, "python": platform.python_version(),
