@@ -10,7 +10,7 @@ import trimesh
 from cfd_torch import Action, Scene, rigid_body
 
 from ._pusher import GAP, Pusher, floor_body
-from .core import EnvState, TaskCore, check_task_arguments
+from .core import EnvState, TaskCore, camera_over, check_task_arguments
 
 __all__ = ["CubesCore"]
 
@@ -166,4 +166,10 @@ class CubesCore(TaskCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (0.0, 0.0, 0.0), "distance": 4.5, "azimuth": 270.0, "elevation": -60.0}
+        # the cubes' and the pusher's starts and the task's goal regions
+        start = (0.0, 0.0, self.spread + self.cube_size)
+        return camera_over([start, *self._goal_discs()], azimuth=270.0, elevation=-60.0)
+
+    def _goal_discs(self) -> list[tuple[float, float, float]]:
+        """Floor discs (x, y, radius) [m] that hold every goal region the task can draw."""
+        return []

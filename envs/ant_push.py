@@ -14,7 +14,7 @@ from cfd_torch.sim.mjcf import gymnasium_ant_xml
 
 from ._pusher import GAP, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState, check_task_arguments
+from .core import EnvState, camera_over, check_task_arguments
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["AntPushCore", "AntPushEnv", "AntPushVectorEnv"]
@@ -148,7 +148,9 @@ class AntPushCore(BoxToTargetCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (1.2, 0.0, 0.0), "distance": 5.0, "azimuth": 90.0, "elevation": -35.0}
+        # the Ant (legs within about 0.8 m of its base), the box 1 m ahead and the target beyond it
+        discs = [(0.0, 0.0, 0.8), (1.0, 0.0, 0.25), (1.0 + self.distance, 0.0, self.success_radius + 0.15)]
+        return camera_over(discs, azimuth=90.0, elevation=-35.0)
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i == 0:

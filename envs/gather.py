@@ -50,6 +50,9 @@ class GatherCore(CubesCore):
     def _goal_high(self) -> float:
         return abs(self.region_distance)  # the region's centre
 
+    def _goal_discs(self) -> list[tuple[float, float, float]]:
+        return [(0.0, 0.0, self.region_distance + self.region_radius)]  # the region, at any angle
+
     def _task(self, gen: torch.Generator, q: torch.Tensor) -> dict[str, torch.Tensor]:
         a = 2 * math.pi * float(torch.rand(1, generator=gen, dtype=torch.float64))
         return {

@@ -12,7 +12,7 @@ from cfd_torch._validate import is_real
 
 from ._pusher import GAP, Pusher, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState, check_task_arguments
+from .core import EnvState, camera_over, check_task_arguments
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["PushCore", "PushEnv", "PushVectorEnv"]
@@ -116,7 +116,13 @@ class PushCore(BoxToTargetCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (1.5, 0.0, 0.0), "distance": 6.5, "azimuth": 90.0, "elevation": -50.0}
+        # the box and the pusher's start (within 0.7 m), and every target the angle range can draw
+        arc = [-self.angle_range + 2 * self.angle_range * k / 16 for k in range(17)]
+        target = [
+            (self.distance * math.cos(a), self.distance * math.sin(a), self.success_radius + 0.15)
+            for a in arc
+        ]
+        return camera_over([(0.0, 0.0, 0.75), *target], azimuth=90.0, elevation=-50.0)
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         return [(0.8, 0.55, 0.25, 1.0), (0.25, 0.45, 0.85, 1.0), (0.6, 0.62, 0.6, 1.0)][i]

@@ -15,6 +15,7 @@ so the rendered vertices are the body-frame vertices mapped by the body pose (to
 from __future__ import annotations
 
 import atexit
+import math
 import os
 import weakref
 from collections.abc import Mapping, Sequence
@@ -25,6 +26,8 @@ import numpy as np
 import numpy.typing as npt
 import torch
 from PIL import Image
+
+from cfd_torch._validate import is_int, is_real
 
 __all__ = ["MeshRenderer", "write_gif"]
 
@@ -60,12 +63,46 @@ def _close_open_renderers() -> None:
 
 
 def _numpy(x: npt.ArrayLike | torch.Tensor, name: str, dtype: npt.DTypeLike) -> np.ndarray:
+    """``x`` as an array of ``dtype``: real numbers only (a TypeError naming ``name`` for complex, bool or text
+    values), and whole numbers for an integer ``dtype``."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     try:
-        return np.asarray(x, dtype=dtype)
+        array = np.asarray(x)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{name} must be convertible to a {np.dtype(dtype).name} array: {e}") from e
+    if array.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")
+    if np.dtype(dtype).kind in "iu" and array.dtype.kind == "f":
+        if not (np.isfinite(array).all() and (array == np.round(array)).all()):
+            raise ValueError(f"{name} must hold whole numbers (vertex indices)")
+    return array.astype(dtype)
+
+
+def _check_camera(camera: Mapping[str, object], where: str) -> None:
+    """A ValueError naming the key unless ``lookat`` is a finite (3,) point, ``distance`` a finite number > 0 and
+    ``azimuth``, ``elevation`` finite numbers [deg] (the keys given)."""
+    for key, value in camera.items():
+        if key == "lookat":
+            try:
+                point = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                point = None
+            if point is None or point.shape != (3,) or not np.isfinite(point).all():
+                raise ValueError(f"{where}['lookat'] must be a finite (3,) point [m], got {value!r}")
+        elif not (is_real(value) and math.isfinite(value)) or (key == "distance" and not value > 0):
+            what = "a finite number > 0 [m]" if key == "distance" else "a finite number [deg]"
+            raise ValueError(f"{where}[{key!r}] must be {what}, got {value!r}")
+
+
+def _check_colours(rgba: np.ndarray, n: int, name: str) -> None:
+    """A ValueError naming ``name`` unless ``rgba`` is (n, 4) of finite values in [0, 1]."""
+    if rgba.shape != (n, 4):
+        raise ValueError(f"{name} must be an ({n}, 4) array of RGBA values in [0, 1], got shape {rgba.shape}")
+    bad = ~(np.isfinite(rgba) & (rgba >= 0) & (rgba <= 1))
+    if bad.any():
+        i = int(np.nonzero(bad.any(1))[0][0])
+        raise ValueError(f"{name} must be RGBA values in [0, 1]; row {i} is {rgba[i].tolist()}")
 
 
 def _quaternions(rotvec: np.ndarray) -> np.ndarray:
@@ -103,8 +140,8 @@ class MeshRenderer:
         height: image height [pixels].
         camera: free-camera settings ``lookat`` (3,) [m], ``distance`` [m], ``azimuth`` [deg], ``elevation`` [deg]
             (MuJoCo's ``MjvCamera``); keys left out are chosen at the first render so that all meshes, at
-            that render's poses, fill the view from azimuth 135 deg and elevation -30 deg. ``self.camera`` can be
-            moved between renders.
+            that render's poses, fill the view (about the given ``lookat``, if given) from azimuth 135 deg and
+            elevation -30 deg. ``self.camera`` can be moved between renders (checked at each render).
         floor: height z [m] of a checkered ground plane (drawn only; checker cells as large as the largest
             mesh's bounding box side), or None for no ground.
 
@@ -126,16 +163,21 @@ class MeshRenderer:
         self._renderer = None  # set last, so that close() works on a half-built instance
         if len(meshes) == 0:
             raise ValueError("meshes must hold at least one (vertices, faces) pair")
-        if width < 1 or height < 1:
-            raise ValueError(f"width and height must be positive, got {width} x {height}")
+        for name, value in (("width", width), ("height", height)):
+            if not (is_int(value) and value >= 1):
+                raise ValueError(f"{name} must be a positive int [pixels], got {value!r}")
+        width, height = int(width), int(height)
         if colors is None:
             colors = [_PALETTE[i % len(_PALETTE)] for i in range(len(meshes))]
-        if len(colors) != len(meshes) or any(len(c) != 4 for c in colors):
-            raise ValueError(f"colors must hold {len(meshes)} RGBA tuples, got {colors!r}")
+        rgba0 = _numpy(colors, "colors", np.float64)
+        _check_colours(rgba0, len(meshes), "colors")
+        if floor is not None and not (is_real(floor) and math.isfinite(floor)):
+            raise ValueError(f"floor must be a finite height [m] or None, got {floor!r}")
         camera = dict(camera or {})
         unknown = set(camera) - set(_CAMERA_KEYS)
         if unknown:
             raise ValueError(f"camera keys must be among {_CAMERA_KEYS}, got {sorted(unknown)}")
+        _check_camera(camera, "camera")
 
         spec = mujoco.MjSpec()
         self._vertices = []  # (V, 3) body-frame vertices per mesh, for the automatic framing
@@ -161,7 +203,7 @@ class MeshRenderer:
                 meshname=mesh.name,
                 contype=0,
                 conaffinity=0,
-                rgba=[float(c) for c in colors[i]],
+                rgba=rgba0[i].tolist(),
             )
         if floor is not None:
             cell = max(float(np.ptp(v, axis=0).max()) for v in self._vertices)
@@ -205,9 +247,10 @@ class MeshRenderer:
         except mujoco.FatalError as e:
             backend = getattr(mujoco.gl_context.GLContext, "__module__", None)
             raise RuntimeError(
-                f"MuJoCo could not create an OpenGL context (backend {backend}, chosen when mujoco was first "
-                "imported): without an X display, set MUJOCO_GL=egl in the environment before anything imports "
-                "mujoco (cfd_torch, pytorch_kinematics and gymnasium's MuJoCo environments do)"
+                f"MuJoCo could not make a {width} x {height} off-screen renderer ({e}; OpenGL backend {backend}, "
+                "chosen when mujoco was first imported): an image larger than the GPU's framebuffer limit fails "
+                "so; without an X display, MUJOCO_GL=egl must be set before anything imports mujoco (cfd_torch, "
+                "pytorch_kinematics and gymnasium's MuJoCo environments do)"
             ) from e
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
@@ -225,11 +268,16 @@ class MeshRenderer:
             [v @ r.T + t for v, r, t in zip(self._vertices, rotations, translation, strict=True)]
         )
         lo, hi = world.min(0), world.max(0)
-        radius = 0.5 * float(np.linalg.norm(hi - lo))
+        if "lookat" in self._camera_settings:  # the sphere about the given point that holds every mesh
+            lookat = np.asarray(self._camera_settings["lookat"], dtype=np.float64)
+            radius = float(np.linalg.norm(world - lookat, axis=1).max())
+        else:
+            lookat = 0.5 * (lo + hi)
+            radius = 0.5 * float(np.linalg.norm(hi - lo))
         half_fovy = np.deg2rad(0.5 * self._model.vis.global_.fovy)
         settings = {
-            "lookat": 0.5 * (lo + hi),
-            "distance": _FRAME_MARGIN * radius / np.sin(half_fovy),
+            "lookat": lookat,
+            "distance": _FRAME_MARGIN * max(radius, 1e-9) / np.sin(half_fovy),
             "azimuth": _DEFAULT_AZIMUTH,
             "elevation": _DEFAULT_ELEVATION,
         } | self._camera_settings
@@ -262,16 +310,16 @@ class MeshRenderer:
             rgba = self._colors
         else:
             rgba = _numpy(colors, "colors", np.float32)
-            if rgba.shape != (n, 4) or not (
-                np.isfinite(rgba).all() and (rgba >= 0).all() and (rgba <= 1).all()
-            ):
-                raise ValueError(
-                    f"colors must be an ({n}, 4) array of RGBA values in [0, 1], got {rgba.shape}"
-                )
-        self._model.geom_rgba[self._geoms] = rgba
+            _check_colours(rgba, n, "colors")
         quat = _quaternions(poses[:, 3:])
         if not self._framed:
             self._frame(poses[:, :3], _rotation_matrices(quat))
+        cam = self.camera
+        _check_camera(
+            {"lookat": np.array(cam.lookat), "distance": float(cam.distance), "azimuth": float(cam.azimuth),
+             "elevation": float(cam.elevation)}, "self.camera",
+        )  # fmt: skip
+        self._model.geom_rgba[self._geoms] = rgba
         # Clipping planes sit at znear and zfar (0.01 and 50 by default) times the model extent.
         self._model.stat.extent = self.camera.distance
         self._data.mocap_pos[self._mocap] = poses[:, :3]
@@ -292,29 +340,53 @@ class MeshRenderer:
             self.close()
 
 
+# GIF stores each frame's delay in whole hundredths of a second, and browsers play a delay under 20 ms as 100 ms
+_MIN_DELAY_CS = 2
+_MAX_DELAY_CS = 65535  # 16 bits
+
+
 def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 30) -> Path:
-    """Write frames as a looping animated GIF.
+    """Write frames as a looping animated GIF that plays at ``fps``.
+
+    GIF stores each frame's delay in whole hundredths of a second, and browsers play delays under 20 ms as 100 ms;
+    so above 50 frames per second every k-th frame is kept (k = ceil(fps / 50), and the last frame), each shown
+    for k / fps: the clip keeps its duration. Delays are rounded to the nearest 10 ms (at 60 fps: every second
+    frame, 30 ms each, a clip 10 % short).
 
     Args:
-        frames: T uint8 (H, W, 3) RGB arrays of one shape.
-        path: output file; missing parent folders are created.
-        fps: frames per second (GIF stores delays in 10 ms steps).
+        frames: T uint8 (H, W, 3) RGB arrays (NumPy) of one shape.
+        path: output file, ending in ``.gif``; missing parent folders are created.
+        fps: frames per second, a finite number > 0 (at most 655 s per frame).
 
     Returns:
         The path written. Pillow merges consecutive identical frames into one longer frame.
     """
     if len(frames) == 0:
         raise ValueError("frames must not be empty")
+    for i, f in enumerate(frames):
+        if not isinstance(f, np.ndarray):
+            raise TypeError(f"frames[{i}] must be a NumPy array, got {type(f).__name__}")
     shape = frames[0].shape
     for i, f in enumerate(frames):
         if f.dtype != np.uint8 or f.ndim != 3 or f.shape[2] != 3 or f.shape != shape:
             raise ValueError(
-                f"frames[{i}] must be a uint8 {shape} array like frames[0], got {f.dtype} {f.shape}"
+                f"frames[{i}] must be a uint8 (H, W, 3) array of frames[0]'s shape {shape}, got {f.dtype} {f.shape}"
             )
-    if fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    if not (is_real(fps) and math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
     path = Path(path)
+    if path.suffix.lower() != ".gif":
+        raise ValueError(f"path must end in .gif (write_gif writes GIF), got {str(path)!r}")
+    every = max(1, math.ceil(fps * _MIN_DELAY_CS / 100.0 - 1e-9))
+    delay_cs = round(100.0 * every / fps)
+    if delay_cs > _MAX_DELAY_CS:
+        raise ValueError(
+            f"fps must be at least {100.0 / _MAX_DELAY_CS:.3g} (a GIF frame lasts at most 655 s), got {fps}"
+        )
+    keep = list(range(0, len(frames), every))
+    if keep[-1] != len(frames) - 1:
+        keep.append(len(frames) - 1)
     path.parent.mkdir(parents=True, exist_ok=True)
-    first, *rest = (Image.fromarray(f) for f in frames)
-    first.save(path, save_all=True, append_images=rest, duration=round(1000.0 / fps), loop=0)
+    first, *rest = (Image.fromarray(frames[i]) for i in keep)
+    first.save(path, format="GIF", save_all=True, append_images=rest, duration=10 * delay_cs, loop=0)
     return path

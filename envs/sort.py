@@ -53,6 +53,9 @@ class SortCore(CubesCore):
     def _goal_high(self) -> float:
         return max(1.0, abs(self.region_offset))  # the classes (+-1) and the regions' centres
 
+    def _goal_discs(self) -> list[tuple[float, float, float]]:
+        return [(-self.region_offset, 0.0, self.region_radius), (self.region_offset, 0.0, self.region_radius)]
+
     def _task(self, gen: torch.Generator, q: torch.Tensor) -> dict[str, torch.Tensor]:
         classes = (torch.randperm(self.num_cubes, generator=gen) >= self.num_cubes // 2).long()
         centres = torch.tensor([[-self.region_offset, 0.0], [self.region_offset, 0.0]], dtype=torch.float64)

@@ -622,7 +622,7 @@ def run_experiment(config: dict) -> dict:
             r = core.renderer(320, 320)
             frames = [core.draw(r, q, task_at(s0, 0)) for q in frames_q]
             r.close()
-            write_gif(frames, out_dir / "best.gif", fps=round(1 / core.scene.dt))
+            write_gif(frames, out_dir / "best.gif", fps=1.0 / core.scene.dt)
     return result
 
 

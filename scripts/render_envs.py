@@ -56,7 +56,7 @@ def main() -> None:
                 frames.append(core.draw(r, state.q[0], goal))
         r.close()
         Image.fromarray(np.concatenate([frames[0], frames[-1]], 1)).save(args.out / f"{task.lower()}.png")
-        write_gif(frames, args.out / f"{task.lower()}.gif", fps=round(1 / core.scene.dt))
+        write_gif(frames, args.out / f"{task.lower()}.gif", fps=1.0 / core.scene.dt)
 
 
 if __name__ == "__main__":

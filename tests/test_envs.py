@@ -4,6 +4,8 @@ rollout helper's truncated and checkpointed gradients."""
 
 from __future__ import annotations
 
+import math
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -647,3 +649,26 @@ def test_vector_env_takes_numpy_integer_counts_and_rendered_envs_pickle():
         np.testing.assert_array_equal(twin.render(), frame)
         twin.close()
     env.close()
+
+
+@pytest.mark.parametrize(
+    "core_cls, kwargs, key",
+    [
+        ("PushCore", dict(distance=8.0, angle_range=1.5), "target"),
+        ("GatherCore", dict(region_distance=3.0, num_cubes=2), "centre"),
+        ("AntPushCore", dict(distance=6.0), "target"),
+    ],
+)
+def test_render_cameras_follow_the_task_arguments(core_cls, kwargs, key):
+    """A goal moved by a task argument stays in the picture: it lies within the circle about the camera's lookat
+    that fills the 45 degree field of view at the camera's distance."""
+    import importlib
+
+    module = {"PushCore": "push", "GatherCore": "gather", "AntPushCore": "ant_push"}[core_cls]
+    core = getattr(importlib.import_module(f"cfd_torch.envs.{module}"), core_cls)(**kwargs)
+    cam = core.render_camera()
+    reach = cam["distance"] * math.sin(math.radians(22.5))
+    goals = core.reset(seed=0, batch_size=16).task[key]
+    far = (goals - torch.tensor(cam["lookat"][:2], dtype=goals.dtype)).norm(dim=1)
+    assert float(far.max()) > 2.0  # the argument moved the goal far from where the default camera looked
+    assert bool((far < reach).all()), (far.max(), reach)

@@ -118,8 +118,58 @@ def test_body_frame_vertices_are_drawn_where_the_pose_maps_them():
 def test_invalid_inputs_are_refused(renderer):
     with pytest.raises(ValueError, match="poses"):
         renderer.render(POSES[:2])
+    with pytest.raises(TypeError, match="poses must be an array of real numbers"):
+        renderer.render(POSES.astype(np.complex128))
     with pytest.raises(ValueError, match="camera"):
         MeshRenderer([(np.eye(4, 3), [[0, 1, 2]])], camera=dict(fov=30))
+    box = trimesh.creation.box((0.4, 0.3, 0.2))
+    mesh = [(box.vertices, box.faces)]
+    bad = {
+        "camera\\['distance'\\] must be a finite number > 0": dict(camera=dict(distance=-1.0)),
+        "camera\\['distance'\\]": dict(camera=dict(distance=float("nan"))),
+        "camera\\['lookat'\\] must be a finite \\(3,\\) point": dict(camera=dict(lookat=(0.0, 0.0))),
+        "camera\\['azimuth'\\]": dict(camera=dict(azimuth="north")),
+        "width must be a positive int": dict(width=64.5),
+        "height must be a positive int": dict(height=True),
+        "colors must be RGBA values in \\[0, 1\\]; row 0": dict(colors=[(float("nan"), 0.0, 0.0, 1.0)]),
+        "floor must be a finite height": dict(floor=float("nan")),
+    }
+    for match, kwargs in bad.items():
+        with pytest.raises(ValueError, match=match):
+            MeshRenderer(mesh, **kwargs)
+    with pytest.raises(ValueError, match="meshes\\[0\\] faces must hold whole numbers"):
+        MeshRenderer([(box.vertices, box.faces + 0.5)])
+
+
+def test_a_camera_moved_to_an_invalid_setting_is_refused_at_the_next_render():
+    """(A distance <= 0 reached MuJoCo, which printed an error and ended the process.)"""
+    box = trimesh.creation.box((0.4, 0.3, 0.2))
+    r = MeshRenderer([(box.vertices, box.faces)], width=32, height=24)
+    try:
+        assert r.render(np.zeros((1, 6))).max() > 0
+        r.camera.distance = 0.0
+        with pytest.raises(ValueError, match="self.camera\\['distance'\\] must be a finite number > 0"):
+            r.render(np.zeros((1, 6)))
+    finally:
+        r.close()
+
+
+def test_a_given_lookat_is_framed_about_itself():
+    """With only ``lookat`` given, the distance is chosen so that every mesh is in view about that point."""
+    box = trimesh.creation.box((0.4, 0.3, 0.2))
+    r = MeshRenderer(
+        [(box.vertices, box.faces)],
+        [(0.15, 0.7, 0.15, 1.0)],
+        width=64,
+        height=48,
+        camera={"lookat": (3.0, 0.0, 0.0)},
+    )
+    try:
+        img = r.render(np.zeros((1, 6)))
+        assert _pixels(img, 1) > 0  # the box, 3 m from where the camera looks, is in the picture
+        assert tuple(r.camera.lookat) == (3.0, 0.0, 0.0)
+    finally:
+        r.close()
 
 
 def test_write_gif(tmp_path, renderer):
@@ -135,6 +185,30 @@ def test_write_gif(tmp_path, renderer):
         assert gif.info["duration"] == 100
 
 
+def test_gif_delays_are_what_browsers_play(tmp_path):
+    """GIF delays are whole hundredths of a second and browsers play delays under 20 ms as 100 ms: at 100 fps every
+    second frame is kept, 20 ms each (the clip's duration kept), the last frame included."""
+    frames = [np.full((8, 8, 3), 20 * k, dtype=np.uint8) for k in range(7)]
+    with Image.open(write_gif(frames, tmp_path / "fast.gif", fps=100.0)) as gif:
+        assert gif.n_frames == 4  # frames 0, 2, 4, 6
+        durations = []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            durations.append(gif.info["duration"])
+            assert int(np.asarray(gif.convert("RGB"))[0, 0, 0]) == frames[min(2 * k, 6)][0, 0, 0]
+        assert durations == [20] * 4
+    with Image.open(write_gif(frames, tmp_path / "sixty.gif", fps=60.0)) as gif:
+        assert gif.n_frames == 4 and gif.info["duration"] == 30  # 2 / 60 s, to the nearest 10 ms
+    with pytest.raises(ValueError, match="path must end in .gif"):
+        write_gif(frames, tmp_path / "clip.png")
+    with pytest.raises(ValueError, match="fps must be a finite number > 0"):
+        write_gif(frames, tmp_path / "clip.gif", fps=float("nan"))
+    with pytest.raises(ValueError, match="fps must be at least"):
+        write_gif(frames, tmp_path / "clip.gif", fps=1e-3)
+    with pytest.raises(TypeError, match="frames\\[0\\] must be a NumPy array"):
+        write_gif([torch.zeros(8, 8, 3, dtype=torch.uint8)], tmp_path / "clip.gif")
+
+
 def test_per_frame_colors_override_and_restore(renderer):
     plain = renderer.render(POSES)
     swapped = renderer.render(POSES, colors=[COLORS[2], COLORS[0], COLORS[1]])  # red box drawn blue, ...
@@ -143,5 +217,5 @@ def test_per_frame_colors_override_and_restore(renderer):
     assert np.array_equal(renderer.render(POSES), plain)  # a frame without colors uses the construction ones
     with pytest.raises(ValueError, match="colors must be an \\(3, 4\\) array"):
         renderer.render(POSES, colors=COLORS[:2])
-    with pytest.raises(ValueError, match="colors must be an \\(3, 4\\) array"):
+    with pytest.raises(ValueError, match="colors must be RGBA values in \\[0, 1\\]; row 0"):
         renderer.render(POSES, colors=[(2.0, 0.0, 0.0, 1.0)] * 3)
