@@ -746,7 +746,7 @@ def test_pair_sums_in_numba_equal_the_tensor_scatter():
 def test_body_terms_in_numba_equal_the_tensor_form():
     """body_terms' CPU loop (no graph wanted) equals its tensor form (taken when q needs a graph) at every order:
     inertia of translations and of rotations (a full second moment), gravity, force and torque."""
-    from cfd_torch.sim.energy import body_terms
+    from cfd_torch.sim.energy import body_terms, predicted_rotation
 
     g = torch.Generator().manual_seed(6)
     E = 7
@@ -758,11 +758,12 @@ def test_body_terms_in_numba_equal_the_tensor_form():
     A = torch.randn(E, 3, 3, generator=g, dtype=F64)
     S = A @ A.transpose(1, 2)
     gravity = torch.tensor([0.0, 0.0, -9.81], dtype=F64)
+    r = predicted_rotation(q_t, q_p, S)
     for order in (0, 1, 2):
-        fast = body_terms(q, q_t, q_p, force, torque, mass, S, gravity, 0.01, order)
+        fast = body_terms(q, q_t, q_p, r, force, torque, mass, S, gravity, 0.01, order)
         with torch.enable_grad():
             ref = body_terms(
-                q.clone().requires_grad_(), q_t, q_p, force, torque, mass, S, gravity, 0.01, order
+                q.clone().requires_grad_(), q_t, q_p, r, force, torque, mass, S, gravity, 0.01, order
             )
         for k, (x, y) in enumerate(zip(fast, ref, strict=True)):
             assert (x is None) == (y is None) == (k > order)
@@ -775,7 +776,7 @@ def test_body_terms_in_numba_equal_the_tensor_form():
 
     with fwAD.dual_level():
         v = body_terms(
-            q, q_t, q_p, fwAD.make_dual(force, torch.ones_like(force)), torque, mass, S, gravity, 0.01, 0
+            q, q_t, q_p, r, fwAD.make_dual(force, torch.ones_like(force)), torque, mass, S, gravity, 0.01, 0
         )[0]
         tangent = fwAD.unpack_dual(v).tangent
     assert tangent is not None
@@ -844,3 +845,31 @@ def test_differentiable_lagged_contacts_reuse_the_solved_planes(bodies):
         x, y = x.detach()[ia], y.detach()[ib]
         torch.testing.assert_close(x, y, rtol=1e-8, atol=1e-8 * float(y.abs().max()))
     torch.testing.assert_close(ga, gb, rtol=1e-7, atol=1e-7 * float(gb.abs().max()))
+
+
+def test_predicted_rotation_gradcheck_and_isotropic_bodies_keep_the_constant_velocity_prediction():
+    """The discrete rigid body's free rotation (the inertia term's prediction) passes a float64 gradcheck in the
+    poses and the second moment, solves its equation F S - S F^T = S F0 - F0^T S, and is R_t R_{t-1}^T R_t to the
+    last bit for an isotropic second moment."""
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.energy import predicted_rotation
+
+    g = torch.Generator().manual_seed(3)
+    E = 4
+    q_t = torch.randn(E, 6, generator=g, dtype=F64)
+    q_p = q_t.clone()
+    q_p[:, 3:] -= 0.05 * torch.randn(E, 3, generator=g, dtype=F64)  # a few degrees per step
+    A = torch.randn(E, 3, 3, generator=g, dtype=F64)
+    S = A @ A.transpose(1, 2) + 0.1 * torch.eye(3, dtype=F64)
+    R = predicted_rotation(q_t, q_p, S)
+    Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
+    F, F0 = Rt.transpose(1, 2) @ R, Rp.transpose(1, 2) @ Rt
+    lhs, rhs = F @ S - S @ F.transpose(1, 2), S @ F0 - F0.transpose(1, 2) @ S
+    assert float((lhs - rhs).abs().max()) <= 1e-14 * float(S.abs().max())
+    assert float((F - F0).abs().max()) > 1e-6  # the gyroscopic correction is there
+    x = [t.clone().requires_grad_(True) for t in (q_t, q_p, S)]
+    assert torch.autograd.gradcheck(
+        lambda a, b, c: predicted_rotation(a, b, 0.5 * (c + c.transpose(1, 2))), x
+    )
+    iso = 0.7 * torch.eye(3, dtype=F64).expand(E, 3, 3)
+    assert torch.equal(predicted_rotation(q_t, q_p, iso), Rt @ Rp.transpose(1, 2) @ Rt)

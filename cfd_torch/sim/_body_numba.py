@@ -28,34 +28,29 @@ def _axial_of_product(M, Rt, tau):
 
 
 @numba.njit(cache=True)
-def body_terms_kernel(q, q_t, q_p, force, torque, mass, S, gravity, dt, order, value, grad, hess):
-    """Fill value (E,), grad (E, 6) (order >= 1) and hess (E, 6, 6) (order >= 2) of E bodies (pose rows (E, 6))."""
+def body_terms_kernel(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order, value, grad, hess):
+    """Fill value (E,), grad (E, 6) (order >= 1) and hess (E, 6, 6) (order >= 2) of E bodies (pose rows (E, 6);
+    predicted rotations r_pred (E, 3, 3))."""
     E = q.shape[0]
     R = np.empty((E, 3, 3))
     dR = np.empty((E if order >= 1 else 0, 3, 3, 3))
     d2R = np.empty((E if order >= 2 else 0, 3, 3, 3, 3))
     rotation_derivatives_kernel(q[:, 3:].copy(), _CA, _CB, R, dR, d2R, order)
     Rt = np.empty((E, 3, 3))
-    Rp = np.empty((E, 3, 3))
     none1 = np.empty((0, 3, 3, 3))
     none2 = np.empty((0, 3, 3, 3, 3))
     rotation_derivatives_kernel(q_t[:, 3:].copy(), _CA, _CB, Rt, none1, none2, 0)
-    rotation_derivatives_kernel(q_p[:, 3:].copy(), _CA, _CB, Rp, none1, none2, 0)
     inv = 1.0 / (dt * dt)
-    P = np.empty((3, 3))
     A = np.empty((3, 3))
     AS = np.empty((3, 3))
     Mk = np.empty((3, 3))
     b = np.empty(3)
     pull = np.empty(3)
     for e in range(E):
-        # A = R - R_t R_p^T R_t (the predicted rotation), AS = A S
+        # A = R - R_pred, AS = A S
         for i in range(3):
             for j in range(3):
-                P[i, j] = Rt[e, i, 0] * Rp[e, j, 0] + Rt[e, i, 1] * Rp[e, j, 1] + Rt[e, i, 2] * Rp[e, j, 2]
-        for i in range(3):
-            for j in range(3):
-                A[i, j] = R[e, i, j] - (P[i, 0] * Rt[e, 0, j] + P[i, 1] * Rt[e, 1, j] + P[i, 2] * Rt[e, 2, j])
+                A[i, j] = R[e, i, j] - r_pred[e, i, j]
         for i in range(3):
             for j in range(3):
                 AS[i, j] = A[i, 0] * S[e, 0, j] + A[i, 1] * S[e, 1, j] + A[i, 2] * S[e, 2, j]

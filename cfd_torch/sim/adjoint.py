@@ -16,7 +16,7 @@ import torch
 
 from ..contact.model import LaggedContacts, sum_pairs
 from ..contact.pair import PairSolveError
-from .energy import JointInputs, StepProblem, body_terms, end_poses, scene_pairs
+from .energy import JointInputs, StepProblem, body_terms, end_poses, predicted_rotation, scene_pairs
 from .friction import friction_terms
 from .solve import solve_step
 from .types import StepError
@@ -68,6 +68,16 @@ def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv) -> 
     return JointInputs(kin.coords(q_t), kin.coords(q_p), *kin.drive(ctrl, kp, kv))
 
 
+def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """(B, Nd, 3, 3) the moving bodies' predicted rotations (:func:`~cfd_torch.sim.energy.predicted_rotation`)."""
+    dyn = scene.kinematics.bodies.to(q_t.device)
+    B, Nd = q_t.shape[0], len(dyn)
+    r = predicted_rotation(
+        q_t[:, dyn].reshape(B * Nd, 6), q_p[:, dyn].reshape(B * Nd, 6), S.reshape(B * Nd, 3, 3)
+    )
+    return r.reshape(B, Nd, 3, 3)
+
+
 class StepFn(torch.autograd.Function):
     """(scene, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv) -> q* (B, Q) and, not differentiable,
     the solver's statistics: Newton iterations (B,), contact and friction forces (B, N, 6), friction contacts (B,),
@@ -85,8 +95,9 @@ class StepFn(torch.autograd.Function):
             lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
             joint = _joint_inputs(scene, q_t, q_p, ctrl, kp, kv)
+            r_pred = _predicted(scene, q_t, q_p, S)
             prob = StepProblem(
-                scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint
+                scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint, r_pred
             )
             try:
                 res, work = solve_step(prob)
@@ -143,7 +154,8 @@ class StepFn(torch.autograd.Function):
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
             _, g_b, _ = body_terms(
-                rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(tf[:, dyn]),
+                rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]),
+                rows(_predicted(scene, tq_t, tq_p, tS)), rows(tf[:, dyn]),
                 rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()

@@ -38,6 +38,7 @@ __all__ = [
     "incremental_potential",
     "select_scenes",
     "body_terms",
+    "predicted_rotation",
     "scene_pairs",
     "end_poses",
 ]
@@ -58,6 +59,7 @@ class StepProblem(NamedTuple):
             friction, or None when none has.
         gravity: (3,).
         joint: the joint-space inputs of scenes with articulations (:class:`JointInputs`), else None.
+        r_pred: (B, Nd, 3, 3) each moving body's predicted rotation (:func:`predicted_rotation`).
     """
 
     scene: object
@@ -73,6 +75,7 @@ class StepProblem(NamedTuple):
     lagged: LaggedContacts | None
     gravity: torch.Tensor
     joint: JointInputs | None = None
+    r_pred: torch.Tensor | None = None
 
 
 class JointInputs(NamedTuple):
@@ -179,7 +182,7 @@ def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
         prob.friction_on,
     )
     joint = None if prob.joint is None else JointInputs(*(x[idx] for x in prob.joint))
-    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity, joint)
+    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity, joint, prob.r_pred[idx])
 
 
 def _axial(M: torch.Tensor) -> torch.Tensor:
@@ -187,6 +190,75 @@ def _axial(M: torch.Tensor) -> torch.Tensor:
     return 0.5 * torch.stack(
         [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1
     )
+
+
+# the Newton solve of the discrete rigid body's equation: iterations, and its tolerance on the residual relative to
+# tr(S), in units of the dtype's epsilon
+_MV_ITERS = 50
+_MV_TOL = 64.0
+# hat matrices of the unit vectors: _HATS[k] v = e_k x v
+_HATS = torch.tensor(
+    [
+        [[0, 0, 0], [0, 0, -1], [0, 1, 0]],
+        [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+        [[0, -1, 0], [1, 0, 0], [0, 0, 0]],
+    ],
+    dtype=torch.float64,
+)
+
+
+def _mv_residual(F, S, M):
+    """The residual axial(F S - S F^T - M) (E, 3) of the discrete rigid body's equation at F (E, 3, 3), and its
+    Jacobian (E, 3, 3) along right perturbations F exp(d^)."""
+    FS = F @ S
+    r = _axial(FS - FS.transpose(1, 2) - M)
+    Y = F[:, None] @ _HATS.to(F) @ S[:, None]
+    Y = Y - Y.transpose(2, 3)  # (E, 3, 3, 3): d(F S - S F^T) along d_k
+    return r, _axial(Y).transpose(1, 2)
+
+
+def predicted_rotation(q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """(E, 3, 3) the rotation each of E bodies (poses (E, 6) now and a step earlier, second moments S (E, 3, 3))
+    reaches at the end of the step if no force acts: R_t F, with F the body-frame increment of the Moser-Veselov
+    discrete rigid body, F S - S F^T = S F0 - F0^T S (F0 = R_{t-1}^T R_t, the previous step's increment), which
+    carries the gyroscopic torque (I omega) x omega (I = tr(S) 1 - S) and conserves angular momentum. The inertia
+    term 1/2 |(R - R_pred) S^(1/2)|^2 / dt^2 is smallest at this prediction, so a free body follows the discrete
+    rigid body exactly. For an isotropic S (a sphere, a cube) F = F0: the constant-velocity prediction
+    R_t R_{t-1}^T R_t, to the last bit.
+
+    Solved by Newton's method from F = F0 (updates F exp(d^)); differentiable by autograd (one Newton step from the
+    converged F carries the implicit function's first derivatives). A StepError if it does not converge (a body
+    turning near pi per step)."""
+    Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
+    base = Rt @ Rp.transpose(1, 2) @ Rt
+    F0 = Rp.transpose(1, 2) @ Rt
+    M = S @ F0 - F0.transpose(1, 2) @ S
+    tol = _MV_TOL * torch.finfo(S.dtype).eps * S.diagonal(dim1=1, dim2=2).sum(1).detach()
+    F = F0.detach()
+    moved = torch.zeros(F.shape[0], dtype=torch.bool, device=F.device)
+    with torch.no_grad():
+        Sd, Md = S.detach(), M.detach()
+        for _ in range(_MV_ITERS):
+            r, jac = _mv_residual(F, Sd, Md)
+            off = r.abs().amax(1) > tol
+            if not bool(off.any()):
+                break
+            moved = moved | off
+            d = torch.where(off[:, None], torch.linalg.solve(jac, r), torch.zeros_like(r))
+            F = F @ rotation_matrix(-d)
+        else:
+            from .types import StepError
+
+            raise StepError(
+                "the free rotation of a body over the step did not converge (the discrete rigid body's equation): "
+                "it turns too far per step; reduce dt"
+            )
+    if any(tracked(x) for x in (q_t, q_p, S)):  # one more step, differentiable, from the converged F
+        r, jac = _mv_residual(F, S, M)
+        return Rt @ (F @ rotation_matrix(-torch.linalg.solve(jac, r)))
+    if not bool(moved.any()):
+        return base
+    return torch.where(moved[:, None, None], Rt @ F, base)
 
 
 def _numba_body_terms(*xs) -> bool:
@@ -198,9 +270,9 @@ def _numba_body_terms(*xs) -> bool:
     return not any(tracked(x) for x in ts)
 
 
-def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
+def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order):
     """Inertia, gravity and actuation of E dynamic bodies (pose rows (E, 6)): values (E,), grad (E, 6), Hessian
-    (E, 6, 6).
+    (E, 6, 6). ``r_pred`` (E, 3, 3): the predicted rotations (:func:`predicted_rotation`).
 
     Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
 
@@ -210,7 +282,7 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
     a graph to record, one numba loop (``_body_numba``) computes the same.
     """
     E = q.shape[0]
-    if _numba_body_terms(q, q_t, q_p, force, torque, mass, S, gravity):
+    if _numba_body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity):
         from ._body_numba import body_terms_kernel
 
         value = q.new_empty(E)
@@ -218,15 +290,16 @@ def body_terms(q, q_t, q_p, force, torque, mass, S, gravity, dt, order):
         hess = q.new_empty(E if order >= 2 else 0, 6, 6)
         g = gravity.numpy() if isinstance(gravity, torch.Tensor) else np.asarray(gravity, dtype=np.float64)
         body_terms_kernel(
-            q.contiguous().numpy(), q_t.contiguous().numpy(), q_p.contiguous().numpy(), force.contiguous().numpy(),
+            q.contiguous().numpy(), q_t.contiguous().numpy(), q_p.contiguous().numpy(), r_pred.contiguous().numpy(),
+            force.contiguous().numpy(),
             torque.contiguous().numpy(), mass.contiguous().numpy(), S.contiguous().numpy(), g, float(dt), order,
             value.numpy(), grad.numpy(), hess.numpy(),
         )  # fmt: skip
         return value, (grad if order >= 1 else None), (hess if order >= 2 else None)
     R, dR, d2R = rotation_derivatives(q[:, 3:], order)
-    Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
+    Rt = rotation_matrix(q_t[:, 3:])
     b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
-    A = R - Rt @ Rp.transpose(1, 2) @ Rt  # R minus the predicted rotation R_t R_{t-1}^T R_t
+    A = R - r_pred
     AS = A @ S  # (E, 3, 3)
     pull = mass[:, None] * gravity + force  # (E, 3)
     inv = 1.0 / (dt * dt)
@@ -275,9 +348,9 @@ def incremental_potential(
     poses = kin.poses(q, prob.fixed)  # (B, N, 6)
     rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
     vb, g_b, h_b = body_terms(
-        rows(poses[:, dyn]), rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.force[:, dyn]),
-        rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0], rows(prob.second_moment), prob.gravity,
-        scene.dt, order,
+        rows(poses[:, dyn]), rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.r_pred),
+        rows(prob.force[:, dyn]), rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0],
+        rows(prob.second_moment), prob.gravity, scene.dt, order,
     )  # fmt: skip
     # each body's "local" energy: its own terms plus the contact and friction terms it takes part in (the sum of
     # their magnitudes sets the line search's rounding scale)
