@@ -653,3 +653,58 @@ def test_initial_state_velocities_must_match_poses(scene, state):
         scene.initial_state(state.q, torch.zeros(3, 6, dtype=F32))
     with _raises("velocities is on meta but poses is on cpu"):
         scene.initial_state(state.q, torch.zeros(3, 6, dtype=F64, device=META))
+
+
+def test_a_tensor_in_place_of_an_action_or_params_and_a_lone_action_are_refused_by_name():
+    """(A tensor passed as the action or the parameters reached a truth test of the tensor first; a single Action
+    passed to rollout was iterated as a sequence of its fields, stepping once per field.)"""
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    scene = Scene((box,))
+    state = scene.initial_state(torch.zeros(1, 6, dtype=torch.float64))
+    force = torch.zeros(1, 3, dtype=torch.float64)
+    with pytest.raises(TypeError, match="action must be a cfd_torch.Action or None, got Tensor"):
+        step(scene, state, force)
+    with pytest.raises(TypeError, match="params must be a cfd_torch.Params or None, got Tensor"):
+        step(scene, state, None, scene.params().mass)
+    with pytest.raises(TypeError, match="got a single Action"):
+        rollout(scene, state, Action(force=force))
+    with pytest.raises(TypeError, match="action must be a cfd_torch.Action or None, got Tensor"):
+        rollout(scene, state, [force] * 3)
+
+
+def test_a_rollout_of_no_steps_checks_its_inputs():
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    scene = Scene((box,))
+    state = scene.initial_state(torch.zeros(1, 6, dtype=torch.float64))
+    assert rollout(scene, state, 0).q.shape == (1, 1, 6)
+    with pytest.raises(TypeError, match="scene must be a cfd_torch.Scene"):
+        rollout("not a scene", state, [])
+    with pytest.raises(ValueError, match="state.q"):
+        rollout(scene, State(torch.full((1, 6), float("nan"), dtype=torch.float64), state.q_prev), 0)
+    bad = scene.params()._replace(mass=-scene.params().mass)
+    with pytest.raises(ValueError, match="mass"):
+        rollout(scene, state, 0, bad)
+
+
+def test_static_and_kinematic_rows_come_back_exactly():
+    """Rows the step does not solve are the inputs, bit for bit, whatever their digits (the step solves in a frame
+    near the moving bodies, and the shift's round trip is exact only near them)."""
+    cube = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    small = trimesh.creation.box((0.1, 0.1, 0.1))
+    scene = Scene(
+        (cube, rigid_body(small, kind="static"), rigid_body(small, kind="kinematic")), gravity=(0, 0, 0)
+    )
+    q0 = torch.tensor(
+        [
+            [20.3, 0.1, 0.7, 0.0, 0.0, 0.0],  # the moving cube, 20 m from the origin
+            [0.123456789012345, -0.98765432101234, 0.3333333333333333, 0.1, 0.2, 0.3],
+            [-3.3, 0.7, 0.1, 0.0, 0.0, 0.0],
+        ],
+        dtype=torch.float64,
+    )
+    v = torch.zeros(3, 6, dtype=torch.float64)
+    v[0, 0] = 1.0
+    target = torch.tensor([[-3.2999999999, 0.70000001, 0.1, 0.01, 0.0, 0.0]], dtype=torch.float64)
+    nxt = step(scene, scene.initial_state(q0, v), Action(target=target))
+    assert torch.equal(nxt.q[1], q0[1]) and torch.equal(nxt.q[2], target[0])
+    assert not torch.equal(nxt.q[0], q0[0])  # the cube did move

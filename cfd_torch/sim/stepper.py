@@ -91,6 +91,9 @@ def _solve(
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
     c = frame_origin(q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach(), min_extent=1.0)[:, None]
+    # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
+    # exact only near the moving bodies
+    held = end_poses(scene, q_t, target.to(f64))
     q_t, q_p, target = _shift(q_t, -c), _shift(q_p, -c), _shift(target.to(f64), -c)
     q, iters, fc, ff, nfc, work, seconds = StepFn.apply(
         scene, q_t, q_p, force.to(f64), torque.to(f64), target, params.mass.to(f64),
@@ -102,6 +105,9 @@ def _solve(
     moved[scene.kinematic] = True
     q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
     q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
+    solved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
+    solved[scene.kinematics.bodies] = True
+    q_next = torch.where(solved, q_next, torch.where(moved, _recentre(held), held))
     ones = torch.ones_like(iters)
     # a differentiated step: a loss through the forces raises instead of dropping their part
     if q.requires_grad:
@@ -193,6 +199,37 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             k *= 2
 
 
+def _check_start(scene: Scene, state: State) -> None:
+    """The scene and the start state a step or a rollout begins from (a clear error naming the argument)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
+    if not isinstance(state, State):
+        raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
+    N = scene.num_bodies
+    check_state_tensor(state.q, "state.q", N)
+    check_state_tensor(state.q_prev, "state.q_prev", N, like=state.q)
+    if state.q.shape != state.q_prev.shape:
+        raise ValueError(
+            f"state.q {tuple(state.q.shape)} and state.q_prev {tuple(state.q_prev.shape)} differ"
+        )
+    B = state.q.shape[0] if state.q.dim() == 3 else 1
+    if B == 0:
+        raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
+    if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
+        dyn = scene.dynamic.to(state.q.device)
+        for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
+            if bool((x[..., dyn, 3:5].abs() > 1e-12).any()):
+                raise ValueError(
+                    f"{name}: a planar scene's dynamic bodies must have zero roll and pitch (rotation vectors "
+                    "(0, 0, yaw))"
+                )
+    if scene.simulates_joints:  # state.q's link rows must be a configuration (q_prev's only approximate one)
+        q64 = state.q.detach().to(torch.float64).reshape(B, N, 6)
+        scene.kinematics.check_rows(
+            q64, scene.kinematics.coords(q64), "state.q", torch.finfo(state.q.dtype).eps
+        )
+
+
 def step(
     scene: Scene,
     state: State,
@@ -225,8 +262,10 @@ def step(
         StepError: the Newton solve stopped without converging (the message says why), also after the
             ``scene.solver.substeps`` retries.
     """
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
+    if action is not None and not isinstance(action, Action):
+        raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
+    if params is not None and not isinstance(params, Params):
+        raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
     if not isinstance(state, State):
         raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
     # the step's Function is an old-style autograd Function around numba kernels, which the transforms cannot pass
@@ -234,34 +273,14 @@ def step(
         "cfd_torch.step: torch.func transforms (grad, jacrev, vmap, jvp) do not pass through a simulation step; "
         "differentiate with torch.autograd (loss.backward() or torch.autograd.grad)",
         *state,
-        *(action or ()),
-        *(params or ()),
+        *(() if action is None else action),
+        *(() if params is None else params),
     )
+    _check_start(scene, state)
     N = scene.num_bodies
-    check_state_tensor(state.q, "state.q", N)
-    check_state_tensor(state.q_prev, "state.q_prev", N, like=state.q)
-    if state.q.shape != state.q_prev.shape:
-        raise ValueError(
-            f"state.q {tuple(state.q.shape)} and state.q_prev {tuple(state.q_prev.shape)} differ"
-        )
     batched = state.q.dim() == 3
     B = state.q.shape[0] if batched else 1
-    if B == 0:
-        raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
     dtype, dev = state.q.dtype, state.q.device
-    if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
-        dyn = scene.dynamic.to(dev)
-        for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
-            if bool((x[..., dyn, 3:5].abs() > 1e-12).any()):
-                raise ValueError(
-                    f"{name}: a planar scene's dynamic bodies must have zero roll and pitch (rotation vectors "
-                    "(0, 0, yaw))"
-                )
-    if scene.simulates_joints:  # state.q's link rows must be a configuration (q_prev's only approximate one)
-        q64 = state.q.detach().to(torch.float64).reshape(B, N, 6)
-        scene.kinematics.check_rows(q64, scene.kinematics.coords(q64), "state.q", torch.finfo(dtype).eps)
-    if action is not None and not isinstance(action, Action):
-        raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
     action = Action() if action is None else action
     f64 = torch.float64
     force = action.force if action.force is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
@@ -338,9 +357,24 @@ def rollout(
             else repr(actions)
         )
         raise TypeError(f"actions must be a sequence of Action (or None) or a number of steps, got {got}")
+    if isinstance(actions, (Action, State, Params)):  # NamedTuples: iterating one would step with its fields
+        raise TypeError(
+            f"actions must be a sequence of Action (or None) or a number of steps, got a single "
+            f"{type(actions).__name__} (for T steps with one action: [action] * T)"
+        )
     if isinstance(actions, int) and actions < 0:
         raise ValueError(f"actions must be a number of steps >= 0, got {actions}")
     seq = [None] * actions if isinstance(actions, int) else list(actions)
+    if not seq:  # no step checks the inputs: the start state and the parameters are checked here
+        _check_start(scene, state)
+        if params is not None:
+            if not isinstance(params, Params):
+                raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
+            batched = state.q.dim() == 3
+            check_params(
+                params, state.q.shape[0] if batched else 1, len(scene.kinematics.bodies), state.q.device, batched,
+                scene.servo_gains(torch.float64, state.q.device),
+            )  # fmt: skip
     it = seq
     if progress:
         from tqdm import tqdm
