@@ -370,6 +370,36 @@ def test_refusals() -> None:
         load_mjcf(two_roots)
 
 
+def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() -> None:
+    """What the file would change but the step ignores: flags that switch modelled physics off are refused, the
+    file's gravity and per-geom friction are warned of (the Scene's apply), damping or armature on the free base
+    joint and tendon friction loss are refused; the mesh resolutions are checked."""
+    body = _one_body('<joint name="h"/>')
+    with pytest.raises(ValueError, match='MJCF <flag gravity="disable" limit="disable">'):
+        load_mjcf(
+            body.replace("<mujoco>", '<mujoco><option><flag gravity="disable" limit="disable"/></option>')
+        )
+    with pytest.warns(UserWarning, match="gravity=\\(0.0, 0.0, -1.62\\)>: ignored"):
+        load_mjcf(body.replace("<mujoco>", '<mujoco><option gravity="0 0 -1.62"/>'))
+    with pytest.warns(UserWarning, match="geom friction differs"):
+        load_mjcf(body.replace('<joint name="h"/>', '<joint name="h"/><geom size="0.05" friction="0.1"/>'))
+    free = """<mujoco><worldbody><body name="a"><freejoint name="root"/><geom size="0.1"/>
+      <body name="b" pos="1 0 0"><joint name="h"/><geom size="0.1"/></body></body></worldbody></mujoco>"""
+    load_mjcf(free)
+    with pytest.raises(ValueError, match="free joint 'root': damping and armature"):
+        load_mjcf(free.replace('<freejoint name="root"/>', '<joint name="root" type="free" damping="5"/>'))
+    tendon = '<tendon><fixed name="t" frictionloss="5"><joint joint="h" coef="1"/></fixed></tendon>'
+    with pytest.raises(ValueError, match="tendon 't': .*frictionloss are not supported"):
+        load_mjcf(body.replace("</worldbody>", "</worldbody>" + tendon))
+    for kwargs, match in (
+        ({"capsule_count": (0, 0)}, "capsule_count must be two ints"),
+        ({"sphere_subdivisions": 2.5}, "sphere_subdivisions must be an int"),
+        ({"cylinder_sections": 2}, "cylinder_sections must be an int >= 3"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            load_mjcf(body, **kwargs)
+
+
 def test_gymnasium_ant_with_servos() -> None:
     """gymnasium_ant_xml(servos=(kp, kv)): the eight motors become position servos on the same joints."""
     plain, servo = load_mjcf(gymnasium_ant_xml()), load_mjcf(gymnasium_ant_xml(servos=(100.0, 5.0)))

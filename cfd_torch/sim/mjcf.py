@@ -46,6 +46,8 @@ import numpy as np
 import torch
 import trimesh
 
+from .._validate import is_int
+
 __all__ = [
     "ActuatorSpec",
     "GeomSpec",
@@ -277,6 +279,21 @@ def load_mjcf(
     Raises:
         ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it.
     """
+    if not (is_int(sphere_subdivisions) and 0 <= sphere_subdivisions <= 6):
+        raise ValueError(f"sphere_subdivisions must be an int in 0..6, got {sphere_subdivisions!r}")
+    if not (
+        isinstance(capsule_count, (tuple, list))
+        and len(capsule_count) == 2
+        and all(is_int(c) for c in capsule_count)
+        and capsule_count[0] >= 3
+        and capsule_count[1] >= 3
+    ):
+        raise ValueError(
+            f"capsule_count must be two ints (longitude, latitude), each >= 3 (fewer give an open mesh), got "
+            f"{capsule_count!r}"
+        )
+    if not (is_int(cylinder_sections) and cylinder_sections >= 3):
+        raise ValueError(f"cylinder_sections must be an int >= 3, got {cylinder_sections!r}")
     # the model file's folder: asset files (meshes) are read from it at compile time, as MuJoCo does
     base = None
     if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
@@ -482,6 +499,30 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
     for b in sorted(in_tree):
         if float(m.body_gravcomp[b]) != 0:
             raise ValueError(f"body '{m.body(b).name}': gravcomp is not supported (gravity compensation)")
+    off = [
+        name
+        for name in ("gravity", "limit", "passive", "actuation", "clampctrl")
+        if int(m.opt.disableflags) & int(getattr(mujoco.mjtDisableBit, f"mjDSBL_{name.upper()}"))
+    ]
+    if off:
+        flags = " ".join(n + '="disable"' for n in off)
+        raise ValueError(
+            f"MJCF <flag {flags}>: the step always models these (gravity is Scene(gravity=...)'s: give (0, 0, 0) "
+            "for none); remove the flags"
+        )
+    if not np.allclose(m.opt.gravity, (0.0, 0.0, -9.81)):
+        warnings.warn(
+            f"MJCF <option gravity={tuple(float(g) for g in m.opt.gravity)}>: ignored; the step's gravity is "
+            "Scene(gravity=...)'s",
+            stacklevel=4,
+        )
+    geoms = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) in in_tree]
+    if len({float(m.geom_friction[g, 0]) for g in geoms}) > 1:
+        warnings.warn(
+            "MJCF geom friction differs between the model's geoms: ignored; one coefficient, "
+            "Scene(friction=...), applies to every contact",
+            stacklevel=4,
+        )
     fluid = [f"{k}={getattr(m.opt, k)}" for k in ("density", "viscosity") if float(getattr(m.opt, k)) != 0]
     fluid += [f"wind={tuple(float(w) for w in m.opt.wind)}"] if bool(np.any(m.opt.wind != 0)) else []
     if fluid:
@@ -492,6 +533,12 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
     joints = {j for j in range(m.njnt) if int(m.jnt_bodyid[j]) in in_tree}
     for j in sorted(joints):
         name = m.joint(j).name
+        if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE):  # the base moves as a free body
+            dofs = range(int(m.jnt_dofadr[j]), int(m.jnt_dofadr[j]) + 6)
+            if any(float(m.dof_damping[d]) > 0 or float(m.dof_armature[d]) > 0 for d in dofs):
+                raise ValueError(
+                    f"free joint '{name}': damping and armature on a free joint are not supported"
+                )
         if float(m.dof_frictionloss[m.jnt_dofadr[j]]) > 0:
             raise ValueError(f"joint '{name}': frictionloss is not supported (dry joint friction)")
         if bool(m.jnt_actfrclimited[j]):
@@ -511,10 +558,13 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
 
     for t in range(m.ntendon):
         if (
-            bool(m.tendon_limited[t]) or float(m.tendon_stiffness[t]) > 0 or float(m.tendon_damping[t]) > 0
+            bool(m.tendon_limited[t])
+            or float(m.tendon_stiffness[t]) > 0
+            or float(m.tendon_damping[t]) > 0
+            or float(m.tendon_frictionloss[t]) > 0
         ) and tendon_touches(t):
             raise ValueError(
-                f"tendon '{m.tendon(t).name}': tendon limits, stiffness and damping are not supported"
+                f"tendon '{m.tendon(t).name}': tendon limits, stiffness, damping and frictionloss are not supported"
             )
     for e in range(m.neq):
         kind, site = int(m.eq_type[e]), int(m.eq_objtype[e]) == int(mujoco.mjtObj.mjOBJ_SITE)
