@@ -69,11 +69,15 @@ def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv) -> 
 
 
 def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
-    """(B, Nd, 3, 3) the moving bodies' predicted rotations (:func:`~cfd_torch.sim.energy.predicted_rotation`)."""
+    """(B, Nd, 3, 3) the moving bodies' predicted rotations (:func:`~cfd_torch.sim.energy.predicted_rotation`;
+    without the gyroscopic term in planar scenes)."""
     dyn = scene.kinematics.bodies.to(q_t.device)
     B, Nd = q_t.shape[0], len(dyn)
     r = predicted_rotation(
-        q_t[:, dyn].reshape(B * Nd, 6), q_p[:, dyn].reshape(B * Nd, 6), S.reshape(B * Nd, 3, 3)
+        q_t[:, dyn].reshape(B * Nd, 6),
+        q_p[:, dyn].reshape(B * Nd, 6),
+        S.reshape(B * Nd, 3, 3),
+        not scene.planar,
     )
     return r.reshape(B, Nd, 3, 3)
 

@@ -217,7 +217,9 @@ def _mv_residual(F, S, M):
     return r, _axial(Y).transpose(1, 2)
 
 
-def predicted_rotation(q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+def predicted_rotation(
+    q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor, gyroscopic: bool = True
+) -> torch.Tensor:
     """(E, 3, 3) the rotation each of E bodies (poses (E, 6) now and a step earlier, second moments S (E, 3, 3))
     reaches at the end of the step if no force acts: R_t F, with F the body-frame increment of the Moser-Veselov
     discrete rigid body, F S - S F^T = S F0 - F0^T S (F0 = R_{t-1}^T R_t, the previous step's increment), which
@@ -228,9 +230,12 @@ def predicted_rotation(q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) ->
 
     Solved by Newton's method from F = F0 (updates F exp(d^)); differentiable by autograd (one Newton step from the
     converged F carries the implicit function's first derivatives). A StepError if it does not converge (a body
-    turning near pi per step)."""
+    turning near pi per step). ``gyroscopic=False`` (planar scenes, whose bodies turn about z only: the constraint
+    takes the gyroscopic torque, and a constant rate about z is exact): F = F0."""
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
     base = Rt @ Rp.transpose(1, 2) @ Rt
+    if not gyroscopic:
+        return base
     F0 = Rp.transpose(1, 2) @ Rt
     M = S @ F0 - F0.transpose(1, 2) @ S
     tol = _MV_TOL * torch.finfo(S.dtype).eps * S.diagonal(dim1=1, dim2=2).sum(1).detach()
