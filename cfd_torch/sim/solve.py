@@ -283,7 +283,7 @@ def _settings(scene) -> str:
     """The settings that scale the incremental potential's terms, for the overflow errors."""
     return (
         f"(dt={scene.dt:g}, contact stiffness mu={scene.contact.stiffness:g}, friction coefficient "
-        f"{scene.friction.coefficient:g}: check them and the masses and forces)"
+        f"{scene.friction.coefficient:g}: check them, the masses and the action (forces, torques, controls))"
     )
 
 
