@@ -989,9 +989,10 @@ class ArticulatedKinematics:
         bad = (th <= lo) | (th >= hi)
         if bool(bad.any()):
             a, j = (int(i) for i in torch.nonzero(bad)[0])
-            names = [f"{art.name}/{n}" for art in self.arts for n in art.joint_names]
+            names = [(f"{art.name}/{n}", i) for i, art in enumerate(self.arts) for n in art.joint_names]
             raise ValueError(
-                f"{name}: joint {names[j]!r} is at {float(th[a, j]):.6g}, outside its range ({float(lo[j]):.6g}, "
+                f"{name}: joint {names[j][0]!r} (articulation {names[j][1]}) is at {float(th[a, j]):.6g}, outside "
+                f"its range ({float(lo[j]):.6g}, "
                 f"{float(hi[j]):.6g}) (the step's limits are barriers; start a joint strictly inside its range)"
                 + (f" (scene {a})" if th.shape[0] > 1 else "")
             )
