@@ -873,3 +873,32 @@ def test_predicted_rotation_gradcheck_and_isotropic_bodies_keep_the_constant_vel
     )
     iso = 0.7 * torch.eye(3, dtype=F64).expand(E, 3, 3)
     assert torch.equal(predicted_rotation(q_t, q_p, iso), Rt @ Rp.transpose(1, 2) @ Rt)
+
+
+def test_predicted_rotation_refuses_a_turn_beyond_its_solvable_range():
+    """Beyond about pi/2 rad of turn per step the discrete rigid body's equation has other roots, where Newton's
+    method can land: a root that does not conserve tr(F S) (the kinetic energy) is a StepError (the step's sub-steps
+    take over), never a silent wrong rotation."""
+    import trimesh
+
+    from cfd_torch import StepError, rigid_body
+    from cfd_torch.rotation import rotation_matrix
+    from cfd_torch.sim.energy import predicted_rotation
+
+    S = rigid_body(trimesh.creation.box((0.4, 0.2, 0.1))).second_moment.double()[None]
+    g = torch.Generator().manual_seed(1)
+    refused = 0
+    for _ in range(40):
+        axis = torch.randn(3, generator=g, dtype=F64)
+        q_t = torch.zeros(1, 6, dtype=F64)
+        q_p = torch.zeros(1, 6, dtype=F64)
+        q_p[0, 3:] = -2.0 * axis / axis.norm()  # 2 rad per step
+        try:
+            R = predicted_rotation(q_t, q_p, S)
+        except StepError as err:
+            assert "turns more than about pi / 2 rad per step" in str(err)
+            refused += 1
+            continue
+        F0 = rotation_matrix(-q_p[:, 3:])
+        assert abs(float(((R - F0) * S).sum())) <= 1e-9 * float(S[0].trace())  # the energy-conserving root
+    assert 0 < refused < 40

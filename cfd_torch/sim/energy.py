@@ -6,14 +6,14 @@ other bodies at their end-of-step poses (static: fixed; kinematic: the action's 
     L(q) = sum_dynamic [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . axial(R R_t^T) ]
            + P_contact(poses(q)) + D_friction(poses(q); lagged at q_t)
 
-with b = t - 2 t_t + t_{t-1}, A = R - R_t R_{t-1}^T R_t, S the body's second moment of mass (:mod:`.bodies`), f and
-tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does
-the work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the
-inertia term is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions under constant
-linear and angular velocity (x_pred = R_t R_{t-1}^T R_t X + 2 t_t - t_{t-1}). SPEC's x-space form,
-x_pred = 2 x_t - x_{t-1} (A = R - 2 R_t + R_{t-1}), predicts a point off the rotation group and damps spin by
-about omega^3 dt^2 per step; the rotation-group prediction keeps a spin about a principal axis exact and conserves
-the energy of torque-free tumbling.
+with b = t - 2 t_t + t_{t-1}, A = R - R_pred, S the body's second moment of mass (:mod:`.bodies`), f and tau the
+action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the work
+tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the inertia term
+is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions, x_pred = R_pred X + 2 t_t -
+t_{t-1}: constant linear velocity, and the torque-free rotation of the discrete rigid body
+(:func:`predicted_rotation`; in planar scenes, constant angular velocity about z, R_t R_{t-1}^T R_t). SPEC's
+x-space form, x_pred = 2 x_t - x_{t-1} (A = R - 2 R_t + R_{t-1}), predicts a point off the rotation group and
+damps spin by about omega^3 dt^2 per step.
 
 A batch of B independent scenes is one evaluation: their body pairs go to the contact model together (no pair
 between two scenes exists, not even in the far field), and every output has a leading scene dimension.
@@ -238,25 +238,36 @@ def predicted_rotation(
         return base
     F0 = Rp.transpose(1, 2) @ Rt
     M = S @ F0 - F0.transpose(1, 2) @ S
-    tol = _MV_TOL * torch.finfo(S.dtype).eps * S.diagonal(dim1=1, dim2=2).sum(1).detach()
+    trace = S.diagonal(dim1=1, dim2=2).sum(1).detach()
+    tol = _MV_TOL * torch.finfo(S.dtype).eps * trace
     F = F0.detach()
     moved = torch.zeros(F.shape[0], dtype=torch.bool, device=F.device)
     with torch.no_grad():
         Sd, Md = S.detach(), M.detach()
+        ok = True
         for _ in range(_MV_ITERS):
             r, jac = _mv_residual(F, Sd, Md)
             off = r.abs().amax(1) > tol
             if not bool(off.any()):
                 break
             moved = moved | off
-            d = torch.where(off[:, None], torch.linalg.solve(jac, r), torch.zeros_like(r))
-            F = F @ rotation_matrix(-d)
+            d, info = torch.linalg.solve_ex(jac, r)
+            if bool((info[off] != 0).any()):
+                ok = False
+                break
+            F = F @ rotation_matrix(-torch.where(off[:, None], d, torch.zeros_like(d)))
         else:
+            ok = False
+        # the discrete rigid body conserves tr(F S) (its kinetic energy): the equation has other roots beyond about
+        # pi / 2 rad of turn per step, where Newton can land
+        drift = ((F - F0.detach()) * Sd.transpose(1, 2)).sum((1, 2))  # tr((F - F0) S)
+        ok = ok and bool((drift.abs() <= 1e-9 * trace).all())
+        if not ok:
             from .types import StepError
 
             raise StepError(
-                "the free rotation of a body over the step did not converge (the discrete rigid body's equation): "
-                "it turns too far per step; reduce dt"
+                "the free rotation of a body over the step (the discrete rigid body's equation) has no solution "
+                "Newton's method finds: the body turns more than about pi / 2 rad per step; reduce dt"
             )
     if any(tracked(x) for x in (q_t, q_p, S)):  # one more step, differentiable, from the converged F
         r, jac = _mv_residual(F, S, M)
