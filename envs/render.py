@@ -146,8 +146,12 @@ class MeshRenderer:
             mesh's bounding box side), or None for no ground.
 
     Raises:
-        ValueError: on malformed meshes, colours, camera keys or image size.
-        RuntimeError: when no OpenGL context can be made (mujoco imported before ``MUJOCO_GL=egl`` was set).
+        ValueError: on malformed meshes, colours, camera values, floor or image size.
+        RuntimeError: when no OpenGL context can be made (mujoco imported before ``MUJOCO_GL=egl`` was set, or an
+            image larger than the framebuffer limit).
+
+    A renderer draws on the thread that made it (its OpenGL context is current there; EGL refuses another thread
+    with ``EGL_BAD_ACCESS``): make one per thread.
     """
 
     def __init__(
