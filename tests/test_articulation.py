@@ -1201,3 +1201,21 @@ def test_a_turning_robot_started_with_velocities_steps():
     v[:, 3:] = w
     s = step(scene, scene.initial_state(q, v))
     assert 1.7 < float((s.q[0, 5] - s.q_prev[0, 5]) / scene.dt) < 2.1
+
+
+def test_a_joint_started_within_newton_tol_of_a_limit_is_refused():
+    """Within about newton_tol of a limit the barrier's Newton step is about the distance to the limit, below the
+    convergence threshold: the step ended where it began (an arm 1e-10 rad inside its limit stayed there under
+    gravity). Such a start is refused by name; from 1e-5 inside the barrier pushes the arm out."""
+    xml = """<mujoco><worldbody><body name="base" pos="0 0 1"><geom type="sphere" size="0.05"/>
+      <body name="arm"><joint name="j" type="hinge" axis="0 1 0" range="-60 60"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/></body></body></worldbody></mujoco>"""
+    art = articulation(xml)
+    scene = Scene([], articulations=[art])
+    hi = math.pi / 3
+    r = art.poses(torch.tensor([hi - 1e-10], dtype=F64))
+    with pytest.raises(ValueError, match="joint '.*/j' \\(articulation 0\\) is at .*within 1e-06 of a limit"):
+        step(scene, State(r, r.clone()))
+    r = art.poses(torch.tensor([hi - 1e-5], dtype=F64))
+    moved = hi - 1e-5 - float(scene.kinematics.coords(step(scene, State(r, r.clone())).q[None])[0, 0])
+    assert moved > 1e-3  # pushed out of the barrier (observed 0.014 rad)

@@ -979,21 +979,34 @@ class ArticulatedKinematics:
                     + (f" (scene {a})" if poses.shape[0] > 1 else "")
                 )
 
-    def check_within_limits(self, poses: torch.Tensor, name: str) -> None:
+    def check_within_limits(
+        self, poses: torch.Tensor, name: str, margin: float = 0.0, coords: torch.Tensor | None = None
+    ) -> None:
         """Raise ValueError naming the first joint of the poses (A, N, 6) (``name``: the argument) at or beyond one
         of its limits, where the step's limit barrier is infinite (MuJoCo accepts such a state and pushes it
-        back)."""
-        th = self.coords(poses)[:, self.joint_index.to(poses.device)]
+        back), or within ``margin`` of one [rad or m] (``coords``: the poses' coordinates, if computed)."""
+        th = (self.coords(poses) if coords is None else coords)[:, self.joint_index.to(poses.device)]
         lo = self.joint_data["lower"].to(dtype=th.dtype, device=th.device)
         hi = self.joint_data["upper"].to(dtype=th.dtype, device=th.device)
-        bad = (th <= lo) | (th >= hi)
+        outside = (th <= lo) | (th >= hi)
+        bad = outside | (th <= lo + margin) | (th >= hi - margin)
         if bool(bad.any()):
             a, j = (int(i) for i in torch.nonzero(bad)[0])
             names = [(f"{art.name}/{n}", i) for i, art in enumerate(self.arts) for n in art.joint_names]
+            if bool(outside[a, j]):
+                where, why = (
+                    "outside its range",
+                    "the step's limits are barriers; start a joint inside its range",
+                )
+            else:
+                where = f"within {margin:.3g} of a limit of its range"
+                why = (
+                    "there the limit barrier's Newton step is below the convergence threshold and the step would "
+                    "end where it began; start it further inside"
+                )
             raise ValueError(
-                f"{name}: joint {names[j][0]!r} (articulation {names[j][1]}) is at {float(th[a, j]):.6g}, outside "
-                f"its range ({float(lo[j]):.6g}, "
-                f"{float(hi[j]):.6g}) (the step's limits are barriers; start a joint strictly inside its range)"
+                f"{name}: joint {names[j][0]!r} (articulation {names[j][1]}) is at {float(th[a, j]):.10g}, {where} "
+                f"({float(lo[j]):.6g}, {float(hi[j]):.6g}) ({why})"
                 + (f" (scene {a})" if th.shape[0] > 1 else "")
             )
 

@@ -225,9 +225,10 @@ def _check_start(scene: Scene, state: State) -> None:
                 )
     if scene.simulates_joints:  # state.q's link rows must be a configuration (q_prev's only approximate one)
         q64 = state.q.detach().to(torch.float64).reshape(B, N, 6)
-        scene.kinematics.check_rows(
-            q64, scene.kinematics.coords(q64), "state.q", torch.finfo(state.q.dtype).eps
-        )
+        coords = scene.kinematics.coords(q64)
+        scene.kinematics.check_rows(q64, coords, "state.q", torch.finfo(state.q.dtype).eps)
+        # a joint within about newton_tol of a limit: the barrier's Newton step there is about that distance
+        scene.kinematics.check_within_limits(q64, "state.q", 1e3 * scene.solver.newton_tol, coords)
 
 
 def step(
