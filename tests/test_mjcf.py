@@ -381,6 +381,12 @@ def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() 
         )
     with pytest.warns(UserWarning, match="gravity=\\(0.0, 0.0, -1.62\\)>: ignored"):
         load_mjcf(body.replace("<mujoco>", '<mujoco><option gravity="0 0 -1.62"/>'))
+    contact = '<contact><pair geom1="g1" geom2="g2" friction="0.1 0.1 0.005 0.0001 0.0001"/></contact>'
+    named = body.replace('<geom size="0.1"/>', '<geom name="g1" size="0.1"/>', 1).replace(
+        '<geom size="0.1"/>', '<geom name="g2" size="0.1"/>', 1
+    )
+    with pytest.warns(UserWarning, match="1 <pair> and 0 <exclude> elements ignored"):
+        load_mjcf(named.replace("</worldbody>", "</worldbody>" + contact))
     with pytest.warns(UserWarning, match="geom friction differs"):
         load_mjcf(body.replace('<joint name="h"/>', '<joint name="h"/><geom size="0.05" friction="0.1"/>'))
     free = """<mujoco><worldbody><body name="a"><freejoint name="root"/><geom size="0.1"/>

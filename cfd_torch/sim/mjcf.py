@@ -516,6 +516,12 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
             "Scene(gravity=...)'s",
             stacklevel=4,
         )
+    if m.npair or m.nexclude:
+        warnings.warn(
+            f"MJCF <contact>: {m.npair} <pair> and {m.nexclude} <exclude> elements ignored; the Scene's contact model "
+            "acts between every two bodies it pairs, with one friction coefficient",
+            stacklevel=4,
+        )
     geoms = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) in in_tree]
     if len({float(m.geom_friction[g, 0]) for g in geoms}) > 1:
         warnings.warn(
