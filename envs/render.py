@@ -29,6 +29,8 @@ from PIL import Image
 
 from cfd_torch._validate import is_int, is_real
 
+from .core import real_array
+
 __all__ = ["MeshRenderer", "write_gif"]
 
 # Tableau-like colours, cycled when there are more meshes than entries.
@@ -63,19 +65,16 @@ def _close_open_renderers() -> None:
 
 
 def _numpy(x: npt.ArrayLike | torch.Tensor, name: str, dtype: npt.DTypeLike) -> np.ndarray:
-    """``x`` as an array of ``dtype``: real numbers only (a TypeError naming ``name`` for complex, bool or text
-    values), and whole numbers for an integer ``dtype``."""
+    """``x`` as an array of ``dtype``: real numbers only (:func:`.core.real_array`), and whole numbers for an
+    integer ``dtype``."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     try:
-        array = np.asarray(x)
-    except (TypeError, ValueError) as e:
+        array = real_array(x, name)
+    except ValueError as e:
         raise ValueError(f"{name} must be convertible to a {np.dtype(dtype).name} array: {e}") from e
-    if array.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")
-    if np.dtype(dtype).kind in "iu" and array.dtype.kind == "f":
-        if not (np.isfinite(array).all() and (array == np.round(array)).all()):
-            raise ValueError(f"{name} must hold whole numbers (vertex indices)")
+    if np.dtype(dtype).kind in "iu" and not (np.isfinite(array).all() and (array == np.round(array)).all()):
+        raise ValueError(f"{name} must hold whole numbers (vertex indices)")
     return array.astype(dtype)
 
 

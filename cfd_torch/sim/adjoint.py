@@ -68,9 +68,9 @@ def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv) -> 
     return JointInputs(kin.coords(q_t), kin.coords(q_p), *kin.drive(ctrl, kp, kv))
 
 
-def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor, solved=None) -> torch.Tensor:
     """(B, Nd, 3, 3) the moving bodies' predicted rotations (:func:`~cfd_torch.sim.energy.predicted_rotation`;
-    without the gyroscopic term in planar scenes)."""
+    without the gyroscopic term in planar scenes); ``solved``: the forward's, which the backward starts from."""
     dyn = scene.kinematics.bodies.to(q_t.device)
     B, Nd = q_t.shape[0], len(dyn)
     r = predicted_rotation(
@@ -78,6 +78,7 @@ def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor) -> 
         q_p[:, dyn].reshape(B * Nd, 6),
         S.reshape(B * Nd, 3, 3),
         not scene.planar,
+        None if solved is None else solved.reshape(B * Nd, 3, 3),
     )
     return r.reshape(B, Nd, 3, 3)
 
@@ -112,7 +113,22 @@ class StepFn(torch.autograd.Function):
         cross = res.at.contact_hess[:, rows6]  # (B, F, 6 N)
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
-            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv
+            res.q,
+            res.at.hess,
+            cross,
+            rows6,
+            q_t,
+            q_p,
+            force,
+            torque,
+            target,
+            mass,
+            S,
+            mu_f,
+            ctrl,
+            kp,
+            kv,
+            r_pred,
         )
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
@@ -140,7 +156,9 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv = ctx.saved_tensors
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_pred = (
+            ctx.saved_tensors
+        )
         B, N = q_t.shape[:2]
         kin = scene.kinematics
         dyn = kin.bodies.to(q.device)
@@ -159,7 +177,7 @@ class StepFn(torch.autograd.Function):
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
             _, g_b, _ = body_terms(
                 rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]),
-                rows(_predicted(scene, tq_t, tq_p, tS)), rows(tf[:, dyn]),
+                rows(_predicted(scene, tq_t, tq_p, tS, r_pred)), rows(tf[:, dyn]),
                 rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()

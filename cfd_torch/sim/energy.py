@@ -218,7 +218,11 @@ def _mv_residual(F, S, M):
 
 
 def predicted_rotation(
-    q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor, gyroscopic: bool = True
+    q_t: torch.Tensor,
+    q_p: torch.Tensor,
+    S: torch.Tensor,
+    gyroscopic: bool = True,
+    solved: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(E, 3, 3) the rotation each of E bodies (poses (E, 6) now and a step earlier, second moments S (E, 3, 3))
     reaches at the end of the step if no force acts: R_t F, with F the body-frame increment of the Moser-Veselov
@@ -231,7 +235,9 @@ def predicted_rotation(
     Solved by Newton's method from F = F0 (updates F exp(d^)); differentiable by autograd (one Newton step from the
     converged F carries the implicit function's first derivatives). A StepError if it does not converge (a body
     turning near pi per step). ``gyroscopic=False`` (planar scenes, whose bodies turn about z only: the constraint
-    takes the gyroscopic torque, and a constant rate about z is exact): F = F0."""
+    takes the gyroscopic torque, and a constant rate about z is exact): F = F0. ``solved``: this function's
+    result for the same inputs, computed before (the step's backward reuses its forward's): the iterations start
+    there and end at once."""
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
     base = Rt @ Rp.transpose(1, 2) @ Rt
     if not gyroscopic:
@@ -240,8 +246,8 @@ def predicted_rotation(
     M = S @ F0 - F0.transpose(1, 2) @ S
     trace = S.diagonal(dim1=1, dim2=2).sum(1).detach()
     tol = _MV_TOL * torch.finfo(S.dtype).eps * trace
-    F = F0.detach()
-    moved = torch.zeros(F.shape[0], dtype=torch.bool, device=F.device)
+    F = F0.detach() if solved is None else Rt.detach().transpose(1, 2) @ solved.detach()
+    moved = torch.full((F.shape[0],), solved is not None, dtype=torch.bool, device=F.device)
     with torch.no_grad():
         Sd, Md = S.detach(), M.detach()
         ok = True

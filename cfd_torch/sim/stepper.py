@@ -103,7 +103,7 @@ def _solve(
     moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     moved[scene.kinematics.bodies] = True
     moved[scene.kinematic] = True
-    q_next = scene.kinematics.poses(q, end_poses(scene, q_t, target))
+    q_next = scene.kinematics.poses(q, _shift(held, -c))
     q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
     solved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
     solved[scene.kinematics.bodies] = True
@@ -231,6 +231,18 @@ def _check_start(scene: Scene, state: State) -> None:
         scene.kinematics.check_within_limits(q64, "state.q", 1e3 * scene.solver.newton_tol, coords)
 
 
+def _checked_params(scene: Scene, state: State, params: Params | None) -> Params:
+    """``params`` (default ``scene.params()``) checked against the (checked) start state and returned with a batch
+    dimension (:func:`._checks.check_params`)."""
+    if params is not None and not isinstance(params, Params):
+        raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
+    f64, dev = torch.float64, state.q.device
+    batched = state.q.dim() == 3
+    params = scene.params(f64, dev) if params is None else params
+    B = state.q.shape[0] if batched else 1
+    return check_params(params, B, len(scene.kinematics.bodies), dev, batched, scene.servo_gains(f64, dev))
+
+
 def step(
     scene: Scene,
     state: State,
@@ -283,7 +295,6 @@ def step(
     B = state.q.shape[0] if batched else 1
     dtype, dev = state.q.dtype, state.q.device
     action = Action() if action is None else action
-    f64 = torch.float64
     force = action.force if action.force is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
     torque = action.torque if action.torque is not None else torch.zeros(N, 3, dtype=dtype, device=dev)
     check_state_tensor(force, "action.force", N, 3, B if batched else 0, like=state.q)
@@ -295,9 +306,7 @@ def step(
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else 1, state.q)
-    gains = scene.servo_gains(f64, dev)
-    params = scene.params(f64, dev) if params is None else params
-    params = check_params(params, B, len(scene.kinematics.bodies), dev, batched, gains)
+    params = _checked_params(scene, state, params)
     target = _batch(target, B)
     if action.joints is not None and not scene.kinematic_articulations:
         raise ValueError(
@@ -368,14 +377,7 @@ def rollout(
     seq = [None] * actions if isinstance(actions, int) else list(actions)
     if not seq:  # no step checks the inputs: the start state and the parameters are checked here
         _check_start(scene, state)
-        if params is not None:
-            if not isinstance(params, Params):
-                raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
-            batched = state.q.dim() == 3
-            check_params(
-                params, state.q.shape[0] if batched else 1, len(scene.kinematics.bodies), state.q.device, batched,
-                scene.servo_gains(torch.float64, state.q.device),
-            )  # fmt: skip
+        _checked_params(scene, state, params)
     it = seq
     if progress:
         from tqdm import tqdm
