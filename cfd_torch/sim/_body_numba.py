@@ -28,9 +28,11 @@ def _axial_of_product(M, Rt, tau):
 
 
 @numba.njit(cache=True)
-def body_terms_kernel(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order, value, grad, hess):
+def body_terms_kernel(
+    q, q_t, q_p, r_pred, t_shift, force, torque, mass, S, gravity, dt, order, value, grad, hess
+):
     """Fill value (E,), grad (E, 6) (order >= 1) and hess (E, 6, 6) (order >= 2) of E bodies (pose rows (E, 6);
-    predicted rotations r_pred (E, 3, 3))."""
+    predicted rotations r_pred (E, 3, 3), centres of mass 2 q_t - q_p + t_shift (E, 3))."""
     E = q.shape[0]
     R = np.empty((E, 3, 3))
     dR = np.empty((E if order >= 1 else 0, 3, 3, 3))
@@ -58,7 +60,7 @@ def body_terms_kernel(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, 
         bb = 0.0
         lin = 0.0
         for i in range(3):
-            b[i] = q[e, i] - 2.0 * q_t[e, i] + q_p[e, i]
+            b[i] = q[e, i] - 2.0 * q_t[e, i] + q_p[e, i] - t_shift[e, i]
             bb += b[i] * b[i]
             pull[i] = m * gravity[i] + force[e, i]
             lin += pull[i] * (q[e, i] - q_t[e, i])

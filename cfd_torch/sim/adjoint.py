@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 
@@ -59,19 +60,47 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
     return lag
 
 
-def _joint_inputs(scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv) -> JointInputs | None:
+class _Prediction(NamedTuple):
+    """Where the inertia terms put each moving body without forces: rotation (B, Nd, 3, 3) and the shift of its
+    centre of mass from 2 t_t - t_{t-1} (B, Nd, 3) or None (free bodies); each body's rotation predicted as a free
+    body's (B, Nd, 3, 3) (the backward starts its solve there); with articulations, their coordinates at the two
+    earlier states (B, Q) and the joint-space bias (B, Q)."""
+
+    rotation: torch.Tensor
+    free_rotation: torch.Tensor
+    shift: torch.Tensor | None = None
+    coords_t: torch.Tensor | None = None
+    coords_p: torch.Tensor | None = None
+    bias: torch.Tensor | None = None
+
+
+def _joint_inputs(
+    scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv, pred: _Prediction
+) -> JointInputs | None:
     """The joint-space inputs of a scene with simulated articulations (coordinates of the two earlier states, the
-    actuators' terms for the controls ``ctrl`` and servo gains ``kp``, ``kv``), None without."""
+    actuators' terms for the controls ``ctrl`` and servo gains ``kp``, ``kv``, the prediction's bias), None
+    without."""
     if not scene.simulates_joints:
         return None
+    return JointInputs(pred.coords_t, pred.coords_p, *scene.kinematics.drive(ctrl, kp, kv), pred.bias)
+
+
+def _predicted(
+    scene,
+    q_t: torch.Tensor,
+    q_p: torch.Tensor,
+    fixed: torch.Tensor,
+    mass: torch.Tensor,
+    S: torch.Tensor,
+    solved=None,
+    create_graph: bool = False,
+) -> _Prediction:
+    """The moving bodies' predictions: free bodies' rotations by :func:`~cfd_torch.sim.energy.predicted_rotation`
+    (without the gyroscopic term in planar scenes), articulated links' by the joints
+    (:meth:`~cfd_torch.sim.articulation.ArticulatedKinematics.predict`, at the end-of-step poses ``fixed`` of the
+    bodies the map does not move); ``solved``: the forward's rotations, which the backward starts from."""
     kin = scene.kinematics
-    return JointInputs(kin.coords(q_t), kin.coords(q_p), *kin.drive(ctrl, kp, kv))
-
-
-def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor, solved=None) -> torch.Tensor:
-    """(B, Nd, 3, 3) the moving bodies' predicted rotations (:func:`~cfd_torch.sim.energy.predicted_rotation`;
-    without the gyroscopic term in planar scenes); ``solved``: the forward's, which the backward starts from."""
-    dyn = scene.kinematics.bodies.to(q_t.device)
+    dyn = kin.bodies.to(q_t.device)
     B, Nd = q_t.shape[0], len(dyn)
     r = predicted_rotation(
         q_t[:, dyn].reshape(B * Nd, 6),
@@ -79,8 +108,12 @@ def _predicted(scene, q_t: torch.Tensor, q_p: torch.Tensor, S: torch.Tensor, sol
         S.reshape(B * Nd, 3, 3),
         not scene.planar,
         None if solved is None else solved.reshape(B * Nd, 3, 3),
-    )
-    return r.reshape(B, Nd, 3, 3)
+    ).reshape(B, Nd, 3, 3)
+    if not scene.simulates_joints:
+        return _Prediction(r, r)
+    th_t, th_p = kin.coords(q_t), kin.coords(q_p)
+    rot, shift, bias = kin.predict(q_t, q_p, th_t, th_p, fixed, r, mass, S, scene.dt, create_graph)
+    return _Prediction(rot, r, shift, th_t, th_p, bias)
 
 
 class StepFn(torch.autograd.Function):
@@ -99,11 +132,12 @@ class StepFn(torch.autograd.Function):
             on = (mu_f > 0) | ctx.needs_input_grad[8]
             lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
-            joint = _joint_inputs(scene, q_t, q_p, ctrl, kp, kv)
-            r_pred = _predicted(scene, q_t, q_p, S)
+            pred = _predicted(scene, q_t, q_p, fixed, mass, S)
+            joint = _joint_inputs(scene, q_t, q_p, ctrl, kp, kv, pred)
             prob = StepProblem(
-                scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint, r_pred
-            )
+                scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint, pred.rotation,
+                pred.shift,
+            )  # fmt: skip
             try:
                 res, work = solve_step(prob)
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
@@ -128,7 +162,7 @@ class StepFn(torch.autograd.Function):
             ctrl,
             kp,
             kv,
-            r_pred,
+            pred.free_rotation,
         )
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
@@ -156,7 +190,7 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_pred = (
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_free = (
             ctx.saved_tensors
         )
         B, N = q_t.shape[:2]
@@ -175,13 +209,16 @@ class StepFn(torch.autograd.Function):
             poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
+            pred = _predicted(
+                scene, tq_t, tq_p, end_poses(scene, tq_t, ttarget), tmass, tS, r_free, create_graph=True
+            )
             _, g_b, _ = body_terms(
-                rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]),
-                rows(_predicted(scene, tq_t, tq_p, tS, r_pred)), rows(tf[:, dyn]),
-                rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
+                rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
+                rows(tf[:, dyn]), rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
+                None if pred.shift is None else rows(pred.shift),
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
-            joint = _joint_inputs(scene, tq_t, tq_p, tctrl, tkp, tkv)
+            joint = _joint_inputs(scene, tq_t, tq_p, tctrl, tkp, tkv, pred)
             if joint is not None:
                 _, g_j, _ = kin.joint_terms(q, joint, scene.dt, 1)
                 s = s + (g_j * lam).sum()

@@ -59,7 +59,10 @@ class StepProblem(NamedTuple):
             friction, or None when none has.
         gravity: (3,).
         joint: the joint-space inputs of scenes with articulations (:class:`JointInputs`), else None.
-        r_pred: (B, Nd, 3, 3) each moving body's predicted rotation (:func:`predicted_rotation`).
+        r_pred: (B, Nd, 3, 3) each moving body's predicted rotation (:func:`predicted_rotation`; an articulated
+            link's: :meth:`~cfd_torch.sim.articulation.ArticulatedKinematics.predict`).
+        t_shift: (B, Nd, 3) each moving body's predicted centre of mass minus the constant-velocity one, 2 t_t -
+            t_{t-1} (zero for free bodies), or None for zero.
     """
 
     scene: object
@@ -76,12 +79,13 @@ class StepProblem(NamedTuple):
     gravity: torch.Tensor
     joint: JointInputs | None = None
     r_pred: torch.Tensor | None = None
+    t_shift: torch.Tensor | None = None
 
 
 class JointInputs(NamedTuple):
-    """The coordinates one and two steps earlier (B, Q) and the actuators' terms (:meth:`ArticulatedKinematics
+    """The coordinates one and two steps earlier (B, Q), the actuators' terms (:meth:`ArticulatedKinematics
     .drive`): per joint (B, J) the motors' torque and the servos' stiffness and damping, per actuator (B, U) each
-    servo's gain and target."""
+    servo's gain and target; and the inertia's joint-space bias (B, Q) (:meth:`ArticulatedKinematics.predict`)."""
 
     q_t: torch.Tensor
     q_p: torch.Tensor
@@ -90,6 +94,7 @@ class JointInputs(NamedTuple):
     damping: torch.Tensor
     servo_gain: torch.Tensor
     servo_target: torch.Tensor
+    bias: torch.Tensor
 
 
 class EnergyEval(NamedTuple):
@@ -182,7 +187,8 @@ def select_scenes(prob: StepProblem, idx: torch.Tensor) -> StepProblem:
         prob.friction_on,
     )
     joint = None if prob.joint is None else JointInputs(*(x[idx] for x in prob.joint))
-    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity, joint, prob.r_pred[idx])
+    shift = None if prob.t_shift is None else prob.t_shift[idx]
+    return StepProblem(prob.scene, *(x[idx] for x in take), lag, prob.gravity, joint, prob.r_pred[idx], shift)
 
 
 def _axial(M: torch.Tensor) -> torch.Tensor:
@@ -292,9 +298,10 @@ def _numba_body_terms(*xs) -> bool:
     return not any(tracked(x) for x in ts)
 
 
-def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order):
+def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order, t_shift=None):
     """Inertia, gravity and actuation of E dynamic bodies (pose rows (E, 6)): values (E,), grad (E, 6), Hessian
-    (E, 6, 6). ``r_pred`` (E, 3, 3): the predicted rotations (:func:`predicted_rotation`).
+    (E, 6, 6). ``r_pred`` (E, 3, 3): the predicted rotations (:func:`predicted_rotation`); ``t_shift`` (E, 3): the
+    predicted centres of mass minus 2 t_t - t_{t-1} (None: zero).
 
     Differentiable (by autograd) in everything but q, which the adjoint needs for d2L / dq dtheta.
 
@@ -304,7 +311,9 @@ def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order):
     a graph to record, one numba loop (``_body_numba``) computes the same.
     """
     E = q.shape[0]
-    if _numba_body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity):
+    if t_shift is None:
+        t_shift = q.new_zeros(E, 3)
+    if _numba_body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, t_shift):
         from ._body_numba import body_terms_kernel
 
         value = q.new_empty(E)
@@ -313,14 +322,14 @@ def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order):
         g = gravity.numpy() if isinstance(gravity, torch.Tensor) else np.asarray(gravity, dtype=np.float64)
         body_terms_kernel(
             q.contiguous().numpy(), q_t.contiguous().numpy(), q_p.contiguous().numpy(), r_pred.contiguous().numpy(),
-            force.contiguous().numpy(),
+            t_shift.contiguous().numpy(), force.contiguous().numpy(),
             torque.contiguous().numpy(), mass.contiguous().numpy(), S.contiguous().numpy(), g, float(dt), order,
             value.numpy(), grad.numpy(), hess.numpy(),
         )  # fmt: skip
         return value, (grad if order >= 1 else None), (hess if order >= 2 else None)
     R, dR, d2R = rotation_derivatives(q[:, 3:], order)
     Rt = rotation_matrix(q_t[:, 3:])
-    b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3]
+    b = q[:, :3] - 2.0 * q_t[:, :3] + q_p[:, :3] - t_shift
     A = R - r_pred
     AS = A @ S  # (E, 3, 3)
     pull = mass[:, None] * gravity + force  # (E, 3)
@@ -372,7 +381,7 @@ def incremental_potential(
     vb, g_b, h_b = body_terms(
         rows(poses[:, dyn]), rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.r_pred),
         rows(prob.force[:, dyn]), rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0],
-        rows(prob.second_moment), prob.gravity, scene.dt, order,
+        rows(prob.second_moment), prob.gravity, scene.dt, order, None if prob.t_shift is None else rows(prob.t_shift),
     )  # fmt: skip
     # each body's "local" energy: its own terms plus the contact and friction terms it takes part in (the sum of
     # their magnitudes sets the line search's rounding scale)
