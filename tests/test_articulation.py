@@ -1249,14 +1249,15 @@ def test_a_link_spinning_freely_on_a_hinge_keeps_its_rate(which):
     assert abs(th[-1] - w * dt * steps) < 1e-9
 
 
-GIMBAL = """<mujoco><option gravity="0 0 0" integrator="RK4" timestep="0.0005"/><worldbody>
+GIMBAL = """<mujoco><option integrator="RK4" timestep="0.0005"/><worldbody>
   <body name="base" pos="0 0 1"><geom type="sphere" size="0.05"/>
   <body name="outer"><joint name="yaw" type="hinge" axis="0 0 1"/><geom type="box" size="0.3 0.02 0.02" pos="0 0 0.1"/>
   <body name="inner" pos="0 0 0.1"><joint name="pitch" type="hinge" axis="1 0 0"/>
   <geom type="box" size="0.2 0.1 0.03" pos="0.05 0 0.08" euler="10 20 30"/></body></body></body></worldbody></mujoco>"""
-SWUNG_PENDULUM = """<mujoco><option gravity="0 0 0" integrator="RK4" timestep="0.0005"/><worldbody>
+SWUNG_PENDULUM = """<mujoco><option integrator="RK4" timestep="0.0005"/><worldbody>
   <body name="base" pos="0 0 1"><geom type="sphere" size="0.05"/>
-  <body name="upper"><joint name="j1" type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/>
+  <body name="upper"><joint name="j1" type="hinge" axis="0 1 0"/>
+  <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/>
   <body name="lower" pos="0 0 -0.5"><joint name="j2" type="hinge" axis="0 1 0"/>
   <geom type="capsule" fromto="0 0 0 0.1 0 -0.4" size="0.03"/></body></body></body></worldbody></mujoco>"""
 
@@ -1275,6 +1276,7 @@ def test_fast_chains_follow_mujoco_at_first_order(xml, th0, v0, bound):
 
     art = articulation(xml)
     model = mujoco.MjModel.from_xml_string(xml)
+    model.opt.gravity[:] = 0.0
     data = mujoco.MjData(model)
     data.qpos[:], data.qvel[:] = th0, v0
     mujoco.mj_forward(model, data)
