@@ -175,7 +175,8 @@ class MujocoTwin:
                 d.qvel[va + 3 : va + 6] = (rotation_matrix(q[i, 3:]).T @ w).numpy()
         if self._art is not None:
             rows = list(self._art_rows)
-            c, cp = self._art.coords(q[None, rows])[0], self._art.coords(qp[None, rows])[0]
+            c = self._art.coords(q[None, rows])[0]
+            cp = self._art.coords(qp[None, rows], near=c[None])[0]  # the earlier state on the same branch
             qa, va = self._root_q, self._root_v
             d.qpos[qa : qa + 3] = c[:3].numpy()
             d.qpos[qa + 3 : qa + 7] = quaternion(c[3:6]).numpy()

@@ -1333,3 +1333,55 @@ def test_rollout_gradient_of_a_fast_floating_robot_matches_finite_differences():
             [(final(x + h[k] * e) - final(x - h[k] * e)) / (2 * h[k]) for k, e in enumerate(torch.eye(4))]
         )
     assert torch.allclose(g, fd, rtol=1e-5, atol=1e-9)
+
+
+def _ring(limited: bool) -> Articulation:
+    """A box on three hinges at one anchor, about z, x and y (a gimbal of hinges): (a, b, c) and (a + pi, pi - b,
+    c + pi) give the same pose; with ``limited`` the outer two have the range +-60 degrees."""
+    rng = ' range="-60 60"' if limited else ""
+    return articulation(
+        f"""<mujoco><worldbody><body name="base" pos="0 0 1"><geom type="sphere" size="0.05"/>
+        <body name="ring"><joint name="a" type="hinge" axis="0 0 1"{rng}/><joint name="b" type="hinge" axis="1 0 0"/>
+        <joint name="c" type="hinge" axis="0 1 0"{rng}/><geom type="box" size="0.2 0.1 0.03" pos="0.05 0.02 0.04"/>
+        </body></body></worldbody></mujoco>"""
+    )
+
+
+def test_three_hinges_at_one_anchor_read_back_on_the_branch_that_fits():
+    """Link poses do not tell (a, b, c) from (a + pi, pi - b, c + pi): the joint values read back are the posed
+    ones where those are nearer ref (the middle hinge past pi / 2 included: the middle hinge alone used to decide,
+    and (0, 1.6, 0) read back as (-pi, 1.54, -pi)), those within the outer hinges' ranges, and those nearest
+    ``near`` when it is given."""
+    from cfd_torch.sim.articulation import _wrap
+
+    free = _ring(False)
+    for x in ([0.0, 1.6, 0.0], [0.3, 2.5, -0.4], [-0.2, -1.9, 0.1]):
+        th = torch.tensor(x, dtype=F64)
+        assert torch.allclose(free.coords(free.poses(th)[None])[0], th, atol=1e-12)
+        flipped = _wrap(th + torch.tensor([math.pi, 0.0, math.pi], dtype=F64))
+        flipped[1] = _wrap(math.pi - th[1])
+        near = free.coords(free.poses(th)[None], near=flipped[None] + 0.1)[0]
+        assert torch.allclose(near, flipped, atol=1e-12)
+    limited = _ring(True)
+    th = torch.tensor(
+        [0.9, -2.8, -0.7], dtype=F64
+    )  # nearer ref flipped, but only this one is within the ranges
+    assert torch.allclose(limited.coords(limited.poses(th)[None])[0], th, atol=1e-12)
+
+
+def test_three_hinges_turning_past_the_middle_quarter_turn_step_on_one_branch():
+    """The ring turning under gravity from b = 1.7 rad (past the middle hinge's quarter turn) with its outer hinges
+    limited to +-60 degrees: the start was refused (read as a = 0.2 - pi, outside its range); now 60 steps run,
+    every step's joint values within the ranges and within 0.2 rad of the last (mod 2 pi)."""
+    from cfd_torch.sim.articulation import _wrap
+
+    art = _ring(True)
+    dt = 0.01
+    scene = Scene([], articulations=[art], dt=dt)
+    th0 = torch.tensor([0.2, 1.7, -0.1], dtype=F64)
+    v0 = torch.tensor([0.5, 2.0, 0.3], dtype=F64)
+    traj = rollout(scene, State(art.poses(th0), art.poses(th0 - dt * v0)), 60)
+    th = scene.kinematics.coords(traj.q)
+    assert (th[:, [0, 2]].abs() < math.radians(60)).all()
+    assert float(_wrap(th[1:] - th[:-1]).abs().max()) < 0.2
+    assert float(_wrap(th[-1, 1] - th[0, 1]).abs()) > 0.5  # it did turn

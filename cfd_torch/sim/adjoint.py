@@ -93,7 +93,6 @@ def _predicted(
     mass: torch.Tensor,
     S: torch.Tensor,
     solved=None,
-    create_graph: bool = False,
 ) -> _Prediction:
     """The moving bodies' predictions: free bodies' rotations by :func:`~cfd_torch.sim.energy.predicted_rotation`
     (without the gyroscopic term in planar scenes), articulated links' by the joints
@@ -111,8 +110,9 @@ def _predicted(
     ).reshape(B, Nd, 3, 3)
     if not scene.simulates_joints:
         return _Prediction(r, r)
-    th_t, th_p = kin.coords(q_t), kin.coords(q_p)
-    rot, shift, bias = kin.predict(q_t, q_p, th_t, th_p, fixed, r, mass, S, scene.dt, create_graph)
+    th_t = kin.coords(q_t)
+    th_p = kin.coords(q_p, near=th_t)  # on the same branch where link poses do not tell joint values apart
+    rot, shift, bias = kin.predict(q_t, q_p, th_t, th_p, fixed, r, mass, S, scene.dt)
     return _Prediction(rot, r, shift, th_t, th_p, bias)
 
 
@@ -209,9 +209,7 @@ class StepFn(torch.autograd.Function):
             poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
-            pred = _predicted(
-                scene, tq_t, tq_p, end_poses(scene, tq_t, ttarget), tmass, tS, r_free, create_graph=True
-            )
+            pred = _predicted(scene, tq_t, tq_p, end_poses(scene, tq_t, ttarget), tmass, tS, r_free)
             _, g_b, _ = body_terms(
                 rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
                 rows(tf[:, dyn]), rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,

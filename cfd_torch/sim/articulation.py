@@ -88,9 +88,9 @@ class Articulation:
 
     Joint values are recovered from the link poses of a state (the state rows are the links' poses): a hinge's in
     the turn centred on its range (so the whole range is inside it; a range of a whole turn or more is dropped, with
-    a warning), or on its
-    ref without one; for a link with three hinges, the middle one's two solutions are told apart by its range (the
-    one inside it), else the one nearer ref (|theta - ref| <= pi / 2). Hinge axes that cannot be told apart
+    a warning), or on its ref without one; for a link with three hinges at one anchor, whose two solutions give the
+    same pose, the one with all three within their ranges, else the one nearer ref (the step reads the state a step
+    earlier on the branch of the state now). Hinge axes that cannot be told apart
     (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
     """
 
@@ -327,10 +327,11 @@ class Articulation:
         Differentiable in both."""
         return _fk_rows(self, coords, None if self.floating else root)[:, self.first_moving :]
 
-    def coords(self, rows: torch.Tensor) -> torch.Tensor:
+    def coords(self, rows: torch.Tensor, near: torch.Tensor | None = None) -> torch.Tensor:
         """(A, Qa) the coordinates (base pose if floating, then the joints) of the link rows (A, L, 6): the
-        inverse of the forward kinematics."""
-        return _joint_values(self, rows)
+        inverse of the forward kinematics; where several coordinates give the same rows (three hinges at one
+        anchor), the one nearest ``near`` (A, Qa) if given."""
+        return _joint_values(self, rows, near)
 
 
 def articulation(
@@ -765,16 +766,18 @@ def _hinge_angles(R: torch.Tensor, ax: list[torch.Tensor]) -> list[list[torch.Te
     return out
 
 
-def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
+def _joint_values(art: Articulation, rows: torch.Tensor, near: torch.Tensor | None = None) -> torch.Tensor:
     """(A, Qa) the coordinates whose forward kinematics gives the link rows (A, L, 6) (base pose if floating, then
     the joints).
 
     Per link, the transform M = (T_parent Offset)^-1 T_link = J_1 .. J_k of its joints: the hinges' angles from M's
     rotation (:func:`_hinge_angles`), then the slides from its translation, which is affine in them once the
     hinges are known: p_M = sum_hinges R_<i (c_i - Rot_i c_i) + sum_slides R_<i s_i x_i (R_<i: the rotation of the
-    joints before i), solved in least squares. Of a three-hinge link's two solutions, the one whose translation
-    fits (where the anchors tell them apart), else the one whose middle joint lies within its range, else the one
-    nearer its ref."""
+    joints before i), solved in least squares. Of a three-hinge link's two solutions (t1, t2, t3) and (t1 + pi,
+    pi - t2, t3 + pi) (for orthogonal axes), the one whose translation fits (where the anchors tell them apart),
+    else, with ``near`` (A, Qa) given, the one nearer those coordinates (the state a step earlier read near the
+    state now: a joint turning through the middle hinge's pi / 2 keeps one branch), else the one with all three
+    hinges within their ranges, else the one nearer ref (the sum of the three angles' distances)."""
     dt, dev = rows.dtype, rows.device
     as_t = lambda x: torch.as_tensor(x, dtype=dt, device=dev)  # noqa: E731
     mv = lambda M, x: (M @ x[..., None])[..., 0]  # noqa: E731
@@ -791,6 +794,8 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
     RM = F.transpose(-1, -2) @ R
     pM = mv(F.transpose(-1, -2), p - pp - mv(Rp, as_t(art.offset_p)))
     th = rows.new_zeros(A, art.num_joints)
+    if near is not None:
+        near = near[:, 6:] if art.floating else near
     lower, upper, ref, centre = as_t(art.lower), as_t(art.upper), as_t(art.ref), as_t(art.centre)
     axis, anchor = as_t(art.axis), as_t(art.anchor)
     for g in art._groups:
@@ -823,16 +828,19 @@ def _joint_values(art: Articulation, rows: torch.Tensor) -> torch.Tensor:
                 )
             candidates.append((torch.stack([values[i] for i in range(len(g.kinds))], -1), rest.norm(dim=-1)))
         vals, res = candidates[0]
-        if len(candidates) == 2:
+        if len(candidates) == 2:  # where the translation does not tell them apart
             other, res2 = candidates[1]
-            m = hinge_at[1]  # the middle hinge decides where the translation does not
-            j = joints[:, m]
-            in_1, in_2 = (
-                (w >= lower[j]) & (w <= upper[j])
-                for w in (centre[j] + _wrap(v[..., m] + ref[j] - centre[j]) for v in (vals, other))
-            )
+            hj = joints[:, hinge_at]  # (n, 3)
+            h_1, h_2 = vals[..., hinge_at], other[..., hinge_at]  # the hinges' angles from ref
+            if near is not None:  # the one nearer the given values
+                d_1, d_2 = (_wrap(h + ref[hj] - near[:, hj]).abs().sum(-1) for h in (h_1, h_2))
+                prefer = d_2 < d_1
+            else:  # the one with all three hinges within their ranges, else the one nearer ref
+                w_1, w_2 = (centre[hj] + _wrap(h + ref[hj] - centre[hj]) for h in (h_1, h_2))
+                in_1, in_2 = (((w >= lower[hj]) & (w <= upper[hj])).all(-1) for w in (w_1, w_2))
+                d_1, d_2 = (_wrap(h).abs().sum(-1) for h in (h_1, h_2))
+                prefer = torch.where(in_1 != in_2, in_2, d_2 < d_1)
             tol = 1e-9 * (1.0 + target.norm(dim=-1) + anchor[joints].norm(dim=-1).amax(-1))
-            prefer = torch.where(in_1 != in_2, in_2, other[..., m].abs() < vals[..., m].abs())
             second = torch.where((res - res2).abs() > tol, res2 < res, prefer)
             vals = torch.where(second[..., None], other, vals)
         th[:, joints] = vals + ref[joints]
@@ -948,10 +956,12 @@ class ArticulatedKinematics:
             out[:, r + lo : r + art.num_links] = art.moving_rows(q[:, sl], fixed[:, r])
         return out
 
-    def coords(self, poses: torch.Tensor) -> torch.Tensor:
+    def coords(self, poses: torch.Tensor, near: torch.Tensor | None = None) -> torch.Tensor:
+        """The :class:`~cfd_torch.sim.kinematics.Kinematics` map's inverse; ``near`` (A, Q): coordinates to stay
+        near where link poses do not tell joint values apart (:meth:`Articulation.coords`)."""
         parts = [poses[:, self.free.to(poses.device)].reshape(poses.shape[0], -1)]
-        for art, r in zip(self.arts, self.first, strict=True):
-            parts.append(art.coords(poses[:, r : r + art.num_links]))
+        for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
+            parts.append(art.coords(poses[:, r : r + art.num_links], None if near is None else near[:, sl]))
         return torch.cat(parts, 1)
 
     def check_rows(self, poses: torch.Tensor, q: torch.Tensor, name: str, eps: float) -> None:
@@ -1070,15 +1080,13 @@ class ArticulatedKinematics:
         mass: torch.Tensor,
         S: torch.Tensor,
         dt: float,
-        create_graph: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The inertia terms' prediction for the links, and the joint-space bias that goes with it.
 
         Args: the poses q_t, q_p (A, N, 6) now and a step earlier and their coordinates th_t, th_p (A, Q); the
         end-of-step poses of the bodies the map does not move, ``fixed`` (A, N, 6) (a fixed base's root); each
         moving body's free prediction of its rotation, ``rotation`` (A, M, 3, 3) (:func:`~cfd_torch.sim.energy
-        .predicted_rotation`); masses (A, M) and second moments (A, M, 3, 3); ``create_graph``: keep the bias
-        differentiable (the adjoint).
+        .predicted_rotation`); masses (A, M) and second moments (A, M, 3, 3). Differentiable by autograd.
 
         Returns rotation (A, M, 3, 3) and translation shift (A, M, 3) of the predictions (the free bodies' rotations
         as given, their shifts zero), and bias (A, Q), the energy's linear term bias . (q - q_t).
@@ -1095,8 +1103,8 @@ class ArticulatedKinematics:
         by (J(q) - J_t)^T M (X(q) - X_hat), which is zero where the step ends at X_hat (a link spinning freely on
         a hinge, on its principal axes or not, keeps its rate to the last digits) and of second order otherwise.
         M (X_hat - X_free) is, per link, m (t_hat - t_free) and (R_hat - R_free) S, so G is the gradient at q_t
-        of sum m t(q) . (t_hat - t_free) + tr(R(q) S (R_hat - R_free)^T), taken by autograd through the forward
-        kinematics."""
+        of sum m t(q) . (t_hat - t_free) + tr(R(q) S (R_hat - R_free)^T), pulled back through the forward
+        kinematics' Jacobian."""
         A, dev = q_t.shape[0], q_t.device
         nf = len(self.free)
         hinge = self.joint_index[self.hinge].to(dev)
@@ -1127,13 +1135,12 @@ class ArticulatedKinematics:
         R_hat = torch.cat([x[1] for x in hat_rows], 1)
         d_t = t_hat - torch.cat(t_free, 1)  # (A, M - nf, 3)
         d_R = R_hat - rotation[:, links]
-        # G = d/dq [sum m t(q) . d_t + tr(R(q) S d_R^T)] at q_t, d_t and d_R held
-        with torch.enable_grad():
-            th = th_t.clone() if th_t.requires_grad else th_t.detach().requires_grad_(True)
-            at = self.poses(th, q_t)[:, self.bodies[nf:].to(dev)]
-            Rq = rotation_matrix(at[..., 3:].reshape(-1, 3)).reshape(A, -1, 3, 3)
-            phi = (mass[:, links, None] * at[..., :3] * d_t).sum() + (Rq @ S[:, links] * d_R).sum()
-            (G,) = torch.autograd.grad(phi, th, create_graph=create_graph)
+        # G = J_t^T g: the pose-space gradient g of sum m t . d_t + tr(R S d_R^T) at q_t, pulled back
+        rows = self.bodies[nf:].to(dev)
+        _, dR, _ = rotation_derivatives(q_t[:, rows, 3:].reshape(-1, 3), 1)
+        g_w = torch.einsum("lijk,lij->lk", dR, (d_R @ S[:, links]).reshape(-1, 3, 3)).reshape(A, -1, 3)
+        g = q_t.new_zeros(q_t.shape).index_copy(1, rows, torch.cat([mass[:, links, None] * d_t, g_w], -1))
+        G = self.pullback(th_t, g, None, q_t)[0]
         out_R = torch.cat([rotation[:, :nf], R_hat], 1)
         shift = torch.cat([d_t.new_zeros(A, nf, 3), d_t], 1)
         return out_R, shift, G / (dt * dt)
