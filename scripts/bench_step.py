@@ -561,10 +561,11 @@ def profile_case(case: Case, state: State, args) -> str:
 # ------------------------------------------------------------------------------------------------ baseline
 class Baseline:
     """An older revision of the package checked out in a temporary git worktree; runs one case at a time in a
-    subprocess (this script in worker mode, PYTHONPATH at the checkout)."""
+    subprocess (``script``, default this one, in worker mode: ``--worker SPEC``, PYTHONPATH at the checkout)."""
 
-    def __init__(self, rev: str) -> None:
+    def __init__(self, rev: str, script: Path | None = None) -> None:
         root = Path(__file__).resolve().parent.parent
+        self.script = Path(__file__).resolve() if script is None else Path(script).resolve()
         self.rev = rev
         self.commit = subprocess.run(
             ["git", "rev-parse", "--short", f"{rev}^{{commit}}"], cwd=root, capture_output=True, text=True,
@@ -579,13 +580,18 @@ class Baseline:
         )  # fmt: skip
 
     def run(self, case_name: str, args) -> dict:
-        spec = Path(self._tmp.name) / "spec.json"
-        result = Path(self._tmp.name) / f"{case_name}.json"
-        spec.write_text(json.dumps({"args": _jsonable(vars(args)), "case": case_name, "result": str(result)}))
-        path = [str(self.dir)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
+        return self.run_spec({"args": _jsonable(vars(args)), "case": case_name}, case_name)
+
+    def run_spec(self, spec: dict, name: str) -> dict:
+        """Run the worker on ``spec`` (a JSON-able dict, to which the result file's path is added as "result") and
+        return the dict it wrote there, or {"error": ...}."""
+        path = Path(self._tmp.name) / "spec.json"
+        result = Path(self._tmp.name) / f"{name}.json"
+        path.write_text(json.dumps({**spec, "result": str(result)}))
+        pp = [str(self.dir)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(pp))
         proc = subprocess.run(
-            [sys.executable, str(Path(__file__).resolve()), "--worker", str(spec)], cwd=self.dir, env=env,
+            [sys.executable, str(self.script), "--worker", str(path)], cwd=self.dir, env=env,
             capture_output=True, text=True,
         )  # fmt: skip
         if proc.returncode != 0:
