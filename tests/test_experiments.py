@@ -506,3 +506,17 @@ def test_far_field_force_hump_between_pole_and_box():
     assert 0.8 < h["peak_distance"] < 0.95 and 0.55 < h["dip_distance"] < 0.7
     assert h["dip_force"] < h["peak_force"] / 3 and 0.3 < h["recovered_at"] < 0.45
     assert rows["4.0"]["force_humps"] == []
+
+
+def test_articulated_accuracy_script(tmp_path):
+    """scripts/articulated_accuracy.py, two cases over 0.1 s: its JSON, table and plot, the spinning bar exact
+    (its constant rate is the step's solution) and the gimbal's error against MuJoCo's RK4 halving with dt."""
+    cmd = [sys.executable, str(SCRIPTS / "articulated_accuracy.py"), "--cases", "bar", "gimbal", "--dts", "0.02",
+           "0.01", "--duration", "0.1", "--out", str(tmp_path)]  # fmt: skip
+    subprocess.run(cmd, check=True, capture_output=True)
+    out = json.loads((tmp_path / "articulated_accuracy.json").read_text())
+    assert (tmp_path / "articulated_accuracy.png").stat().st_size > 0
+    assert "| gimbal | 0.01 |" in (tmp_path / "articulated_accuracy.md").read_text()
+    err = {n: [out["this"]["errors"][n][dt]["error"] for dt in ("0.02", "0.01")] for n in ("bar", "gimbal")}
+    assert max(err["bar"]) < 1e-10
+    assert err["gimbal"][1] > 0 and 1.6 < err["gimbal"][0] / err["gimbal"][1] < 2.4
