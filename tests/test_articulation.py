@@ -1263,15 +1263,16 @@ SWUNG_PENDULUM = """<mujoco><option integrator="RK4" timestep="0.0005"/><worldbo
 
 
 @pytest.mark.parametrize(
-    "xml,th0,v0,bound", [(GIMBAL, [0.0, 0.3], [5.0, 0.0], 0.01), (SWUNG_PENDULUM, [0.0, 0.7], [6.0, -2.0], 0.12)],
+    "xml,th0,v0,bound", [(GIMBAL, [0.0, 0.3], [5.0, 0.0], 0.01), (SWUNG_PENDULUM, [0.0, 0.7], [6.0, -2.0], 0.015)],
     ids=["gimbal", "double pendulum"],
 )  # fmt: skip
 def test_fast_chains_follow_mujoco_at_first_order(xml, th0, v0, bound):
     """Two hinged chains without gravity, started fast (a gimbal's yaw at 5 rad/s, its inner box asymmetric and
     off its hinge's axis: the pitch accelerates from the gyroscopic and centrifugal terms; a double pendulum
     swung at 6 and -2 rad/s): the joint angles after 1 s against MuJoCo's RK4 at 0.5 ms converge at first order
-    in dt, from within ``bound`` rad at dt = 0.01 (with links predicted as free bodies: 0.085 and 0.57 rad, the
-    rates falling behind). The gimbal's first step matches MuJoCo's accelerations at second order."""
+    in dt, from within ``bound`` rad at dt = 0.01 (0.0066 and 0.0088 rad; with links predicted as free bodies:
+    0.085 and 0.57 rad, the rates falling behind). The gimbal's first-step accelerations are within 3.3e-3
+    rad/s^2 of MuJoCo's at dt = 0.01 (0.29 before), halving with dt."""
     import mujoco
 
     art = articulation(xml)
@@ -1294,9 +1295,9 @@ def test_fast_chains_follow_mujoco_at_first_order(xml, th0, v0, bound):
         err.append(np.abs(th[-1] - want).max())
         acc_err.append(np.abs((th[1] - 2 * th[0] + (th0_ - dt * v0_).numpy()) / dt**2 - acc).max())
     assert err[0] < bound
-    assert 1.7 < err[0] / err[1] < 2.3
+    assert 1.7 < err[0] / err[1] < 2.4
     if xml is GIMBAL:  # (MuJoCo's accelerations at the swung pendulum's start include a contact of its links)
-        assert acc_err[0] < 5e-4 and 3.5 < acc_err[0] / acc_err[1] < 4.5
+        assert acc_err[0] < 5e-3 and 1.7 < acc_err[0] / acc_err[1] < 2.3
 
 
 def test_rollout_gradient_of_a_fast_floating_robot_matches_finite_differences():
@@ -1385,3 +1386,66 @@ def test_three_hinges_turning_past_the_middle_quarter_turn_step_on_one_branch():
     assert (th[:, [0, 2]].abs() < math.radians(60)).all()
     assert float(_wrap(th[1:] - th[:-1]).abs().max()) < 0.2
     assert float(_wrap(th[-1, 1] - th[0, 1]).abs()) > 0.5  # it did turn
+
+
+BALL_JOINT = """<mujoco><worldbody><body name="torso" pos="0 0 1"><geom type="capsule" fromto="0 -0.07 0 0 0.07 0"
+  size="0.07"/><body name="thigh" pos="0 0.1 -0.1"><joint name="hx" type="hinge" axis="1 0 0"/>
+  <joint name="hz" type="hinge" axis="0 0 1"/><joint name="hy" type="hinge" axis="0 1 0"/>
+  <geom type="capsule" fromto="0 0 0 0 0.01 -0.34" size="0.06"/></body></body></worldbody></mujoco>"""
+
+
+def _kinetic(scene: Scene, q_a: torch.Tensor, q_b: torch.Tensor) -> float:
+    """The moving bodies' kinetic energy between poses q_a and q_b a step apart (velocities by differences; the
+    angular one from the body-frame increment R_a^T R_b)."""
+    from scipy.spatial.transform import Rotation
+
+    from cfd_torch.rotation import rotation_matrix
+
+    p, rows = scene.params(), scene.kinematics.bodies
+    a, b = q_a[rows].detach(), q_b[rows].detach()
+    v = (b[:, :3] - a[:, :3]) / scene.dt
+    inc = rotation_matrix(a[:, 3:]).transpose(1, 2) @ rotation_matrix(b[:, 3:])
+    w = torch.from_numpy(Rotation.from_matrix(inc.numpy()).as_rotvec()) / scene.dt
+    S = p.second_moment
+    inertia = S.diagonal(dim1=1, dim2=2).sum(1)[:, None, None] * torch.eye(3, dtype=F64) - S
+    return float(0.5 * (p.mass * (v * v).sum(1)).sum() + 0.5 * torch.einsum("ni,nij,nj->", w, inertia, w))
+
+
+@pytest.mark.parametrize(
+    "xml,th0,v0,steps", [(BALL_JOINT, [-0.1, -0.2, -0.5], [1.0, 2.0, -3.0], 100),
+                         (SWUNG_PENDULUM, [0.0, 0.7], [6.0, -2.0], 300)],
+    ids=["ball joint", "double pendulum"],
+)  # fmt: skip
+def test_fast_chains_without_gravity_keep_their_energy(xml, th0, v0, steps):
+    """Without gravity, damping or limits a chain's kinetic energy is conserved: a link on three hinges at one
+    anchor turning at (1, 2, -3) rad/s, and the swung double pendulum, at dt = 0.01, keep theirs within 1 %
+    (with links predicted as free bodies they lost 12 % in 1 s and 69 % in 4 s; with the joints' prediction and
+    its Coriolis term as a force in the energy they gained until the step failed, in 0.33 s and 6 s)."""
+    art = articulation(xml)
+    dt = 0.01
+    scene = Scene([], articulations=[art], dt=dt, gravity=(0.0, 0.0, 0.0))
+    th0_, v0_ = torch.tensor(th0, dtype=F64), torch.tensor(v0, dtype=F64)
+    traj = rollout(scene, State(art.poses(th0_), art.poses(th0_ - dt * v0_)), steps)
+    K = [_kinetic(scene, traj.q[k], traj.q[k + 1]) for k in range(0, steps, 10)]
+    assert K[0] > 1.0
+    assert max(abs(k / K[0] - 1.0) for k in K) < 1e-2
+
+
+def test_carry_moves_free_bodies_and_floating_bases():
+    """ArticulatedKinematics.carry (a start that carries the moving bodies along with a kinematic pusher) shifts
+    the free bodies' and the floating bases' translations and nothing else (it wrote a view of its output into
+    itself and raised)."""
+    xml = """<mujoco><worldbody><body name="base" pos="0 0 1"><freejoint/><geom type="box" size="0.1 0.06 0.04"/>
+    <body name="bar"><joint name="hinge" type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0.1 0 -0.5" size="0.03"/></body></body></worldbody></mujoco>"""
+    ball = rigid_body(trimesh.creation.icosphere(1, 0.05))
+    scene = Scene([ball, ball], articulations=[articulation(xml)])
+    kin = scene.kinematics
+    for A in (1, 2):  # (one scene: the write of the view raised)
+        q = torch.randn(A, kin.num_coords, dtype=F64)
+        shift = torch.tensor([[0.1, -0.2, 0.3], [1.0, 2.0, 3.0]], dtype=F64)[:A]
+        out = kin.carry(q, shift)
+        want = q.clone()
+        for k in (0, 6, 12):  # the two balls' and the base's translations
+            want[:, k : k + 3] += shift
+        assert torch.equal(out, want)

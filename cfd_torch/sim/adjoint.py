@@ -61,28 +61,26 @@ def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = Fal
 
 
 class _Prediction(NamedTuple):
-    """Where the inertia terms put each moving body without forces: rotation (B, Nd, 3, 3) and the shift of its
-    centre of mass from 2 t_t - t_{t-1} (B, Nd, 3) or None (free bodies); each body's rotation predicted as a free
-    body's (B, Nd, 3, 3) (the backward starts its solve there); with articulations, their coordinates at the two
-    earlier states (B, Q) and the joint-space bias (B, Q)."""
+    """Where the inertia terms put each moving body without forces: its orientation (B, Nd, 3, 3) (a rotation for
+    free bodies, a first-order correction of one for articulated links) and the shift of its centre of mass from
+    2 t_t - t_{t-1} (B, Nd, 3) or None (free bodies); each body's rotation predicted as a free body's (B, Nd, 3, 3)
+    (the backward starts its solve there); with articulations, their coordinates at the two earlier states (B,
+    Q)."""
 
     rotation: torch.Tensor
     free_rotation: torch.Tensor
     shift: torch.Tensor | None = None
     coords_t: torch.Tensor | None = None
     coords_p: torch.Tensor | None = None
-    bias: torch.Tensor | None = None
 
 
-def _joint_inputs(
-    scene, q_t: torch.Tensor, q_p: torch.Tensor, ctrl, kp, kv, pred: _Prediction
-) -> JointInputs | None:
-    """The joint-space inputs of a scene with simulated articulations (coordinates of the two earlier states, the
-    actuators' terms for the controls ``ctrl`` and servo gains ``kp``, ``kv``, the prediction's bias), None
+def _joint_inputs(scene, pred: _Prediction, ctrl, kp, kv) -> JointInputs | None:
+    """The joint-space inputs of a scene with simulated articulations (coordinates of the two earlier states, from
+    the prediction, and the actuators' terms for the controls ``ctrl`` and servo gains ``kp``, ``kv``), None
     without."""
     if not scene.simulates_joints:
         return None
-    return JointInputs(pred.coords_t, pred.coords_p, *scene.kinematics.drive(ctrl, kp, kv), pred.bias)
+    return JointInputs(pred.coords_t, pred.coords_p, *scene.kinematics.drive(ctrl, kp, kv))
 
 
 def _predicted(
@@ -112,8 +110,8 @@ def _predicted(
         return _Prediction(r, r)
     th_t = kin.coords(q_t)
     th_p = kin.coords(q_p, near=th_t)  # on the same branch where link poses do not tell joint values apart
-    rot, shift, bias = kin.predict(q_t, q_p, th_t, th_p, fixed, r, mass, S, scene.dt)
-    return _Prediction(rot, r, shift, th_t, th_p, bias)
+    rot, shift = kin.predict(q_t, q_p, th_t, th_p, fixed, r, mass, S)
+    return _Prediction(rot, r, shift, th_t, th_p)
 
 
 class StepFn(torch.autograd.Function):
@@ -133,7 +131,7 @@ class StepFn(torch.autograd.Function):
             lagged = _lagged(scene, q_t, on) if bool(on.any()) else None
             gravity = torch.tensor(scene.gravity, dtype=q_t.dtype, device=q_t.device)
             pred = _predicted(scene, q_t, q_p, fixed, mass, S)
-            joint = _joint_inputs(scene, q_t, q_p, ctrl, kp, kv, pred)
+            joint = _joint_inputs(scene, pred, ctrl, kp, kv)
             prob = StepProblem(
                 scene, fixed, q_t, q_p, force, torque, mass, S, mu_f, on, lagged, gravity, joint, pred.rotation,
                 pred.shift,
@@ -216,7 +214,7 @@ class StepFn(torch.autograd.Function):
                 None if pred.shift is None else rows(pred.shift),
             )  # fmt: skip
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
-            joint = _joint_inputs(scene, tq_t, tq_p, tctrl, tkp, tkv, pred)
+            joint = _joint_inputs(scene, pred, tctrl, tkp, tkv)
             if joint is not None:
                 _, g_j, _ = kin.joint_terms(q, joint, scene.dt, 1)
                 s = s + (g_j * lam).sum()

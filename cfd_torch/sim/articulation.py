@@ -1079,32 +1079,36 @@ class ArticulatedKinematics:
         rotation: torch.Tensor,
         mass: torch.Tensor,
         S: torch.Tensor,
-        dt: float,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The inertia terms' prediction for the links, and the joint-space bias that goes with it.
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The inertia terms' prediction for the links: where their material points X go without forces.
 
         Args: the poses q_t, q_p (A, N, 6) now and a step earlier and their coordinates th_t, th_p (A, Q); the
         end-of-step poses of the bodies the map does not move, ``fixed`` (A, N, 6) (a fixed base's root); each
         moving body's free prediction of its rotation, ``rotation`` (A, M, 3, 3) (:func:`~cfd_torch.sim.energy
         .predicted_rotation`); masses (A, M) and second moments (A, M, 3, 3). Differentiable by autograd.
 
-        Returns rotation (A, M, 3, 3) and translation shift (A, M, 3) of the predictions (the free bodies' rotations
-        as given, their shifts zero), and bias (A, Q), the energy's linear term bias . (q - q_t).
+        Returns the orientations (A, M, 3, 3) and the shifts of the centres of mass from 2 t_t - t_{t-1} (A, M, 3)
+        of the predictions (the free bodies' rotations as given, their shifts zero).
 
-        A link predicted as a free body (X_free: its centre of mass at constant velocity, its rotation the discrete
-        rigid body's) leaves the joints' frame: the step then ends at the point of the joints' manifold nearest it,
-        J(q)^T M (X(q) - X_free) = 0, where the discrete Euler-Lagrange equations of the joints take the constraint
-        forces where the step starts, J_t^T M (X(q) - X_free) = 0 (J: the Jacobian of the links' material points X
-        in q, M their mass). The difference is a force of order dt that makes a spinning link lag: a pendulum at
-        5 rad/s about its hinge, without gravity, slowed to 3.8 rad/s in 2 s at dt = 0.01. Here the links are
-        predicted on the manifold, X_hat = X(q_hat) (q_hat: the joints at constant velocity, hinges mod 2 pi; a
-        floating base where its root link's free prediction puts it), with the bias G / dt^2, G = J_t^T M (X_hat -
-        X_free): stationarity J(q)^T M (X(q) - X_hat) + G = 0 differs from the discrete Euler-Lagrange equations
-        by (J(q) - J_t)^T M (X(q) - X_hat), which is zero where the step ends at X_hat (a link spinning freely on
-        a hinge, on its principal axes or not, keeps its rate to the last digits) and of second order otherwise.
-        M (X_hat - X_free) is, per link, m (t_hat - t_free) and (R_hat - R_free) S, so G is the gradient at q_t
-        of sum m t(q) . (t_hat - t_free) + tr(R(q) S (R_hat - R_free)^T), pulled back through the forward
-        kinematics' Jacobian."""
+        The discrete Euler-Lagrange equations of the joints (the variational integrator whose free bodies are the
+        Moser-Veselov ones) take the constraint forces where the step starts: J_t^T M (X(q) - X_free) = dt^2 f,
+        with X_free each link's free-body prediction (its centre of mass at constant velocity, its rotation the
+        discrete rigid body's), J the Jacobian of X in q and M the links' mass. The step's energy, 1/2 |X(q) -
+        X_pred|_M^2 / dt^2 + V(q), is stationary where J(q)^T M (X(q) - X_pred) = dt^2 f, with the constraint
+        forces at its end. With X_pred = X_free, as until session 41, the difference is a force of order dt that
+        made spinning links lag (a bar at 5 rad/s on its hinge, without gravity, slowed to 3.8 rad/s in 2 s at dt =
+        0.01). Here X_pred = X_hat + J_t delta: X_hat = X(q_hat), the links at the joints extrapolated at constant
+        velocity (hinges mod 2 pi; a floating base where its root link's free prediction puts it), moved by the
+        joints' Coriolis and gyroscopic increment delta = (J_t^T M J_t)^-1 J_t^T M (X_free - X_hat), the
+        M-projection of X_free - X_hat onto the joints' tangent space at q_t. Then J_t^T M (X_pred - X_free) = 0,
+        X_pred lies within O(dt^3) of the joints' manifold, and the two stationarity conditions differ by (J(q) -
+        J_t)^T M (X(q) - X_pred) / dt^2: of order dt^2 without forces (a free spin on one hinge, on the link's
+        principal axes or not, keeps its rate to rounding; chains keep their energy to a few 1e-3 over 10 s at dt =
+        0.01), of order dt times the forces' acceleration with them, as in any implicit Euler step. An earlier form
+        of this session, X_hat with the force J_t^T M (X_hat - X_free) / dt^2 in the energy, differed by (J(q) -
+        J_t)^T M (X(q) - X_hat) / dt^2, of order dt, and fed energy into fast chains until their steps failed.
+        Per link, M (X_hat - X_free) is m (t_hat - t_free) and (R_hat - R_free) S, and J_t delta moves the centre
+        of mass by its translation part and the orientation by sum_k dR/dw_k (J_t delta)_w,k."""
         A, dev = q_t.shape[0], q_t.device
         nf = len(self.free)
         hinge = self.joint_index[self.hinge].to(dev)
@@ -1135,20 +1139,42 @@ class ArticulatedKinematics:
         R_hat = torch.cat([x[1] for x in hat_rows], 1)
         d_t = t_hat - torch.cat(t_free, 1)  # (A, M - nf, 3)
         d_R = R_hat - rotation[:, links]
-        # G = J_t^T g: the pose-space gradient g of sum m t . d_t + tr(R S d_R^T) at q_t, pulled back
+        # J_t^T M (X_hat - X_free): the pose-space gradient g of sum m t . d_t + tr(R S d_R^T) at q_t, pulled back
         rows = self.bodies[nf:].to(dev)
-        _, dR, _ = rotation_derivatives(q_t[:, rows, 3:].reshape(-1, 3), 1)
+        # at the rows' rotation vectors as the forward kinematics writes them (its Jacobian's), whatever q_t's are
+        at = self.poses(th_t, q_t)[:, rows]
+        _, dR, _ = rotation_derivatives(at[..., 3:].reshape(-1, 3), 1)
         g_w = torch.einsum("lijk,lij->lk", dR, (d_R @ S[:, links]).reshape(-1, 3, 3)).reshape(A, -1, 3)
         g = q_t.new_zeros(q_t.shape).index_copy(1, rows, torch.cat([mass[:, links, None] * d_t, g_w], -1))
-        G = self.pullback(th_t, g, None, q_t)[0]
-        out_R = torch.cat([rotation[:, :nf], R_hat], 1)
-        shift = torch.cat([d_t.new_zeros(A, nf, 3), d_t], 1)
-        return out_R, shift, G / (dt * dt)
+        # the links' mass in pose space at q_t (m 1, and tr(dR_k S dR_l^T) for the rotation vector), pulled back
+        N, L = q_t.shape[1], rows.shape[0]
+        Hl = q_t.new_zeros(A, L, 6, 6)
+        Hl[:, :, :3, :3] = mass[:, links, None, None] * torch.eye(3, dtype=q_t.dtype, device=dev)
+        Hl[:, :, 3:, 3:] = torch.einsum("nijk,njm,niml->nkl", dR, S[:, links].reshape(-1, 3, 3), dR).reshape(
+            A, L, 3, 3
+        )
+        Hb = q_t.new_zeros(A, N, N, 6, 6)
+        Hb[:, rows, rows] = Hl
+        Hb = Hb.permute(0, 1, 3, 2, 4).reshape(A, 6 * N, 6 * N)
+        G, _, (Mq,) = self.pullback(th_t, g, None, q_t, [Hb])
+        # delta over the articulations' coordinates (a ridge of 1e-13 of the trace: J_t^T M J_t is singular where
+        # the joints' axes line up, and G has no component there)
+        ai = torch.cat([torch.arange(sl.start, sl.stop, device=dev) for sl in self.coord_slices])
+        Ma = Mq[:, ai][:, :, ai]
+        eye = torch.eye(len(ai), dtype=Ma.dtype, device=dev)
+        ridge = 1e-13 * Ma.diagonal(dim1=1, dim2=2).sum(1)[:, None, None] * eye
+        step = -torch.linalg.solve(Ma + ridge, G[:, ai, None])[..., 0]
+        delta = q_t.new_zeros(A, self.num_coords).index_copy(1, ai, step)
+        move = self.push(th_t, delta, q_t)[:, rows]  # (A, L, 6)
+        dRm = torch.einsum("lijk,lk->lij", dR, move[..., 3:].reshape(-1, 3)).reshape(A, L, 3, 3)
+        out_R = torch.cat([rotation[:, :nf], R_hat + dRm], 1)
+        shift = torch.cat([d_t.new_zeros(A, nf, 3), d_t + move[..., :3]], 1)
+        return out_R, shift
 
     def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
         out = q.clone()
         nf = 6 * len(self.free)
-        f = out[:, :nf].reshape(q.shape[0], -1, 6)
+        f = q[:, :nf].reshape(q.shape[0], -1, 6).clone()
         f[..., :3] += shift[:, None, :]
         out[:, :nf] = f.reshape(q.shape[0], -1)
         for sl, art in zip(self.coord_slices, self.arts, strict=True):
@@ -1158,10 +1184,9 @@ class ArticulatedKinematics:
 
     # -- joint-space terms
     def joint_terms(self, q, joint, dt: float, order: int):
-        """Armature, damping, springs, limits and the actuators' terms of all joints at q (A, Q), and the inertia's
-        joint-space bias, for ``joint`` (:class:`cfd_torch.sim.energy.JointInputs`: the coordinates one and two
-        steps earlier, the actuators' :class:`JointDrive` and the bias of :meth:`predict`): value (A,), grad (A,
-        Q), Hessian (A, Q, Q) (up to ``order``)."""
+        """Armature, damping, springs, limits and the actuators' terms of all joints at q (A, Q), for ``joint``
+        (:class:`cfd_torch.sim.energy.JointInputs`: the coordinates one and two steps earlier and the actuators'
+        :class:`JointDrive`): value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``)."""
         idx = self.joint_index.to(q.device)
         q_t, q_p, torque = joint.q_t, joint.q_p, joint.torque
         d = {k: v.to(dtype=q.dtype, device=q.device) for k, v in self.joint_data.items()}
@@ -1174,10 +1199,6 @@ class ArticulatedKinematics:
         # servo past pi pulls back across pi instead of flipping its force there and adding energy; on a limited
         # hinge the range fixes the angle, and the short way could cross the limits)
         turn = lambda x, m: torch.where(m, _wrap(x), x)  # noqa: E731
-        # the inertia's joint-space bias (:meth:`predict`), linear in the step's increment
-        step = q - q_t
-        step = step.index_copy(1, idx, turn(th - tt, hinge))
-        bias_value = (joint.bias * step).sum(1)
         acc = turn(th - tt, hinge) - turn(tt - tp, hinge)
         vel = turn(th - tt, hinge)
         free = self.free_hinge.to(q.device)
@@ -1193,13 +1214,13 @@ class ArticulatedKinematics:
         value = (
             0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2
             + 0.5 * d["stiffness"] * spring**2 + vs + vl + vu - torque * vel
-        ).sum(1) + bias_value  # fmt: skip
+        ).sum(1)  # fmt: skip
         if order == 0:
             return value, None, None
         g = (
             inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + gs + gl - gu - torque
         )  # fmt: skip
-        grad = joint.bias.to(q.dtype).index_add(1, idx, g)
+        grad = q.new_zeros(q.shape).index_add(1, idx, g)
         if order == 1:
             return value, grad, None
         h = inv * d["armature"] + d["damping"] / dt + d["stiffness"] + d["pd_stiffness"] + hl + hu

@@ -59,8 +59,8 @@ class StepProblem(NamedTuple):
             friction, or None when none has.
         gravity: (3,).
         joint: the joint-space inputs of scenes with articulations (:class:`JointInputs`), else None.
-        r_pred: (B, Nd, 3, 3) each moving body's predicted rotation (:func:`predicted_rotation`; an articulated
-            link's: :meth:`~cfd_torch.sim.articulation.ArticulatedKinematics.predict`).
+        r_pred: (B, Nd, 3, 3) each moving body's predicted orientation (:func:`predicted_rotation`; an articulated
+            link's: :meth:`~cfd_torch.sim.articulation.ArticulatedKinematics.predict`, a rotation to first order).
         t_shift: (B, Nd, 3) each moving body's predicted centre of mass minus the constant-velocity one, 2 t_t -
             t_{t-1} (zero for free bodies), or None for zero.
     """
@@ -83,9 +83,9 @@ class StepProblem(NamedTuple):
 
 
 class JointInputs(NamedTuple):
-    """The coordinates one and two steps earlier (B, Q), the actuators' terms (:meth:`ArticulatedKinematics
+    """The coordinates one and two steps earlier (B, Q) and the actuators' terms (:meth:`ArticulatedKinematics
     .drive`): per joint (B, J) the motors' torque and the servos' stiffness and damping, per actuator (B, U) each
-    servo's gain and target; and the inertia's joint-space bias (B, Q) (:meth:`ArticulatedKinematics.predict`)."""
+    servo's gain and target."""
 
     q_t: torch.Tensor
     q_p: torch.Tensor
@@ -94,7 +94,6 @@ class JointInputs(NamedTuple):
     damping: torch.Tensor
     servo_gain: torch.Tensor
     servo_target: torch.Tensor
-    bias: torch.Tensor
 
 
 class EnergyEval(NamedTuple):
