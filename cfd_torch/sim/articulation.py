@@ -1139,33 +1139,38 @@ class ArticulatedKinematics:
         R_hat = torch.cat([x[1] for x in hat_rows], 1)
         d_t = t_hat - torch.cat(t_free, 1)  # (A, M - nf, 3)
         d_R = R_hat - rotation[:, links]
-        # J_t^T M (X_hat - X_free): the pose-space gradient g of sum m t . d_t + tr(R S d_R^T) at q_t, pulled back
+        # per link at q_t (at the rows' rotation vectors as the forward kinematics writes them, its Jacobian's,
+        # whatever q_t's are): M (X_hat - X_free) as a pose-space gradient g (the derivative of m t . d_t + tr(R S
+        # d_R^T)), the pose-space mass H (m 1, and tr(dR_k S dR_l^T) for the rotation vector), and the Jacobian Jl
+        # of its row in the articulations' coordinates (A, L, 6, Qa), block-diagonal over the articulations
         rows = self.bodies[nf:].to(dev)
-        # at the rows' rotation vectors as the forward kinematics writes them (its Jacobian's), whatever q_t's are
+        L = rows.shape[0]
         at = self.poses(th_t, q_t)[:, rows]
         _, dR, _ = rotation_derivatives(at[..., 3:].reshape(-1, 3), 1)
-        g_w = torch.einsum("lijk,lij->lk", dR, (d_R @ S[:, links]).reshape(-1, 3, 3)).reshape(A, -1, 3)
-        g = q_t.new_zeros(q_t.shape).index_copy(1, rows, torch.cat([mass[:, links, None] * d_t, g_w], -1))
-        # the links' mass in pose space at q_t (m 1, and tr(dR_k S dR_l^T) for the rotation vector), pulled back
-        N, L = q_t.shape[1], rows.shape[0]
-        Hl = q_t.new_zeros(A, L, 6, 6)
-        Hl[:, :, :3, :3] = mass[:, links, None, None] * torch.eye(3, dtype=q_t.dtype, device=dev)
-        Hl[:, :, 3:, 3:] = torch.einsum("nijk,njm,niml->nkl", dR, S[:, links].reshape(-1, 3, 3), dR).reshape(
+        g_w = torch.einsum("lijk,lij->lk", dR, (d_R @ S[:, links]).reshape(-1, 3, 3)).reshape(A, L, 3)
+        g = torch.cat([mass[:, links, None] * d_t, g_w], -1)  # (A, L, 6)
+        H = q_t.new_zeros(A, L, 6, 6)
+        H[:, :, :3, :3] = mass[:, links, None, None] * torch.eye(3, dtype=q_t.dtype, device=dev)
+        H[:, :, 3:, 3:] = torch.einsum("nijk,njm,niml->nkl", dR, S[:, links].reshape(-1, 3, 3), dR).reshape(
             A, L, 3, 3
         )
-        Hb = q_t.new_zeros(A, N, N, 6, 6)
-        Hb[:, rows, rows] = Hl
-        Hb = Hb.permute(0, 1, 3, 2, 4).reshape(A, 6 * N, 6 * N)
-        G, _, (Mq,) = self.pullback(th_t, g, None, q_t, [Hb])
-        # delta over the articulations' coordinates (a ridge of 1e-13 of the trace: J_t^T M J_t is singular where
-        # the joints' axes line up, and G has no component there)
-        ai = torch.cat([torch.arange(sl.start, sl.stop, device=dev) for sl in self.coord_slices])
-        Ma = Mq[:, ai][:, :, ai]
-        eye = torch.eye(len(ai), dtype=Ma.dtype, device=dev)
-        ridge = 1e-13 * Ma.diagonal(dim1=1, dim2=2).sum(1)[:, None, None] * eye
-        step = -torch.linalg.solve(Ma + ridge, G[:, ai, None])[..., 0]
-        delta = q_t.new_zeros(A, self.num_coords).index_copy(1, ai, step)
-        move = self.push(th_t, delta, q_t)[:, rows]  # (A, L, 6)
+        Qa = sum(sl.stop - sl.start for sl in self.coord_slices)
+        Jl = q_t.new_zeros(A, L, 6, Qa)
+        row = col = 0
+        for r0, r1, sl, Ja, _ in self._derivatives(th_t, q_t, None):
+            Jl[:, row : row + r1 - r0, :, col : col + sl.stop - sl.start] = Ja.reshape(A, r1 - r0, 6, -1)
+            row, col = row + r1 - r0, col + sl.stop - sl.start
+        # delta = -(J_t^T M J_t)^-1 J_t^T M (X_hat - X_free) (a ridge of 1e-13 of the trace: J_t^T M J_t is singular
+        # where the joints' axes line up, and the right-hand side has no component there)
+        G = torch.einsum("alkq,alk->aq", Jl, g)
+        Mq = torch.einsum("alkq,alkm,almp->aqp", Jl, H, Jl)
+        ridge = (
+            1e-13
+            * Mq.diagonal(dim1=1, dim2=2).sum(1)[:, None, None]
+            * torch.eye(Qa, dtype=Mq.dtype, device=dev)
+        )
+        delta = -torch.linalg.solve(Mq + ridge, G[..., None])[..., 0]
+        move = torch.einsum("alkq,aq->alk", Jl, delta)  # J_t delta, per link row
         dRm = torch.einsum("lijk,lk->lij", dR, move[..., 3:].reshape(-1, 3)).reshape(A, L, 3, 3)
         out_R = torch.cat([rotation[:, :nf], R_hat + dRm], 1)
         shift = torch.cat([d_t.new_zeros(A, nf, 3), d_t + move[..., :3]], 1)
