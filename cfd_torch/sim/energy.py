@@ -6,8 +6,8 @@ other bodies at their end-of-step poses (static: fixed; kinematic: the action's 
     L(q) = sum_dynamic [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . axial(R R_t^T) ]
            + P_contact(poses(q)) + D_friction(poses(q); lagged at q_t)
 
-with b = t - 2 t_t + t_{t-1} - t_shift, A = R - R_pred, S the body's second moment of mass (:mod:`.bodies`), f and tau the
-action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the work
+with b = t - 2 t_t + t_{t-1} - t_shift, A = R - R_pred, S the body's second moment of mass (:mod:`.bodies`), f and
+tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the work
 tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the inertia term
 is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions, x_pred = R_pred X + 2 t_t -
 t_{t-1}: constant linear velocity, and the torque-free rotation of the discrete rigid body
