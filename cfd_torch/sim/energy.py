@@ -7,8 +7,8 @@ other bodies at their end-of-step poses (static: fixed; kinematic: the action's 
            + P_contact(poses(q)) + D_friction(poses(q); lagged at q_t)
 
 with b = t - 2 t_t + t_{t-1} - t_shift, A = R - R_pred, S the body's second moment of mass (:mod:`.bodies`), f and
-tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the work
-tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the inertia term
+tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the
+work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the inertia term
 is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions, x_pred = R_pred X + 2 t_t -
 t_{t-1}: constant linear velocity, and the torque-free rotation of the discrete rigid body
 (:func:`predicted_rotation`; in planar scenes, constant angular velocity about z, R_t R_{t-1}^T R_t); an
