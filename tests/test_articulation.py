@@ -1235,8 +1235,8 @@ def _tilted_box_on_a_hinge() -> Articulation:
 def test_a_link_spinning_freely_on_a_hinge_keeps_its_rate(which):
     """Without gravity a link turning on a fixed hinge keeps its rate (its centre of mass circles the axis; the
     tilted box is spun off its principal axes). With every link predicted as a free body and projected back onto
-    the hinge, the bar slowed from 5 to 3.8 rad/s in 2 s at dt = 0.01 and the box fell 0.27 rad behind in 5 s;
-    the joints' prediction with its bias keeps both to rounding."""
+    the hinge, the bar slowed from 5 to 3.8 rad/s in 2 s at dt = 0.01 and the box lost 1.0 of its 5 rad/s;
+    the joints' prediction keeps both to rounding."""
     art = _pendulum() if which == "bar" else _tilted_box_on_a_hinge()
     base = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=F64)
     w, dt, steps = 5.0, 0.01, 200
@@ -1303,7 +1303,7 @@ def test_fast_chains_follow_mujoco_at_first_order(xml, th0, v0, bound):
 def test_rollout_gradient_of_a_fast_floating_robot_matches_finite_differences():
     """A floating box with a bar on a hinge, turning at 2 rad/s and its bar swinging at 4 rad/s under gravity: the
     gradient of the bar's final position through 12 steps, in its initial angle and rate, the bar's mass and the
-    base's second moment (the links' prediction and its joint-space bias depend on all four), against central
+    base's second moment (the links' prediction and its Coriolis increment depend on all four), against central
     differences."""
     xml = """<mujoco><worldbody><body name="base" pos="0 0 1"><freejoint/><geom type="box" size="0.1 0.06 0.04"/>
     <body name="bar"><joint name="hinge" type="hinge" axis="0 1 0"/>
