@@ -204,10 +204,11 @@ class StepFn(torch.autograd.Function):
         with torch.enable_grad():
             th = [x.detach().requires_grad_(True) for x in inputs]
             tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl, tkp, tkv = th
-            poses_next = kin.poses(q, end_poses(scene, tq_t, ttarget))
+            fixed = end_poses(scene, tq_t, ttarget)
+            poses_next = kin.poses(q, fixed)
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
-            pred = _predicted(scene, tq_t, tq_p, end_poses(scene, tq_t, ttarget), tmass, tS, r_free)
+            pred = _predicted(scene, tq_t, tq_p, fixed, tmass, tS, r_free)
             _, g_b, _ = body_terms(
                 rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
                 rows(tf[:, dyn]), rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,

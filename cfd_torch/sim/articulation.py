@@ -1091,30 +1091,26 @@ class ArticulatedKinematics:
         of the predictions (the free bodies' rotations as given, their shifts zero).
 
         The discrete Euler-Lagrange equations of the joints (the variational integrator whose free bodies are the
-        Moser-Veselov ones) take the constraint forces where the step starts: J_t^T M (X(q) - X_free) = dt^2 f,
-        with X_free each link's free-body prediction (its centre of mass at constant velocity, its rotation the
-        discrete rigid body's), J the Jacobian of X in q and M the links' mass. The step's energy, 1/2 |X(q) -
-        X_pred|_M^2 / dt^2 + V(q), is stationary where J(q)^T M (X(q) - X_pred) = dt^2 f, with the constraint
-        forces at its end. With X_pred = X_free, as until session 41, the difference is a force of order dt that
-        made spinning links lag (a bar at 5 rad/s on its hinge, without gravity, slowed to 3.8 rad/s in 2 s at dt =
-        0.01). Here X_pred = X_hat + J_t delta: X_hat = X(q_hat), the links at the joints extrapolated at constant
-        velocity (hinges mod 2 pi; a floating base where its root link's free prediction puts it), moved by the
-        joints' Coriolis and gyroscopic increment delta = (J_t^T M J_t)^-1 J_t^T M (X_free - X_hat), the
-        M-projection of X_free - X_hat onto the joints' tangent space at q_t. Then J_t^T M (X_pred - X_free) = 0,
-        X_pred lies within O(dt^3) of the joints' manifold, and the two stationarity conditions differ by (J(q) -
-        J_t)^T M (X(q) - X_pred) / dt^2: of order dt^2 without forces (a free spin on one hinge, on the link's
-        principal axes or not, keeps its rate to rounding; chains keep their energy to a few 1e-3 over 10 s at dt =
-        0.01), of order dt times the forces' acceleration with them, as in any implicit Euler step. An earlier form
-        of this session, X_hat with the force J_t^T M (X_hat - X_free) / dt^2 in the energy, differed by (J(q) -
-        J_t)^T M (X(q) - X_hat) / dt^2, of order dt, and fed energy into fast chains until their steps failed.
-        Per link, M (X_hat - X_free) is m (t_hat - t_free) and (R_hat - R_free) S, and J_t delta moves the centre
-        of mass by its translation part and the orientation by sum_k dR/dw_k (J_t delta)_w,k."""
+        Moser-Veselov ones) take the constraint forces where the step starts: J_t^T M (X(q) - X_free) = dt^2 f, with
+        X_free each link's free-body prediction (its centre of mass at constant velocity, its rotation the discrete
+        rigid body's), J the Jacobian of X in q and M the links' mass. The step's energy, 1/2 |X(q) - X_pred|_M^2 / dt^2
+        + V(q), is stationary where J(q)^T M (X(q) - X_pred) = dt^2 f, with the constraint forces at its end. With
+        X_pred = X_free the difference is a force of order dt that makes spinning links lag (a bar at 5 rad/s on its
+        hinge, without gravity, slows to 3.8 rad/s in 2 s at dt = 0.01). Here X_pred = X_hat + J_t delta: X_hat =
+        X(q_hat), the links at the joints extrapolated at constant velocity (hinges mod 2 pi; a floating base where its
+        root link's free prediction puts it), moved by the joints' Coriolis and gyroscopic increment delta = (J_t^T M
+        J_t)^-1 J_t^T M (X_free - X_hat), the M-projection of X_free - X_hat onto the joints' tangent space at q_t. Then
+        J_t^T M (X_pred - X_free) = 0, X_pred lies within O(dt^3) of the joints' manifold, and the two stationarity
+        conditions differ by (J(q) - J_t)^T M (X(q) - X_pred) / dt^2: of order dt^2 without forces (a free spin on one
+        hinge, on the link's principal axes or not, keeps its rate to rounding; chains keep their energy to a few 1e-3
+        over 10 s at dt = 0.01), of order dt times the forces' acceleration with them, as in any implicit Euler step.
+        (X_hat with the force J_t^T M (X_hat - X_free) / dt^2 in the energy instead would differ by (J(q) - J_t)^T M
+        (X(q) - X_hat) / dt^2, of order dt, which feeds energy into fast chains.) Per link, M (X_hat - X_free) is m
+        (t_hat - t_free) and (R_hat - R_free) S, and J_t delta moves the centre of mass by its translation part and the
+        orientation by sum_k dR/dw_k (J_t delta)_w,k."""
         A, dev = q_t.shape[0], q_t.device
         nf = len(self.free)
-        hinge = self.joint_index[self.hinge].to(dev)
-        v = th_t - th_p
-        v = v.index_copy(1, hinge, _wrap(v[:, hinge]))
-        th_hat = th_t + v
+        th_hat = self.extrapolate(th_t, th_p)  # (its floating bases' coordinates are not used)
         hat_rows, t_free = [], []
         slot = nf
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
