@@ -9,7 +9,7 @@ Contact (``cfd_torch.contact``):
     pair_potential(tri_a, tri_b, *, mu, margin)              exact separating-plane potential, 2nd-order autograd
     pair_potential_derivatives(tri_a, tri_b, *, mu, margin)  value, grad (..., 18), Hessian (..., 18, 18), plane
     central_potential(r, *, mu)                              closed form 12 mu (1 + r^-1/2)^2
-    smoothstep(s), blend_weight(r, d1, eps)                  quintic C2 blend
+    smoothstep(s), blend_weight(r, d1, eps, margin)          quintic C2 blend
     BSH.build(vertices, faces) / BSH.from_trimesh(mesh)      bounding sphere hierarchy of a rigid body
     mesh_potential(bsh_a, pose_a, bsh_b, pose_b)             BSH potential of two bodies, 2nd-order autograd
     mesh_potential_derivatives(...)                          value, grad (..., 12), Hessian (..., 12, 12)
@@ -23,8 +23,9 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
     rigid_body(mesh, kind=, density=, max_edge=)             body with exact volumetric mass properties
     Scene(bodies, dt=, gravity=, contact=, friction=, solver=)  bodies and settings of a simulation
     FrictionConfig, SolverConfig                             Coulomb friction; the Newton solve
-    step(scene, State(q, q_prev), Action(force, torque, target), params) -> State   differentiable step,
-                                                             batched over a leading dimension of scenes
+    step(scene, State(q, q_prev), Action(force, torque, target, ctrl, joints), Params(...)) -> State
+                                                             differentiable step, batched over a leading
+                                                             dimension of scenes
     rollout(scene, state, actions) -> Trajectory            T steps (ordinary autograd through all of them)
     pair_forces(scene, q)                                    contact force of every body on every other
 

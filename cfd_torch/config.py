@@ -18,9 +18,16 @@ SPLIT_RULES = ("both", "larger")
 POTENTIALS = ("cfd", "ipc", "sdrs")
 
 
+def _got(value: object) -> str:
+    """How an error shows a setting's value: with its type when it is not a real number (a tensor, a string)."""
+    return (
+        f"{value!r}" if is_real(value) else f"{value!r} of type {type(value).__name__} (give a Python float)"
+    )
+
+
 def _positive(owner: str, name: str, value: object) -> None:
     if not (is_real(value) and 0 < value < math.inf):
-        raise ValueError(f"{owner}.{name} must be a finite positive number, got {value!r}")
+        raise ValueError(f"{owner}.{name} must be a finite positive number, got {_got(value)}")
 
 
 def _count(owner: str, name: str, value: object) -> None:
@@ -113,7 +120,7 @@ class FrictionConfig:
     def __post_init__(self) -> None:
         c = self.coefficient
         if not (is_real(c) and 0 <= c < math.inf):
-            raise ValueError(f"FrictionConfig.coefficient must be a finite number >= 0, got {c!r}")
+            raise ValueError(f"FrictionConfig.coefficient must be a finite number >= 0, got {_got(c)}")
         _positive("FrictionConfig", "eps_v", self.eps_v)
         a = self.active
         if not (is_real(a) and 0 <= a < 1):

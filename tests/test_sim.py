@@ -226,16 +226,21 @@ def test_newton_stops_at_non_finite_derivatives_and_says_so():
 
 def test_overflowing_settings_raise_clear_errors(bodies):
     """A time step whose 1/dt^2 overflows is refused by the Scene; a friction coefficient whose Hessian overflows
-    raises a StepError naming the overflow (it was linalg.eigh's 'failed to converge')."""
+    raises a StepError naming the overflow (it was linalg.eigh's 'failed to converge') and the coefficient the step
+    used, also when it came in ``Params`` (the message quoted the Scene's)."""
     cube, ground, _, _ = bodies
     with pytest.raises(ValueError, match="dt must be a finite number of at least 1e-12"):
         Scene((cube, ground), dt=1e-200)
     scene = Scene((cube, ground), friction=1e307)
     state = scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.125 + 2e-3), _pose()], dtype=F64))  # resting
     with pytest.raises(
-        StepError, match="non-finite gradient or Hessian at Newton iteration 1.*friction coefficient"
+        StepError, match="non-finite gradient or Hessian at Newton iteration 1.*friction coefficient 1e\\+307"
     ):
         step(scene, state)
+    plain = Scene((cube, ground), friction=0.0)
+    params = plain.params()._replace(friction=torch.tensor(1e307, dtype=F64))
+    with pytest.raises(StepError, match="friction coefficient 1e\\+307"):
+        step(plain, state, params=params)
 
 
 def test_a_gap_of_exactly_one_margin_is_refused_as_penetrating(bodies):

@@ -343,6 +343,15 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
         Scene([box, ground], solver=3)
     with _says("friction must be a FrictionConfig or a number", TypeError):
         Scene([box, ground], friction=torch.tensor(0.5))
+    # a tensor where a number belongs: said so, not "must be a finite number, got tensor(0.0100)"
+    with _says("dt must be a real number (a Python or NumPy float), got Tensor"):
+        Scene([box, ground], dt=torch.tensor(0.01))
+    with _says("ContactConfig.margin must be a finite positive number, got tensor(0.0010) of type Tensor"):
+        Scene([box, ground], margin=torch.tensor(1e-3))
+    with _says("bodies must be a sequence of RigidBody (see cfd_torch.rigid_body), got str at index 1"):
+        Scene([box, "ground"])
+    with _says("bodies must be a non-empty sequence of RigidBody"):
+        Scene([])
     assert Scene([box, ground], friction=np.float32(0.5)).friction.coefficient == 0.5
     with _says("max_edge must be a finite number > 0"):
         BSH.from_trimesh(trimesh.creation.box((1.0, 1.0, 1.0)), max_edge="0.1")
@@ -483,6 +492,23 @@ def test_a_failed_step_in_a_batch_names_its_scene():
         StepError, match="^scene 1 of the batch: the step did not converge in 4 Newton iterations"
     ):
         step(sc, State(q, q_prev))
+
+
+def test_a_body_turning_too_fast_names_its_body_and_scene():
+    """Three scenes of two free boxes; in scene 2 box 1 spins at 200 rad/s (2 rad per step): the free rotation's
+    StepError names the body and the scene (it named neither)."""
+    from cfd_torch import StepError
+
+    box = rigid_body(trimesh.creation.box((0.4, 0.2, 0.1)), density=500.0)
+    sc = Scene([box, box], dt=0.01, gravity=(0, 0, 0))
+    q = torch.zeros(3, 2, 6, dtype=F64)
+    q[:, 1, 0] = 1.0
+    v = torch.zeros(3, 2, 6, dtype=F64)
+    v[2, 1, 3:] = 200.0 * torch.tensor([0.3, 1.0, 0.5], dtype=F64) / math.sqrt(1.34)
+    with pytest.raises(StepError, match=r"the free rotation of a body \(body 1, scene 2\) over the step"):
+        step(sc, State(q, q - 0.01 * v))
+    with pytest.raises(StepError, match=r"the free rotation of a body \(body 1\) over the step"):
+        step(sc, State(q[2], q[2] - 0.01 * v[2]))
 
 
 def test_state_dtypes_must_match(scene, state):

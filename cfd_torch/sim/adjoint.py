@@ -17,7 +17,15 @@ import torch
 
 from ..contact.model import LaggedContacts, sum_pairs
 from ..contact.pair import PairSolveError
-from .energy import JointInputs, StepProblem, body_terms, end_poses, predicted_rotation, scene_pairs
+from .energy import (
+    FreeRotationError,
+    JointInputs,
+    StepProblem,
+    body_terms,
+    end_poses,
+    predicted_rotation,
+    scene_pairs,
+)
 from .friction import friction_terms
 from .solve import solve_step
 from .types import StepError
@@ -99,13 +107,18 @@ def _predicted(
     kin = scene.kinematics
     dyn = kin.bodies.to(q_t.device)
     B, Nd = q_t.shape[0], len(dyn)
-    r = predicted_rotation(
-        q_t[:, dyn].reshape(B * Nd, 6),
-        q_p[:, dyn].reshape(B * Nd, 6),
-        S.reshape(B * Nd, 3, 3),
-        not scene.planar,
-        None if solved is None else solved.reshape(B * Nd, 3, 3),
-    ).reshape(B, Nd, 3, 3)
+    try:
+        r = predicted_rotation(
+            q_t[:, dyn].reshape(B * Nd, 6),
+            q_p[:, dyn].reshape(B * Nd, 6),
+            S.reshape(B * Nd, 3, 3),
+            not scene.planar,
+            None if solved is None else solved.reshape(B * Nd, 3, 3),
+        ).reshape(B, Nd, 3, 3)
+    except FreeRotationError as err:  # name the body (and the scene, in a batch)
+        b, i = divmod(err.row, Nd)
+        where = f" (body {int(dyn[i])}{f', scene {b}' if B > 1 else ''})"
+        raise FreeRotationError(err.row, where) from None
     if not scene.simulates_joints:
         return _Prediction(r, r)
     th_t = kin.coords(q_t)

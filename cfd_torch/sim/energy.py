@@ -32,6 +32,7 @@ from .._autograd import tracked
 from ..contact.model import LaggedContacts, sum_pairs
 from ..rotation import rotation_derivatives, rotation_matrix
 from .friction import friction_by_pair
+from .types import StepError
 
 __all__ = [
     "StepProblem",
@@ -224,6 +225,17 @@ def _mv_residual(F, S, M):
     return r, _axial(Y).transpose(1, 2)
 
 
+class FreeRotationError(StepError):
+    """:func:`predicted_rotation` found no free rotation for the body in row ``row`` of its inputs."""
+
+    def __init__(self, row: int, where: str = "") -> None:
+        super().__init__(
+            f"the free rotation of a body{where} over the step (the discrete rigid body's equation) has no solution "
+            "Newton's method finds: the body turns more than about pi / 2 rad per step; reduce dt"
+        )
+        self.row = row
+
+
 def predicted_rotation(
     q_t: torch.Tensor,
     q_p: torch.Tensor,
@@ -240,9 +252,10 @@ def predicted_rotation(
     R_t R_{t-1}^T R_t, to the last bit.
 
     Solved by Newton's method from F = F0 (updates F exp(d^)); differentiable by autograd (one Newton step from the
-    converged F carries the implicit function's first derivatives). A StepError if it does not converge (a body
-    turning near pi per step). ``gyroscopic=False`` (planar scenes, whose bodies turn about z only: the constraint
-    takes the gyroscopic torque, and a constant rate about z is exact): F = F0. ``solved``: this function's
+    converged F carries the implicit function's first derivatives). A :class:`FreeRotationError` (a StepError)
+    naming the first input row that does not converge (a body turning more than about pi / 2 rad per step).
+    ``gyroscopic=False`` (planar scenes, whose bodies turn about z only: the constraint takes the gyroscopic torque,
+    and a constant rate about z is exact): F = F0. ``solved``: this function's
     result for the same inputs, computed before (the step's backward reuses its forward's): the iterations start
     there and end at once."""
     Rt, Rp = rotation_matrix(q_t[:, 3:]), rotation_matrix(q_p[:, 3:])
@@ -257,31 +270,24 @@ def predicted_rotation(
     moved = torch.full((F.shape[0],), solved is not None, dtype=torch.bool, device=F.device)
     with torch.no_grad():
         Sd, Md = S.detach(), M.detach()
-        ok = True
+        bad = torch.zeros_like(moved)  # bodies whose Newton iterations found no root (a singular Jacobian)
         for _ in range(_MV_ITERS):
             r, jac = _mv_residual(F, Sd, Md)
-            off = r.abs().amax(1) > tol
+            off = (r.abs().amax(1) > tol) & ~bad
             if not bool(off.any()):
                 break
             moved = moved | off
             d, info = torch.linalg.solve_ex(jac, r)
-            if bool((info[off] != 0).any()):
-                ok = False
-                break
-            F = F @ rotation_matrix(-torch.where(off[:, None], d, torch.zeros_like(d)))
+            bad = bad | (off & (info != 0))
+            F = F @ rotation_matrix(-torch.where((off & ~bad)[:, None], d, torch.zeros_like(d)))
         else:
-            ok = False
+            bad = bad | (_mv_residual(F, Sd, Md)[0].abs().amax(1) > tol)
         # the discrete rigid body conserves tr(F S) (its kinetic energy): the equation has other roots beyond about
         # pi / 2 rad of turn per step, where Newton can land
         drift = ((F - F0.detach()) * Sd.transpose(1, 2)).sum((1, 2))  # tr((F - F0) S)
-        ok = ok and bool((drift.abs() <= 1e-9 * trace).all())
-        if not ok:
-            from .types import StepError
-
-            raise StepError(
-                "the free rotation of a body over the step (the discrete rigid body's equation) has no solution "
-                "Newton's method finds: the body turns more than about pi / 2 rad per step; reduce dt"
-            )
+        bad = bad | ~(drift.abs() <= 1e-9 * trace)
+        if bool(bad.any()):
+            raise FreeRotationError(int(torch.nonzero(bad)[0, 0]))
     if any(tracked(x) for x in (q_t, q_p, S)):  # one more step, differentiable, from the converged F
         r, jac = _mv_residual(F, S, M)
         return Rt @ (F @ rotation_matrix(-torch.linalg.solve(jac, r)))

@@ -167,7 +167,13 @@ class Scene:
             raise TypeError(
                 "articulations must be a sequence of Articulation (see cfd_torch.sim.articulation)"
             )
-        if not (bodies or arts) or not all(isinstance(b, RigidBody) for b in bodies):
+        wrong = [i for i, b in enumerate(bodies) if not isinstance(b, RigidBody)]
+        if wrong:  # (a ValueError, as it always was, so that code catching it keeps working)
+            raise ValueError(
+                f"bodies must be a sequence of RigidBody (see cfd_torch.rigid_body), got "
+                f"{type(bodies[wrong[0]]).__name__} at index {wrong[0]}"
+            )
+        if not (bodies or arts):
             raise ValueError("bodies must be a non-empty sequence of RigidBody (see cfd_torch.rigid_body)")
         self.articulations = arts
         #: how many of ``bodies`` are kinematic (``Action.target``'s rows; kinematic robots' links come after them)
@@ -185,7 +191,9 @@ class Scene:
         self.articulation_rows = tuple(first)
         if not any(b.kind == "dynamic" for b in bodies):
             raise ValueError("a scene needs at least one dynamic body")
-        if not (is_real(dt) and _MIN_DT <= dt < math.inf):
+        if not is_real(dt):
+            raise ValueError(f"dt must be a real number (a Python or NumPy float), got {type(dt).__name__}")
+        if not _MIN_DT <= dt < math.inf:
             raise ValueError(
                 f"dt must be a finite number of at least {_MIN_DT:g} s (a shorter step loses the motion to float64 "
                 f"rounding, and 1/dt^2 overflows below 1e-154), got {dt!r}"

@@ -279,11 +279,13 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     return q0, None, work
 
 
-def _settings(scene) -> str:
-    """The settings that scale the incremental potential's terms, for the overflow errors."""
+def _settings(prob: StepProblem, b: int) -> str:
+    """The settings that scale scene b's incremental potential terms, for the overflow errors (the friction
+    coefficient the step used: the scene's, or the one passed in ``Params``)."""
+    scene = prob.scene
     return (
         f"(dt={scene.dt:g}, contact stiffness mu={scene.contact.stiffness:g}, friction coefficient "
-        f"{scene.friction.coefficient:g}: check them, the masses and the action (forces, torques, controls))"
+        f"{float(prob.friction[b]):g}: check them, the masses and the action (forces, torques, controls))"
     )
 
 
@@ -310,12 +312,12 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
                 prob.scene.kinematics.check_within_limits(prob.q_t.detach(), "state.q")
             raise StepError(
                 f"infeasible Newton start (non-finite energy){where}: bodies penetrate, or a term overflows float64 "
-                f"{_settings(prob.scene)}"
+                f"{_settings(prob, b)}"
             )
         if r == Stop.NONFINITE:
             raise StepError(
                 f"non-finite gradient or Hessian at Newton iteration {int(res.iters[b])}{where}: a term of the "
-                f"incremental potential overflows float64 {_settings(prob.scene)}"
+                f"incremental potential overflows float64 {_settings(prob, b)}"
             )
         what = {
             Stop.LINE_SEARCH_FAILED: f"the line search failed at Newton iteration {int(res.iters[b])} (no finite, "
