@@ -34,11 +34,18 @@ Poses are (..., 6): translation then rotation vector; a body-frame point X is at
 
 import ctypes.util
 import os
+import sys
 
 # Headless rendering (cfd_torch.envs) needs MuJoCo's EGL backend, chosen when mujoco is first imported; this
 # package's MJCF loader and pytorch_kinematics import mujoco, so the choice is made here (an explicit MUJOCO_GL or a
-# display wins; without an EGL library mujoco would fail to import with it, so it is left alone)
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
+# display wins; without an EGL library mujoco would fail to import with it, so it is left alone; once mujoco is
+# imported its backend is chosen, and setting the variable would only misreport it)
+if (
+    "MUJOCO_GL" not in os.environ
+    and "mujoco" not in sys.modules
+    and not os.environ.get("DISPLAY")
+    and ctypes.util.find_library("EGL")
+):
     os.environ["MUJOCO_GL"] = "egl"
 
 from .config import ContactConfig, FrictionConfig, SolverConfig  # noqa: E402

@@ -39,7 +39,8 @@ class AntPushCore(BoxToTargetCore):
     their velocities (8 + 8), the box's pose and velocity (6 + 6), the target's xy (2).
 
     Reward: ``distance`` = -|box xy - target| [m] after the step, plus ``action`` = -``action_cost`` |a|^2 (1e-3).
-    Terminated when the box's centre is within 0.1 m of the target. Horizon 500 steps (5 s).
+    Terminated when the box's centre is within 0.1 m of the target. Horizon 500 steps (5 s at the default
+    dt; the time limit counts steps).
 
     Initial state: the Ant at rest, joints at zero where their limits allow it (hips) and mid-range otherwise
     (ankles: +-50 degrees), torso at the origin with its lowest point 2 mm above the floor

@@ -9,7 +9,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore, _is_int, check_task_arguments, disc, marker_rows
+from .core import EnvState, TaskCore, _is_int, camera_over, check_task_arguments, disc, marker_rows
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -22,7 +22,7 @@ def rack_positions(radius: float) -> torch.Tensor:
     """(15, 2) rack centres: the authors' layout, ball j of row i (i + 1 balls, j = 0..i) at
     x = 1.1 u (4 - i) + 2.2 u j, y = 1.6 u i in the unit u = radius / 0.9, shifted so that the apex (row 0) is at the
     origin and the rack opens toward +y. (With u = radius, balls of adjacent rows would overlap: their centres are
-    1.94 u apart; with u = radius / 0.9 they are 4.4 mm apart at the default radius, neighbours in a row 11.4 mm.)"""
+    1.94 u apart; with u = radius / 0.9 they are 4.5 mm apart at the default radius, neighbours in a row 12.7 mm.)"""
     u = radius / 0.9
     xy = [[1.1 * u * (4 - i) + 2.2 * u * j - 4.4 * u, 1.6 * u * i] for i in range(5) for j in range(i + 1)]
     return torch.tensor(xy, dtype=torch.float64)
@@ -46,16 +46,18 @@ class BilliardsCore(TaskCore):
 
     Reward: ``distance`` = -|xy of the object ball - pocket| [m] after the step, plus ``action`` =
     -``action_cost`` |a|^2 (1e-3). Terminated when the object ball's centre is within ``pocket_radius``
-    (0.08 m) of the pocket. Horizon 100 steps (1 s).
+    (0.08 m) of the pocket. Horizon 100 steps (1 s at the default dt; the
+    time limit counts steps).
 
     Initial state: rack at rest; cue ball at rest at x ~ U(-0.1, 0.1), y ~ U(-0.6, -0.4) m (the trivial start:
-    30-50 cm from the apex, nothing touching, every contact force tiny but non-zero); the object ball
-    (``target_ball``, default drawn uniformly from the 15) and the pocket (``pocket``: an index of ``POCKETS``,
+    40-61 cm from the apex centre to centre, 34-55 cm between the surfaces; nothing touching, every contact force
+    tiny but non-zero); the object ball (``target_ball``, default drawn uniformly from the 15) and the pocket
+    (``pocket``: an index of ``POCKETS``,
     default drawn from the far corners and the sides, 0-3) are drawn per reset unless fixed. Task variables:
     ``state.task["target"]`` (int64 index), ``state.task["pocket"]`` (xy).
 
     Baselines (``potential`` "ipc" or "sdrs"): their activation distance is ``dhat`` (1 mm here, not the models'
-    1 cm), under the rack's smallest gap (0.156 ``ball_radius``, 4.4 mm: SDRS acts out to 2 (dhat + 0.5 mm) = 3 mm),
+    1 cm), under the rack's smallest gap (0.157 ``ball_radius``, 4.5 mm: SDRS acts out to 2 (dhat + 0.5 mm) = 3 mm),
     so that the rack rests at zero action as it does with this library's potential. With 1 cm both barriers span the
     gaps and blow the rack apart in the first step (at zero actions IPC then sent ball 14 into its far-right pocket,
     seed 2).
@@ -172,7 +174,16 @@ class BilliardsCore(TaskCore):
         return -high, high
 
     def render_camera(self) -> dict:
-        return {"lookat": (0.0, 0.2, 0.0), "distance": 2.3, "azimuth": 90.0, "elevation": -70.0}
+        """Over the rack, the cue ball's start region and the pockets that can be drawn: for the far corners and
+        the sides (0-3, the default draw) a fixed view that holds them all; a near-corner ``pocket`` (4, 5), below
+        that view, gets a view derived from the discs (:func:`~cfd_torch.envs.core.camera_over`)."""
+        if self.pocket is None or self.pocket < 4:
+            return {"lookat": (0.0, 0.2, 0.0), "distance": 2.3, "azimuth": 90.0, "elevation": -70.0}
+        r = self.ball_radius
+        discs = [(float(x), float(y), r) for x, y in self.rack]
+        discs.append((0.0, -0.5, math.hypot(0.1, 0.1) + r))  # the cue ball's start region
+        discs.append((*POCKETS[self.pocket], self.pocket_radius))
+        return camera_over(discs, azimuth=90.0, elevation=-70.0)
 
     def render_floor(self) -> float:
         return -self.ball_radius

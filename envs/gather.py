@@ -28,7 +28,7 @@ class GatherCore(CubesCore):
 
     Reward: ``distance`` = -mean over cubes of how far each centre is outside the region (a disc of radius
     ``region_radius``, 0.35 m) [m], plus ``action`` = -``action_cost`` |a|^2 (1e-3). Terminated when every cube is
-    inside. Horizon 300 steps (3 s).
+    inside. Horizon 300 steps (3 s at the default dt; the time limit counts steps).
 
     Initial state: cubes and pusher at rest as in Sort (centres uniform in [-0.8, 0.8]^2, footprints 5 cm apart,
     cubes 2 mm above the floor); the region's centre at distance ``region_distance`` (1.5 m) from the origin at a

@@ -32,7 +32,8 @@ class PushCore(BoxToTargetCore):
     (6 + 6), the target's xy (2).
 
     Reward: ``distance`` = -|box xy - target| [m] after the step, plus ``action`` = -``action_cost`` |a|^2 (1e-3).
-    Terminated when the box's centre is within 0.1 m of the target. Horizon 300 steps (3 s).
+    Terminated when the box's centre is within 0.1 m of the target. Horizon 300 steps (3 s at the default
+    dt; the time limit counts steps).
 
     Initial state: box at rest at the origin, 2 mm above the floor (it lands in the first steps); target
     ``distance`` (3 m) away at an angle ~ U(-``angle_range``, ``angle_range``) (0.5 rad) from +x; the pole at rest

@@ -29,7 +29,7 @@ class SortCore(CubesCore):
     Reward: ``distance`` = -mean over cubes of how far each centre is outside its class's region (discs of radius
     ``region_radius`` 0.4 m centred at (-``region_offset``, 0) for class 0 and (+``region_offset``, 0) for class 1,
     1.2 m) [m], plus ``action`` = -``action_cost`` |a|^2 (1e-3). Terminated when every cube is inside its region.
-    Horizon 300 steps (3 s).
+    Horizon 300 steps (3 s at the default dt; the time limit counts steps).
 
     Initial state: cubes at rest 2 mm above the floor (they land in the first steps), centres uniform in
     [-``spread``, ``spread``]^2 (0.8 m) with footprints 5 cm apart, yaw uniform; the pusher at rest at another such

@@ -259,7 +259,7 @@ def test_locally_supported_models_give_no_gradient_from_the_trivial_start(env_id
     s0 = core.reset(3, 1)
     active = float(core.scene.contact_model.evaluate(s0.q, scene_pairs(core.scene, 1), 0).value.sum())
     if "Billiards" in env_id:
-        assert active == 0.0  # the rack's gaps (4.4 mm) are wider than Billiards' barrier dhat (1 mm)
+        assert active == 0.0  # the rack's gaps (4.5 mm) are wider than Billiards' barrier dhat (1 mm)
     else:
         assert active > 0  # bodies within dhat of each other: the boxes on the floor
     U = torch.zeros(3, 1, core.action_dim, dtype=F64, requires_grad=True)
@@ -270,7 +270,7 @@ def test_locally_supported_models_give_no_gradient_from_the_trivial_start(env_id
 
 def test_billiards_rack_rests_under_the_baselines():
     """Billiards with IPC's barrier: its dhat (1 mm) is under the rack's gaps, so with the cue ball driven toward
-    the rack the rack's balls do not move in 5 steps (with the models' 1 cm the barrier spans the 4.4 mm gaps and
+    the rack the rack's balls do not move in 5 steps (with the models' 1 cm the barrier spans the 4.5 mm gaps and
     the first step blows the rack apart); the cue ball does move."""
     core = make_core("cfd_torch/Billiards-v0", potential="ipc", target_ball=14, pocket=1)
     assert core.scene.contact.dhat == 1e-3
@@ -672,3 +672,25 @@ def test_render_cameras_follow_the_task_arguments(core_cls, kwargs, key):
     far = (goals - torch.tensor(cam["lookat"][:2], dtype=goals.dtype)).norm(dim=1)
     assert float(far.max()) > 2.0  # the argument moved the goal far from where the default camera looked
     assert bool((far < reach).all()), (far.max(), reach)
+
+
+@pytest.mark.parametrize("pocket", [4, 5])
+def test_billiards_camera_holds_a_near_corner_pocket(pocket):
+    """The near-corner pockets (4, 5) lie below the default view (1.9 m from where it looks, beyond its 0.88 m
+    reach): with one of them as the task's pocket the camera is derived to hold it, the rack and the cue ball's
+    start region."""
+    from cfd_torch.envs.billiards import POCKETS, BilliardsCore
+
+    default = BilliardsCore().render_camera()
+    p = torch.tensor(POCKETS[pocket], dtype=torch.float64)
+    assert float((p - torch.tensor(default["lookat"][:2])).norm()) > default["distance"] * math.sin(
+        math.radians(22.5)
+    )
+    core = BilliardsCore(pocket=pocket)
+    cam = core.render_camera()
+    reach = cam["distance"] * math.sin(math.radians(22.5))
+    centre = torch.tensor(cam["lookat"][:2], dtype=torch.float64)
+    state = core.reset(seed=0, batch_size=8)
+    assert bool((state.task["pocket"] == p).all())
+    for xy in (p, state.q[:, :, :2].reshape(-1, 2)):  # the pocket, every ball's start
+        assert bool(((xy - centre).norm(dim=-1) + 0.08 < reach).all())
