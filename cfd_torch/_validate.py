@@ -219,6 +219,12 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
     code = np.empty(tri.shape[0], dtype=np.uint8)
     kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 else _triangle_codes_serial
     kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), code)
+    huge = code == 3
+    if huge.any():
+        raise ValueError(
+            f"{vname} hold coordinates beyond {_MAX_COORD:g} in magnitude (first in face {int(np.argmax(huge))}, "
+            f"{int(huge.sum())} faces in all), where the pair solve cannot resolve the potential"
+        )
     bad = code != 0
     if bad.any():
         raise ValueError(

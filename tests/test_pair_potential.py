@@ -255,6 +255,36 @@ def test_barrier_grows_without_bound_and_is_infinite_inside_the_margin():
         assert torch.isinf(vin).all() and (vin > 0).all(), name
 
 
+def test_pairs_within_rounding_of_the_margin_are_infinite_in_both_backends():
+    """Two faces of 80-face icospheres vertex to vertex, 8.7e-19 m beyond the 1 mm margin (the balls placed exactly
+    one margin apart): the numba kernel's separating-axis start was feasible where the closest-point one was not,
+    its Newton steps could not decrease E, and it raised PairSolveError, while the torch backend returned +inf. A
+    pair closer to the margin than 64 eps of its coordinates is now infeasible in both; from 3e-16 m beyond it both
+    give the same finite barrier (to the documented conditioning eps L / (gap - margin))."""
+    a = torch.tensor(
+        [[-0.0088378860391235, 0.02313788603912348, 0.01429999999999998],
+         [0.0088378860391235, 0.02313788603912348, 0.01429999999999998], [0.0, 0.02859999999999996, 0.0]],
+        dtype=F64,
+    )  # fmt: skip
+    b = torch.tensor(
+        [[0.015035909806607184, 0.03387138688113156, 0.0],
+         [0.0088378860391235, 0.03506211396087644, 0.01429999999999998], [0.0, 0.02959999999999996, 0.0]],
+        dtype=F64,
+    )  # fmt: skip
+    excess = torch.cat([torch.zeros(1, dtype=F64), torch.logspace(-19, -9, 31, dtype=F64)])
+    bs = b.expand(len(excess), 3, 3).clone()
+    bs[:, :, 1] += excess[:, None]
+    vals = {be: pair_potential_derivatives(a.expand_as(bs), bs, backend=be).value for be in BACKENDS}
+    v0, v1 = vals[BACKENDS[0]], vals[BACKENDS[1]]
+    assert torch.isinf(v0[0]) and torch.isinf(v1[0])
+    assert torch.equal(torch.isinf(v0), torch.isinf(v1))
+    fin = torch.isfinite(v0)
+    assert bool(fin[excess >= 3e-16].all())  # only pairs within rounding of the margin are refused
+    gap = excess[fin] + 8.7e-19  # beyond the margin
+    rel = (v0[fin] - v1[fin]).abs() / v0[fin]
+    assert bool((rel <= 100 * 2.2e-16 * 0.03 / gap + 1e-12).all()), rel
+
+
 def test_intersecting_triangles_are_infinite_with_zero_derivatives():
     a = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
     b = torch.tensor([[0.0, 0.0, -0.5], [0.2, 0.1, 1.0], [-0.2, 0.1, 1.0]], dtype=F64)  # pierces a

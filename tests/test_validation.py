@@ -193,6 +193,23 @@ def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
     )
     with _raises("exclude must hold pairs"):
         contact_potential([bsh] * 3, poses, exclude=[(0, 1.5)])
+    # an integer array of pairs, as Scene takes them (it was refused as "not int body indices")
+    assert float(contact_potential([bsh] * 3, poses, exclude=np.array([[0, 1]])).value) == pytest.approx(
+        float(contact_potential([bsh] * 3, poses, exclude=[(0, 1)]).value)
+    )
+    # translations beyond 1e30 m (pair_potential's limit on coordinates): from about 1e154 m the spheres' squared
+    # distances overflowed and the gradient was silently exactly zero
+    from cfd_torch import mesh_potential_derivatives
+
+    far = poses.clone()
+    far[2, 0] = 1e155
+    with _says("poses has a translation beyond 1e+30 m (first at body 2)"):
+        contact_potential([bsh] * 3, far)
+    with _says("pose_b has a translation beyond 1e+30 m"):
+        mesh_potential_derivatives(bsh, poses[0], bsh, far[2])
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    with _says("vertices hold coordinates beyond 1e+30 in magnitude (first in face 0, 12 faces in all)"):
+        BSH.build(box.vertices * 1e31, box.faces)  # (it said "degenerate triangles")
     assert float(contact_potential([bsh] * 3, poses, exclude=None).value) == float(
         contact_potential([bsh] * 3, poses).value
     )

@@ -28,6 +28,9 @@ _JIT_INLINE = {**_JIT, "inline": "always"}
 _STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when no step can decrease E any more
 _EPS_RES = 16 * 2.220446049250313e-16  # rounding of E, relative to the magnitudes it is computed from
 _GRAD_EPS = 16 * 2.220446049250313e-16  # rounding noise of a gradient component, relative to its scale sc
+_MARGIN_RES = (
+    64 * 2.220446049250313e-16
+)  # a closest distance and the start gaps formed from it: their rounding, relative to the coordinates
 _WARM_ITER = 30  # iterations a warm-started solve gets before the cold start is tried
 # E_pp with a Cholesky pivot below this fraction of its largest diagonal entry (condition ~1e8 and more: parallel
 # edges, coplanar pairs, a vertex on a vertex, near the margin) is re-formed in its own eigenbasis for the Hessian
@@ -446,6 +449,17 @@ def _sat_start(X, delta, p):
 
 
 @numba.njit(**_JIT_INLINE)
+def _clear_of_margin(dist, delta, Xc):
+    """Whether the pair's closest distance exceeds the margin by more than its rounding (``_MARGIN_RES`` of the
+    coordinates' magnitude; ``_pair_torch.clear_of_margin``): closer pairs are infeasible (no resolvable minimum)."""
+    scale = delta
+    for v in range(6):
+        for c in range(3):
+            scale = max(scale, abs(Xc[v, c]))
+    return dist - delta > _MARGIN_RES * scale
+
+
+@numba.njit(**_JIT_INLINE)
 def _rel_grad(g, sc):
     """max_i |g_i| / sc_i, the relative gradient (an exactly zero component with zero scale counts as 0)."""
     rel = 0.0
@@ -571,7 +585,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                 else:
                     # ---- strictly feasible start from the exact closest points (SPEC section 2)
                     dist = math.sqrt(tri_tri_closest_nb(Xc[0:3], Xc[3:6], q))
-                    if dist > delta:
+                    if _clear_of_margin(dist, delta, Xc):
                         alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
                         d = 0.0
                         for i in range(3):

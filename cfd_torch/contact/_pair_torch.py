@@ -15,6 +15,9 @@ CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 _STALL_TOL = 1e-8  # see _pair_numba
 _EPS_RES = 16 * torch.finfo(torch.float64).eps
 _GRAD_EPS = 16 * torch.finfo(torch.float64).eps
+_MARGIN_RES = (
+    64 * torch.finfo(torch.float64).eps
+)  # a closest distance and the start gaps formed from it: their rounding, relative to the coordinates
 _MAX_DAMP = 1e30
 _ROT_COND = 1e-8  # see _pair_numba
 _REFINE_STEPS = 8  # see _pair_numba
@@ -99,6 +102,15 @@ def contact_frame(X: torch.Tensor, P: torch.Tensor, half_delta: float):
     return X - o[:, None, :], torch.cat([P[:, :3], d[:, None]], -1), o
 
 
+def clear_of_margin(dist: torch.Tensor, delta: float, X: torch.Tensor) -> torch.Tensor:
+    """(K,) bool: the pairs (K, 6, 3) whose closest distance ``dist`` exceeds the margin ``delta`` by more than its
+    rounding (``_MARGIN_RES`` of the coordinates' magnitude; the numba kernel's ``_clear_of_margin``). Closer pairs
+    are infeasible: at a gap within rounding of the margin the barrier has no resolvable minimum, and the two
+    backends' starts would disagree about it."""
+    scale = X.abs().flatten(1).amax(1).clamp_min(delta)
+    return dist - delta > _MARGIN_RES * scale
+
+
 def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Strictly feasible start from the exact closest points (SPEC section 2); returns planes (K, 4) and dist (K,).
 
@@ -114,7 +126,7 @@ def start_planes(X: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Ten
     d = -(n * 0.5 * (qa + qb)).sum(-1, keepdim=True)
     P = torch.cat([n, d], -1)
     s = gaps(X, P, 0.5 * delta)
-    bad = (dist > delta) & ~((s > 0).all(-1) & (n.norm(dim=-1) < 1))
+    bad = clear_of_margin(dist, delta, X) & ~((s > 0).all(-1) & (n.norm(dim=-1) < 1))
     if bool(bad.any()):
         P[bad] = sat_planes(X[bad], delta)
     return P, dist
@@ -196,7 +208,7 @@ def solve_pairs_torch(X: torch.Tensor, delta: float, lam: float, tol: float, max
     P, dist = start_planes(X, delta)
     X, P, o = contact_frame(X, P, half_delta)
     E = energy(X, P, half_delta, lam)
-    E = torch.where(dist > delta, E, torch.full_like(E, float("inf")))
+    E = torch.where(clear_of_margin(dist, delta, X), E, torch.full_like(E, float("inf")))
     status = torch.full((K,), NOT_CONVERGED, dtype=torch.int8, device=X.device)
     status[torch.isinf(E)] = INFEASIBLE
     resid = torch.zeros(K, dtype=X.dtype, device=X.device)

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
-from .._validate import FLOATS, check_count, check_positive, check_tolerance
+from .._validate import _MAX_COORD, FLOATS, check_count, check_positive, check_tolerance
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -70,6 +70,14 @@ def _check_pose(pose: object, name: str) -> None:
         if bool(bad.any()):
             idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
             raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
+        far = plain(pose)[..., :3].abs().amax(-1) > _MAX_COORD
+        if bool(far.any()):
+            idx = tuple(int(i) for i in torch.nonzero(far)[0]) if far.dim() else ()
+            raise ValueError(
+                f"{name} has a translation beyond {_MAX_COORD:g} m (first at batch index {idx}): the limit "
+                "pair_potential puts on coordinates (from about 1e154 m the spheres' squared distances overflow "
+                "float64 and the gradient rounds to zero)"
+            )
 
 
 def _check_params(mu, margin, eps, split, tol, max_iter):

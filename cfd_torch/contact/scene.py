@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from .._autograd import (
@@ -22,7 +23,7 @@ from .._autograd import (
     tracked,
     vmap_error,
 )
-from .._validate import FLOATS, is_int
+from .._validate import _MAX_COORD, FLOATS, is_int
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -98,6 +99,8 @@ def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] 
             )
         exclude = exclude.tolist()
     if len(exclude):
+        if isinstance(exclude, np.ndarray):  # rows of a (E, 2) integer array, as Scene takes them
+            exclude = exclude.tolist()
         if not all(
             isinstance(e, (tuple, list)) and len(e) == 2 and all(is_int(x) for x in e) for e in exclude
         ):
@@ -163,6 +166,13 @@ def contact_potential(
         bad = ~torch.isfinite(plain(poses)).all(1)
         if bool(bad.any()):
             raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
+        far = plain(poses)[:, :3].abs().amax(1) > _MAX_COORD
+        if bool(far.any()):
+            raise ValueError(
+                f"poses has a translation beyond {_MAX_COORD:g} m (first at body {int(torch.nonzero(far)[0])}): "
+                "the limit pair_potential puts on coordinates (from about 1e154 m the spheres' squared distances "
+                "overflow float64 and the gradient rounds to zero)"
+            )
     _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:
         grad = poses.requires_grad and torch.is_grad_enabled()
