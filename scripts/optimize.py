@@ -441,6 +441,34 @@ def _check_settings(cfg: dict) -> None:
                 f"config['task_args'] (--task-args): {cfg['task']} takes no argument {', '.join(unknown)} "
                 f"(it takes {', '.join(k for k in params if k not in ('device', 'dtype'))})"
             )
+        # and values it accepts: the core is built once here (under a second for every task), so that a bad value
+        # fails before any run starts rather than in each run
+        try:
+            make_core(f"cfd_torch/{cfg['task']}-v0", **_core_kwargs(cfg))
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"config['task_args'] (--task-args, --dt, --eps): {cfg['task']}: {err}") from err
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder),
+    else None."""
+    for p in (path, *path.parents):
+        if p.exists():
+            return None if p.is_dir() else f"{path}: {p} is a file; give a folder"
+    return None
+
+
+def _core_kwargs(cfg: dict) -> dict:
+    """The task core's arguments of a run: the task's defaults here, ``task_args``, ``dt``, ``eps`` and the
+    baselines' ``potential``."""
+    kwargs = dict(TASK_KWARGS.get(cfg["task"], {})) | dict(cfg["task_args"] or {})
+    if cfg["dt"] is not None:
+        kwargs["dt"] = cfg["dt"]
+    if cfg["eps"] is not None:
+        kwargs["eps"] = cfg["eps"]
+    if cfg["model"] in ("ipc", "sdrs"):
+        kwargs["potential"] = cfg["model"]
+    return kwargs
 
 
 def run_experiment(config: dict) -> dict:
@@ -466,14 +494,7 @@ def run_experiment(config: dict) -> dict:
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
     task, model = cfg["task"], cfg["model"]
-    kwargs = dict(TASK_KWARGS.get(task, {})) | dict(cfg["task_args"] or {})
-    if cfg["dt"] is not None:
-        kwargs["dt"] = cfg["dt"]
-    if cfg["eps"] is not None:
-        kwargs["eps"] = cfg["eps"]
-    if model in ("ipc", "sdrs"):
-        kwargs["potential"] = model
-    core = make_core(f"cfd_torch/{task}-v0", **kwargs)
+    core = make_core(f"cfd_torch/{task}-v0", **_core_kwargs(cfg))
     s0 = core.reset(cfg["seed"], 1)
     horizon = cfg["horizon"]
     knots = horizon if cfg["knots"] is None else cfg["knots"]
@@ -695,21 +716,27 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--mj-substeps", type=int, default=d["mj_substeps"], help="mujoco-fd: MuJoCo steps per task step"
     )
     ap.add_argument(
-        "--threads", type=int, default=d["threads"], help="torch and numba threads (default: theirs)"
+        "--threads",
+        type=int,
+        default=d["threads"],
+        help="torch and numba threads (default: theirs; sweep.py: 1)",
     )
     ap.add_argument("--no-gif", dest="gif", action="store_false")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", default=DEFAULTS["task"], choices=TASKS)
-    ap.add_argument("--model", default=DEFAULTS["model"], choices=MODELS)
-    ap.add_argument("--seed", type=int, default=DEFAULTS["seed"])
-    ap.add_argument("--out", type=Path, default=Path("results/optimize"))
+    ap.add_argument("--task", default=DEFAULTS["task"], choices=TASKS, help="the task (its Gymnasium core)")
+    ap.add_argument("--model", default=DEFAULTS["model"], choices=MODELS, help="the gradient's source")
+    ap.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="the task's start (reset seed)")
+    ap.add_argument(
+        "--out", type=Path, default=Path("results/optimize"), help="folder for log.json, loss.png, best.gif"
+    )
     add_arguments(ap)
     config = vars(ap.parse_args())
-    if config["out"].is_file():
-        ap.error(f"--out {config['out']} is a file; give a folder")
+    problem = folder_problem(config["out"])
+    if problem:
+        ap.error(f"--out {problem}")
     try:
         _check_settings({**DEFAULTS, **config})
     except ValueError as err:

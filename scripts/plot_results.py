@@ -9,7 +9,8 @@ trajectory's; mean and range over seeds), the best final distance to the goal, i
 (forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
 
 Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged (a
-cell, task x model x seed, found in two of them is refused: the means would count it twice).
+cell, task x model x seed, found in two of them is refused: the means would count it twice; so are runs of one task
+and model made with different settings, whose mean would mix two experiments).
 
     python scripts/plot_results.py results/sweep
     python scripts/plot_results.py results/sweep/billiards results/sweep/push --out docs/experiments
@@ -57,6 +58,31 @@ def _ratio(run: dict) -> float:
     if run["config"]["mpc"]:
         return float(_curves(run)[2][-1])
     return s.get("loss_best", s["loss_end"]) / s["loss_start"]
+
+
+# settings that do not change a run's outcome, or that only some models read
+_PER_RUN = {"seed", "out", "gif", "threads"}
+_MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
+
+
+def mixed_settings(runs: list[dict]) -> str | None:
+    """A message if two runs of one task and model (one row of the table, one curve) were made with different
+    settings (iterations, horizon, learning rate, ...: their mean would mix two experiments), else None."""
+    first: dict[tuple, dict] = {}
+    for r in runs:
+        c = r["config"]
+        key = (c["task"], c["model"])
+        ref = first.setdefault(key, c)
+        for k in sorted((set(c) | set(ref)) - _PER_RUN):
+            if _MODEL_ONLY.get(k, c["model"]) != c["model"]:
+                continue
+            if c.get(k) != ref.get(k):
+                return (
+                    f"{key[0]} {key[1]}: seed {ref['seed']} and seed {c['seed']} were run with different {k} "
+                    f"({ref.get(k)!r} and {c.get(k)!r}): plot them from separate folders (one row and one curve "
+                    "per task and model)"
+                )
+    return None
 
 
 def table(runs: list[dict]) -> str:
@@ -154,6 +180,9 @@ def main() -> None:
             runs.append(r)
     if not runs:
         raise SystemExit(f"no runs in {[str(d / 'sweep.json') for d in args.sweeps]}")
+    mixed = mixed_settings(runs)
+    if mixed:
+        raise SystemExit(mixed)
     out = args.out or args.sweeps[0]
     out.mkdir(parents=True, exist_ok=True)
     md = table(runs)

@@ -34,7 +34,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from optimize import DEFAULTS, MODELS, TASKS, _check_settings, add_arguments, run_experiment  # noqa: E402
+from optimize import DEFAULTS, MODELS, TASKS, _check_settings, add_arguments, folder_problem, run_experiment  # noqa: E402
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
@@ -133,10 +133,25 @@ def main() -> None:
             ap.error(f"--{name} lists {sorted({v for v in values if values.count(v) > 1})} more than once")
     if args.workers < 1:
         ap.error(f"--workers must be >= 1, got {args.workers}")
-    if args.out.is_file():
-        ap.error(f"--out {args.out} is a file; give a folder")
+    problem = folder_problem(args.out)
+    if problem:
+        ap.error(f"--out {problem}")
+    if args.ray:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            ap.error("--ray needs Ray: pip install '.[ray]'")
     grid = configs(args)
-    for c in grid:  # every cell's settings checked before any runs
+    checked = set()
+    for c in (
+        grid
+    ):  # every cell's settings checked before any runs (each task core built once per set of settings)
+        key = json.dumps(
+            {k: v for k, v in c.items() if k not in ("seed", "out")}, sort_keys=True, default=str
+        )
+        if key in checked:
+            continue
+        checked.add(key)
         try:
             _check_settings({**DEFAULTS, **c})
         except ValueError as err:
