@@ -16,7 +16,7 @@ SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
     from optimize import DEFAULTS, FD_STEPS, MODELS, OPTIMISERS, Optimiser, run_experiment
-    from plot_results import _curves, table
+    from plot_results import _curves, mixed_settings, table
 finally:
     sys.path.pop(0)
 
@@ -207,6 +207,22 @@ def test_run_experiment_refuses_unknown_keys_and_models():
         capture_output=True, text=True,
     )  # fmt: skip
     assert bad.returncode == 2 and "--knots" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_plot_results_refuses_to_average_runs_made_with_different_settings():
+    """Two folders' runs of one task and model with different horizons made one row and one curve (the table named
+    the first run's settings); settings a model does not read (gb's samples for cfd) or that do not change a
+    run (its folder, threads) may differ."""
+    base = {**DEFAULTS, "task": "Billiards", "model": "cfd", "seed": 0, "out": "a"}
+    same = {**base, "seed": 1, "out": "b", "threads": 2, "gb_samples": 99}
+    assert mixed_settings([{"config": base}, {"config": same}]) is None
+    other = {**same, "horizon": base["horizon"] + 1}
+    msg = mixed_settings([{"config": base}, {"config": other}])
+    assert msg is not None and "Billiards cfd: seed 0 and seed 1 were run with different horizon" in msg
+    gb = {**base, "model": "gb"}
+    assert "different gb_samples" in mixed_settings(
+        [{"config": gb}, {"config": {**gb, "seed": 1, "gb_samples": 3}}]
+    )
 
 
 def test_sweep_and_plot_results(tmp_path):
