@@ -64,11 +64,21 @@ def _key(config: dict) -> tuple:
 _NOT_SETTINGS = ("out", "threads", "gif")
 
 
+# settings only one model reads: the others' runs are the same whatever they are
+_MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
+
+
 def _settings_differ(old: dict, new: dict) -> list[str]:
-    """The settings (keys of ``new`` but the output folder, threads and GIF) in which an earlier run's config
-    differs."""
+    """The settings (keys of ``new`` but the output folder, threads, GIF and those the run's model does not read)
+    in which an earlier run's config differs."""
     old = DEFAULTS | old  # keys added since that run: their defaults
-    return [k for k in new if k not in _NOT_SETTINGS and old.get(k) != new[k]]
+    return [
+        k
+        for k in new
+        if k not in _NOT_SETTINGS
+        and _MODEL_ONLY.get(k, new["model"]) == new["model"]
+        and old.get(k) != new[k]
+    ]
 
 
 def _write(path: Path, data) -> None:

@@ -483,6 +483,10 @@ def test_resume_takes_missing_settings_as_defaults():
     assert (
         _settings_differ(old, {**DEFAULTS, "threads": 2, "gif": not DEFAULTS["gif"]}) == []
     )  # no result changes
+    # a setting only another model reads (it refused to resume the cfd cells when --gb-samples changed)
+    more = {**DEFAULTS, "model": "cfd", "gb_samples": DEFAULTS["gb_samples"] + 1}
+    assert _settings_differ({**old, "model": "cfd"}, more) == []
+    assert _settings_differ({**old, "model": "gb"}, {**more, "model": "gb"}) == ["gb_samples"]
 
 
 def test_first_order_smoothing(tmp_path):
