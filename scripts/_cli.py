@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Sequence
 
 
@@ -28,3 +29,43 @@ def apply_preset(
     for name, value in preset.items():
         if name not in explicit:
             setattr(args, name, value)
+
+
+def _checked(text: str, kind: type, ok, what: str):
+    """``kind(text)``, or an ``argparse.ArgumentTypeError`` saying it must be ``what`` unless ``ok`` holds for it."""
+    try:
+        value = kind(text)
+    except ValueError:
+        value = None
+    if value is None or not ok(value):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type=``: an integer > 0."""
+    return _checked(text, int, lambda x: x > 0, "an integer > 0")
+
+
+def nonnegative_int(text: str) -> int:
+    """An argparse ``type=``: an integer >= 0."""
+    return _checked(text, int, lambda x: x >= 0, "an integer >= 0")
+
+
+def positive_float(text: str) -> float:
+    """An argparse ``type=``: a finite number > 0."""
+    return _checked(text, float, lambda x: 0 < x < math.inf, "a finite number > 0")
+
+
+def nonnegative_float(text: str) -> float:
+    """An argparse ``type=``: a finite number >= 0."""
+    return _checked(text, float, lambda x: 0 <= x < math.inf, "a finite number >= 0")
+
+
+def int_range(lo: int, hi: int):
+    """An argparse ``type=`` accepting an integer in [lo, hi]."""
+
+    def parse(text: str) -> int:
+        return _checked(text, int, lambda x: lo <= x <= hi, f"an integer from {lo} to {hi}")
+
+    return parse

@@ -44,6 +44,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _cli import positive_float  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 
 F64 = torch.float64
@@ -224,21 +225,29 @@ def write(out: dict, path: Path) -> None:
 
 def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/articulated_accuracy"))
-    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
-    ap.add_argument("--dts", nargs="+", type=float, default=None, help="[s] (default 0.02 0.01 0.005)")
-    ap.add_argument("--duration", type=float, default=None, help="[s] (default 1; quick 0.2)")
-    ap.add_argument("--ref-dt", type=float, default=2.5e-4, help="MuJoCo RK4's step [s]")
+    ap.add_argument("--out", type=Path, default=Path("results/articulated_accuracy"), help="output folder")
+    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES), help="cases to run")
+    ap.add_argument(
+        "--dts", nargs="+", type=positive_float, default=None, help="[s] (default 0.02 0.01 0.005)"
+    )
+    ap.add_argument("--duration", type=positive_float, default=None, help="[s] (default 1; quick 0.2)")
+    ap.add_argument("--ref-dt", type=positive_float, default=2.5e-4, help="MuJoCo RK4's step [s]")
     ap.add_argument(
         "--baseline", metavar="REV", default=None, help="also run the package at git revision REV"
     )
     ap.add_argument("--quick", action="store_true", help="a smoke run: 0.2 s, dt 0.02 and 0.01")
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
     args = ap.parse_args(argv)
-    args.dts = args.dts or ([0.02, 0.01] if args.quick else [0.02, 0.01, 0.005])
-    args.duration = args.duration or (0.2 if args.quick else 1.0)
-    if any(not (0 < dt <= args.duration) for dt in args.dts) or not 0 < args.ref_dt < min(args.dts):
-        ap.error("--dts must lie in (0, duration] and --ref-dt below the smallest of them")
+    if args.dts is None:
+        args.dts = [0.02, 0.01] if args.quick else [0.02, 0.01, 0.005]
+    if args.duration is None:
+        args.duration = 0.2 if args.quick else 1.0
+    if any(dt > args.duration for dt in args.dts):
+        ap.error(f"argument --dts: each must be at most the duration ({args.duration:g} s), got {args.dts}")
+    if not args.ref_dt < min(args.dts):
+        ap.error(
+            f"argument --ref-dt: must be below the smallest of --dts ({min(args.dts):g} s), got {args.ref_dt:g}"
+        )
     return args
 
 

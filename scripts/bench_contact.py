@@ -52,6 +52,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _cli import nonnegative_int, positive_float, positive_int  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -551,29 +552,51 @@ SECTIONS = ("scaling", "ipctk", "error", "large")
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/bench_contact"))
+    ap.add_argument("--out", type=Path, default=Path("results/bench_contact"), help="output folder")
     ap.add_argument("--quick", action="store_true", help="small sizes, 3 repeats (under a minute)")
-    ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (default 5, quick 3)")
-    ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
-    ap.add_argument("--mu", type=float, default=1e-8)
-    ap.add_argument("--margin", type=float, default=1e-3)
-    ap.add_argument("--eps", type=float, default=0.01)
-    ap.add_argument("--dhat", type=float, default=1e-2, help="ipctk activation distance")
+    ap.add_argument(
+        "--repeats", type=positive_int, default=None, help="timed runs per case (default 5, quick 3)"
+    )
+    ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS), help="sections to run")
+    ap.add_argument("--mu", type=positive_float, default=1e-8, help="the potential's mu")
+    ap.add_argument("--margin", type=positive_float, default=1e-3, help="contact margin; near gap 2 x margin")
+    ap.add_argument("--eps", type=positive_float, default=0.01, help="the potential's eps")
+    ap.add_argument("--dhat", type=positive_float, default=1e-2, help="ipctk activation distance")
     ap.add_argument(
         "--brute-max-s", type=float, default=None, help="skip brute force above this (default 20, quick 2)"
     )
     ap.add_argument(
-        "--brute-chunk", type=int, default=1 << 15, help="leaf pairs per pair_potential_derivatives call"
+        "--brute-chunk",
+        type=positive_int,
+        default=1 << 15,
+        help="leaf pairs per pair_potential_derivatives call",
     )
-    ap.add_argument("--fit-min-faces", type=int, default=1000)
-    ap.add_argument("--edge-factors", type=float, nargs="+", default=[2.0, 1.0])
+    ap.add_argument(
+        "--fit-min-faces",
+        type=nonnegative_int,
+        default=1000,
+        help="fit our exponent on sizes of this many faces up",
+    )
+    ap.add_argument(
+        "--edge-factors",
+        type=positive_float,
+        nargs="+",
+        default=[2.0, 1.0],
+        help="large: max_edge / ball's edge",
+    )
     ap.add_argument(
         "--obstacle", default=None, metavar="PATH",
         help="large: also the ball 2 mm above this mesh file (as given, and as a Scene refines it)",
     )  # fmt: skip
     args = ap.parse_args()
-    args.repeats = args.repeats or (3 if args.quick else 5)
-    args.brute_max_s = args.brute_max_s or (2.0 if args.quick else 20.0)
+    if args.brute_max_s is not None and not args.brute_max_s > 0:  # inf: never skip
+        ap.error(f"argument --brute-max-s: must be a number > 0, got {args.brute_max_s!r}")
+    if args.obstacle is not None and not Path(args.obstacle).is_file():
+        ap.error(f"argument --obstacle: no such file: {args.obstacle}")
+    if args.repeats is None:
+        args.repeats = 3 if args.quick else 5
+    if args.brute_max_s is None:
+        args.brute_max_s = 2.0 if args.quick else 20.0
     args.subdivisions = [1, 2, 3, 4] if args.quick else [1, 2, 3, 4, 5]
     args.ipc_subdivisions = [3, 4] if args.quick else [3, 4, 5]
     args.error_subdivisions = 3

@@ -23,6 +23,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch
+from _cli import nonnegative_float, positive_int
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -75,15 +76,14 @@ def bench(task: str, steps: int, num_envs: int, scale: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS)
-    ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--num-envs", type=int, default=4)
-    ap.add_argument("--action-scale", type=float, default=0.5)
-    ap.add_argument("--out", type=Path, default=Path("results/bench_envs"))
+    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS, help="tasks to time")
+    ap.add_argument("--steps", type=positive_int, default=20, help="timed steps per task and per env kind")
+    ap.add_argument("--num-envs", type=positive_int, default=4, help="environments in the native vector env")
+    ap.add_argument(
+        "--action-scale", type=nonnegative_float, default=0.5, help="largest magnitude of the random actions"
+    )
+    ap.add_argument("--out", type=Path, default=Path("results/bench_envs"), help="output folder")
     args = ap.parse_args()
-    for name in ("steps", "num_envs"):
-        if getattr(args, name) < 1:
-            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = [bench(t, args.steps, args.num_envs, args.action_scale) for t in tqdm(args.tasks, desc="tasks")]
     meta = {"commit": git_revision(), "machine": platform.processor() or platform.machine(),

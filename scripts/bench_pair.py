@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+from _cli import positive_int
 from tqdm import tqdm
 
 from cfd_torch import pair_potential, pair_potential_derivatives
@@ -54,15 +55,36 @@ def _modes(a: torch.Tensor, b: torch.Tensor, backend: str):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/bench_pair"))
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000, 1_000_000])
-    ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"], choices=["float64", "float32"])
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", type=Path, default=Path("results/bench_pair"), help="output folder")
+    ap.add_argument(
+        "--sizes", type=positive_int, nargs="+", default=[1_000, 10_000, 100_000, 1_000_000],
+        help="numbers of pairs K to time",
+    )  # fmt: skip
+    ap.add_argument(
+        "--dtypes", nargs="+", default=["float64", "float32"], choices=["float64", "float32"],
+        help="input dtypes to time",
+    )  # fmt: skip
+    ap.add_argument(
+        "--repeats", type=positive_int, default=5, help="timed runs per case (the median is kept)"
+    )
+    ap.add_argument(
+        "--backend", default="auto", choices=["auto", "numba", "torch"],
+        help="pair solver backend (auto: numba on CPU, torch elsewhere; numba needs --device cpu)",
+    )  # fmt: skip
+    ap.add_argument("--device", default="cpu", help="torch device of the inputs: cpu, cuda or cuda:N")
     args = ap.parse_args()
-    if min(args.sizes) < 1 or args.repeats < 1:
-        ap.error(f"--sizes and --repeats must be >= 1, got {args.sizes} and {args.repeats}")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        ap.error(f"argument --device: must be cpu, cuda or cuda:N, got {args.device!r}")
+    try:
+        torch.empty(0, device=device)  # torch can use the device here
+    except (RuntimeError, AssertionError) as err:
+        ap.error(f"argument --device: {args.device!r} is not available here ({err})")
+    if args.backend == "numba" and device.type != "cpu":
+        ap.error(f"argument --backend: numba needs --device cpu, got {args.device!r}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     rows = []

@@ -113,6 +113,7 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _cli import int_range, nonnegative_float, nonnegative_int, positive_float, positive_int  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -130,6 +131,10 @@ STATS = ("newton_iters", "contact_evals", "leaf_pairs", "node_pairs", "friction_
 
 
 # ------------------------------------------------------------------------------------------------ scenes
+class SettingsError(ValueError):
+    """Options that cannot make a case's scene (its message names them); ``main`` reports it as a usage error."""
+
+
 @dataclass
 class Case:
     """A scene with its start state, how many steps to run before and while timing, and what acts on each step:
@@ -161,7 +166,7 @@ def billiards(args) -> Case:
     ball moving at ``--cue-speed`` along +x toward the rack's apex, on a static table refined with ``max_edge``."""
     r, gap, rows = args.ball_radius, 2e-3, args.num_balls_rows
     if not 1 <= rows <= 5:
-        raise ValueError(f"--num-balls-rows must be in 1..5, got {rows}")
+        raise SettingsError(f"argument --num-balls-rows: must be in 1..5, got {rows}")
     ball = _ball(r)
     max_edge = args.ground_edge_factor * _mean_edge(ball)
     extents = (24 * r, 12 * r, 2 * r)
@@ -219,7 +224,7 @@ def cubes(args) -> Case:
     horizontal velocities from ``default_rng(0)``."""
     a, n, friction, spread = args.cube_size, args.num_cubes, 0.5, args.cube_spread
     if a <= 0 or spread < 0:
-        raise ValueError(f"--cube-size must be > 0 and --cube-spread >= 0, got {a} and {spread}")
+        raise SettingsError(f"argument --cube-size/--cube-spread: must be > 0 and >= 0, got {a} and {spread}")
     rng = np.random.default_rng(0)
     half_diag = a * math.sqrt(2) / 2  # the cube's footprint lies within this radius whatever its yaw
     min_dist = 2 * half_diag + 5e-3  # centres in [-spread, spread]^2, footprints 5 mm apart
@@ -231,9 +236,9 @@ def cubes(args) -> Case:
             xy.append(p)
         tries += 1
         if tries > 100_000:
-            raise ValueError(
-                f"--num-cubes {n} cubes of --cube-size {a} do not fit 5 mm apart in --cube-spread {spread}: "
-                "widen the spread"
+            raise SettingsError(
+                f"argument --cube-spread: {spread} is too small for --num-cubes {n} cubes of --cube-size {a} "
+                "5 mm apart: widen the spread"
             )
     yaw = rng.uniform(-math.pi, math.pi, n)
     drop = rng.uniform(*args.cube_drop, n)  # lowest face above the floor [m]
@@ -831,62 +836,84 @@ CUE_LEAD_STEPS = 4
 CASES = ("billiards", "cubes", "push", "boxes", "ball", "ant")
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    """The command line, with the per-case step counts derived from it."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/bench_step"))
+def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser (``parse_args`` adds the checks that involve several options); ``prog`` names the
+    program in its messages (default: the script's name)."""
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("results/bench_step"), help="output folder")
     ap.add_argument("--quick", action="store_true", help="fewer warm-up and timed steps (a smoke test)")
-    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES), help="case families to run")
     ap.add_argument(
-        "--steps", type=int, default=None,
+        "--steps", type=positive_int, default=None,
         help="timed steps of the cubes, push, boxes and ball cases (default 20, cubes 10; quick 3)",
     )  # fmt: skip
     ap.add_argument(
-        "--billiards-steps", type=int, default=None, help="timed billiards steps (default 12, quick 3)"
+        "--billiards-steps",
+        type=positive_int,
+        default=None,
+        help="timed billiards steps (default 12, quick 3)",
     )
     ap.add_argument(
-        "--threads", type=int, default=None, help="torch intra-op threads (default: torch's default)"
+        "--threads", type=positive_int, default=None, help="torch intra-op threads (default: torch's default)"
     )
     ap.add_argument(
-        "--numba-threads", type=int, default=None, help="numba threads (default: numba's default)"
+        "--numba-threads", type=positive_int, default=None, help="numba threads (default: numba's default)"
     )
-    ap.add_argument("--ball-radius", type=float, default=0.05, help="billiard ball radius [m]")
-    ap.add_argument("--cue-speed", type=float, default=2.0, help="[m/s]")
+    ap.add_argument("--ball-radius", type=positive_float, default=0.05, help="billiard ball radius [m]")
+    ap.add_argument("--cue-speed", type=nonnegative_float, default=2.0, help="[m/s]")
     ap.add_argument(
-        "--cue-lead-steps", type=int, default=CUE_LEAD_STEPS,
+        "--cue-lead-steps", type=nonnegative_int, default=CUE_LEAD_STEPS,
         help=f"steps before the cue ball reaches the rack (default {CUE_LEAD_STEPS})",
     )  # fmt: skip
     ap.add_argument(
-        "--num-balls-rows", type=int, default=5,
+        "--num-balls-rows", type=int_range(1, 5), default=5,
         help="rows of the billiards rack, 1..5 (1, 3, 6, 10, 15 balls; plus the cue ball; default 5)",
     )  # fmt: skip
     ap.add_argument(
-        "--billiards-friction", type=float, default=0.0, help="friction coefficient of billiards (default 0)"
+        "--billiards-friction",
+        type=nonnegative_float,
+        default=0.0,
+        help="friction coefficient of billiards (default 0)",
     )
-    ap.add_argument("--num-cubes", type=int, default=10)
-    ap.add_argument("--cube-size", type=float, default=0.05, help="cubes: edge length [m] (default 0.05)")
+    ap.add_argument("--num-cubes", type=positive_int, default=10, help="cubes: how many (default 10)")
     ap.add_argument(
-        "--cube-spread", type=float, default=0.3, help="cubes: centres uniform in [-s, s]^2 [m] (default 0.3)"
+        "--cube-size", type=positive_float, default=0.05, help="cubes: edge length [m] (default 0.05)"
     )
     ap.add_argument(
-        "--cube-speed", type=float, default=0.5, help="cubes: largest random horizontal speed [m/s]"
+        "--cube-spread",
+        type=nonnegative_float,
+        default=0.3,
+        help="cubes: centres uniform in [-s, s]^2 [m] (default 0.3)",
     )
     ap.add_argument(
-        "--cube-drop", type=float, nargs=2, default=[0.005, 0.02], metavar=("LO", "HI"),
+        "--cube-speed",
+        type=nonnegative_float,
+        default=0.5,
+        help="cubes: largest random horizontal speed [m/s]",
+    )
+    ap.add_argument(
+        "--cube-drop", type=positive_float, nargs=2, default=[0.005, 0.02], metavar=("LO", "HI"),
         help="cubes: random drop heights of the lowest face above the floor [m] (default 0.005 0.02)",
     )  # fmt: skip
-    ap.add_argument("--push-speed", type=float, default=0.3, help="push: the pole's speed along +x [m/s]")
     ap.add_argument(
-        "--push-gap", type=float, default=0.015, help="push: the pole's start distance behind the box [m]"
+        "--push-speed", type=nonnegative_float, default=0.3, help="push: the pole's speed along +x [m/s]"
     )
-    ap.add_argument("--num-boxes", type=int, default=4)
+    ap.add_argument(
+        "--push-gap",
+        type=positive_float,
+        default=0.015,
+        help="push: the pole's start distance behind the box [m]",
+    )
+    ap.add_argument("--num-boxes", type=positive_int, default=4, help="boxes: how many (default 4)")
     ap.add_argument(
         "--ground-edge-factor",
-        type=float,
+        type=positive_float,
         default=2.0,
         help="refined ground: max_edge = this x ball mean edge",
     )
-    ap.add_argument("--friction", type=float, default=0.5, help="friction coefficient of the 'on' ball case")
+    ap.add_argument(
+        "--friction", type=nonnegative_float, default=0.5, help="friction coefficient of the 'on' ball case"
+    )
     ap.add_argument(
         "--obstacle", type=Path, default=None, metavar="PATH",
         help="ball: also rest the ball on this mesh file (a static obstacle, as given; see the docstring)",
@@ -900,24 +927,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="also time git revision REV of the package, case by case in a subprocess (e.g. e5289f1)",
     )  # fmt: skip
     ap.add_argument("--profile", action="store_true", help="cProfile + torch.profiler tables per case")
-    ap.add_argument("--profile-steps", type=int, default=5)
+    ap.add_argument(
+        "--profile-steps", type=positive_int, default=5, help="steps profiled per case (default 5)"
+    )
     ap.add_argument(
         "--replot", action="store_true", help="rewrite table.md and the plot from <out>/bench_step.json"
     )
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
+    return ap
+
+
+def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argparse.Namespace:
+    """The command line, with the per-case step counts derived from it (``prog``: as for ``build_parser``)."""
+    ap = build_parser(prog)
     args = ap.parse_args(argv)
-    for name in ("steps", "billiards_steps", "threads", "numba_threads"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {v}")
     if args.obstacle is not None:  # a --baseline worker runs in its checkout's directory
         args.obstacle = args.obstacle.resolve()
         if not args.obstacle.is_file():
-            ap.error(f"--obstacle {args.obstacle}: no such file")
+            ap.error(f"argument --obstacle: no such file: {args.obstacle}")
     if args.out.is_file():
-        ap.error(f"--out {args.out} is a file; give a folder")
+        ap.error(f"argument --out: {args.out} is a file; give a folder")
     if args.replot and not (args.out / "bench_step.json").is_file():
-        ap.error(f"--replot: {args.out / 'bench_step.json'} does not exist")
+        ap.error(f"argument --replot: {args.out / 'bench_step.json'} does not exist")
     steps = args.steps or (3 if args.quick else 20)
     args.steps_ball = args.steps_boxes = args.steps_push = steps
     args.steps_cubes = args.steps or (3 if args.quick else 10)  # landing and sliding; at rest after ~13 steps
@@ -948,6 +979,18 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     if args.numba_threads:
         numba.set_num_threads(args.numba_threads)
+    try:
+        cases = make_cases(args)
+    except SettingsError as err:
+        build_parser().error(str(err))
+    if args.only:
+        unknown = sorted(set(args.only) - {c.name for c in cases})
+        if unknown:
+            build_parser().error(
+                f"argument --only: no case {', '.join(unknown)} among --cases {' '.join(args.cases)} (they make: "
+                f"{', '.join(c.name for c in cases)})"
+            )
+        cases = [c for c in cases if c.name in args.only]
     args.out.mkdir(parents=True, exist_ok=True)
 
     out: dict = {
@@ -970,15 +1013,6 @@ def main() -> None:
         },
         "cases": {},
     }  # fmt: skip
-    cases = make_cases(args)
-    if args.only:
-        unknown = sorted(set(args.only) - {c.name for c in cases})
-        if unknown:
-            raise SystemExit(
-                f"--only: no case {', '.join(unknown)} among --cases {' '.join(args.cases)} (they make: "
-                f"{', '.join(c.name for c in cases)})"
-            )
-        cases = [c for c in cases if c.name in args.only]
     baseline = Baseline(args.baseline) if args.baseline else None
     if baseline:
         out["baseline"] = {"rev": args.baseline, "commit": baseline.commit, "cases": {}, "results": {}}

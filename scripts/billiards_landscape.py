@@ -1,5 +1,7 @@
-"""The loss landscape of a Billiards break shot: the final distance of the object ball to its pocket over a
-two-parameter family of shots, to see why gradient descent on the shot finds the pocket and then leaves it.
+"""The loss landscape of a Billiards break shot: the object ball's final distance to its pocket over a grid of shots.
+
+The loss is the final distance of the object ball to its pocket, over a two-parameter family of shots, to see why
+gradient descent on the shot finds the pocket and then leaves it.
 
 A shot is a constant force on the cue ball for its first ``--shot-steps`` steps (20: 0.2 s) and none after: action
 ``m (cos a, sin a)``, a measured from the line from the cue ball's centre to the object ball's (degrees), m in
@@ -19,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -29,6 +30,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _cli import positive_int  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from optimize import TASK_KWARGS, task_loss  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -38,22 +40,24 @@ from cfd_torch.envs import make_core, rollout  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=1, help="the task's reset seed")
     ap.add_argument("--angles", type=float, nargs=3, default=[-20.0, 20.0, 41], metavar=("LO", "HI", "N"),
                     help="shot directions [deg from the cue-to-object-ball line]: from, to, count")  # fmt: skip
     ap.add_argument("--strengths", type=float, nargs=3, default=[0.2, 1.0, 5], metavar=("LO", "HI", "N"),
                     help="shot strengths m (action units): from, to, count")  # fmt: skip
-    ap.add_argument("--shot-steps", type=int, default=20)
-    ap.add_argument("--horizon", type=int, default=200)
-    ap.add_argument("--batch", type=int, default=16, help="shots rolled out together")
-    ap.add_argument("--out", type=Path, default=Path("results/billiards_landscape"))
+    ap.add_argument("--shot-steps", type=positive_int, default=20, help="steps the shot's force acts")
+    ap.add_argument("--horizon", type=positive_int, default=200, help="steps per rollout")
+    ap.add_argument("--batch", type=positive_int, default=16, help="shots rolled out together")
+    ap.add_argument("--out", type=Path, default=Path("results/billiards_landscape"), help="output folder")
     args = ap.parse_args(argv)
-    if not 1 <= args.shot_steps <= args.horizon:
-        sys.exit(f"--shot-steps must be in [1, --horizon], got {args.shot_steps}")
+    if args.shot_steps > args.horizon:
+        ap.error(f"argument --shot-steps: must be at most --horizon ({args.horizon}), got {args.shot_steps}")
     if not (0 <= args.strengths[0] <= args.strengths[1] <= 1):  # beyond 1 the action clips per component
-        sys.exit(f"--strengths must satisfy 0 <= LO <= HI <= 1, got {args.strengths[:2]}")
-    if args.angles[2] < 1 or args.strengths[2] < 1 or args.batch < 1:
-        sys.exit("the counts of --angles and --strengths and --batch must be at least 1")
+        ap.error(f"argument --strengths: must satisfy 0 <= LO <= HI <= 1, got {args.strengths[:2]}")
+    for name in ("angles", "strengths"):
+        n = getattr(args, name)[2]
+        if not (1 <= n < math.inf and n == int(n)):
+            ap.error(f"argument --{name}: the count N must be a whole number >= 1, got {n:g}")
     args.out.mkdir(parents=True, exist_ok=True)
     core = make_core("cfd_torch/Billiards-v0", **TASK_KWARGS["Billiards"])
     s0 = core.reset(args.seed, 1)

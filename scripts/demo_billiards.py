@@ -27,6 +27,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
+from _cli import positive_float, positive_int  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch import Scene, rigid_body, rollout  # noqa: E402
@@ -41,15 +42,15 @@ def simulate(scene: Scene, q0: torch.Tensor, v_cue: torch.Tensor, steps: int) ->
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/demo"))
-    ap.add_argument("--iters", type=int, default=60, help="Adam iterations")
-    ap.add_argument("--steps", type=int, default=20, help="time steps per rollout (1 s at the default dt)")
-    ap.add_argument("--dt", type=float, default=0.05)
-    ap.add_argument("--lr", type=float, default=0.3, help="Adam learning rate [m/s]")
-    ap.add_argument("--mu", type=float, default=1e-8)
+    ap.add_argument("--out", type=Path, default=Path("results/demo"), help="output folder")
+    ap.add_argument("--iters", type=positive_int, default=60, help="Adam iterations")
+    ap.add_argument(
+        "--steps", type=positive_int, default=20, help="time steps per rollout (1 s at the default dt)"
+    )
+    ap.add_argument("--dt", type=positive_float, default=0.05, help="time step [s]")
+    ap.add_argument("--lr", type=positive_float, default=0.3, help="Adam learning rate [m/s]")
+    ap.add_argument("--mu", type=positive_float, default=1e-8, help="the contact potential's mu")
     args = ap.parse_args()
-    if args.iters < 1 or args.steps < 1:
-        ap.error(f"--iters and --steps must be >= 1, got {args.iters} and {args.steps}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     radius = 0.1

@@ -21,6 +21,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from _cli import positive_float  # noqa: E402
 
 from cfd_torch import central_potential, pair_potential  # noqa: E402
 from cfd_torch.baselines import ipc_pair_barrier, sdrs_pair_potential  # noqa: E402
@@ -56,14 +57,20 @@ def normal_force(fn, gaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/demo"))
-    ap.add_argument("--mu", type=float, default=1e-8)
-    ap.add_argument("--margin", type=float, default=1e-3)
-    ap.add_argument("--dhat", type=float, default=1e-2)
-    ap.add_argument("--points", type=int, default=200)
+    ap.add_argument("--out", type=Path, default=Path("results/demo"), help="output folder")
+    ap.add_argument("--mu", type=positive_float, default=1e-8, help="our potential's mu")
+    ap.add_argument(
+        "--margin", type=positive_float, default=1e-3, help="contact margin [m]; gaps start at 1.5 x margin"
+    )
+    ap.add_argument(
+        "--dhat", type=positive_float, default=1e-2, help="the local barriers' activation distance [m]"
+    )
+    ap.add_argument(
+        "--points", type=int, default=200, help="gaps sampled, log-spaced up to 1e4 m (at least 2)"
+    )
     args = ap.parse_args()
     if args.points < 2:
-        ap.error(f"--points must be >= 2, got {args.points}")
+        ap.error(f"argument --points: must be an integer >= 2, got {args.points}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     gaps = torch.logspace(math.log10(args.margin * 1.5), 4, args.points, dtype=torch.float64)

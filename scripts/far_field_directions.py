@@ -24,6 +24,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from _cli import positive_float, positive_int  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 
 from cfd_torch.envs import make_core, rollout  # noqa: E402
@@ -32,12 +33,14 @@ from cfd_torch.envs.core import EnvState  # noqa: E402
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--radii", type=float, nargs="+", default=[0.3, 0.45, 0.6], help="pole-box distances [m]")
-    ap.add_argument("--angles", type=int, default=12, help="angles phi, equally spaced over 360 deg")
-    ap.add_argument("--horizon", type=int, default=30)
-    ap.add_argument("--dt", type=float, default=0.02)
+    ap.add_argument(
+        "--radii", type=positive_float, nargs="+", default=[0.3, 0.45, 0.6], help="pole-box distances [m]"
+    )
+    ap.add_argument("--angles", type=positive_int, default=12, help="angles phi, equally spaced over 360 deg")
+    ap.add_argument("--horizon", type=positive_int, default=30, help="steps the action is held")
+    ap.add_argument("--dt", type=positive_float, default=0.02, help="time step [s]")
     ap.add_argument("--seed", type=int, default=0, help="the reset whose box and target are used")
-    ap.add_argument("--out", type=Path, default=Path("results/far_field_directions"))
+    ap.add_argument("--out", type=Path, default=Path("results/far_field_directions"), help="output folder")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 

@@ -23,6 +23,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from _cli import positive_float, positive_int  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 
 from cfd_torch import Scene, pair_forces  # noqa: E402
@@ -74,9 +75,15 @@ def profile(core, r: torch.Tensor, eps_values: list[float]) -> dict[str, dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--eps", type=float, nargs="+", default=[0.01, 0.1, 1.0, 4.0])
-    ap.add_argument("--points", type=int, default=261, help="distances between 0.21 and 1.5 m")
-    ap.add_argument("--out", type=Path, default=Path("results/far_field_staircase"))
+    ap.add_argument(
+        "--eps",
+        type=positive_float,
+        nargs="+",
+        default=[0.01, 0.1, 1.0, 4.0],
+        help="blend widths eps to compare",
+    )
+    ap.add_argument("--points", type=positive_int, default=261, help="distances between 0.21 and 1.5 m")
+    ap.add_argument("--out", type=Path, default=Path("results/far_field_staircase"), help="output folder")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     core = make_core("cfd_torch/Push-v0")

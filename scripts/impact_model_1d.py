@@ -1,5 +1,6 @@
-"""Why restitution depends on the impact phase: the head-on impact of two cubes reduced to one coordinate, stepped
-by the simulator's implicit Euler under several sub-stepping schemes.
+"""Why restitution depends on the impact phase: the head-on impact of two cubes, reduced to one coordinate.
+
+The one coordinate is stepped by the simulator's implicit Euler under several sub-stepping schemes.
 
 Model. Two 0.1 m cubes (1 kg each, ``rigid_body`` of ``trimesh.creation.box``) face to face along x, translating
 only: the gap g between the facing faces is the one coordinate, P(g) the library's mesh potential of the pair
@@ -41,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from _cli import apply_preset
+from _cli import apply_preset, nonnegative_float, nonnegative_int, positive_float, positive_int
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -130,21 +131,48 @@ def run(P: GapPotential, scheme: str, *, phase: float, v: float, dt: float, dura
     return {"restitution": vel / v, "substeps": subs, "newton_iters": iters}
 
 
+def scheme_arg(text: str) -> str:
+    """An argparse ``type=`` for ``--schemes``: ``plain``, ``sub:K``, ``impact:K``, ``resolved:K`` or
+    ``aligned:G:K`` (K an integer > 0, G a gap > 0 in metres), returned as given."""
+    kind, *arg = text.split(":")
+    try:
+        if kind == "plain" and not arg:
+            return text
+        if kind in ("sub", "impact", "resolved") and len(arg) == 1:
+            positive_int(arg[0])
+            return text
+        if kind == "aligned" and len(arg) == 2:
+            positive_float(arg[0])
+            positive_int(arg[1])
+            return text
+    except argparse.ArgumentTypeError:
+        pass
+    raise argparse.ArgumentTypeError(
+        f"must be plain, sub:K, impact:K, resolved:K or aligned:G:K (K an integer > 0, G a number > 0), got {text!r}"
+    )
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=Path("results/impact_model_1d"))
+    p.add_argument("--out", type=Path, default=Path("results/impact_model_1d"), help="output folder")
     p.add_argument(
-        "--schemes", nargs="+",
+        "--schemes", nargs="+", type=scheme_arg, help="sub-stepping schemes (see the module docstring)",
         default=["plain", "sub:2", "sub:4", "sub:8", "impact:16", "impact:64", "aligned:0.002:1",
                  "aligned:0.008:1", "aligned:0.004:2"],
     )  # fmt: skip
-    p.add_argument("--phases", type=int, default=16)
-    p.add_argument("--speed", type=float, default=1.0, help="closing speed [m/s]")
-    p.add_argument("--dt", type=float, default=0.01)
-    p.add_argument("--duration", type=float, default=0.3)
-    p.add_argument("--gap0", type=float, default=0.01, help="gap at phase 0 [m]")
-    p.add_argument("--contact-gap", type=float, default=0.004, help="impact:K sub-steps below this gap [m]")
-    p.add_argument("--resolved", type=int, default=1000, help="sub-steps of the resolved reference (0: skip)")
+    p.add_argument(
+        "--phases", type=positive_int, default=16, help="phases per step, evenly spread over [0, 1)"
+    )
+    p.add_argument("--speed", type=positive_float, default=1.0, help="closing speed [m/s]")
+    p.add_argument("--dt", type=positive_float, default=0.01, help="time step [s]")
+    p.add_argument("--duration", type=positive_float, default=0.3, help="rollout length [s]")
+    p.add_argument("--gap0", type=positive_float, default=0.01, help="gap at phase 0 [m]")
+    p.add_argument(
+        "--contact-gap", type=nonnegative_float, default=0.004, help="impact:K sub-steps below this gap [m]"
+    )
+    p.add_argument(
+        "--resolved", type=nonnegative_int, default=1000, help="sub-steps of the resolved reference (0: skip)"
+    )
     p.add_argument(
         "--quick", action="store_true", help="8 phases, plain / sub:4 / aligned:0.008:1 (where not given)"
     )
@@ -153,6 +181,8 @@ def main(argv: list[str] | None = None) -> dict:
         apply_preset(
             p, args, {"phases": 8, "schemes": ["plain", "sub:4", "aligned:0.008:1"], "resolved": 0}, argv
         )
+    if args.duration < args.dt:
+        p.error(f"argument --duration: {args.duration:g} s is shorter than --dt {args.dt:g} s")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     P = GapPotential()

@@ -1,5 +1,6 @@
-"""Restitution and rollout-gradient bias against impact phase: how an impact resolved within one implicit step
-depends on where in the step it falls.
+"""Restitution and rollout-gradient bias against impact phase: where in an implicit step the impact falls.
+
+How an impact resolved within one implicit step depends on where in the step it falls.
 
 Scene. Two equal bodies, no gravity, no friction: the striker (body 0) moves along +x at ``v`` toward the struck
 body (body 1) at rest, face to face: two 320-face icospheres of radius 0.1 m, a face of each turned to face the
@@ -14,6 +15,9 @@ gradient - (1 + e) / 2. Where e varies with the phase, the gradient of the discr
 (T - t_impact) / 2 de/dphase / dt: a variation of e by 1e-3 over a step is amplified by (T - t_impact) / dt.
 
 Also ``--substeps k`` runs every step as k sub-steps of dt / k (the impact resolved finer).
+
+A run whose step fails (the simulator's ``StepError``) is recorded with its error and left out of the table; any
+other exception stops the script.
 
 Writes ``<out>/impact_phase.json`` (every run), ``<out>/impact_phase.md`` (per scene, speed, dt: range of e, range
 and largest |bias|) and ``<out>/impact_phase.png`` (e and the gradient against phase).
@@ -34,11 +38,11 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from _cli import apply_preset
+from _cli import apply_preset, nonnegative_float, positive_float, positive_int
 from _provenance import git_revision
 from tqdm import tqdm
 
-from cfd_torch import Scene, State, rigid_body, rollout
+from cfd_torch import Scene, State, StepError, rigid_body, rollout
 
 F64 = torch.float64
 
@@ -95,16 +99,26 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("results/impact_phase"))
     p.add_argument("--scenes", nargs="+", default=["balls", "cubes"], choices=["balls", "cubes"])
-    p.add_argument("--speeds", nargs="+", type=float, default=[0.1, 0.3, 1.0, 3.0])
-    p.add_argument("--dts", nargs="+", type=float, default=[0.02, 0.01, 0.005])
-    p.add_argument("--phases", type=int, default=16, help="phases per step, evenly spread over [0, 1)")
-    p.add_argument("--substeps", nargs="+", type=int, default=[1])
-    p.add_argument("--duration", type=float, default=0.3)
-    p.add_argument("--gap0", type=float, default=0.01, help="gap at phase 0 [m]")
+    p.add_argument(
+        "--speeds", nargs="+", type=positive_float, default=[0.1, 0.3, 1.0, 3.0], help="striker speeds [m/s]"
+    )
+    p.add_argument(
+        "--dts", nargs="+", type=positive_float, default=[0.02, 0.01, 0.005], help="time steps [s]"
+    )
+    p.add_argument(
+        "--phases", type=positive_int, default=16, help="phases per step, evenly spread over [0, 1)"
+    )
+    p.add_argument("--substeps", nargs="+", type=positive_int, default=[1], help="sub-steps per step")
+    p.add_argument("--duration", type=positive_float, default=0.3, help="rollout length [s]")
+    p.add_argument("--gap0", type=nonnegative_float, default=0.01, help="gap at phase 0 [m]")
     p.add_argument("--quick", action="store_true", help="1 m/s, dt 0.01, 8 phases, cubes (where not given)")
     args = p.parse_args(argv)
     if args.quick:  # its values for the settings not given
         apply_preset(p, args, {"scenes": ["cubes"], "speeds": [1.0], "dts": [0.01], "phases": 8}, argv)
+    if args.duration < max(args.dts):
+        p.error(
+            f"argument --duration: {args.duration:g} s is shorter than the longest --dts step {max(args.dts):g} s"
+        )
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", category=UserWarning)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -122,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
                     pairs[scene], phase=phase, v=v, dt=dt, duration=args.duration, substeps=k, gap0=args.gap0
                 )
                 r["error"] = None
-            except Exception as err:  # a failed step is a result here, not a crash
+            except StepError as err:  # a failed step is a result here, not a crash
                 r = {"restitution": None, "gradient": None, "bias": None, "spin": None, "error": repr(err)}
             runs.append({"scene": scene, "speed": v, "dt": dt, "substeps": k, "phase": phase, **r})
             bar.update()

@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 import torch
+from _cli import positive_float
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -50,19 +51,22 @@ def push_straight(dt: float, density: float, distance: float, seconds: float, se
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("results/push_reach"))
-    ap.add_argument("--dt", type=float, nargs="+", default=[0.01, 0.04])
+    ap.add_argument("--out", type=Path, default=Path("results/push_reach"), help="output folder")
+    ap.add_argument("--dt", type=positive_float, nargs="+", default=[0.01, 0.04], help="time steps [s]")
     ap.add_argument(
-        "--box-density", type=float, nargs="+", default=[200.0, 50.0], help="[kg/m^3] (Push's: 200)"
+        "--box-density", type=positive_float, nargs="+", default=[200.0, 50.0], help="[kg/m^3] (Push's: 200)"
     )
-    ap.add_argument("--distance", type=float, default=3.0, help="the target's distance [m] (Push's: 3)")
-    ap.add_argument("--seconds", type=float, default=3.0, help="the horizon [s] (Push's episode: 3)")
+    ap.add_argument(
+        "--distance", type=positive_float, default=3.0, help="the target's distance [m] (Push's: 3)"
+    )
+    ap.add_argument("--seconds", type=positive_float, default=3.0, help="the horizon [s] (Push's episode: 3)")
     ap.add_argument("--seed", type=int, default=0, help="the reset whose target direction is used")
     args = ap.parse_args()
     shortest = 0.25 + max(args.dt)  # the best speed is taken over 0.25 s windows
     if not args.seconds >= shortest:
         ap.error(
-            f"--seconds must be at least {shortest:g} (0.25 s of speed window plus a step), got {args.seconds}"
+            f"argument --seconds: must be at least {shortest:g} (0.25 s of speed window plus a step), "
+            f"got {args.seconds}"
         )
     args.out.mkdir(parents=True, exist_ok=True)
     runs = [

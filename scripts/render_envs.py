@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _cli import nonnegative_int, positive_int
 from PIL import Image
 from tqdm import tqdm
 
@@ -38,10 +39,10 @@ def scripted(core, state) -> torch.Tensor:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS)
-    ap.add_argument("--steps", type=int, default=40)
-    ap.add_argument("--size", type=int, default=320)
-    ap.add_argument("--out", type=Path, default=Path("results/envs"))
+    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS, help="tasks to render")
+    ap.add_argument("--steps", type=nonnegative_int, default=40, help="scripted steps after the first frame")
+    ap.add_argument("--size", type=positive_int, default=320, help="frame width and height [pixels]")
+    ap.add_argument("--out", type=Path, default=Path("results/envs"), help="output folder")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     for task in tqdm(args.tasks, desc="tasks"):

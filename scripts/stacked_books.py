@@ -108,7 +108,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
-from _cli import apply_preset  # noqa: E402
+from _cli import (  # noqa: E402
+    apply_preset,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -128,58 +134,87 @@ GRAVITY = (0.0, 0.0, -9.81)
 
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("results/stacked_books"))
+    p.add_argument("--out", type=Path, default=Path("results/stacked_books"), help="output folder")
     p.add_argument("--quick", action="store_true", help="5 boards (where --boards is not given): a smoke run")
-    p.add_argument("--mu", type=float, nargs="+", default=sorted(PAPER, reverse=True))
-    p.add_argument("--boards", type=int, default=20)
-    p.add_argument("--length", type=float, default=1.0, help="board length L [m] (along the overhang)")
-    p.add_argument("--width", type=float, default=0.2, help="board width [m]")
-    p.add_argument("--thickness", type=float, default=0.03, help="board thickness [m]")
-    p.add_argument("--density", type=float, default=600.0, help="[kg/m^3]")
-    p.add_argument("--table-thickness", type=float, default=0.1)
     p.add_argument(
-        "--max-edge", type=float, default=None, help="refine the boxes' triangles to this edge [m]"
+        "--mu",
+        type=positive_float,
+        nargs="+",
+        default=sorted(PAPER, reverse=True),
+        help="the potential's mu values",
+    )
+    p.add_argument("--boards", type=positive_int, default=20, help="number of boards")
+    p.add_argument(
+        "--length", type=positive_float, default=1.0, help="board length L [m] (along the overhang)"
+    )
+    p.add_argument("--width", type=positive_float, default=0.2, help="board width [m]")
+    p.add_argument("--thickness", type=positive_float, default=0.03, help="board thickness [m]")
+    p.add_argument("--density", type=positive_float, default=600.0, help="[kg/m^3]")
+    p.add_argument("--table-thickness", type=positive_float, default=0.1, help="[m]")
+    p.add_argument(
+        "--max-edge", type=positive_float, default=None, help="refine the boxes' triangles to this edge [m]"
     )
     p.add_argument("--retract", type=float, default=1e-3, help="relative retraction of every overhang")
-    p.add_argument("--margin", type=float, default=1e-5, help="delta, the barrier's margin [m]")
-    p.add_argument("--eps", type=float, default=0.01, help="relative blend width of the hierarchy")
-    p.add_argument("--friction", type=float, default=0.5)
-    p.add_argument("--friction-eps-v", type=float, default=1e-4)
-    p.add_argument("--dt", type=float, default=0.1)
-    p.add_argument("--newton-tol", type=float, default=1e-8, help="[m, rad]")
-    p.add_argument("--t-min", type=float, default=2.0, help="no rest verdict before this time [s]")
-    p.add_argument("--t-max", type=float, default=20.0, help="end of a run that neither rests nor fails [s]")
-    p.add_argument("--rest-speed", type=float, default=1e-5, help="largest vertex speed at rest [m/s]")
-    p.add_argument("--rest-time", type=float, default=1.0, help="how long the speed must stay below it [s]")
-    p.add_argument("--tilt-fail", type=float, default=0.1, help="a board tilted more than this fails [rad]")
+    p.add_argument("--margin", type=positive_float, default=1e-5, help="delta, the barrier's margin [m]")
+    p.add_argument("--eps", type=positive_float, default=0.01, help="relative blend width of the hierarchy")
+    p.add_argument("--friction", type=nonnegative_float, default=0.5, help="Coulomb coefficient (0: none)")
+    p.add_argument("--friction-eps-v", type=positive_float, default=1e-4, help="friction's eps_v [m/s]")
+    p.add_argument("--dt", type=positive_float, default=0.1, help="time step [s]")
+    p.add_argument("--newton-tol", type=positive_float, default=1e-8, help="[m, rad]")
     p.add_argument(
-        "--topple-fail", type=float, default=0.01,
+        "--t-min", type=nonnegative_float, default=2.0, help="no rest verdict before this time [s]"
+    )
+    p.add_argument(
+        "--t-max", type=positive_float, default=20.0, help="end of a run that neither rests nor fails [s]"
+    )
+    p.add_argument(
+        "--rest-speed", type=positive_float, default=1e-5, help="largest vertex speed at rest [m/s]"
+    )
+    p.add_argument(
+        "--rest-time", type=nonnegative_float, default=1.0, help="how long the speed must stay below it [s]"
+    )
+    p.add_argument(
+        "--tilt-fail", type=positive_float, default=0.1, help="a board tilted more than this fails [rad]"
+    )
+    p.add_argument(
+        "--topple-fail", type=positive_float, default=0.01,
         help="fails when a sub-stack's centre of mass is this far beyond its supporting edge [m]",
     )  # fmt: skip
-    p.add_argument("--max-newton-iter", type=int, default=50)
+    p.add_argument("--max-newton-iter", type=positive_int, default=50, help="Newton iterations per step")
     p.add_argument(
-        "--substeps", type=int, default=16,
+        "--substeps", type=nonnegative_int, default=16,
         help="a step whose Newton solve fails is retried as 2, 4, ... up to this many steps of dt / k "
         "(SolverConfig.substeps; 0 or 1: no retry)",
     )  # fmt: skip
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's)")
     p.add_argument(
         "--bisect-retract", action="store_true",
         help="per mu, bisect the smallest --retract at which the stack is stable (the stability margin); "
         "each probe a full run, starting at --retract",
     )  # fmt: skip
     p.add_argument(
-        "--bisect-grow", type=float, default=4.0,
+        "--bisect-grow", type=positive_float, default=4.0,
         help="factor by which the retraction grows (or shrinks) until the first probe's verdict flips",
     )  # fmt: skip
     p.add_argument(
-        "--bisect-rel-width", type=float, default=0.25,
+        "--bisect-rel-width", type=positive_float, default=0.25,
         help="bisect (in log r) until the bracket's upper end is within this fraction of its lower end",
     )  # fmt: skip
-    p.add_argument("--bisect-min", type=float, default=1e-6, help="smallest retraction probed when shrinking")
+    p.add_argument(
+        "--bisect-min", type=positive_float, default=1e-6, help="smallest retraction probed when shrinking"
+    )
     a = p.parse_args()
     if a.quick:  # unless --boards is given
         apply_preset(p, a, {"boards": 5})
+    if not math.isfinite(a.retract):
+        p.error(f"argument --retract: must be a finite number, got {a.retract}")
+    if a.t_max < a.dt:
+        p.error(f"argument --t-max: must be at least --dt ({a.dt:g} s), got {a.t_max:g}")
+    if a.bisect_retract:
+        if not 0 < a.retract <= 1:
+            p.error(f"argument --retract: with --bisect-retract it must lie in (0, 1], got {a.retract:g}")
+        if a.bisect_grow <= 1:
+            p.error(f"argument --bisect-grow: must be above 1, got {a.bisect_grow:g}")
     return a
 
 
@@ -680,7 +715,7 @@ def main_bisect(args) -> None:
 
 def main() -> None:
     args = parse_args()
-    if args.threads:
+    if args.threads is not None:
         torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.bisect_retract:

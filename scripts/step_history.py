@@ -9,6 +9,7 @@ the table gives the median of their medians (the machine is shared and noisy).
 Writes ``<out>/step_history.json``, ``<out>/step_history.md`` (printed too) and ``<out>/step_history.png``.
 
     python scripts/step_history.py --case billiards16 --revs 4b00007 4f21ded 6a773f0 --out results/step_history
+    python scripts/step_history.py --case boxes4 --revs 4b00007 --bench-args="--quick --steps 5"
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_step  # noqa: E402
+from _cli import positive_int  # noqa: E402
 
 
 def _row(res: dict) -> dict:
@@ -49,20 +51,35 @@ def main() -> None:
     ap.add_argument(
         "--labels", nargs="+", default=None, help="one label per revision (default: the revision)"
     )
-    ap.add_argument("--runs", type=int, default=1, help="rounds over all revisions")
-    ap.add_argument("--out", type=Path, default=Path("results/step_history"))
+    ap.add_argument("--runs", type=positive_int, default=1, help="rounds over all revisions")
+    ap.add_argument("--out", type=Path, default=Path("results/step_history"), help="output folder")
     ap.add_argument(
-        "--bench-args", default="", help="extra bench_step.py arguments, e.g. '--billiards-steps 6 --quick'"
-    )
-    args = ap.parse_args()
+        "--bench-args", default="",
+        help="extra bench_step.py arguments as one string: --bench-args='--billiards-steps 6 --quick' (the "
+        "'=' form; the next word is taken as the value in any case, though it starts with '-')",
+    )  # fmt: skip
+    argv = sys.argv[1:]
+    for i in range(len(argv) - 2, -1, -1):  # argparse would read a value starting with '-' as an option
+        if argv[i] == "--bench-args":
+            argv[i : i + 2] = [f"--bench-args={argv[i + 1]}"]
+    args = ap.parse_args(argv)
     labels = args.labels or args.revs
     if len(labels) != len(args.revs):
-        raise SystemExit("--labels needs one label per revision")
-    family = next((f for f in bench_step.CASES if args.case.startswith(f)), args.case)
-    bargs = bench_step.parse_args(["--cases", family, *args.bench_args.split()])
-    names = [c.name for c in bench_step.make_cases(bargs)]
+        ap.error(f"argument --labels: needs one label per revision ({len(args.revs)}), got {len(labels)}")
+    family = next((f for f in bench_step.CASES if args.case.startswith(f)), None)
+    if family is None:
+        ap.error(
+            f"argument --case: {args.case!r} is not a case of bench_step.py's {', '.join(bench_step.CASES)}"
+        )
+    bargs = bench_step.parse_args(
+        ["--cases", family, *args.bench_args.split()], prog=f"{ap.prog} --bench-args (bench_step.py)"
+    )
+    try:
+        names = [c.name for c in bench_step.make_cases(bargs)]
+    except bench_step.SettingsError as err:
+        ap.error(f"argument --bench-args: {err}")
     if args.case not in names:
-        raise SystemExit(f"no case {args.case!r} in bench_step.py (cases of {family!r}: {names})")
+        ap.error(f"argument --case: no case {args.case!r} in bench_step.py (cases of {family!r}: {names})")
     args.out.mkdir(parents=True, exist_ok=True)
     revs = [bench_step.Baseline(r) for r in args.revs]
     runs: dict[str, list[dict]] = {lab: [] for lab in [*labels, "working tree"]}

@@ -78,6 +78,7 @@ import mpmath
 import numpy as np
 import torch
 import trimesh
+from _cli import nonnegative_int
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -1087,7 +1088,7 @@ def main(argv: list[str] | None = None) -> int:
         "--tiny", action="store_true", help="a few seconds per section (the test suite's smoke test)"
     )
     ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=nonnegative_int, default=0, help="seed of every random draw")
     args = ap.parse_args(argv)
     cfg = dict(TINY if args.tiny else QUICK if args.quick else FULL)
     args.out.mkdir(parents=True, exist_ok=True)

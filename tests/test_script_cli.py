@@ -1,4 +1,5 @@
-"""The scripts' presets (``--quick``) fill only the options the command line does not give (scripts/_cli.py)."""
+"""The scripts' command lines: presets (``--quick``) fill only the options the command line does not give
+(scripts/_cli.py), and bad values are refused with argparse's usage error naming the option."""
 
 from __future__ import annotations
 
@@ -47,3 +48,84 @@ def test_stacked_books_quick_keeps_an_explicit_board_count(scripts_path, monkeyp
     assert stacked_books.parse_args().boards == 20
     monkeypatch.setattr(sys, "argv", ["stacked_books.py", "--quick"])
     assert stacked_books.parse_args().boards == 5
+
+
+def test_the_number_types_accept_their_range_only(scripts_path):
+    from _cli import int_range, nonnegative_float, nonnegative_int, positive_float, positive_int
+
+    assert positive_int("3") == 3 and nonnegative_int("0") == 0 and int_range(1, 5)("5") == 5
+    assert positive_float("1e-8") == 1e-8 and nonnegative_float("0") == 0.0
+    refused = [(positive_int, "0"), (positive_int, "1.5"), (nonnegative_int, "-1"), (int_range(1, 5), "6"),
+               (positive_float, "0"), (positive_float, "nan"), (positive_float, "inf"), (nonnegative_float, "-1e-9"),
+               (nonnegative_float, "x")]  # fmt: skip
+    for parse, text in refused:
+        with pytest.raises(argparse.ArgumentTypeError, match=f"got '{text}'"):
+            parse(text)
+
+
+# (script, arguments, the option its error must name): each is refused while the command line is parsed, before the
+# output folder is made or any work starts
+REFUSED = [
+    ("impact_phase", ["--quick", "--phases", "2", "--substeps", "0"], "--substeps"),
+    ("impact_phase", ["--dts", "-0.01"], "--dts"),
+    ("impact_phase", ["--phases", "0"], "--phases"),
+    ("bench_contact", ["--repeats", "-1"], "--repeats"),
+    ("bench_contact", ["--repeats", "0"], "--repeats"),
+    ("bench_contact", ["--brute-max-s", "0"], "--brute-max-s"),
+    ("articulated_accuracy", ["--quick", "--duration", "0"], "--duration"),
+    ("stacked_books", ["--threads", "0"], "--threads"),
+    ("stacked_books", ["--boards", "-2"], "--boards"),
+    ("stacked_books", ["--mu", "-1"], "--mu"),
+    ("stacked_books", ["--dt", "0"], "--dt"),
+    ("step_history", ["--revs", "HEAD", "--runs", "0"], "--runs"),
+    ("bench_step", ["--num-boxes", "0"], "--num-boxes"),
+    ("bench_step", ["--num-cubes", "0"], "--num-cubes"),
+    ("bench_step", ["--num-balls-rows", "7"], "--num-balls-rows"),
+    ("bench_step", ["--cube-size", "-0.05"], "--cube-size"),
+    ("bench_step", ["--friction", "-0.5"], "--friction"),
+    ("bench_step", ["--profile", "--profile-steps", "0"], "--profile-steps"),
+    ("far_field_directions", ["--angles", "0"], "--angles"),
+    ("far_field_directions", ["--horizon", "0"], "--horizon"),
+    ("far_field_directions", ["--radii", "-1"], "--radii"),
+    ("far_field_staircase", ["--points", "0"], "--points"),
+    ("far_field_staircase", ["--eps", "-1"], "--eps"),
+    ("impact_model_1d", ["--phases", "0"], "--phases"),
+    ("impact_model_1d", ["--schemes", "sub:0"], "--schemes"),
+    ("impact_model_1d", ["--schemes", "foo"], "--schemes"),
+    ("impact_model_1d", ["--dt", "-0.01"], "--dt"),
+    ("stress", ["--seed", "-1"], "--seed"),
+    ("bench_pair", ["--device", "foo"], "--device"),
+    ("demo_pair", ["--margin", "-1"], "--margin"),
+    ("demo_billiards", ["--dt", "-1"], "--dt"),
+    ("push_reach", ["--dt", "-0.01"], "--dt"),
+    ("push_reach", ["--box-density", "-5"], "--box-density"),
+    ("push_reach", ["--distance", "-1"], "--distance"),
+    ("render_envs", ["--size", "0"], "--size"),
+    ("render_envs", ["--steps", "-1"], "--steps"),
+    ("billiards_landscape", ["--shot-steps", "0"], "--shot-steps"),
+    ("bench_envs", ["--num-envs", "0"], "--num-envs"),
+]
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "option"), REFUSED, ids=[f"{s} {' '.join(a)}" for s, a, _ in REFUSED]
+)
+def test_a_script_refuses_a_bad_option_while_parsing(
+    scripts_path, monkeypatch, capsys, tmp_path, script, argv, option
+):
+    import importlib
+
+    module = importlib.import_module(script)
+    out = tmp_path / "out"
+
+    def no_mkdir(self, *args, **kwargs):
+        raise AssertionError(f"{script} went on to make {self} with {argv}")
+
+    monkeypatch.setattr(Path, "mkdir", no_mkdir)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv, "--out", str(out)])
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"error: argument {option}:" in err, err
+    assert not out.exists()
