@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def given(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> set[str]:
@@ -69,3 +70,12 @@ def int_range(lo: int, hi: int):
         return _checked(text, int, lambda x: lo <= x <= hi, f"an integer from {lo} to {hi}")
 
     return parse
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder),
+    else None."""
+    for p in (path, *path.parents):
+        if p.exists():
+            return None if p.is_dir() else f"{path}: {p} is a file; give a folder"
+    return None

@@ -83,6 +83,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _cli import folder_problem  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -376,6 +377,10 @@ def _constructor_parameters(cls: type) -> dict:
     return params
 
 
+# the settings only one model reads (the others' runs are the same whatever they are): setting -> model
+MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
+
+
 def _check_settings(cfg: dict) -> None:
     """Raise ValueError naming the first setting of ``cfg`` out of its range."""
 
@@ -447,15 +452,6 @@ def _check_settings(cfg: dict) -> None:
             make_core(f"cfd_torch/{cfg['task']}-v0", **_core_kwargs(cfg))
         except (TypeError, ValueError) as err:
             raise ValueError(f"config['task_args'] (--task-args, --dt, --eps): {cfg['task']}: {err}") from err
-
-
-def folder_problem(path: Path) -> str | None:
-    """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder),
-    else None."""
-    for p in (path, *path.parents):
-        if p.exists():
-            return None if p.is_dir() else f"{path}: {p} is a file; give a folder"
-    return None
 
 
 def _core_kwargs(cfg: dict) -> dict:

@@ -28,6 +28,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from optimize import MODEL_ONLY  # noqa: E402
 
 
 def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -60,9 +61,8 @@ def _ratio(run: dict) -> float:
     return s.get("loss_best", s["loss_end"]) / s["loss_start"]
 
 
-# settings that do not change a run's outcome, or that only some models read
+# settings that do not change a run's outcome (those only some models read: optimize.MODEL_ONLY)
 _PER_RUN = {"seed", "out", "gif", "threads"}
-_MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
 
 
 def mixed_settings(runs: list[dict]) -> str | None:
@@ -74,7 +74,7 @@ def mixed_settings(runs: list[dict]) -> str | None:
         key = (c["task"], c["model"])
         ref = first.setdefault(key, c)
         for k in sorted((set(c) | set(ref)) - _PER_RUN):
-            if _MODEL_ONLY.get(k, c["model"]) != c["model"]:
+            if MODEL_ONLY.get(k, c["model"]) != c["model"]:
                 continue
             if c.get(k) != ref.get(k):
                 return (

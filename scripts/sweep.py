@@ -34,7 +34,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from optimize import DEFAULTS, MODELS, TASKS, _check_settings, add_arguments, folder_problem, run_experiment  # noqa: E402
+from _cli import folder_problem  # noqa: E402
+from optimize import DEFAULTS, MODEL_ONLY, MODELS, TASKS, _check_settings, add_arguments, run_experiment  # noqa: E402
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
@@ -64,10 +65,6 @@ def _key(config: dict) -> tuple:
 _NOT_SETTINGS = ("out", "threads", "gif")
 
 
-# settings only one model reads: the others' runs are the same whatever they are
-_MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
-
-
 def _settings_differ(old: dict, new: dict) -> list[str]:
     """The settings (keys of ``new`` but the output folder, threads, GIF and those the run's model does not read)
     in which an earlier run's config differs."""
@@ -75,9 +72,7 @@ def _settings_differ(old: dict, new: dict) -> list[str]:
     return [
         k
         for k in new
-        if k not in _NOT_SETTINGS
-        and _MODEL_ONLY.get(k, new["model"]) == new["model"]
-        and old.get(k) != new[k]
+        if k not in _NOT_SETTINGS and MODEL_ONLY.get(k, new["model"]) == new["model"] and old.get(k) != new[k]
     ]
 
 
