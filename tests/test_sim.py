@@ -609,6 +609,33 @@ def test_a_body_pulled_only_by_the_far_field_of_another_island_steps_at_once():
     torch.testing.assert_close(nxt.q, plain.q, rtol=0, atol=1e-12)
 
 
+def test_islands_take_the_full_step_the_whole_scene_accepts():
+    """A 15-ball rack at rest (4.5 mm gaps) and a cue ball 0.5 m away, all separate islands: the rack balls move by
+    their neighbours' far field, the apex toward the cue ball, whose own pull (away from the rack) is then cancelled
+    in its island's test by the apex's approach. The whole Newton step passes the scene's own test, so every island
+    takes it: the solve converges in two iterations and two evaluations (it halved the cue ball's step, then needed
+    a third iteration: five evaluations), where the reference path (one search for the whole scene) ends."""
+    from cfd_torch.envs.billiards import rack_positions
+
+    r = 0.0286
+    ball = rigid_body(
+        trimesh.creation.icosphere(subdivisions=2, radius=r), density=0.17 / (4 / 3 * math.pi * r**3)
+    )
+    scene = Scene(
+        [ball] * 16, gravity=(0.0, 0.0, 0.0), planar=True, pair_eps={(15, k): 0.01 for k in range(15)}
+    )
+    q = torch.zeros(16, 6, dtype=F64)
+    q[:15, :2] = rack_positions(r).to(F64)
+    q[15, :2] = torch.tensor([0.03, -0.5], dtype=F64)
+    state = scene.initial_state(q)
+    nxt, info = step(scene, state, return_info=True)
+    plain = step(scene.replace(fast=False), state)
+    moved = (nxt.q - q).abs()
+    assert float(moved[0].max()) > 1e-8 and float(moved[15].max()) > 1e-10  # the apex and the cue ball moved
+    assert int(info.newton_iters) == 2 and info.contact_evals == 2
+    torch.testing.assert_close(nxt.q, plain.q, rtol=0, atol=1e-12)
+
+
 def test_head_on_impact_of_small_balls_meeting_vertex_to_vertex():
     """Two 80-face balls of radius 2.86 cm, vertices aligned, at 6 m/s head on in zero gravity. The blend band of
     such small nodes (eps d1 = 0.57 mm) was narrower than the margin (1 mm): the potential stayed finite and flat

@@ -361,6 +361,15 @@ def newton(
             # too); an island whose predicted decrease is below L's rounding is accepted when feasible
             tiny = (-slope[sub] <= noise[sub]) & many[sub]
             ok = feas & ((L_try <= L0[sub] + 1e-4 * alpha[sub] * slope[sub] + noise[sub] + slack) | tiny)
+            if freeze and k == 0:
+                # the whole step (every island's full step, as one scene's search would try it) passes the scene's
+                # own test: its islands take it. An island's test cannot tell its own part of the change of its
+                # pairs with the other islands from theirs, and rejects the full step of a body driven only by the
+                # far field of an island that moves toward it
+                total = torch.zeros(A, dtype=q.dtype, device=dev).index_add(0, gs, slope)
+                lim = L + 1e-4 * total + 1e-12 * cur.scale[idx]
+                passed = ev.value[pos] <= lim  # (A,): NaN and +inf fail
+                ok = ok | passed[gs[sub]]
             if bool(ok.any()):
                 cand = sub[ok]
                 near = alpha[cand] * reach[cand] <= free_move
