@@ -204,6 +204,10 @@ class StepFn(torch.autograd.Function):
         q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_free = (
             ctx.saved_tensors
         )
+        # q is this Function's output: unpacked, it carries this node as its grad_fn, and a graph built from it
+        # would reach the whole rollout behind it, which autograd.grad below would walk at every step (a 200-step
+        # rollout's backward took 4x longer than 200 times one step's)
+        q = q.detach()
         B, N = q_t.shape[:2]
         kin = scene.kinematics
         dyn = kin.bodies.to(q.device)
