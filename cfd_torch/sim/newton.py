@@ -25,6 +25,9 @@ largest step within 100 tol): there a freeze would only add
 the two whole evaluations that end it. A scene converges only at an evaluation of all its bodies: when
 the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
 iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
+With ``pair_bodies``, the line search also splits each scene into islands of coupled bodies, each backtracking on
+its own (one body's tight contact does not shorten the steps of bodies far from it); the full step, tried first, is
+taken by every island whenever the whole step passes the scene's own test, as an unsplit search would take it.
 """
 
 from __future__ import annotations
