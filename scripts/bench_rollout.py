@@ -5,9 +5,11 @@ For every task of ``--tasks`` and horizon H of ``--horizons``: ``core.reset(seed
 actions)`` with (H, 1, A) actions that require grad (zero, the trivial start; with ``--action-scale`` s > 0, seeded
 uniform actions in [-s, s]), and ``torch.autograd.grad`` of the sum of its rewards with respect to the actions.
 Each (revision, task) runs in a fresh process with one torch and one numba thread, every horizon ``--runs`` times
-after one untimed warm-up rollout of the shortest horizon; the figures are the medians of the wall times of the
+after one untimed warm-up rollout of the shortest horizon; the figures are the medians of the CPU times
+(``time.process_time``, which a loaded machine disturbs less than wall time; the JSON has the wall times too) of the
 forward rollout and of its backward. With ``--baseline REV`` the revision REV (a git worktree) runs the same, the
-two revisions alternating task by task; the table's ratios are this / baseline. Checks that both revisions' rewards
+two revisions alternating task by task; the table's ratios are this / baseline (the first run at a revision
+compiles its numba kernels into its worktree's cache: a few minutes). Checks that both revisions' rewards
 agree (to 1e-9 of their magnitude: a solver change within its tolerances may move them that much).
 
 Writes ``bench_rollout.json``, ``bench_rollout.md`` (printed too) and ``bench_rollout.png`` (forward and backward
@@ -22,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -61,13 +62,13 @@ gen = torch.Generator().manual_seed(0)
 def once(H):
     a = SCALE * (2 * torch.rand(H, 1, core.action_dim, generator=gen, dtype=torch.float64) - 1)
     a.requires_grad_(True)
-    t0 = time.perf_counter()
+    w0, c0 = time.perf_counter(), time.process_time()
     out = rollout(core, state, a)
-    t1 = time.perf_counter()
+    w1, c1 = time.perf_counter(), time.process_time()
     loss = out.rewards.sum()
     (g,) = torch.autograd.grad(loss, a)
-    t2 = time.perf_counter()
-    return t1 - t0, t2 - t1, float(loss.detach()), float(g.norm())
+    w2, c2 = time.perf_counter(), time.process_time()
+    return c1 - c0, c2 - c1, float(loss.detach()), float(g.norm()), w1 - w0, w2 - w1
 
 once(min(HORIZONS))
 res = {}
@@ -81,6 +82,8 @@ for H in HORIZONS:
         "backward_s": statistics.median(r[1] for r in runs),
         "forward_runs_s": [r[0] for r in runs],
         "backward_runs_s": [r[1] for r in runs],
+        "forward_wall_s": statistics.median(r[4] for r in runs),
+        "backward_wall_s": statistics.median(r[5] for r in runs),
         "return": runs[0][2],
         "grad_norm": runs[0][3],
     }
@@ -115,7 +118,7 @@ def table(out: dict) -> str:
         rule += "---:|---:|---:|---:|---|"
     lines = [
         f"Rollouts from each task's trivial start (seed 0, action scale {out['config']['action_scale']:g}), median "
-        f"wall times over {out['config']['runs']} runs, one thread, at {out['commit']}"
+        f"CPU times over {out['config']['runs']} runs, one thread, at {out['commit']}"
         + (f" against {base['commit']} (ratio = this / baseline)" if base else ""),
         "",
         head,
@@ -168,7 +171,7 @@ def main() -> None:
     ap.add_argument("--tasks", nargs="+", choices=TASKS, default=TASKS, help="tasks (default: all five)")
     ap.add_argument("--horizons", nargs="+", type=positive_int, default=[25, 50, 100, 200],
                     help="rollout lengths in steps")  # fmt: skip
-    ap.add_argument("--runs", type=positive_int, default=2, help="timed rollouts per horizon (median)")
+    ap.add_argument("--runs", type=positive_int, default=3, help="timed rollouts per horizon (median)")
     ap.add_argument("--action-scale", type=nonnegative_float, default=0.0,
                     help="uniform random actions in [-s, s] (seeded); 0: zero actions, the trivial start")  # fmt: skip
     ap.add_argument("--baseline", metavar="REV", default=None, help="git revision to time side by side")
@@ -181,7 +184,12 @@ def main() -> None:
     horizons = sorted(set(args.horizons))
     out = {
         "commit": git_revision(),
-        "config": {"tasks": args.tasks, "horizons": horizons, "runs": args.runs, "action_scale": args.action_scale},
+        "config": {
+            "tasks": args.tasks,
+            "horizons": horizons,
+            "runs": args.runs,
+            "action_scale": args.action_scale,
+        },
         "tasks": {},
     }
     with tempfile.TemporaryDirectory() as tmp:
@@ -202,7 +210,9 @@ def main() -> None:
                 out["tasks"][task] = run(ROOT, task, horizons, args.runs, args.action_scale)
         finally:
             if base is not None:
-                subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
+                subprocess.run(
+                    ["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True
+                )
     text = table(out)
     print(text)
     (args.out / "bench_rollout.json").write_text(json.dumps(out, indent=1))
