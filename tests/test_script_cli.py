@@ -104,6 +104,10 @@ REFUSED = [
     ("render_envs", ["--steps", "-1"], "--steps"),
     ("billiards_landscape", ["--shot-steps", "0"], "--shot-steps"),
     ("bench_envs", ["--num-envs", "0"], "--num-envs"),
+    ("bench_rollout", ["--horizons", "50", "0"], "--horizons"),
+    ("bench_rollout", ["--runs", "0"], "--runs"),
+    ("bench_rollout", ["--action-scale", "-0.5"], "--action-scale"),
+    ("bench_rollout", ["--tasks", "Pool"], "--tasks"),
 ]
 
 
