@@ -10,7 +10,8 @@ after one untimed warm-up rollout of the shortest horizon; the figures are the m
 forward rollout and of its backward. With ``--baseline REV`` the revision REV (a git worktree) runs the same, the
 two revisions alternating task by task; the table's ratios are this / baseline (the first run at a revision
 compiles its numba kernels into its worktree's cache: a few minutes). Checks that both revisions' rewards
-agree (to 1e-9 of their magnitude: a solver change within its tolerances may move them that much).
+agree (to 1e-9 of their magnitude: a solver change within its tolerances may move them that much), and so do
+their gradients' norms (to 1e-6 relative).
 
 Writes ``bench_rollout.json``, ``bench_rollout.md`` (printed too) and ``bench_rollout.png`` (forward and backward
 milliseconds per step against the horizon, one panel per task) under ``--out``.
@@ -40,10 +41,13 @@ from tqdm import tqdm  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
-# One (revision, task) in a fresh process: REV the revision's root, whose cfd_torch and envs/ it imports.
+# One (revision, task) in a fresh process, its settings as JSON in argv[1]: the revision's root (whose cfd_torch and
+# envs/ it imports), the task, the horizons, the runs and the action scale.
 CHILD = r"""
 import importlib.util, json, os, statistics, sys, time
 import torch
+cfg = json.loads(sys.argv[1])
+REV, TASK, HORIZONS, RUNS, SCALE = cfg["rev"], cfg["task"], cfg["horizons"], cfg["runs"], cfg["scale"]
 torch.set_num_threads(1)
 import cfd_torch
 here = os.path.realpath
@@ -55,7 +59,7 @@ spec = importlib.util.spec_from_file_location("cfd_torch.envs", os.path.join(env
 sys.modules["cfd_torch.envs"] = mod = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(mod)
 from cfd_torch.envs import make_core, rollout
-core = make_core("cfd_torch/TASK-v0")
+core = make_core(f"cfd_torch/{TASK}-v0")
 state = core.reset(seed=0)
 gen = torch.Generator().manual_seed(0)
 
@@ -94,15 +98,9 @@ print(json.dumps(res))
 def run(path: Path, task: str, horizons: list[int], runs: int, scale: float) -> dict:
     """The child's results for one revision (its root ``path``) and task."""
     env = {**os.environ, "PYTHONPATH": str(path), "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    code = (
-        CHILD.replace("REV", repr(str(path.resolve())))
-        .replace("TASK", task)
-        .replace("HORIZONS", repr(horizons))
-        .replace("RUNS", str(runs))
-        .replace("SCALE", repr(scale))
-    )
-    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=tempfile.gettempdir(), capture_output=True,
-                         text=True)  # fmt: skip
+    cfg = {"rev": str(path.resolve()), "task": task, "horizons": horizons, "runs": runs, "scale": scale}
+    res = subprocess.run([sys.executable, "-c", CHILD, json.dumps(cfg)], env=env, cwd=tempfile.gettempdir(),
+                         capture_output=True, text=True)  # fmt: skip
     if res.returncode != 0:
         raise SystemExit(f"the rollouts of {task} at {path} failed:\n{res.stderr.strip()[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -133,7 +131,9 @@ def table(out: dict) -> str:
             )
             if base:
                 o = base["tasks"][task][H]
-                same = abs(r["return"] - o["return"]) <= 1e-9 * max(1.0, abs(o["return"]))
+                same = abs(r["return"] - o["return"]) <= 1e-9 * max(1.0, abs(o["return"])) and abs(
+                    r["grad_norm"] - o["grad_norm"]
+                ) <= 1e-6 * max(1e-300, abs(o["grad_norm"]))
                 line += (
                     f" {o['forward_s']:.2f} | {o['backward_s']:.2f} | {r['forward_s'] / o['forward_s']:.2f} | "
                     f"{r['backward_s'] / o['backward_s']:.2f} | {'yes' if same else 'NO'} |"

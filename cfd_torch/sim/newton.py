@@ -372,6 +372,7 @@ def newton(
                 total = torch.zeros(A, dtype=q.dtype, device=dev).index_add(0, gs, slope)
                 lim = L + 1e-4 * total + 1e-12 * cur.scale[idx]
                 passed = ev.value[pos] <= lim  # (A,): NaN and +inf fail
+                whole_only = passed[gs[sub]] & ~ok  # islands accepted only for the whole step's sake
                 ok = ok | passed[gs[sub]]
             if bool(ok.any()):
                 cand = sub[ok]
@@ -381,6 +382,12 @@ def newton(
                     far = cand[~near]
                     q_far = q0[gs[far]]
                     clear[~near] = move_ok(q_far, q_far + alpha[far, None] * gp[far], idx[gs[far]])
+                    if freeze and k == 0 and bool(whole_only.any()):
+                        # an island whose path is blocked leaves the whole step untaken: the islands that took it
+                        # only for the whole step's sake search on their own
+                        blocked = torch.zeros(A, dtype=torch.bool, device=dev)
+                        blocked[gs[cand[~clear]]] = True
+                        clear = clear & ~(whole_only[ok] & blocked[gs[cand]])
                 acc = cand[clear]
                 pending[acc] = False
                 taken[acc] = k
