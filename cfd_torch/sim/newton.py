@@ -364,6 +364,7 @@ def newton(
             # too); an island whose predicted decrease is below L's rounding is accepted when feasible
             tiny = (-slope[sub] <= noise[sub]) & many[sub]
             ok = feas & ((L_try <= L0[sub] + 1e-4 * alpha[sub] * slope[sub] + noise[sub] + slack) | tiny)
+            whole_only = None  # (at the full step) the islands accepted only for the whole step's sake
             if freeze and k == 0:
                 # the whole step (every island's full step, as one scene's search would try it) passes the scene's
                 # own test: its islands take it. An island's test cannot tell its own part of the change of its
@@ -372,7 +373,7 @@ def newton(
                 total = torch.zeros(A, dtype=q.dtype, device=dev).index_add(0, gs, slope)
                 lim = L + 1e-4 * total + 1e-12 * cur.scale[idx]
                 passed = ev.value[pos] <= lim  # (A,): NaN and +inf fail
-                whole_only = passed[gs[sub]] & ~ok  # islands accepted only for the whole step's sake
+                whole_only = passed[gs[sub]] & ~ok
                 ok = ok | passed[gs[sub]]
             if bool(ok.any()):
                 cand = sub[ok]
@@ -382,7 +383,7 @@ def newton(
                     far = cand[~near]
                     q_far = q0[gs[far]]
                     clear[~near] = move_ok(q_far, q_far + alpha[far, None] * gp[far], idx[gs[far]])
-                    if freeze and k == 0 and bool(whole_only.any()):
+                    if whole_only is not None and bool(whole_only.any()):
                         # an island whose path is blocked leaves the whole step untaken: the islands that took it
                         # only for the whole step's sake search on their own
                         blocked = torch.zeros(A, dtype=torch.bool, device=dev)
