@@ -1449,3 +1449,24 @@ def test_carry_moves_free_bodies_and_floating_bases():
         for k in (0, 6, 12):  # the two balls' and the base's translations
             want[:, k : k + 3] += shift
         assert torch.equal(out, want)
+
+
+@pytest.mark.parametrize("mount_z, ball_x", [(1.2, None), (0.1, 3.0)])
+def test_robot_hung_from_its_mount_stays_at_rest_away_from_the_origin(mount_z, ball_x):
+    """A fixed base whose root has joints hangs from its mount, a world-frame pose: the step's frame near the moving
+    bodies (1 m or more from the origin: the arm itself at table height, or a free ball 3 m away) must not move
+    it. Such a robot used to be displaced by the frame's whole shift (2 m at a mount 1.2 m up) in one step."""
+    import importlib.resources
+
+    assets = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets"
+    arm = articulation(str(assets / "reacher.xml"), root="body0", mount=(0.0, 0.0, mount_z, 0.0, 0.0, 0.0))
+    bodies, rows = [], arm.poses(torch.zeros(arm.num_joints, dtype=F64), None)
+    if ball_x is not None:
+        bodies = [rigid_body(trimesh.creation.icosphere(1, radius=0.1))]
+        rows = torch.cat([torch.tensor([[ball_x, 0.0, 1.0, 0.0, 0.0, 0.0]], dtype=F64), rows])
+    scene = Scene(bodies, articulations=[arm], gravity=(0.0, 0.0, 0.0))
+    state = State(rows, rows)
+    for _ in range(2):
+        state = step(scene, state, Action(ctrl=torch.zeros(scene.num_actuators, dtype=F64)))
+    moved = float((state.q - rows).abs().max())
+    assert moved < 1e-9, moved

@@ -899,6 +899,8 @@ class ArticulatedKinematics:
         self.arts = tuple(arts)
         self.first = tuple(int(r) for r in first_rows)
         self.num_bodies = num_bodies
+        # a fixed base whose root has joints hangs from its mount, a pose in the world frame
+        self.translation_invariant = not any(art.root_moves for art in self.arts)
         moving, start = [int(i) for i in free], 6 * len(free)
         coord_body = [k // 6 for k in range(6 * len(free))]
         self.coord_slices = []

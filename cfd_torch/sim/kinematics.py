@@ -34,6 +34,9 @@ class Kinematics(Protocol):
     freezable: bool
     #: (N, 6) bool, the pose components the map moves (the others come from the fixed poses)
     moved: torch.Tensor
+    #: whether translating q's bodies and the fixed poses together translates every pose the map gives (False
+    #: when some body hangs from a frame fixed in the world, as a robot hung from its mount)
+    translation_invariant: bool
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """(A, N, 6) poses of all bodies: those of the map from q (A, Q), the others from ``fixed`` (A, N, 6)."""
@@ -109,6 +112,7 @@ class FreeBodies:
 
     #: converged bodies may be frozen one by one (each coordinate moves one body)
     freezable = True
+    translation_invariant = True
 
     def pullback(
         self,
