@@ -40,7 +40,10 @@ class ContactConfig:
     """Settings of the contact potential (SPEC sections 2-4).
 
     Attributes:
-        stiffness: mu, the scale of the potential P = mu E (E mixes dimensionless and 1/m terms).
+        stiffness: mu, the scale of the potential P = mu E (E mixes dimensionless and 1/m terms). Bodies rest
+            where its repulsion, growing like mu / gap^2 near contact, balances their weight: the default suits
+            bodies of decimetres and kilograms; a 1 cm, 1 g cube hovers centimetres above its floor at it and rests
+            1.2 mm above it at 1e-12 (scale mu like size^5 with the margin like size).
         margin: delta, the distance below which the potential is +inf [m].
         eps: relative width of the hierarchy's blend band, d2 = d1 + max(eps d1, 2 margin) (never narrower than
             twice the margin: see :mod:`cfd_torch.contact.central`).

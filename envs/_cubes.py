@@ -65,7 +65,7 @@ class CubesCore(TaskCore):
         bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(6.0)]
         scene = Scene(
             bodies, dt=dt, friction=friction, substeps=8, potential=potential,
-            pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)},
+            pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)} if potential == "cfd" else None,
         )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
         # a layout that cannot be drawn fails here (a tight one can still fail in reset, by chance)

@@ -87,7 +87,7 @@ class AntPushCore(BoxToTargetCore):
             friction=1.0,
             substeps=8,
             potential=potential,
-            pair_eps={(0, 2 + k): eps for k in range(self.ant.num_links)},
+            pair_eps={(0, 2 + k): eps for k in range(self.ant.num_links)} if potential == "cfd" else None,
         )
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance

@@ -106,7 +106,7 @@ class BilliardsCore(TaskCore):
             planar=True,
             potential=potential,
             dhat=dhat,
-            pair_eps={(15, k): eps for k in range(15)},
+            pair_eps={(15, k): eps for k in range(15)} if potential == "cfd" else None,
         )
         super().__init__(scene, device=device, dtype=dtype)
         self.ball_radius = ball_radius

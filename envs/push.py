@@ -80,7 +80,7 @@ class PushCore(BoxToTargetCore):
         self.pusher = Pusher((0.1, 0.1, 0.8), density=500.0, max_speed=max_speed)
         scene = Scene(
             [box, self.pusher.body, floor_body(2 * distance + 4.0)], dt=dt, friction=friction, substeps=8,
-            potential=potential, pair_eps={(0, 1): eps},
+            potential=potential, pair_eps={(0, 1): eps} if potential == "cfd" else None,
         )  # fmt: skip
         super().__init__(scene, device=device, dtype=dtype)
         self.distance = distance

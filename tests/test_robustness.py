@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import trimesh
 from conftest import feature_pairs
 
-from cfd_torch import BSH, mesh_potential_derivatives, pair_potential, pair_potential_derivatives
+from cfd_torch import BSH, mesh_potential_derivatives, pair_potential, pair_potential_derivatives, rigid_body
 from cfd_torch.contact import _traverse
 from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 
@@ -419,3 +420,16 @@ def test_near_parallel_10km_edges_near_the_margin_are_feasible(backend):
     assert abs(float(d.value) / float(ref[0]) - 1) < 64 * ek
     if backend == "numba":
         assert _rel(d.grad, ref[1]) < 256 * ek
+
+
+@pytest.mark.parametrize("offset", [1e4, 1e5])
+def test_mass_properties_of_a_mesh_modelled_far_from_its_origin(offset):
+    """rigid_body's mass, centre of mass and second moment do not lose digits to where the mesh was modelled (a
+    box 10 km from its origin had a second moment 5 % off, at 100 km it was refused as not positive definite)."""
+    box = trimesh.creation.box((0.4, 0.2, 0.1))
+    ref = rigid_body(box, density=500.0)
+    shift = np.array([offset, 0.5 * offset, -0.25 * offset])
+    far = rigid_body(box.copy().apply_translation(shift), density=500.0)
+    assert abs(far.mass - ref.mass) <= 1e-9 * ref.mass
+    assert float((far.second_moment - ref.second_moment).norm()) <= 1e-9 * float(ref.second_moment.norm())
+    assert float((far.com - torch.from_numpy(shift) - ref.com).abs().max()) <= 1e-9

@@ -121,7 +121,8 @@ class Scene:
         pair_eps: body pairs (i, j) whose blend width (``ContactConfig.eps``) is their own, {(i, j): eps}: e.g. a
             wide band between a pusher and the boxes it should find, whose far field is then one smooth slope,
             while the boxes' contact with the floor keeps the narrow default (a wide band there only costs leaf
-            pairs). This library's potential only (the baselines have no blend).
+            pairs). This library's potential only: with a baseline ``potential`` or a ``contact_model`` it raises
+            ValueError (they have no blend).
         articulations: robots (:func:`cfd_torch.sim.articulation.articulation`); their links are the state rows
             after ``bodies``, each robot's consecutive (``articulation_rows``), with no contact between two links
             of one robot.
@@ -231,6 +232,12 @@ class Scene:
         self.exclude = tuple(body_pair(p, "exclude") for p in exclude)
         N = len(bodies)
         self.pair_eps = check_pair_eps(pair_eps, N)
+        if self.pair_eps and (contact_model is not None or self.contact.potential != "cfd"):
+            raise ValueError(
+                "pair_eps sets blend widths of this library's potential; the contact model "
+                + ("given" if contact_model is not None else f"potential={self.contact.potential!r}")
+                + " has no blend: leave pair_eps out"
+            )
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
