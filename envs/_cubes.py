@@ -62,7 +62,9 @@ class CubesCore(TaskCore):
         self.cube_size = cube_size
         self.spread = spread
         self.action_cost = action_cost
-        bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(6.0)]
+        # the floor holds the scattered cubes and every goal region, with 1 m to spare (6 m square at least)
+        reach = max([spread + cube_size] + [math.hypot(x, y) + r for x, y, r in self._goal_discs()])
+        bodies = [cube] * self.num_cubes + [self.pusher.body, floor_body(max(6.0, 2.0 * (reach + 1.0)))]
         scene = Scene(
             bodies, dt=dt, friction=friction, substeps=8, potential=potential,
             pair_eps={(k, self.num_cubes): eps for k in range(self.num_cubes)} if potential == "cfd" else None,

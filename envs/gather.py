@@ -19,7 +19,8 @@ class GatherCore(CubesCore):
     """Gather: push ten cubes (``num_cubes``) into one region.
 
     Scene: as :class:`~cfd_torch.envs.sort.SortCore` (ten 0.1 m cubes, a PD-driven 0.1 x 0.1 x 0.3 m pusher
-    hovering 2 mm above a 6 x 6 m floor, friction 0.5, dt = 0.01 s). Bodies: 0-9 cubes, 10 pusher, 11 floor.
+    hovering 2 mm above a floor (6 x 6 m, or wider to reach 1 m beyond the spread and the region), friction 0.5,
+    dt = 0.01 s). Bodies: 0-9 cubes, 10 pusher, 11 floor.
 
     Action: (2,) in [-1, 1], the pusher's planar velocity target, ``max_speed`` (1 m/s) per unit.
 
@@ -40,9 +41,9 @@ class GatherCore(CubesCore):
         check_positive(region_radius, "region_radius")
         if not (is_real(region_distance) and 0 <= region_distance < math.inf):
             raise ValueError(f"region_distance must be a finite number >= 0, got {region_distance!r}")
-        super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_distance = region_distance
+        super().__init__(**kwargs)  # (sizes the floor from the region)
 
     def _task_obs_dim(self, n: int) -> int:
         return 2

@@ -16,8 +16,9 @@ __all__ = ["SortCore", "SortEnv", "SortVectorEnv"]
 class SortCore(CubesCore):
     """Sort: push each of ten cubes (``num_cubes``) into the region of its class.
 
-    Scene: ten 0.1 m cubes (``cube_density`` 500 kg/m^3: 0.5 kg) on a static 6 x 6 m floor (top at z = 0) and a
-    pusher, a dynamic 0.1 x 0.1 x 0.3 m box driven by a PD law toward planar velocity targets
+    Scene: ten 0.1 m cubes (``cube_density`` 500 kg/m^3: 0.5 kg) on a static floor (top at z = 0; 6 x 6 m, or
+    wider to reach 1 m beyond the cubes' spread and the regions) and a pusher, a dynamic 0.1 x 0.1 x 0.3 m box
+    driven by a PD law toward planar velocity targets
     (:class:`~cfd_torch.envs._pusher.Pusher`: it hovers 2 mm above the floor, upright). Friction 0.5, gravity
     9.81 m/s^2, dt = 0.01 s (retried as up to 8 sub-steps if a solve fails). Bodies: 0-9 cubes, 10 pusher, 11 floor.
 
@@ -43,9 +44,9 @@ class SortCore(CubesCore):
     def __init__(self, *, region_radius: float = 0.4, region_offset: float = 1.2, **kwargs) -> None:
         check_positive(region_radius, "region_radius")
         check_positive(region_offset, "region_offset")
-        super().__init__(**kwargs)
         self.region_radius = region_radius
         self.region_offset = region_offset
+        super().__init__(**kwargs)  # (sizes the floor from the regions)
 
     def _task_obs_dim(self, n: int) -> int:
         return n + 4

@@ -400,8 +400,10 @@ def _check_settings(cfg: dict) -> None:
 
     count("iters", 1)
     count("horizon", 1)
-    if cfg["seed"] is not None and not is_int(cfg["seed"]):
-        raise ValueError(f"config['seed'] (--seed) must be an int, got {cfg['seed']!r}")
+    if cfg["seed"] is not None and not (is_int(cfg["seed"]) and -(2**63) <= cfg["seed"] < 2**64):
+        raise ValueError(
+            f"config['seed'] (--seed) must be an int in [-2^63, 2^64) (torch's seeds), got {cfg['seed']!r}"
+        )
     count("smooth_samples", 0)
     if cfg["smooth_samples"] and cfg["model"] not in ("cfd", "ipc", "sdrs"):
         raise ValueError(
@@ -438,6 +440,17 @@ def _check_settings(cfg: dict) -> None:
         positive("gb_sigma")
     if cfg["model"] == "mujoco-fd":
         count("mj_substeps", 1)
+    given = set(cfg["task_args"] or {})
+    if "potential" in given:
+        raise ValueError(
+            "config['task_args'] (--task-args): 'potential' is chosen by config['model'] (--model), which the logs "
+            "and the sweep's tables are grouped by: leave it out"
+        )
+    for key in ("dt", "eps"):
+        if key in given and cfg[key] is not None:
+            raise ValueError(
+                f"config['task_args'] (--task-args) and config['{key}'] (--{key}) both set {key}: give one"
+            )
     if cfg["task"] in TASKS:  # the task's own arguments: names its constructor takes
         params = _constructor_parameters(core_class(f"cfd_torch/{cfg['task']}-v0"))
         unknown = sorted(set(cfg["task_args"] or {}) - set(params))

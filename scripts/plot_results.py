@@ -136,10 +136,9 @@ def plot(runs: list[dict], out: Path, best: bool = False) -> list[Path]:
                 axis.fill_between(xs, L.min(0), L.max(0), color=line.get_color(), alpha=0.2)
             # each model's total cost: a run stopped at its first evaluation is this point alone on the wall axis
             ax[1].plot(wall[-1:], L.mean(0)[-1:], marker="o", color=line.get_color())
-        kinds = {bool(r["config"]["mpc"]) for rs in models.values() for r in rs}
-        if len(kinds) > 1:  # control steps and iterations on one axis would mislead
-            raise SystemExit(f"{task}: MPC and open-loop runs together; plot them from separate folders")
-        mpc = kinds.pop()
+        mpc = any(
+            bool(r["config"]["mpc"]) for rs in models.values() for r in rs
+        )  # (one kind: checked in main)
         ylabel = "best loss so far / initial" if best and not mpc else "loss / initial loss"
         ax[0].set(xlabel="control step" if mpc else "iteration", ylabel=ylabel, title=task)
         ax[1].set(xlabel="wall time [s]", ylabel=ylabel, xscale="symlog")
@@ -183,6 +182,10 @@ def main() -> None:
     mixed = mixed_settings(runs)
     if mixed:
         raise SystemExit(mixed)
+    for task in sorted({r["config"]["task"] for r in runs}):  # (before anything is written)
+        if len({bool(r["config"]["mpc"]) for r in runs if r["config"]["task"] == task}) > 1:
+            # control steps and iterations on one axis would mislead
+            raise SystemExit(f"{task}: MPC and open-loop runs together; plot them from separate folders")
     out = args.out or args.sweeps[0]
     out.mkdir(parents=True, exist_ok=True)
     md = table(runs)

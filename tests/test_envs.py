@@ -694,3 +694,19 @@ def test_billiards_camera_holds_a_near_corner_pocket(pocket):
     assert bool((state.task["pocket"] == p).all())
     for xy in (p, state.q[:, :, :2].reshape(-1, 2)):  # the pocket, every ball's start
         assert bool(((xy - centre).norm(dim=-1) + 0.08 < reach).all())
+
+
+@pytest.mark.parametrize(
+    "task, kwargs",
+    [("Sort", {"spread": 4.0}), ("Sort", {"region_offset": 4.0}), ("Gather", {"region_distance": 4.0})],
+)
+def test_cube_tasks_floor_holds_the_spread_and_the_goal_regions(task, kwargs):
+    """Sort's and Gather's floor reaches 1 m beyond every cube's start and every goal region (a 6 m floor had
+    cubes started beyond its edge fall, and a region beyond it count falling cubes as gathered)."""
+    core = make_core(f"cfd_torch/{task}-v0", **kwargs)
+    V = core.scene.bodies[-1].bsh.vertices
+    half = 0.5 * float(V[:, 0].max() - V[:, 0].min())
+    state = core.reset(seed=[0, 1, 2], batch_size=3)
+    cubes = state.q[:, : core.num_cubes, :2].abs().amax()
+    reach = max(math.hypot(x, y) + r for x, y, r in core._goal_discs())
+    assert half >= float(cubes) + 1.0 and half >= reach + 1.0, (half, float(cubes), reach)

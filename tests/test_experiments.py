@@ -201,6 +201,14 @@ def test_run_experiment_refuses_unknown_keys_and_models():
     ):  # fmt: skip
         with pytest.raises(ValueError, match=f"config\\['{key}'\\] \\(--{key.replace('_', '-')}\\) must be"):
             run_experiment({"task": "Push", "model": model, "iters": 1, "horizon": 2, key: value})
+    # the model chooses the potential (the logs and tables are grouped by it); --dt/--eps and task_args not both;
+    # seeds in torch's range
+    with pytest.raises(ValueError, match="'potential' is chosen by config\\['model'\\]"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "task_args": {"potential": "ipc"}})
+    with pytest.raises(ValueError, match="both set dt: give one"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "dt": 0.02, "task_args": {"dt": 0.04}})
+    with pytest.raises(ValueError, match="config\\['seed'\\] \\(--seed\\) must be an int in"):
+        run_experiment({"task": "Push", "iters": 1, "horizon": 2, "seed": 2**64})
     # the command line turns them into usage errors before anything runs
     bad = subprocess.run(
         [sys.executable, str(SCRIPTS / "optimize.py"), "--task", "Push", "--knots", "0", "--out", "/nonexistent"],
@@ -264,6 +272,20 @@ def test_sweep_and_plot_results(tmp_path):
          str(tmp_path / "p")], capture_output=True, text=True,
     )  # fmt: skip
     assert both.returncode != 0 and "is in both" in both.stderr
+    # MPC runs beside open-loop ones are refused before anything is written
+    sweep = json.loads((tmp_path / "sweep.json").read_text())
+    for name, model, mpc in (("open", "cfd", False), ("mpc", "gb", True)):
+        (tmp_path / name).mkdir()
+        keep = [r for r in sweep["runs"] if r["config"]["model"] == model]
+        for r in keep:
+            r["config"]["mpc"] = mpc
+        (tmp_path / name / "sweep.json").write_text(json.dumps({**sweep, "runs": keep}))
+    kinds = subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path / "open"), str(tmp_path / "mpc"), "--out",
+         str(tmp_path / "k")], capture_output=True, text=True,
+    )  # fmt: skip
+    assert kinds.returncode != 0 and "MPC and open-loop runs together" in kinds.stderr
+    assert not (tmp_path / "k" / "results.md").exists()
     no_sweep = subprocess.run(
         [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path / "Push")],
         capture_output=True,
