@@ -228,18 +228,16 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                 for c in range(12):
                     dr[c] = u0 * dd[0, c] + u1 * dd[1, c] + u2 * dd[2, c]
                 if order >= 2 and not plain:
-                    for a in range(12):
+                    for a in range(12):  # the upper triangle (the only one read)
                         for c in range(a, 12):
-                            v = (
+                            d2r[a, c] = (
                                 dd[0, a] * dd[0, c]
                                 + dd[1, a] * dd[1, c]
                                 + dd[2, a] * dd[2, c]
                                 - dr[a] * dr[c]
                             ) * inv_r
-                            d2r[a, c] = v
-                            d2r[c, a] = v
                     for kk in range(3):
-                        for ll in range(3):
+                        for ll in range(kk, 3):
                             acc_a = 0.0
                             acc_b = 0.0
                             for i in range(3):
@@ -274,20 +272,8 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                                 for a in range(12):
                                     for c in range(a, 12):
                                         hess[p, a, c] += g * W2[a, c] + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                        elif wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
-                            for a in range(12):
-                                ga = g2 * dr[a]
-                                for c in range(a, 12):
-                                    hess[p, a, c] += ga * dr[c] + g1 * d2r[a, c]
-                        else:
-                            W2 = wd2[wid]
-                            for a in range(12):
-                                for c in range(a, 12):
-                                    hess[p, a, c] += (
-                                        g * W2[a, c]
-                                        + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                                        + W * (g2 * dr[a] * dr[c] + g1 * d2r[a, c])
-                                    )
+                        # (else: a node pair in the band, 0 < s < 1; its Hessian term is added below, in one pass
+                        # with its children's weight's Hessian)
             if s >= 1.0:
                 continue
             # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
@@ -301,18 +287,33 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                         wd2 = _grow(wd2, 0)
                 h = 1.0 - phi
                 if order >= 2:
+                    # the central term's Hessian (its upper triangle: mirrored when the body pair is done) and the
+                    # children's weight's (W (1 - phi)), from the same products; the weight tables' Hessians are
+                    # read only in their upper triangles
                     W1 = wd1[wid]
                     W2 = wd2[wid]
                     N2 = wd2[nw]
-                    for a in range(12):  # symmetric: the upper triangle, mirrored
-                        for c in range(a, 12):
-                            v = (
-                                h * W2[a, c]
-                                - phi1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                                - W * (phi2 * dr[a] * dr[c] + phi1 * d2r[a, c])
-                            )
-                            N2[a, c] = v
-                            N2[c, a] = v
+                    if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
+                        for a in range(12):
+                            ga = g2 * dr[a]
+                            pa = phi2 * dr[a]
+                            for c in range(a, 12):
+                                d2 = d2r[a, c]
+                                hess[p, a, c] += ga * dr[c] + g1 * d2
+                                N2[a, c] = (
+                                    h * W2[a, c]
+                                    - phi1 * (W1[a] * dr[c] + dr[a] * W1[c])
+                                    - W * (pa * dr[c] + phi1 * d2)
+                                )
+                    else:
+                        for a in range(12):
+                            ga = g2 * dr[a]
+                            pa = phi2 * dr[a]
+                            for c in range(a, 12):
+                                d2 = d2r[a, c]
+                                cr = W1[a] * dr[c] + dr[a] * W1[c]
+                                hess[p, a, c] += g * W2[a, c] + g1 * cr + W * (ga * dr[c] + g1 * d2)
+                                N2[a, c] = h * W2[a, c] - phi1 * cr - W * (pa * dr[c] + phi1 * d2)
                 if order >= 1:
                     W1 = wd1[wid]
                     N1 = wd1[nw]
