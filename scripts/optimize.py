@@ -688,7 +688,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )
     ap.add_argument("--eps", type=float, default=d["eps"],
                     help="the blend width between the actuated body and the objects (the task's eps; default: "
-                    "the task's, 1.0 for the pushing tasks, 0.01 for Billiards)")  # fmt: skip
+                    "the task's, 1.0 for the pushing tasks, 0.01 for Billiards; the cfd model's only: the baselines "
+                    "have no blend, and a sweep passes it to every model alike)")  # fmt: skip
     ap.add_argument("--task-args", type=_json_object, default=d["task_args"],
                     help='the task core\'s arguments as a JSON object, e.g. \'{"distance": 1.5}\' (Push)')  # fmt: skip
     ap.add_argument("--lr", type=float, default=d["lr"])

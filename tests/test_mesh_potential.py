@@ -830,3 +830,21 @@ def test_threaded_node_traversal_equals_one_thread(monkeypatch, threads):
     assert float(one.grad.abs().max()) > 0
     for a, b in ((one.value, many.value), (one.grad, many.grad), (one.hess, many.hess)):
         torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12 * float(a.abs().max()))
+
+
+def test_contact_potential_is_inf_with_zero_derivatives_when_a_pair_penetrates():
+    """Bodies 0 and 1 overlap, 1 and 2 are 3.5 mm apart: the total is +inf and its derivatives are zero (as a pair's
+    and a body pair's are), not the derivatives of the finite pair (1, 2), which would read as a force field that
+    ignores the penetration."""
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    poses = torch.tensor(
+        [[0, 0, 0, 0, 0, 0], [0.9, 0, 0, 0, 0, 0], [1.9035, 0, 0, 0, 0, 0]], dtype=torch.float64
+    )
+    finite = contact_potential([ball, ball], poses[1:], hessian=True)
+    assert torch.isfinite(finite.value) and float(finite.grad.abs().max()) > 0  # the pair (1, 2) alone
+    sc = contact_potential([ball, ball, ball], poses, hessian=True)
+    assert torch.isinf(sc.value)
+    assert float(sc.grad.abs().max()) == 0 and float(sc.hessian.abs().max()) == 0
+    p = poses.clone().requires_grad_()
+    (g,) = torch.autograd.grad(contact_potential([ball, ball, ball], p).value, p)
+    assert float(g.abs().max()) == 0

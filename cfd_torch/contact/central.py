@@ -43,6 +43,7 @@ def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness)
         constant ``12 mu``, but its derivative ``-12 mu (r^-3/2 + r^-2)`` never vanishes.
 
     Raises:
+        TypeError: if ``r`` is not a tensor.
         ValueError: if ``r`` is not a floating tensor, holds NaN, or is negative, or ``mu`` is not a finite positive
             number.
     """

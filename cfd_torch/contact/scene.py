@@ -141,7 +141,8 @@ def contact_potential(
         hessian: compute the (6N, 6N) Hessian (implies the gradient).
 
     Returns:
-        ContactPotential(value, grad, hessian, stats).
+        ContactPotential(value, grad, hessian, stats); value +inf when some pair of bodies is within the margin
+        (or intersecting), and then zero derivatives (not those of the other pairs: check ``isinf(value)``).
     """
     if not isinstance(poses, torch.Tensor) or poses.dim() != 2 or poses.shape[1] != 6:
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
@@ -227,6 +228,11 @@ def contact_potential(
         value = v.sum()[None]
         rows = torch.cat([torch.zeros_like(pairs[:, :1]), pairs], 1)  # (P, 3): one pose set
         G, H = sum_pairs(1, N, rows, g, h)
+        if bool(
+            torch.isinf(value).any()
+        ):  # a pair within the margin: +inf with zero derivatives, as for one pair
+            G = torch.zeros_like(G) if G is not None else None
+            H = torch.zeros_like(H) if H is not None else None
         return value, (G.reshape(1, 6 * N) if G is not None else None), H
 
     with outside_transforms(), torch.no_grad():

@@ -158,7 +158,7 @@ def rigid_body(
                 "counted twice; a cavity's shell must face inward"
             )
     # the mass properties of the mesh moved to its bounding box's centre: the volume integrals' sums cancel no
-    # digits against a far origin (a box modelled 10 km from its origin had a second moment 5 % off)
+    # digits against a far origin
     centre = 0.5 * (V.min(0) + V.max(0))
     m = mesh.copy()
     m.apply_translation(-centre)

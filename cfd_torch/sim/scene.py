@@ -236,7 +236,7 @@ class Scene:
             raise ValueError(
                 "pair_eps sets blend widths of this library's potential; the contact model "
                 + ("given" if contact_model is not None else f"potential={self.contact.potential!r}")
-                + " has no blend: leave pair_eps out"
+                + " has no blend: leave pair_eps out (Scene.replace carries it over: replace(..., pair_eps=None))"
             )
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)

@@ -90,10 +90,10 @@ def _solve(
     # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
+    # Not with a robot hung from its mount, a pose in the world frame that the kinematics read as given: such a
+    # scene is solved in the world frame.
     c = frame_origin(q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach(), min_extent=1.0)[:, None]
-    if (
-        not scene.kinematics.translation_invariant
-    ):  # a robot hung from its mount, a pose in the world frame: no shift
+    if not scene.kinematics.translation_invariant:
         c = torch.zeros_like(c)
     # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
     # exact only near the moving bodies
