@@ -848,3 +848,7 @@ def test_contact_potential_is_inf_with_zero_derivatives_when_a_pair_penetrates()
     p = poses.clone().requires_grad_()
     (g,) = torch.autograd.grad(contact_potential([ball, ball, ball], p).value, p)
     assert float(g.abs().max()) == 0
+    # the oracle too (its autograd gradient was the finite node pairs')
+    v = mesh_potential_reference(ball, p[0], ball, p[1])
+    (g,) = torch.autograd.grad(v, p)
+    assert torch.isinf(v) and float(g.abs().max()) == 0

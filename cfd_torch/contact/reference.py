@@ -140,15 +140,17 @@ def mesh_potential_reference(
         split: ``"both"`` or ``"larger"`` (which node(s) of an internal pair to descend into).
 
     Returns:
-        () float64 potential, +inf on (near-)penetration. Differentiable by autograd to second order with respect
-        to both poses (a third derivative raises where a leaf pair is evaluated).
+        () float64 potential, +inf on (near-)penetration (with zero derivatives). Differentiable by autograd to
+        second order with respect to both poses (a third derivative raises where a leaf pair is evaluated).
 
     Raises:
         ValueError: on a bad argument (naming it).
     """
     _check_args(bsh_a, pose_a, bsh_b, pose_b, mu, margin, eps, split)
     kw = {"mu": float(mu), "margin": float(margin), "eps": float(eps), "split": split}
-    return _recurse(_Body(bsh_a, pose_a), 0, _Body(bsh_b, pose_b), 0, kw, None)
+    value = _recurse(_Body(bsh_a, pose_a), 0, _Body(bsh_b, pose_b), 0, kw, None)
+    # +inf with zero derivatives, as mesh_potential (not the finite node pairs' derivatives)
+    return torch.where(torch.isinf(value), value.detach(), value)
 
 
 def mesh_traversal_counts_reference(
