@@ -592,6 +592,26 @@ def test_params_dtype_and_type(scene, state):
         step(scene, state, params=tuple(p))
 
 
+def test_kinematic_target_wholly_inside_a_static_body():
+    """A target sunk wholly into a thick static slab (surfaces clear) is refused like one that pierces its top: it
+    was accepted, only the surface test ran."""
+    slab = trimesh.creation.box((4.0, 4.0, 0.4))
+    slab.apply_translation([0.0, 0.0, -0.2])
+    bodies = [
+        rigid_body(trimesh.creation.box((0.1, 0.1, 0.1))),
+        rigid_body(slab, kind="static"),
+        rigid_body(trimesh.creation.box((0.04, 0.04, 0.1)), kind="kinematic"),
+    ]
+    scene = Scene(bodies, refine_obstacles=None)
+    q = torch.tensor([[0.0, 0.0, 0.052, 0, 0, 0], [0.0] * 6, [-0.3, 0.0, 0.06, 0, 0, 0]], dtype=F64)
+    state = scene.initial_state(q)
+    with _raises("action.target: kinematic body 2 at its target lies inside static body 1"):
+        step(scene, state, Action(target=torch.tensor([[-0.3, 0.0, -0.2, 0.0, 0.0, 0.0]], dtype=F64)))
+    step(
+        scene, state, Action(target=torch.tensor([[-0.3, 0.0, 0.07, 0.0, 0.0, 0.0]], dtype=F64))
+    )  # clear: steps
+
+
 @pytest.mark.parametrize("z", [0.04, 0.0505])  # the paddle's bottom 1 cm inside the ground, 0.5 mm above it
 def test_kinematic_target_into_a_static_body(scene, state, z):
     target = torch.tensor([[-0.3, 0.0, z, 0.0, 0.0, 0.0]], dtype=F64)

@@ -124,8 +124,9 @@ def physical_second_moment(S: torch.Tensor) -> bool:
 
 def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
     """Raise a ValueError naming ``action.target`` if a kinematic body at its target is within the contact margin
-    of (or intersects) a static body, the static bodies where ``q`` (B, N, 6) has them: neither ever moves, so no
-    step can resolve it. ``target`` (B, K, 6). One collision query over the kinematic-static pairs not excluded."""
+    of (or intersects) a static body, or lies wholly inside one (or around one), the static bodies where ``q``
+    (B, N, 6) has them: neither ever moves, so no step can resolve it. ``target`` (B, K, 6). One collision query
+    over the kinematic-static pairs not excluded, then the inside test."""
     kin = scene.kinematic.tolist()
     static = torch.nonzero(scene.static_mask)[:, 0].tolist()
     excluded = {(min(a, b), max(a, b)) for a, b in scene.no_contact}
@@ -148,6 +149,18 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
             f"at its target penetrates static body {st} (is within the contact "
             f"margin {scene.contact.margin} of it){f' in scene {s}' if B > 1 else ''}; neither moves, so no step can "
             "resolve it"
+        )
+    from .feasibility import contained
+
+    inside = contained(scene, poses, pairs=base)
+    if inside:
+        s, i, j = inside[0]
+        k, st = (i, j) if scene.bodies[i].kind == "kinematic" else (j, i)
+        link = k in scene.kinematic[scene.num_kinematic_bodies :].tolist()
+        raise ValueError(
+            f"{'action.joints' if link else 'action.target'}: kinematic {'robot link' if link else 'body'} {k} "
+            f"at its target lies {'inside' if k == i else 'around'} static body {st}"
+            f"{f' in scene {s}' if B > 1 else ''} (their surfaces do not touch)"
         )
 
 

@@ -79,15 +79,19 @@ _RAY_DIRECTIONS = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, 0.8018],
 _RAY_DIRECTIONS /= np.linalg.norm(_RAY_DIRECTIONS, axis=1, keepdims=True)
 
 
-def contained(scene, poses: torch.Tensor, sel: torch.Tensor | None = None) -> list[tuple[int, int, int]]:
+def contained(
+    scene, poses: torch.Tensor, sel: torch.Tensor | None = None, pairs: torch.Tensor | None = None
+) -> list[tuple[int, int, int]]:
     """(s, i, j) for each pose set s of ``poses`` (S, N, 6) and interacting pair (of those the (P,) mask ``sel``
-    selects, default all) whose body i lies inside body j's solid, with i's surface clear of j's: the potential is
+    selects, default all; or the body pairs ``pairs`` (P, 2), interacting or not) whose body i lies inside body j's
+    solid, with i's surface clear of j's: the potential is
     finite there, and nothing else would notice. Body j must be a closed, consistently wound surface
     (``scene.closed``); its solid is where its winding number is positive (inside an outward-facing shell; inside an
     inward-facing one, a room or a cavity, is free space). The winding number is counted along a ray from one vertex
     of i through j's surface (its hierarchy prunes the triangles), only where that vertex is within j's extent of
     j's frame origin. Pairs whose surfaces cross are not reported (they penetrate: :func:`penetrating`)."""
-    pairs = scene.pairs if sel is None else scene.pairs[sel.cpu()]
+    if pairs is None:
+        pairs = scene.pairs if sel is None else scene.pairs[sel.cpu()]
     if pairs.shape[0] == 0 or not bool(scene.closed.any()):
         return []
     inner = torch.cat([pairs[:, 0], pairs[:, 1]])
@@ -125,8 +129,8 @@ def contained(scene, poses: torch.Tensor, sel: torch.Tensor | None = None) -> li
     out = []
     for k in hit.tolist():  # (rare) pairs whose surfaces cross are penetration, reported as such elsewhere
         s, i, j = int(ss[k]), int(inner[cc[k]]), int(outer[cc[k]])
-        one = (scene.pairs[:, 0] == min(i, j)) & (scene.pairs[:, 1] == max(i, j))
-        if not bool(infeasible_pairs(scene, poses[s : s + 1].detach(), one).any()):
+        row = torch.tensor([[0, min(i, j), max(i, j)]], device=poses.device)
+        if not bool(scene.contact_model.infeasible(poses[s : s + 1].detach(), row).any()):
             out.append((s, i, j))
     return out
 
