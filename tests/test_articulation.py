@@ -1470,3 +1470,39 @@ def test_robot_hung_from_its_mount_stays_at_rest_away_from_the_origin(mount_z, b
         state = step(scene, state, Action(ctrl=torch.zeros(scene.num_actuators, dtype=F64)))
     moved = float((state.q - rows).abs().max())
     assert moved < 1e-9, moved
+
+
+def test_scene_with_a_mounted_robot_steps_as_well_far_from_the_origin():
+    """A mounted robot beside a box sliding with friction (the small-scale settings of the translation test in
+    tests/test_robustness.py), the whole scene and the mount translated by 1 km: the step's frame moves the mount
+    with it, so the trajectory matches the one at the origin (solved in the world frame it raised StepError)."""
+    import importlib.resources
+
+    assets = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets"
+    s = 0.1
+    kw = {"dt": 0.01 * math.sqrt(s), "margin": 1e-3 * s, "mu": 1e-8 * s**5, "ccd_spacing": 0.01 * s,
+          "newton_tol": 1e-9 * s, "friction_eps_v": 1e-4 * math.sqrt(s)}  # fmt: skip
+    floor = rigid_body(trimesh.creation.box((4 * s, 4 * s, 0.2 * s)), kind="static")
+    box = rigid_body(trimesh.creation.box((0.2 * s, 0.15 * s, 0.1 * s)))
+
+    def slide(off):
+        off = torch.tensor(off, dtype=F64)
+        mount = (float(off[0]) + 0.5, float(off[1]), float(off[2]) + 0.05, 0.0, 0.0, 0.0)
+        arm = articulation(str(assets / "reacher.xml"), root="body0", mount=mount)
+        rows = arm.poses(torch.zeros(arm.num_joints, dtype=F64), None)
+        q0 = torch.cat(
+            [torch.tensor([[0, 0, -0.1 * s, 0, 0, 0], [0, 0, 0.052 * s, 0, 0, 0]], dtype=F64), rows]
+        )
+        q0[:2, :3] += off
+        scene = Scene([floor, box], friction=0.5, articulations=[arm], **kw)
+        v0 = torch.zeros(len(q0), 6, dtype=F64)
+        v0[1, 0] = math.sqrt(s)
+        with torch.no_grad():
+            q = rollout(scene, scene.initial_state(q0, v0), 20).q.clone()
+        q[..., :3] -= off
+        return q
+
+    a = slide([0.0, 0.0, 0.0])
+    assert float((a[-1, 1, :3] - a[0, 1, :3]).norm()) > 0.01 * s  # the box slides
+    b = slide([1e3, -1e3, 1e3])
+    assert float((b - a)[..., :3].abs().max()) < 1e-10

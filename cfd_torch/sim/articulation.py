@@ -36,6 +36,7 @@ The limit barrier is kappa b(x / w) on the distance x to each limit, with b(s) =
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 from collections.abc import Sequence
@@ -458,6 +459,13 @@ def _vee(S: torch.Tensor) -> torch.Tensor:
     return 0.5 * torch.stack(
         [S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]], -1
     )
+
+
+def _remounted(art: Articulation, translation: np.ndarray) -> Articulation:
+    """A copy of ``art`` hung from its mount moved to ``translation`` (3,) (its rotation kept)."""
+    out = copy.copy(art)
+    out.mount = np.concatenate([translation, art.mount[3:]])
+    return out
 
 
 def _base_and_joints(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
@@ -947,6 +955,17 @@ class ArticulatedKinematics:
         self.actuator_joint = torch.tensor(act.pop("joint"), dtype=torch.long)
         self.actuator_servo = torch.tensor(act.pop("servo"), dtype=torch.bool)
         self.actuator_data = {k: torch.tensor(v, dtype=torch.float64) for k, v in act.items()}
+
+    def translated(self, origin: torch.Tensor) -> ArticulatedKinematics:
+        """This map in the frame whose origin is ``origin`` (3,) [m] in the world: a copy whose robots hung from
+        their mounts hang from the mounts moved by -origin (the other bases are coordinates or fixed poses, which
+        move with the frame); itself if no robot hangs from a mount."""
+        if self.translation_invariant:
+            return self
+        d = origin.detach().to("cpu", torch.float64).numpy()
+        out = copy.copy(self)
+        out.arts = tuple(_remounted(a, a.mount[:3] - d) if a.root_moves else a for a in self.arts)
+        return out
 
     # -- the map
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:

@@ -35,7 +35,7 @@ class Kinematics(Protocol):
     #: (N, 6) bool, the pose components the map moves (the others come from the fixed poses)
     moved: torch.Tensor
     #: whether translating q's bodies and the fixed poses together translates every pose the map gives (False
-    #: when some body hangs from a frame fixed in the world, as a robot hung from its mount)
+    #: when some body hangs from a frame fixed in the world, as a robot hung from its mount: see ``translated``)
     translation_invariant: bool
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
@@ -70,6 +70,11 @@ class Kinematics(Protocol):
     def carry(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
         """(A, Q) the coordinates with every moving body translated by ``shift`` (A, 3) [m] (a start that carries
         the bodies along with a kinematic pusher)."""
+        ...
+
+    def translated(self, origin: torch.Tensor) -> Kinematics:
+        """This map in the frame whose origin is ``origin`` (3,) [m] in the world: the frames it reads as world
+        poses (a robot's mount) moved by -origin; itself when ``translation_invariant``."""
         ...
 
 
@@ -113,6 +118,9 @@ class FreeBodies:
     #: converged bodies may be frozen one by one (each coordinate moves one body)
     freezable = True
     translation_invariant = True
+
+    def translated(self, origin: torch.Tensor) -> FreeBodies:
+        return self
 
     def pullback(
         self,

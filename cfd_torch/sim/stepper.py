@@ -12,6 +12,7 @@ equals stepping it alone.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterable, Sequence
 
@@ -90,11 +91,15 @@ def _solve(
     # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
-    # Not with a robot hung from its mount, a pose in the world frame that the kinematics read as given: such a
-    # scene is solved in the world frame.
-    c = frame_origin(q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach(), min_extent=1.0)[:, None]
-    if not scene.kinematics.translation_invariant:
-        c = torch.zeros_like(c)
+    # A robot hung from its mount reads the mount as a world pose: then one frame serves the whole batch, and the
+    # step's kinematics hang the robots from their mounts moved into it.
+    moving = q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach()
+    if scene.kinematics.translation_invariant:
+        c = frame_origin(moving, min_extent=1.0)[:, None]
+    else:
+        c = frame_origin(moving.reshape(1, -1, 3), min_extent=1.0)[:, None].expand(q_t.shape[0], 1, 3)
+        scene = copy.copy(scene)  # (the caller's scene is not changed)
+        scene.kinematics = scene.kinematics.translated(c[0, 0])
     # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
     # exact only near the moving bodies
     held = end_poses(scene, q_t, target.to(f64))
