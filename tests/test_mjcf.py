@@ -379,6 +379,18 @@ def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() 
         load_mjcf(
             body.replace("<mujoco>", '<mujoco><option><flag gravity="disable" limit="disable"/></option>')
         )
+    with pytest.raises(ValueError, match='MJCF <flag contact="disable" constraint="disable">'):
+        load_mjcf(
+            body.replace(
+                "<mujoco>", '<mujoco><option><flag contact="disable" constraint="disable"/></option>'
+            )
+        )
+    with pytest.warns(UserWarning, match="joint margin of 'h' \\(0.2\\): ignored"):
+        load_mjcf(_one_body('<joint name="h" range="-1 1" margin="0.2"/>'))
+    with pytest.raises(TypeError, match="root must be the name of a body"):
+        load_mjcf(body, root=3)
+    with pytest.raises(ValueError, match="not 'world' itself"):
+        load_mjcf(body, root="world")
     with pytest.warns(UserWarning, match="gravity=\\(0.0, 0.0, -1.62\\)>: ignored"):
         load_mjcf(body.replace("<mujoco>", '<mujoco><option gravity="0 0 -1.62"/>'))
     contact = '<contact><pair geom1="g1" geom2="g2" friction="0.1 0.1 0.005 0.0001 0.0001"/></contact>'

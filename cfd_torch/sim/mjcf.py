@@ -467,6 +467,10 @@ def _name_bodies(parent, prefix: str = "") -> bool:
 
 
 def _root_name(spec: mujoco.MjSpec, root: str | None) -> str:
+    if root is not None and not isinstance(root, str):
+        raise TypeError(f"root must be the name of a body (a str), got {type(root).__name__}")
+    if root == "world":
+        raise ValueError("root must name a body inside the worldbody, not 'world' itself")
     top = [b.name for b in spec.worldbody.bodies]
     if root is None:
         if len(top) != 1:
@@ -495,13 +499,24 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
     """Refuse the physics the simulator does not model (it would be silently absent) where it touches the loaded
     subtree (the bodies ``in_tree``): joint friction loss and actuator force ranges, gravity compensation, equality
     constraints, and tendons with limits, stiffness or damping; warn of fluid forces (the options density,
-    viscosity and wind), which the step leaves out too."""
+    viscosity and wind) and limited joints' margins, which the step leaves out too."""
     for b in sorted(in_tree):
         if float(m.body_gravcomp[b]) != 0:
             raise ValueError(f"body '{m.body(b).name}': gravcomp is not supported (gravity compensation)")
+    margins = [
+        f"'{m.joint(j).name}' ({float(m.jnt_margin[j]):g})"
+        for j in range(m.njnt)
+        if int(m.jnt_bodyid[j]) in in_tree and bool(m.jnt_limited[j]) and float(m.jnt_margin[j]) != 0
+    ]
+    if margins:
+        warnings.warn(
+            f"MJCF joint margin of {', '.join(margins)}: ignored; the step's joint limits are barriers at the range "
+            "itself",
+            stacklevel=4,
+        )
     off = [
         name
-        for name in ("gravity", "limit", "passive", "actuation", "clampctrl")
+        for name in ("gravity", "contact", "constraint", "limit", "passive", "actuation", "clampctrl")
         if int(m.opt.disableflags) & int(getattr(mujoco.mjtDisableBit, f"mjDSBL_{name.upper()}"))
     ]
     if off:
