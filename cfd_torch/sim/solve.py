@@ -327,7 +327,8 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
         gmax = float(res.at.grad[b].abs().max())
         raise StepError(
             f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {gmax:.3e}, last line search step "
-            f"{float(res.alpha[b]):.1e}; try a smaller dt or a larger max_newton_iter"
+            f"{float(res.alpha[b]):.1e}; try a smaller dt (a heavy or fast body), a contact margin and stiffness "
+            "suited to the bodies' scale, or a larger max_newton_iter"
         )
     q_t = _coords(prob)[0]
     ok = reachable(prob, q_t, res.q)
