@@ -60,9 +60,8 @@ class BilliardsCore(TaskCore):
     1 cm), under the rack's smallest gap (0.157 ``ball_radius``, 4.5 mm: SDRS acts out to 2 (dhat + 0.5 mm) = 3 mm),
     so that the rack stays in place at zero action; with this library's potential the far field pushes the balls
     apart slowly (the rack spreads by about 0.4 mm in 1 s, the object ball's distance to its pocket changes by a
-    fraction of a millimetre), the baselines' exactly-zero force leaves it still. With 1 cm
-    both barriers span the
-    gaps and blow the rack apart in the first step (at zero actions IPC then sent ball 14 into its far-right pocket,
+    fraction of a millimetre), the baselines' exactly-zero force leaves it still. With 1 cm both barriers span
+    the gaps and blow the rack apart in the first step (at zero actions IPC then sent ball 14 into its far-right pocket,
     seed 2).
     """
 

@@ -228,9 +228,8 @@ def contact_potential(
         value = v.sum()[None]
         rows = torch.cat([torch.zeros_like(pairs[:, :1]), pairs], 1)  # (P, 3): one pose set
         G, H = sum_pairs(1, N, rows, g, h)
-        if bool(
-            torch.isinf(value).any()
-        ):  # a pair within the margin: +inf with zero derivatives, as for one pair
+        # a pair within the margin: +inf with zero derivatives, as for one pair
+        if bool(torch.isinf(value).any()):
             G = torch.zeros_like(G) if G is not None else None
             H = torch.zeros_like(H) if H is not None else None
         return value, (G.reshape(1, 6 * N) if G is not None else None), H

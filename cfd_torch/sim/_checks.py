@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from .._validate import FLOATS
+from .feasibility import contained
 from .types import Params
 
 __all__ = ["check_state_tensor", "check_params", "check_targets_clear"]
@@ -139,28 +140,28 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
     base = torch.tensor(pairs, dtype=torch.long)
     rows = torch.cat([torch.arange(B).repeat_interleave(len(pairs))[:, None], base.repeat(B, 1)], 1)
     bad = scene.contact_model.infeasible(poses, rows.to(q.device)).cpu()
-    if bool(bad.any()):
-        first = int(torch.nonzero(bad)[0, 0])
-        s, i, j = rows[first].tolist()
+
+    def culprit(s: int, i: int, j: int) -> tuple[str, int, int, str]:
+        """The message's head naming the kinematic body (or robot link) of the pair (i, j), it, the static body,
+        and the scene (s) where there are several."""
         k, st = (i, j) if scene.bodies[i].kind == "kinematic" else (j, i)
         link = k in scene.kinematic[scene.num_kinematic_bodies :].tolist()
-        raise ValueError(
-            f"{'action.joints' if link else 'action.target'}: kinematic {'robot link' if link else 'body'} {k} "
-            f"at its target penetrates static body {st} (is within the contact "
-            f"margin {scene.contact.margin} of it){f' in scene {s}' if B > 1 else ''}; neither moves, so no step can "
-            "resolve it"
-        )
-    from .feasibility import contained
+        head = f"{'action.joints' if link else 'action.target'}: kinematic {'robot link' if link else 'body'} {k}"
+        return head, k, st, f" in scene {s}" if B > 1 else ""
 
+    if bool(bad.any()):
+        head, _, st, where = culprit(*rows[int(torch.nonzero(bad)[0, 0])].tolist())
+        raise ValueError(
+            f"{head} at its target penetrates static body {st} (is within the contact margin {scene.contact.margin} "
+            f"of it){where}; neither moves, so no step can resolve it"
+        )
     inside = contained(scene, poses, pairs=base)
     if inside:
         s, i, j = inside[0]
-        k, st = (i, j) if scene.bodies[i].kind == "kinematic" else (j, i)
-        link = k in scene.kinematic[scene.num_kinematic_bodies :].tolist()
+        head, k, st, where = culprit(s, i, j)
         raise ValueError(
-            f"{'action.joints' if link else 'action.target'}: kinematic {'robot link' if link else 'body'} {k} "
-            f"at its target lies {'inside' if k == i else 'around'} static body {st}"
-            f"{f' in scene {s}' if B > 1 else ''} (their surfaces do not touch)"
+            f"{head} at its target lies {'inside' if k == i else 'around'} static body {st}{where} (their surfaces "
+            "do not touch)"
         )
 
 
