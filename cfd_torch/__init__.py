@@ -28,6 +28,13 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
                                                              dimension of scenes
     rollout(scene, state, actions) -> Trajectory            T steps (ordinary autograd through all of them)
     pair_forces(scene, q)                                    contact force of every body on every other
+    recentre_rotation(q)                                     rotation vectors wrapped back to |omega| <= pi
+    FreeBodies, Kinematics                                   the kinematics seam (q -> poses and derivatives)
+    StepInfo, StepError                                      step(..., return_info=True)'s statistics; a failed solve
+
+Also exported: PairSolveError (a pair's plane solve failed), LAMBDA (the weight 12 of the plane's normal
+regulariser lam / (1 - |n|)) and the result types PairDerivatives, MeshDerivatives, ContactPotential, ContactEval,
+LaggedContacts, RigidBody.
 
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """

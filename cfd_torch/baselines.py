@@ -60,7 +60,9 @@ def sdrs_barrier(y: torch.Tensor, dhat: float) -> torch.Tensor:
     check_positive(dhat, "dhat")
     inside = (y > 0) & (y < dhat)
     ys = torch.where(inside, y, torch.full_like(y, dhat))
-    b = torch.where(inside, -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys, torch.zeros_like(y))  # +0.0 beyond
+    b = torch.where(
+        inside, -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys, torch.zeros_like(y)
+    )  # +0.0 beyond
     return torch.where(y <= 0, torch.full_like(y, float("inf")), torch.where(torch.isnan(y), y, b))
 
 

@@ -2,7 +2,8 @@
 potential of body pairs and scenes built from them, the protocol the simulator talks to, and the baselines' models
 behind it (IPC's log barrier, SDRS's local plane barrier).
 
-Its public names are re-exported by :mod:`cfd_torch` and here.
+Its public names are re-exported by :mod:`cfd_torch` and here, except the baselines' models (IpcContact,
+SdrsContact) and sum_pairs, which are here only.
 """
 
 from .bsh import BSH
