@@ -50,7 +50,8 @@ def ipc_barrier(x: torch.Tensor, xhat: float) -> torch.Tensor:
     check_positive(xhat, "xhat")
     inside = (x > 0) & (x < xhat)
     xs = torch.where(inside, x, torch.full_like(x, xhat))
-    b = torch.where(inside, -((xs - xhat) ** 2) * torch.log(xs / xhat), torch.zeros_like(x))  # +0.0 beyond
+    b = -((xs - xhat) ** 2) * torch.log(xs / xhat)
+    b = torch.where(inside, b, torch.zeros_like(x))  # +0.0 beyond xhat (b is -0.0 there)
     return torch.where(x <= 0, torch.full_like(x, float("inf")), torch.where(torch.isnan(x), x, b))
 
 
@@ -60,9 +61,8 @@ def sdrs_barrier(y: torch.Tensor, dhat: float) -> torch.Tensor:
     check_positive(dhat, "dhat")
     inside = (y > 0) & (y < dhat)
     ys = torch.where(inside, y, torch.full_like(y, dhat))
-    b = torch.where(
-        inside, -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys, torch.zeros_like(y)
-    )  # +0.0 beyond
+    b = -((ys - dhat) ** 2) * torch.log(ys / dhat) / ys
+    b = torch.where(inside, b, torch.zeros_like(y))  # +0.0 beyond dhat (b is -0.0 there)
     return torch.where(y <= 0, torch.full_like(y, float("inf")), torch.where(torch.isnan(y), y, b))
 
 

@@ -10,7 +10,9 @@ def test_scalar_barriers_match_closed_forms_and_vanish_beyond_dhat():
     x = torch.tensor([0.25, 0.5, 1.0, 2.0], dtype=F64)
     torch.testing.assert_close(ipc_barrier(x, 1.0)[0], torch.tensor(0.7797905781, dtype=F64))  # ipctk value
     assert (ipc_barrier(x, 1.0)[2:] == 0).all() and (sdrs_barrier(x, 1.0)[2:] == 0).all()
-    assert not ipc_barrier(x, 1.0)[2:].signbit().any() and not sdrs_barrier(x, 1.0)[2:].signbit().any()  # +0.0
+    assert (
+        not ipc_barrier(x, 1.0)[2:].signbit().any() and not sdrs_barrier(x, 1.0)[2:].signbit().any()
+    )  # +0.0
     assert torch.isinf(ipc_barrier(torch.zeros(1, dtype=F64), 1.0)).all()
     torch.testing.assert_close(sdrs_barrier(x[:1], 1.0), ipc_barrier(x[:1], 1.0) / x[:1])
 
