@@ -11,6 +11,8 @@ import math
 import numba
 import numpy as np
 
+from .rotation import ANGLE_SERIES, ANGLE_SERIES_X
+
 _SERIES_T = 0.25
 _N_TERMS = 16
 
@@ -27,6 +29,7 @@ def _series_coefficients(offset: int) -> np.ndarray:
 
 _CA = _series_coefficients(1)
 _CB = _series_coefficients(2)
+_ANGLE = np.array(ANGLE_SERIES)
 
 
 @numba.njit(cache=True)
@@ -35,6 +38,28 @@ def _horner(c, t):
     for k in range(c.shape[0] - 1, -1, -1):
         f = f * t + c[k]
     return f
+
+
+@numba.njit(cache=True)
+def angle_factors_kernel(c):
+    """f(c) = theta / sin(theta) of c = cos(theta) and its first two derivatives in c: the same formulas and
+    switch-over as :func:`cfd_torch.rotation.angle_factors`."""
+    x = min(max(1.0 - c, 0.0), 2.0)
+    n = _ANGLE.shape[0]
+    if x < ANGLE_SERIES_X:
+        f0 = f1 = f2 = 0.0
+        for j in range(n - 1, -1, -1):
+            f0 = f0 * x + _ANGLE[j]
+            if j + 1 < n:
+                f1 = f1 * x + (j + 1) * _ANGLE[j + 1]
+            if j + 2 < n:
+                f2 = f2 * x + (j + 2) * (j + 1) * _ANGLE[j + 2]
+        return f0, -f1, f2
+    s2 = max(x * (2.0 - x), 1e-16)
+    sn = math.sqrt(s2)
+    cs = 1.0 - x
+    th = math.atan2(sn, cs)
+    return th / sn, (th * cs - sn) / (s2 * sn), (th * s2 + 3.0 * cs * (th * cs - sn)) / (s2 * s2 * sn)
 
 
 @numba.njit(cache=True)

@@ -12,11 +12,24 @@ so R and its derivatives are smooth through omega = 0.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["rotation_matrix", "rotation_derivatives", "transform_points", "point_jacobian", "rot_second"]
+__all__ = [
+    "rotation_matrix",
+    "rotation_derivatives",
+    "transform_points",
+    "point_jacobian",
+    "rot_second",
+    "angle_factors",
+]
 
 _SMALL = 1e-4
+
+# theta / sin(theta) as a power series in x = 1 - cos(theta): sum_k 2^k (k!)^2 / (2k + 1)! x^k (radius 2, theta = pi)
+ANGLE_SERIES_X = 0.1  # below it the series (20 terms: exact to rounding), above the closed forms
+ANGLE_SERIES = [2.0**k * math.factorial(k) ** 2 / math.factorial(2 * k + 1) for k in range(20)]
 
 
 def _coefficients(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -168,6 +181,36 @@ def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """
     R = rotation_matrix(pose[..., 3:])
     return points @ R.transpose(-1, -2) + pose[..., None, :3]
+
+
+def angle_factors(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """f(c) = theta / sin(theta) of c = cos(theta) in [-1, 1], and its first two derivatives in c.
+
+    The rotation vector of a rotation matrix M (its log) is f(c) axial(M), c = (tr M - 1) / 2, axial(M) the axial
+    vector of M's skew part (sin(theta) times the axis); for a linear function of M such as tau . log(M) the chain
+    rule then needs only f, f' and f''. Closed forms, with s = sin(theta): f = theta / s, f' = (theta c - s) / s^3,
+    f'' = (theta s^2 + 3 c (theta c - s)) / s^5; near c = 1 their power series in 1 - c (smooth through theta = 0).
+    They grow without bound as theta -> pi, where the log map is singular (s is floored at 1e-8 there: finite)."""
+    x = (1.0 - c).clamp(0.0, 2.0)
+    small = x < ANGLE_SERIES_X
+    f0, f1, f2 = (torch.zeros_like(x) for _ in range(3))
+    n = len(ANGLE_SERIES)
+    for j in range(n - 1, -1, -1):  # Horner: f = sum a_j x^j, df/dx = sum (j+1) a_(j+1) x^j, d2f/dx2 likewise
+        f0 = f0 * x + ANGLE_SERIES[j]
+        if j + 1 < n:
+            f1 = f1 * x + (j + 1) * ANGLE_SERIES[j + 1]
+        if j + 2 < n:
+            f2 = f2 * x + (j + 2) * (j + 1) * ANGLE_SERIES[j + 2]
+    f1 = -f1  # d/dc = -d/dx
+    xs = torch.where(small, torch.ones_like(x), x)  # safe in the unused branch
+    s2 = (xs * (2.0 - xs)).clamp_min(1e-16)
+    sn = s2.sqrt()
+    cs = 1.0 - xs
+    th = torch.atan2(sn, cs)
+    g0 = th / sn
+    g1 = (th * cs - sn) / (s2 * sn)
+    g2 = (th * s2 + 3.0 * cs * (th * cs - sn)) / (s2 * s2 * sn)
+    return torch.where(small, f0, g0), torch.where(small, f1, g1), torch.where(small, f2, g2)
 
 
 # ---------------------------------------------------------------------------------------------- quaternions

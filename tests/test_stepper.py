@@ -188,6 +188,24 @@ def test_torque_free_spin_rate_is_constant():
     assert err <= 1e-6  # physics: theta_n = omega n dt (the x-space inertia was 2.4 rad behind after 1 s)
 
 
+@pytest.mark.parametrize("turn", [0.0, 0.6, 1.4, 2.5, 3.0])
+def test_torque_about_a_principal_axis_adds_tau_dt_over_I_at_any_spin(turn):
+    """A box spinning about its principal z axis by ``turn`` rad per step: a torque tau about z adds tau dt / I_zz
+    to its angular velocity in one step, as a force adds F dt / m, however fast it spins. (The torque's work was
+    tau . axial(R R_t^T) = tau . sin(dtheta) n: its effect fell as cos(turn), reversed beyond a quarter turn.)"""
+    body = _box((0.4, 0.2, 0.1), density=500.0)
+    scene = Scene((body,), gravity=(0.0, 0.0, 0.0))
+    tau, I_zz = 0.5, float(body.inertia[2, 2])
+    v = torch.zeros(1, 6, dtype=F64)
+    v[0, 5] = turn / DT
+    start = scene.initial_state(torch.zeros(1, 6, dtype=F64), v)
+    torque = torch.tensor([[0.0, 0.0, tau]], dtype=F64)
+    free, pushed = step(scene, start), step(scene, start, Action(torque=torque))
+    extra = _wrap(_angle_about(rotation_matrix(pushed.q[0, 3:]) @ rotation_matrix(free.q[0, 3:]).T, 2))
+    assert extra > 0
+    assert abs(extra / DT - tau * DT / I_zz) <= 1e-6 * tau * DT / I_zz
+
+
 def _euler_rk4(S: torch.Tensor, w0: torch.Tensor, T: float, h: float = 1e-4) -> torch.Tensor:
     """The rotation (3, 3) at time T of a torque-free body (second moment S) from R = 1 with body-frame angular
     velocity w0: Euler's equations I w' = (I w) x w, R' = R w^, by RK4 with step h."""

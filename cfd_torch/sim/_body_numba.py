@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .._rotation_numba import _CA, _CB, rotation_derivatives_kernel
+from .._rotation_numba import _CA, _CB, angle_factors_kernel, rotation_derivatives_kernel
 
 
 @numba.njit(cache=True)
@@ -25,6 +25,16 @@ def _axial_of_product(M, Rt, tau):
         x10 += M[1, m] * Rt[0, m]
         x01 += M[0, m] * Rt[1, m]
     return 0.5 * (tau[0] * (x21 - x12) + tau[1] * (x02 - x20) + tau[2] * (x10 - x01))
+
+
+@numba.njit(cache=True)
+def _half_trace_of_product(M, Rt):
+    """tr(M Rt^T) / 2 for 3 x 3 M and Rt."""
+    acc = 0.0
+    for i in range(3):
+        for m in range(3):
+            acc += M[i, m] * Rt[i, m]
+    return 0.5 * acc
 
 
 @numba.njit(cache=True)
@@ -48,6 +58,8 @@ def body_terms_kernel(
     Mk = np.empty((3, 3))
     b = np.empty(3)
     pull = np.empty(3)
+    ak = np.empty(3)
+    ck = np.empty(3)
     for e in range(E):
         # A = R - R_pred, AS = A S
         for i in range(3):
@@ -68,8 +80,11 @@ def body_terms_kernel(
         for i in range(3):
             for j in range(3):
                 asa += AS[i, j] * A[i, j]
+        # the torque's work tau . log(R R_t^T) = f(c) a (energy.body_terms): a, c of R, then of dR_k
         tau = torque[e]
-        value[e] = 0.5 * inv * (m * bb + asa) - lin - _axial_of_product(R[e], Rt[e], tau)
+        a0 = _axial_of_product(R[e], Rt[e], tau)
+        f0, f1, f2 = angle_factors_kernel(_half_trace_of_product(R[e], Rt[e]) - 0.5)
+        value[e] = 0.5 * inv * (m * bb + asa) - lin - f0 * a0
         if order == 0:
             continue
         for i in range(3):
@@ -80,7 +95,9 @@ def body_terms_kernel(
                 for j in range(3):
                     Mk[i, j] = dR[e, i, j, k]
                     acc += AS[i, j] * dR[e, i, j, k]
-            grad[e, 3 + k] = inv * acc - _axial_of_product(Mk, Rt[e], tau)
+            ak[k] = _axial_of_product(Mk, Rt[e], tau)
+            ck[k] = _half_trace_of_product(Mk, Rt[e])
+            grad[e, 3 + k] = inv * acc - (f1 * ck[k] * a0 + f0 * ak[k])
         if order == 1:
             continue
         for i in range(6):
@@ -100,4 +117,7 @@ def body_terms_kernel(
                     for j in range(3):
                         for mm in range(3):
                             quad += dR[e, i, j, k] * S[e, j, mm] * dR[e, i, mm, l]
-                hess[e, 3 + k, 3 + l] = inv * (acc + quad) - _axial_of_product(Mk, Rt[e], tau)
+                w = f2 * ck[k] * ck[l] * a0 + f1 * (
+                    _half_trace_of_product(Mk, Rt[e]) * a0 + ck[k] * ak[l] + ck[l] * ak[k]
+                )
+                hess[e, 3 + k, 3 + l] = inv * (acc + quad) - (w + f0 * _axial_of_product(Mk, Rt[e], tau))

@@ -3,18 +3,19 @@
 For the step's unknowns q (the kinematics map's coordinates; for free bodies the dynamic bodies' poses), with all
 other bodies at their end-of-step poses (static: fixed; kinematic: the action's target)::
 
-    L(q) = sum_dynamic [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . axial(R R_t^T) ]
+    L(q) = sum_dynamic [ (m |b|^2 + tr(A S A^T)) / (2 dt^2)  - (m g + f) . (t - t_t)  - tau . log(R R_t^T) ]
            + P_contact(poses(q)) + D_friction(poses(q); lagged at q_t)
 
 with b = t - 2 t_t + t_{t-1} - t_shift, A = R - R_pred, S the body's second moment of mass (:mod:`.bodies`), f and
-tau the action's world-frame force and torque (axial(R R_t^T) is the rotation increment of the step, so tau does the
-work tau . dtheta). Its stationarity is implicit Euler for rigid bodies with exact volumetric inertia: the inertia term
-is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted positions, x_pred = R_pred X + 2 t_t -
-t_{t-1}: constant linear velocity, and the torque-free rotation of the discrete rigid body
-(:func:`predicted_rotation`; in planar scenes, constant angular velocity about z, R_t R_{t-1}^T R_t); an
-articulated link's prediction comes from its joints (t_shift and R_pred of :meth:`~cfd_torch.sim.articulation
-.ArticulatedKinematics.predict`; t_shift is zero for free bodies). SPEC's
-x-space form, x_pred = 2 x_t - x_{t-1} (A = R - 2 R_t + R_{t-1}), predicts a point off the rotation group and
+tau the action's world-frame force and torque (log(R R_t^T) is the rotation vector of the step's rotation increment,
+so tau does the work tau . dtheta; axial(R R_t^T), its sine times the axis, would weaken the torque by cos(dtheta)
+and reverse it beyond a quarter turn per step). Its stationarity is implicit Euler for rigid bodies with exact
+volumetric inertia: the inertia term is 1/2 int rho |x(q) - x_pred|^2 dV for the material points' predicted
+positions, x_pred = R_pred X + 2 t_t - t_{t-1}: constant linear velocity, and the torque-free rotation of the
+discrete rigid body (:func:`predicted_rotation`; in planar scenes, constant angular velocity about z,
+R_t R_{t-1}^T R_t); an articulated link's prediction comes from its joints (t_shift and R_pred of
+:meth:`~cfd_torch.sim.articulation.ArticulatedKinematics.predict`; t_shift is zero for free bodies). SPEC's x-space
+form, x_pred = 2 x_t - x_{t-1} (A = R - 2 R_t + R_{t-1}), predicts a point off the rotation group and
 damps spin by about omega^3 dt^2 per step.
 
 A batch of B independent scenes is one evaluation: their body pairs go to the contact model together (no pair
@@ -30,7 +31,7 @@ import torch
 
 from .._autograd import tracked
 from ..contact.model import LaggedContacts, sum_pairs
-from ..rotation import rotation_derivatives, rotation_matrix
+from ..rotation import angle_factors, rotation_derivatives, rotation_matrix
 from .friction import friction_by_pair
 from .types import StepError
 
@@ -346,23 +347,35 @@ def body_terms(q, q_t, q_p, r_pred, force, torque, mass, S, gravity, dt, order, 
         Rk = [R, dR.permute(0, 3, 1, 2).reshape(E, 9, 3)]
         Rk = torch.cat(Rk + ([d2R.permute(0, 3, 4, 1, 2).reshape(E, 27, 3)] if order >= 2 else []), 1)
     K = Rk.shape[1] // 3
-    # tau . axial(Rk R_t^T): the torque's work over the step's rotation increment axial(R R_t^T), its derivatives
-    work = (torque[:, None] * _axial((Rk @ Rt.transpose(1, 2)).view(E, K, 3, 3))).sum(-1)  # (E, K)
+    # The torque's work over the step, tau . log(R R_t^T) = f(c) a with a = tau . axial(R R_t^T) and c = (tr(R R_t^T)
+    # - 1) / 2 (:func:`angle_factors`), and its derivatives by the chain rule through a and c, both linear in R: a_k,
+    # c_k of dR_k R_t^T and a_kl, c_kl of d2R_kl R_t^T
+    P = (Rk @ Rt.transpose(1, 2)).view(E, K, 3, 3)
+    a = (torque[:, None] * _axial(P)).sum(-1)  # (E, K)
+    c = 0.5 * torch.diagonal(P, dim1=2, dim2=3).sum(-1)  # (E, K)
+    f0, f1, f2 = angle_factors(c[:, 0] - 0.5)
     value = 0.5 * inv * (mass * (b * b).sum(1) + (AS * A).sum((1, 2)))
-    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum(1) - work[:, 0]
+    value = value - (pull * (q[:, :3] - q_t[:, :3])).sum(1) - f0 * a[:, 0]
     if order == 0:
         return value, None, None
     # d/d omega of tr(A S A^T) / 2 and its second derivatives' d2R part: sum_ij (A S)_ij (dR_k, d2R_kl)_ij
     dAS = (AS.reshape(E, 1, 9) @ Rk[:, 3:].reshape(E, K - 1, 9).transpose(1, 2))[:, 0]  # (E, K - 1)
     g_t = inv * mass[:, None] * b - pull
-    g_w = inv * dAS[:, :3] - work[:, 1:4]
+    a0, ak, ck = a[:, :1], a[:, 1:4], c[:, 1:4]
+    g_w = inv * dAS[:, :3] - (f1[:, None] * ck * a0 + f0[:, None] * ak)
     grad = torch.cat([g_t, g_w], 1)
     if order == 1:
         return value, grad, None
     H = q.new_zeros(E, 6, 6)
     H[:, :3, :3] = inv * mass[:, None, None] * torch.eye(3, dtype=q.dtype, device=q.device)
     H_ww = dAS[:, 3:].view(E, 3, 3) + torch.einsum("nijk,njm,niml->nkl", dR, S, dR)
-    H[:, 3:, 3:] = inv * H_ww - work[:, 4:].view(E, 3, 3)
+    akl, ckl = a[:, 4:].view(E, 3, 3), c[:, 4:].view(E, 3, 3)
+    cc = ck[:, :, None] * ck[:, None, :]
+    ca = ck[:, :, None] * ak[:, None, :]
+    W_ww = f2[:, None, None] * cc * a0[:, :, None] + f1[:, None, None] * (
+        ckl * a0[:, :, None] + ca + ca.transpose(1, 2)
+    )
+    H[:, 3:, 3:] = inv * H_ww - (W_ww + f0[:, None, None] * akl)
     return value, grad, H
 
 
