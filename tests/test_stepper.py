@@ -417,6 +417,35 @@ def test_rollout_gradient_matches_finite_differences_with_friction(cube, ground)
         assert abs(analytic - fd) <= 1e-4 * abs(analytic), (k, analytic, fd)  # observed <= 3e-6 relative
 
 
+def test_step_gradient_at_a_sticking_contact_matches_finite_differences():
+    """One step of a box held by static friction (a 10 N push below mu m g) at the default newton_tol: the adjoint
+    takes the Hessian at the returned solution. Friction's Hessian varies on the scale of its slip threshold eps_v
+    dt = 1e-6 m, and the solution is Newton's last step (up to newton_tol) past its last evaluation: with that
+    evaluation's Hessian this gradient was 4e-3 relative off (found by a session-45 audit)."""
+    box = _box((0.2, 0.2, 0.2), density=500.0)
+    floor = _box(
+        (1.6, 1.6, 0.1), kind="static", transform=trimesh.transformations.translation_matrix([0, 0, -0.05])
+    )
+    scene = Scene((box, floor), friction=0.5)  # (the floor's 12 triangles refined by the scene)
+    q0 = _poses((-0.2, 0.0, HALF + 1.24e-3, 0.0, 0.0, 0.05), ())
+    force = torch.tensor([[10.0, 2.0, -3.0], [0.0, 0.0, 0.0]], dtype=F64)
+    w = torch.tensor([[1.0, 0.7, -0.4, 0.9, -1.3, 0.6], [0.0] * 6], dtype=F64)
+
+    def loss(q):
+        return (step(scene, State(q, q0), Action(force=force)).q * w).sum()
+
+    q = q0.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(loss(q), q)
+    h = 1e-6  # central differences: truncation and the solve's noise (1e-9 / h) both below 1e-5 of these entries
+    for j in (0, 1, 5):  # (x, y, yaw: before the fix 4.2e-3, 9e-5 and 6.8e-4 off)
+        e = torch.zeros_like(q0)
+        e[0, j] = h
+        with torch.no_grad():
+            fd = float(loss(q0 + e) - loss(q0 - e)) / (2 * h)
+        assert abs(float(g[0, j])) > 0.1, j
+        assert abs(float(g[0, j]) - fd) <= 2e-5 * abs(fd), (j, float(g[0, j]), fd)
+
+
 # ================================================================================================ 6. long range
 def test_long_range_gradient_two_metres_apart(small_sphere):
     """B, 2 m from A with nothing in between and no gravity, feels A's approach: d x_B(T) / d v_A > 0."""

@@ -150,7 +150,7 @@ class StepFn(torch.autograd.Function):
                 pred.shift,
             )  # fmt: skip
             try:
-                res, work = solve_step(prob)
+                res, work = solve_step(prob, exact_end=any(ctx.needs_input_grad))
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
                 raise StepError(f"the step failed: {err}") from err
         # the adjoint needs the contact Hessian's cross blocks with the pose components the map does not move only

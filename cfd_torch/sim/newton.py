@@ -66,6 +66,8 @@ class NewtonResult(NamedTuple):
         reason: (B,) codes of :class:`Stop`.
         alpha: (B,) the last line search's step.
         work: (evaluations, node pairs, leaf pairs) of the energy evaluations this solve made (``first`` excluded).
+        stepped: (B,) bool, the scenes that took the converged step after ``at``'s evaluation (q is up to ``tol``
+            per coordinate from ``at``'s point there).
     """
 
     q: torch.Tensor
@@ -74,6 +76,7 @@ class NewtonResult(NamedTuple):
     reason: torch.Tensor
     alpha: torch.Tensor
     work: tuple[int, int, int]
+    stepped: torch.Tensor
 
 
 def _assign(cur: EnergyEval, idx: torch.Tensor, ev: EnergyEval) -> None:
@@ -202,6 +205,7 @@ def newton(
     last_step = torch.full((B,), 1e3 * tol, dtype=q.dtype, device=dev)
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
+    stepped = torch.zeros(B, dtype=torch.bool, device=dev)
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
     active = torch.isfinite(cur.value)
     reason[~active] = int(Stop.INFEASIBLE_START)
@@ -270,6 +274,7 @@ def newton(
                 q_fin = q[dn] + p[done]
                 take = displacement(q[dn], q_fin, dn) <= final_move
                 q[dn[take]] = q_fin[take]
+                stepped[dn[take]] = True
         check = small & ~whole[idx]  # the bodies iterating converged: evaluate the whole scene
         if bool(check.any()):
             sc = idx[check]
@@ -451,4 +456,4 @@ def newton(
             if bool(later.any()):
                 _assign(cur, idx[later], ev)
         majorized[idx] = later
-    return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves))
+    return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves), stepped)

@@ -289,9 +289,15 @@ def _settings(prob: StepProblem, b: int) -> str:
     )
 
 
-def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
+def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult, Work]:
     """Feasible start, Newton, reachability: the step's NewtonResult and the work spent (energy evaluations, node
-    pairs, leaf pairs); raises StepError saying why it failed."""
+    pairs, leaf pairs); raises StepError saying why it failed.
+
+    ``exact_end``: the result's ``at`` is evaluated at the returned q (one more evaluation of the scenes that took
+    Newton's converged step after their last evaluation): the adjoint's Hessian is then that of the solution. Newton
+    takes that step, up to ``newton_tol``, unevaluated; friction's Hessian varies on the scale of its slip threshold
+    eps_v dt (1e-6 m at the defaults), so at a sticking contact the Hessian before the step gave gradients up to
+    1e-2 relative off (a session-45 audit)."""
     warm = WarmStarts() if prob.scene.solver.fast else None
     if (
         warm is not None and prob.lagged is not None
@@ -339,4 +345,18 @@ def solve_step(prob: StepProblem) -> tuple[NewtonResult, Work]:
             f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
             f"{moved:.3g} m, through a static body{f', scene {b}' if B > 1 else ''}): reduce dt"
         )
+    if exact_end and bool(res.stepped.any()):
+        sc = torch.nonzero(res.stepped)[:, 0]
+        ev = _energy(prob, warm)(res.q[sc], sc, 2)
+        work = _add(work, _work(ev))
+        # (a scene whose Hessian there is not positive definite, which Newton's test held a step of at most tol
+        # before, keeps that evaluation)
+        ok = torch.isfinite(ev.value) & (torch.linalg.cholesky_ex(ev.hess)[1] == 0)
+        at = EnergyEval(*(x.clone() if isinstance(x, torch.Tensor) else x for x in res.at))
+        for mine, new in zip(at, ev, strict=True):
+            if isinstance(mine, torch.Tensor) and new is not None:
+                mine[sc[ok]] = new[ok]
+        stepped = res.stepped.clone()
+        stepped[sc[ok]] = False
+        res = res._replace(at=at, stepped=stepped)
     return res, work
