@@ -404,8 +404,20 @@ def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() 
     free = """<mujoco><worldbody><body name="a"><freejoint name="root"/><geom size="0.1"/>
       <body name="b" pos="1 0 0"><joint name="h"/><geom size="0.1"/></body></body></worldbody></mujoco>"""
     load_mjcf(free)
-    with pytest.raises(ValueError, match="free joint 'root': damping and armature"):
-        load_mjcf(free.replace('<freejoint name="root"/>', '<joint name="root" type="free" damping="5"/>'))
+    for attribute in (
+        'damping="5"',
+        'stiffness="200"',
+    ):  # (stiffness loaded silently, with no effect, before)
+        with pytest.raises(ValueError, match="free joint 'root': damping, armature and stiffness"):
+            load_mjcf(
+                free.replace('<freejoint name="root"/>', f'<joint name="root" type="free" {attribute}/>')
+            )
+    for option in (
+        "discardvisual",
+        "fusestatic",
+    ):  # (the link masses lost the dropped geoms' or merged bodies')
+        with pytest.raises(ValueError, match=f'compiler {option}="true" is not supported'):
+            load_mjcf(free.replace("<mujoco>", f'<mujoco><compiler {option}="true"/>'))
     tendon = '<tendon><fixed name="t" frictionloss="5"><joint joint="h" coef="1"/></fixed></tendon>'
     with pytest.raises(ValueError, match="tendon 't': .*frictionloss are not supported"):
         load_mjcf(body.replace("</worldbody>", "</worldbody>" + tendon))
@@ -416,6 +428,29 @@ def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() 
     ):
         with pytest.raises(ValueError, match=match):
             load_mjcf(body, **kwargs)
+
+
+def test_keyframes_other_bodies_actuators_and_the_model_friction() -> None:
+    """A floating model with a <keyframe> loads (its pytorch-kinematics chain is compiled without the free joint,
+    which the keyframe's qpos counted: refused before); actuators of another top-level body are left out with it
+    (one of them failed the load, blaming its joint); ``friction`` is the geoms' shared coefficient (MuJoCo's
+    default 1 where unset), None where they differ."""
+    xml = """<mujoco><worldbody>
+      <body name="a"><freejoint name="root"/><geom size="0.1"/>
+        <body name="b" pos="0.3 0 0"><joint name="h" axis="0 1 0"/><geom size="0.1"/></body></body>
+      <body name="other" pos="2 0 0"><joint name="o"/><geom size="0.1" friction="0.3"/></body>
+    </worldbody>
+    <actuator><motor name="m_o" joint="o"/><motor name="m_h" joint="h" gear="2"/></actuator>
+    <keyframe><key name="home" qpos="0 0 1 1 0 0 0 0.5 0.1"/></keyframe></mujoco>"""
+    model = load_mjcf(xml, root="a")
+    assert model.floating and model.chain is not None and [j.name for j in model.joints] == ["h"]
+    assert [a.name for a in model.actuators] == ["m_h"] and model.actuators[0].gear == 2.0
+    assert model.friction == 1.0
+    assert load_mjcf(xml, root="other").friction == 0.3
+    assert [a.name for a in load_mjcf(xml, root="other").actuators] == ["m_o"]
+    mixed = xml.replace('<geom size="0.1"/></body></body>', '<geom size="0.1" friction="0.5"/></body></body>')
+    with pytest.warns(UserWarning, match="geom friction differs"):
+        assert load_mjcf(mixed, root="a").friction is None
 
 
 def test_gymnasium_ant_with_servos() -> None:

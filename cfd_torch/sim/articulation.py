@@ -68,6 +68,9 @@ class Articulation:
     robot is mounted in, at ``mount``), frame j + 1 the frame after joint j; a link's frame is the frame after its
     last joint.
 
+    ``friction``: the MJCF geoms' shared sliding friction coefficient, None where they differ (the Scene has one
+    coefficient, ``Scene(friction=...)``, 0 by default: pass this one to simulate the model's).
+
     Attributes (numpy, float64): per link (L) ``names``, ``parent``, ``offset_R`` (L, 3, 3) and ``offset_p``
     (L, 3) (link frame in its parent's at the joints' ``ref``; the root's: in the mount frame), ``com`` (L, 3),
     ``link_joints`` (the joints of each link), ``bodies`` (the L RigidBody links, centre-of-mass frames; a fixed
@@ -99,6 +102,7 @@ class Articulation:
         links = model.links
         L = len(links)
         self.name = model.name
+        self.friction = model.friction
         if not isinstance(kinematic, bool):
             raise ValueError(f"kinematic must be a bool, got {kinematic!r}")
         self.kinematic = kinematic

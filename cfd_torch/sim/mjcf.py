@@ -21,8 +21,10 @@ MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` 
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
-unnamed joints, actuators other than joint-driven motors and position servos, compiler options that bound
-masses (`boundmass`, `boundinertia`, `balanceinertia`), and physics the simulator does not model: joint
+unnamed joints, actuators other than joint-driven motors and position servos (those acting only outside the root's
+subtree are left out), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
+geoms and bodies whose mass counts (`discardvisual`, `fusestatic`), damping, armature or stiffness on the free
+root joint, and physics the simulator does not model: joint
 `frictionloss` and `actuatorfrcrange`, `<equality>` constraints, tendon limits, stiffness and damping. A link's
 collision mesh holds the geoms MuJoCo may collide (`contype` or `conaffinity` nonzero; every geom's mass counts);
 a link whose geoms are all visual-only keeps them, and they collide (with a warning). Which geoms collide with
@@ -197,6 +199,9 @@ class MJCFModel:
             pytorch-kinematics cannot reproduce MuJoCo's kinematics (several joints on one body, or a joint
             anchor pos != 0, which it mis-handles: it translates by pos without translating back).
         xml: the MJCF text actually used (after any patching; the free joint kept).
+        friction: the sliding friction coefficient of the model's geoms (MuJoCo's default 1 where unset) when they
+            all share one, else None. The simulator has one coefficient per scene, Scene(friction=...), 0 by
+            default: pass this one to simulate the model's.
     """
 
     name: str
@@ -207,6 +212,7 @@ class MJCFModel:
     floating: bool
     chain: object
     xml: str
+    friction: float | None = None
 
 
 _GEOM_KINDS = {
@@ -268,7 +274,8 @@ def load_mjcf(
     Args:
         source: path of an MJCF file, or the MJCF text itself (anything starting with "<").
         root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
-            model; the worldbody's own geoms (floors) and other top-level bodies are ignored.
+            model; the worldbody's own geoms (floors) and other top-level bodies are ignored, and so are the
+            actuators that act on them only.
         sphere_subdivisions: icosphere subdivisions of sphere and ellipsoid meshes.
         capsule_count: (longitude, latitude) counts of capsule meshes (trimesh.creation.capsule).
         cylinder_sections: sections of cylinder meshes.
@@ -440,7 +447,8 @@ def load_mjcf(
             UserWarning,
             stacklevel=3,
         )
-    actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu))
+    actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu) if _acts_in_tree(m, a, in_tree))
+    frictions = {float(m.geom_friction[g, 0]) for g in range(m.ngeom) if int(m.geom_bodyid[g]) in in_tree}
     pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) and j.ref == 0 for j in joints)
     return MJCFModel(
         name=spec.modelname,
@@ -451,6 +459,7 @@ def load_mjcf(
         floating=floating,
         chain=_build_chain(xml, root, _asset_files(spec, base)) if pk_ok else None,
         xml=xml,
+        friction=frictions.pop() if len(frictions) == 1 else None,
     )
 
 
@@ -493,6 +502,13 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
     c = spec.compiler
     if c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
         raise ValueError("compiler boundmass/boundinertia/balanceinertia are not supported")
+    for option in ("discardvisual", "fusestatic"):
+        if getattr(c, option):
+            raise ValueError(
+                f'compiler {option}="true" is not supported (the compiled model loses geoms or bodies that the '
+                f"links' mass properties here are computed from): remove it (bodies without joints are welded into "
+                "their link here anyway)"
+            )
 
 
 def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
@@ -556,9 +572,11 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
         name = m.joint(j).name
         if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE):  # the base moves as a free body
             dofs = range(int(m.jnt_dofadr[j]), int(m.jnt_dofadr[j]) + 6)
-            if any(float(m.dof_damping[d]) > 0 or float(m.dof_armature[d]) > 0 for d in dofs):
+            if any(float(m.dof_damping[d]) > 0 or float(m.dof_armature[d]) > 0 for d in dofs) or (
+                float(m.jnt_stiffness[j]) > 0
+            ):
                 raise ValueError(
-                    f"free joint '{name}': damping and armature on a free joint are not supported"
+                    f"free joint '{name}': damping, armature and stiffness on a free joint are not supported"
                 )
         if float(m.dof_frictionloss[m.jnt_dofadr[j]]) > 0:
             raise ValueError(f"joint '{name}': frictionloss is not supported (dry joint friction)")
@@ -567,23 +585,13 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
                 f"joint '{name}': actuatorfrcrange is not supported (clamp the actuators' ctrlrange)"
             )
 
-    def tendon_touches(t: int) -> bool:
-        adr, num = int(m.tendon_adr[t]), int(m.tendon_num[t])
-        for w in range(adr, adr + num):
-            obj = int(m.wrap_objid[w])
-            if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_JOINT) and obj in joints:
-                return True
-            if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_SITE) and int(m.site_bodyid[obj]) in in_tree:
-                return True
-        return False
-
     for t in range(m.ntendon):
         if (
             bool(m.tendon_limited[t])
             or float(m.tendon_stiffness[t]) > 0
             or float(m.tendon_damping[t]) > 0
             or float(m.tendon_frictionloss[t]) > 0
-        ) and tendon_touches(t):
+        ) and _tendon_touches(m, t, in_tree):
             raise ValueError(
                 f"tendon '{m.tendon(t).name}': tendon limits, stiffness, damping and frictionloss are not supported"
             )
@@ -596,13 +604,40 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
             if kind == int(mujoco.mjtEq.mjEQ_JOINT):
                 touches |= obj in joints
             elif kind == int(mujoco.mjtEq.mjEQ_TENDON):
-                touches |= tendon_touches(obj)
+                touches |= _tendon_touches(m, obj, in_tree)
             elif kind in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)):
                 touches |= (int(m.site_bodyid[obj]) if site else obj) in in_tree
             else:  # flex and other kinds: refused outright
                 touches = True
         if touches:
             raise ValueError(f"<equality> constraint {m.equality(e).name or e!r} is not supported")
+
+
+def _tendon_touches(m: mujoco.MjModel, t: int, in_tree: set[int]) -> bool:
+    """Whether tendon t wraps a joint or a site of the bodies ``in_tree``."""
+    adr, num = int(m.tendon_adr[t]), int(m.tendon_num[t])
+    for w in range(adr, adr + num):
+        obj = int(m.wrap_objid[w])
+        if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_JOINT) and int(m.jnt_bodyid[obj]) in in_tree:
+            return True
+        if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_SITE) and int(m.site_bodyid[obj]) in in_tree:
+            return True
+    return False
+
+
+def _acts_in_tree(m: mujoco.MjModel, a: int, in_tree: set[int]) -> bool:
+    """Whether actuator a's transmission reaches the bodies ``in_tree`` (its joint's, site's or body's body, or
+    its tendon's joints and sites); an actuator of another top-level body is left out with that body."""
+    kind, target = int(m.actuator_trntype[a]), int(m.actuator_trnid[a, 0])
+    if kind in (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)):
+        return int(m.jnt_bodyid[target]) in in_tree
+    if kind in (int(mujoco.mjtTrn.mjTRN_SITE), int(mujoco.mjtTrn.mjTRN_SLIDERCRANK)):
+        return int(m.site_bodyid[target]) in in_tree
+    if kind == int(mujoco.mjtTrn.mjTRN_BODY):
+        return target in in_tree
+    if kind == int(mujoco.mjtTrn.mjTRN_TENDON):
+        return _tendon_touches(m, target, in_tree)
+    return True  # (any other kind is refused by name)
 
 
 def _tag_geoms(spec: mujoco.MjSpec) -> dict[str, tuple[str, float, float, bool]]:
@@ -859,6 +894,10 @@ def _build_chain(xml: str, root: str, assets: dict[str, bytes] | None = None) ->
     from pytorch_kinematics.transforms import Transform3d
 
     tree = ET.fromstring(xml)
+    for keyframes in tree.findall(
+        "keyframe"
+    ):  # their qpos is the model's with the free joint: now the wrong size
+        tree.remove(keyframes)
     for body in tree.iter("body"):
         if body.get("name") == root:
             for child in list(body):
