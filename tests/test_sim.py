@@ -455,6 +455,13 @@ def test_pair_forces_and_step_info_at_rest(bodies):
     for z in (0.1 + 0.5e-3, 0.05):
         with pytest.raises(ValueError, match=r"q: bodies penetrate .* pairs \(0, 1\)"):
             pair_forces(scene, torch.tensor([_pose(0.0, 0.0, z), _pose()], dtype=F64))
+    # poses that require grad: the same forces, and a loss through them refuses to backpropagate (a constant
+    # dropped their part of the gradient silently: 1 against -3.4e5 by central differences, a gradient audit)
+    q = state.q.clone().requires_grad_(True)
+    Fg = pair_forces(scene, q)
+    torch.testing.assert_close(Fg.detach(), F, rtol=0.0, atol=0.0)
+    with pytest.raises(RuntimeError, match="pair_forces carries no gradient"):
+        (Fg[1, 0, 2] + q[0, 2]).backward()
 
 
 def test_torch_backend_step_matches_numba(bodies):

@@ -120,16 +120,17 @@ def _solve(
     ones = torch.ones_like(iters)
     # a differentiated step: a loss through the forces raises instead of dropping their part
     if q.requires_grad:
-        fc, ff = _NoGradient.apply(fc, q, "contact_force"), _NoGradient.apply(ff, q, "friction_force")
+        fc = _NoGradient.apply(fc, q, "StepInfo.contact_force")
+        ff = _NoGradient.apply(ff, q, "StepInfo.friction_force")
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
     )
 
 
 class _NoGradient(torch.autograd.Function):
-    """x itself, attached to the graph of ``anchor`` so that a backward through it raises: StepInfo's forces are
-    not differentiated (their Hessian-based adjoint is not implemented), and a constant would drop their part of
-    a loss's gradient silently."""
+    """x itself, attached to the graph of ``anchor`` so that a backward through it raises: contact forces (StepInfo's,
+    pair_forces') are not differentiated (their Hessian-based derivative is not implemented), and a constant would
+    drop their part of a loss's gradient silently."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, anchor: torch.Tensor, name: str) -> torch.Tensor:
@@ -139,8 +140,8 @@ class _NoGradient(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *_):
         raise RuntimeError(
-            f"StepInfo.{ctx.name} carries no gradient (the step's adjoint does not differentiate the end-of-step "
-            "forces); use it for logging, or .detach() it to leave it out of the loss"
+            f"{ctx.name} carries no gradient (contact forces are not differentiated); use it for logging, or "
+            ".detach() it to leave it out of the loss"
         )
 
 
@@ -401,7 +402,8 @@ def rollout(
 def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     """Contact forces between every two bodies at poses q ([B,] N, 6): F[..., i, j, :] (N, N, 6) is the generalised
     force of body i on body j, -dP_ij/dq_j (columns 0-2 the world-frame force [N], 3-5 conjugate to the rotation
-    vector); zero for pairs without contact (static-static, excluded). Not differentiable.
+    vector); zero for pairs without contact (static-static, excluded). Not differentiable: where q requires grad, a
+    backward through F raises (a constant would drop its part of a loss's gradient silently).
 
     Raises:
         ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force)."""
@@ -426,4 +428,7 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
         F[s, i, j] = -g[:, 6:]
         F[s, j, i] = -g[:, :6]
     F = F.to(q.dtype)
-    return F if q.dim() == 3 else F[0]
+    F = F if q.dim() == 3 else F[0]
+    if q.requires_grad and torch.is_grad_enabled():
+        F = _NoGradient.apply(F, q, "pair_forces")
+    return F
