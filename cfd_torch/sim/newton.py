@@ -21,7 +21,7 @@ body its Hessian couples it to (contact within the blend band; the far field's c
 curvature) is also within ``tol`` is frozen, and the evaluations that follow cover only the terms of the bodies
 still iterating (their own terms and their pairs). Nothing freezes in a scene expected to converge in its next
 iteration (largest step^3 <= tol x previous largest step^2, Newton's quadratic rate; in the first iteration, a
-largest step within 100 tol): there a freeze would only add
+largest step within about 2,000 tol): there a freeze would only add
 the two whole evaluations that end it. A scene converges only at an evaluation of all its bodies: when
 the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
 iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
@@ -200,9 +200,10 @@ def newton(
     elif majorize is None:
         majorize = torch.ones(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    # each scene's previous largest step; before the first, a notional 1000 tol: a first step within 100 tol (a
-    # scene at rest, a warm start nearly right) is expected to converge in the next iteration
-    last_step = torch.full((B,), 1e3 * tol, dtype=q.dtype, device=dev)
+    # each scene's previous largest step; before the first, a notional 1e5 tol: a first step within about 2,000 tol
+    # (a scene at rest, a warm start nearly right: Sort's cubes resting on their floor take steps of 2e-7 m) is
+    # expected to converge in the next iteration
+    last_step = torch.full((B,), 1e5 * tol, dtype=q.dtype, device=dev)
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
     stepped = torch.zeros(B, dtype=torch.bool, device=dev)
