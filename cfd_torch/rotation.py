@@ -30,6 +30,16 @@ _SMALL = 1e-4
 # theta / sin(theta) as a power series in x = 1 - cos(theta): sum_k 2^k (k!)^2 / (2k + 1)! x^k (radius 2, theta = pi)
 ANGLE_SERIES_X = 0.1  # below it the series (20 terms: exact to rounding), above the closed forms
 ANGLE_SERIES = [2.0**k * math.factorial(k) ** 2 / math.factorial(2 * k + 1) for k in range(20)]
+# (n, 3) by powers of x: the coefficients of f, df/dx = sum (j + 1) a_(j+1) x^j and d2f/dx2
+_ANGLE_TABLE = torch.tensor(
+    [
+        [a, (j + 1) * b, (j + 2) * (j + 1) * c]
+        for j, (a, b, c) in enumerate(
+            zip(ANGLE_SERIES, ANGLE_SERIES[1:] + [0.0], ANGLE_SERIES[2:] + [0.0, 0.0], strict=True)
+        )
+    ],
+    dtype=torch.float64,
+)
 
 
 def _coefficients(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -193,15 +203,9 @@ def angle_factors(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     They grow without bound as theta -> pi, where the log map is singular (s is floored at 1e-8 there: finite)."""
     x = (1.0 - c).clamp(0.0, 2.0)
     small = x < ANGLE_SERIES_X
-    f0, f1, f2 = (torch.zeros_like(x) for _ in range(3))
-    n = len(ANGLE_SERIES)
-    for j in range(n - 1, -1, -1):  # Horner: f = sum a_j x^j, df/dx = sum (j+1) a_(j+1) x^j, d2f/dx2 likewise
-        f0 = f0 * x + ANGLE_SERIES[j]
-        if j + 1 < n:
-            f1 = f1 * x + (j + 1) * ANGLE_SERIES[j + 1]
-        if j + 2 < n:
-            f2 = f2 * x + (j + 2) * (j + 1) * ANGLE_SERIES[j + 2]
-    f1 = -f1  # d/dc = -d/dx
+    # the series of f, df/dx and d2f/dx2 at once: powers x^0..x^(n-1) times their coefficients (d/dc = -d/dx)
+    series = torch.linalg.vander(x, N=len(ANGLE_SERIES)) @ _ANGLE_TABLE.to(dtype=x.dtype, device=x.device)
+    f0, f1, f2 = series[..., 0], -series[..., 1], series[..., 2]
     xs = torch.where(small, torch.ones_like(x), x)  # safe in the unused branch
     s2 = (xs * (2.0 - xs)).clamp_min(1e-16)
     sn = s2.sqrt()
