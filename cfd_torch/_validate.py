@@ -47,6 +47,14 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
             )
 
 
+def check_not_meta(x: torch.Tensor, name: str) -> None:
+    """Refuse a tensor on the 'meta' device (a shape without values), naming it."""
+    if x.device.type == "meta":
+        raise ValueError(
+            f"{name} is on the 'meta' device (shapes without data): the potential needs its values"
+        )
+
+
 def check_triangles(tri: object, name: str) -> None:
     """Validate a ``(..., 3, 3)`` batch of triangles: dtype, shape, finiteness and non-degeneracy.
 
@@ -56,6 +64,7 @@ def check_triangles(tri: object, name: str) -> None:
     """
     if not isinstance(tri, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(tri).__name__}")
+    check_not_meta(tri, name)
     if tri.dim() < 2 or tri.shape[-2:] != (3, 3):
         raise ValueError(f"{name} must have shape (..., 3, 3) (three vertices, xyz), got {tuple(tri.shape)}")
     if tri.dtype not in (torch.float32, torch.float64):

@@ -50,9 +50,11 @@ class ContactConfig:
         split: which node of a node pair the traversal descends: "both", or the "larger" sphere (both on a tie).
         pair_tol: relative gradient tolerance of each leaf pair's plane solve.
         pair_max_iter: Newton iteration cap of the plane solve (a pair that does not converge raises).
-        backend: "auto" (numba kernels on the CPU, batched tensors elsewhere) or "torch" (batched tensors
-            everywhere: the GPU route, which this exercises on the CPU). The collision query of the simulator's
-            feasibility checks runs on the CPU either way.
+        backend: "auto" (numba kernels on the CPU, batched tensors elsewhere) or "torch": the contact model's
+            traversal and pair solves as batched tensors on the CPU too (the GPU's route for them). The
+            simulator's other CPU kernels (body, friction and joint terms, rotations, the per-pair sums, triangle
+            checks) choose numba for CPU float64 tensors either way, and the collision query of its feasibility
+            checks runs on the CPU either way.
         refine_obstacles: a :class:`cfd_torch.Scene` refines each static or kinematic body whose triangles have
             edges longer than twice this times the longest edge of the finest dynamic body it interacts with, to
             edges of at most this times it (midpoint splits, the same surface; see

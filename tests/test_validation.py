@@ -162,6 +162,22 @@ def test_mesh_potential_poses_must_share_a_dtype_and_device():
         mesh_potential(bsh, torch.zeros(6, dtype=F64, device=META), bsh, pose)
 
 
+def test_potentials_refuse_meta_tensors_by_name():
+    """Tensors without values (the 'meta' device) are refused naming the argument (they failed inside torch with
+    "Tensor.item() cannot be called on meta tensors")."""
+    from cfd_torch import contact_potential, mesh_potential, pair_potential
+
+    bsh = BSH.from_trimesh(trimesh.creation.box((0.1, 0.1, 0.1)))
+    tri = torch.zeros(3, 3, dtype=F64, device=META)
+    pose = torch.zeros(6, dtype=F64, device=META)
+    with _raises("tri_a is on the 'meta' device"):
+        pair_potential(tri, tri)
+    with _raises("pose_a is on the 'meta' device"):
+        mesh_potential(bsh, pose, bsh, pose)
+    with _raises("poses is on the 'meta' device"):
+        contact_potential([bsh, bsh], torch.zeros(2, 6, dtype=F64, device=META))
+
+
 def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
     from cfd_torch import contact_potential
 

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
-from .._validate import _MAX_COORD, FLOATS, check_count, check_positive, check_tolerance
+from .._validate import _MAX_COORD, FLOATS, check_count, check_not_meta, check_positive, check_tolerance
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -59,6 +59,7 @@ class MeshDerivatives(NamedTuple):
 def _check_pose(pose: object, name: str) -> None:
     if not isinstance(pose, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
+    check_not_meta(pose, name)
     if pose.dim() < 1 or pose.shape[-1] != 6:
         raise ValueError(
             f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"

@@ -23,7 +23,7 @@ from .._autograd import (
     tracked,
     vmap_error,
 )
-from .._validate import _MAX_COORD, FLOATS, is_int
+from .._validate import _MAX_COORD, FLOATS, check_not_meta, is_int
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -147,6 +147,7 @@ def contact_potential(
     if not isinstance(poses, torch.Tensor) or poses.dim() != 2 or poses.shape[1] != 6:
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
     refuse_vmap("contact_potential", poses)
+    check_not_meta(poses, "poses")
     N = poses.shape[0]
     if N == 0:
         raise ValueError("poses must hold at least one body, got a (0, 6) tensor")
