@@ -49,7 +49,9 @@ def _pendulum(
     if actuator is not None:
         acts = (NS(**{"name": "act", "joint": 0, "gear": 1.0, "ctrlrange": None, "kp": 0.0, "kv": 0.0,
                       "forcerange": None} | actuator),)  # fmt: skip
-    return Articulation(NS(name="pendulum", links=links, joints=(joint,), actuators=acts, floating=floating))
+    return Articulation(
+        NS(name="pendulum", links=links, joints=(joint,), actuators=acts, floating=floating, friction=None)
+    )
 
 
 def _omega(art: Articulation) -> tuple[float, float]:
@@ -661,7 +663,9 @@ def _random_chain(name: str, seed: int, parents, patterns, refs: bool, mount=Non
                mesh=trimesh.creation.box((0.1, 0.2, 0.3)), mass=1.0, com=rng.normal(size=3),
                second_moment=np.diag([0.1, 0.2, 0.3]))
         )  # fmt: skip
-    model = NS(name=name, links=tuple(links), joints=tuple(joints), actuators=(), floating=False)
+    model = NS(
+        name=name, links=tuple(links), joints=tuple(joints), actuators=(), floating=False, friction=None
+    )
     return Articulation(model, mount=None if mount is None else mount(rng))
 
 
