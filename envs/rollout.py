@@ -108,10 +108,13 @@ def rollout(
         horizon: steps (default: T of an action tensor, else ``core.horizon``).
         params: the simulator's physical parameters (``core.scene.params()`` with requires_grad), or None.
         truncate_every: cut the graph (``EnvState.detach``) every k steps: gradients flow within windows of k steps
-            only (truncated backpropagation through time, as in SHAC / Brax APG).
-        checkpoint_every: recompute chunks of k steps in the backward pass instead of storing their graphs
-            (``torch.utils.checkpoint``): memory of one chunk, one more forward per chunk; the gradients are the
-            same (the forward solve is deterministic).
+            only (truncated backpropagation through time, as in SHAC / Brax APG). Every window's graph lives until
+            the one backward, so it saves no memory.
+        checkpoint_every: recompute chunks of k steps in the backward pass instead of storing the tensors their
+            steps save (``torch.utils.checkpoint``, non-reentrant): one more forward per chunk, the same gradients
+            (the forward solve is deterministic). Memory stays linear in the horizon, whatever k: the graph's nodes
+            are kept (about 83 per step); a session-45 audit measured 0.14 -> 0.06 MB per step on Billiards, 22 %
+            less on Push, 42 % on Sort, and a one-time 45-70 MB for the first checkpoint.
 
     Returns:
         A :class:`Rollout`.
