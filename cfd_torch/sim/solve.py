@@ -14,7 +14,7 @@ import torch
 
 from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
 from .feasibility import contained, displacement, feasible, path_clear, penetrating, reachable, sweep_clear
-from .newton import NewtonResult, Stop, newton
+from .newton import NewtonResult, Stop, _assign, _rows, newton
 from .types import StepError
 
 __all__ = ["solve_step", "start"]
@@ -353,9 +353,7 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
         # before, keeps that evaluation)
         ok = torch.isfinite(ev.value) & (torch.linalg.cholesky_ex(ev.hess)[1] == 0)
         at = EnergyEval(*(x.clone() if isinstance(x, torch.Tensor) else x for x in res.at))
-        for mine, new in zip(at, ev, strict=True):
-            if isinstance(mine, torch.Tensor) and new is not None:
-                mine[sc[ok]] = new[ok]
+        _assign(at, sc[ok], _rows(ev, ok))
         stepped = res.stepped.clone()
         stepped[sc[ok]] = False
         res = res._replace(at=at, stepped=stepped)
