@@ -93,10 +93,50 @@ def refuse_vmap(name: str, *tensors: torch.Tensor) -> None:
 
 def refuse_transforms(message: str, *tensors: object) -> None:
     """Raise NotImplementedError(``message``) if one of ``tensors`` (non-tensors are skipped) is under any
-    torch.func transform: for code whose autograd Function is not in the new style."""
+    torch.func transform or carries a forward-mode tangent (``torch.autograd.forward_ad``): for code whose autograd
+    Function is not in the new style and has no jvp."""
     for x in tensors:
-        if isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
+        if isinstance(x, torch.Tensor) and (
+            _functorch.is_functorch_wrapped_tensor(x)
+            or torch.autograd.forward_ad.unpack_dual(x).tangent is not None
+        ):
             raise NotImplementedError(message)
+
+
+def refuse_batched(message: str, *tensors: object) -> None:
+    """Raise NotImplementedError(``message``) if one of ``tensors`` is batched by vmap: in a backward, the grad
+    outputs of ``autograd.grad(..., is_grads_batched=True)`` and ``autograd.functional.jacobian(vectorize=True)``."""
+    for x in tensors:
+        if isinstance(x, torch.Tensor) and _functorch.is_legacy_batchedtensor(x):  # autograd's own batching
+            raise NotImplementedError(message)
+        while isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
+            if _functorch.is_batchedtensor(x):
+                raise NotImplementedError(message)
+            x = _functorch.get_unwrapped(x)
+
+
+# the message of values_only for a closed-form derivatives function ``name`` whose differentiable twin is ``diff``
+VALUES_ONLY = (
+    "{name}(...).{{field}} carries no gradient (closed-form derivatives are values, not connected to autograd or "
+    "torch.func); differentiate {diff} instead, or .detach() the inputs"
+)
+
+
+def values_only(result: tuple, fields: tuple[str, ...], inputs: tuple, message: str) -> tuple:
+    """``result`` (a NamedTuple) with its tensor ``fields`` made to refuse differentiation: where one of ``inputs``
+    is tracked (see :func:`tracked`), a backward (or torch.func.grad) through such a field toward that input raises
+    ``RuntimeError(message.format(field=...))`` instead of silently treating the field as a constant."""
+    live = [x for x in inputs if isinstance(x, torch.Tensor) and tracked(x)]
+    if not live:
+        return result
+    changes = {}
+    for f in fields:
+        y = getattr(result, f)
+        if isinstance(y, torch.Tensor):
+            for x in live:
+                y = refuse_derivative(y, x, message.format(field=f))
+            changes[f] = y
+    return result._replace(**changes)
 
 
 Evaluate = Callable[[torch.Tensor, int], tuple]

@@ -74,6 +74,8 @@ def check_triangles(tri: object, name: str) -> None:
         _check_triangle_values(plain(tri), name, tol)
 
 
+# torch.compile: dynamo cannot trace numba's first-call compilation (it fails on its bytecode), so this runs eagerly
+@torch.compiler.disable
 def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
     if tri.device.type == "cpu":  # one fused pass (the tensor form below makes ~20 passes over the data)
         flat = tri.detach().reshape(-1, 3, 3).contiguous()

@@ -1,5 +1,7 @@
 """The custom autograd Functions: float64 gradcheck of each, gradgradcheck or an asserted refusal of the next
-order, and the torch.func transforms (grad and jacrev work; vmap and forward mode raise saying so).
+order, and the torch.func transforms (grad and jacrev work; vmap and forward mode raise saying so); the closed-form
+derivatives' results refuse a backward; the plain-torch functions run under vmap; torch.compile traces around the
+numba input checks.
 
 Functions and where their checks are: ClosedFormPotential, ClosedFormGrad, refuse_third_order (cfd_torch/_autograd.py),
 _KnownGradPotential (contact/scene.py) and _PairGradFn (contact/pair.py) here, on their own; _PairPotentialFn through
@@ -12,6 +14,10 @@ Small inputs throughout: the whole file runs in a few seconds.
 from __future__ import annotations
 
 import functools
+import os
+import re
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -366,3 +372,81 @@ def test_vmap_is_refused_with_a_clear_message():
         torch.func.vmap(lambda x: mesh_potential(_ico(), x, _box(), pb))(torch.stack([pa, pa]))
     with pytest.raises(NotImplementedError, match="contact_potential does not support torch.func.vmap"):
         torch.func.vmap(lambda p: contact_potential([_ico(), _box()], p).value)(torch.stack([pa, pb])[None])
+
+
+# ----------------------------------------------------------------------- values-only results, plain-torch functions
+def test_closed_form_derivatives_refuse_a_backward_instead_of_acting_as_constants():
+    """The *_derivatives results and contact_potential's grad/hessian are values: a loss through them raises under
+    autograd and torch.func.grad (as constants they would drop their part of the gradient silently), while the
+    values themselves are unchanged and a detached call builds no graph."""
+    a, b = _pairs()
+    pa, pb = _near_poses()
+    ref = pair_potential_derivatives(a, b, mu=1.0)
+    assert float(ref.grad.abs().max()) > 0
+    cases = {
+        "pair_potential_derivatives(...).grad": (lambda x: pair_potential_derivatives(x, b, mu=1.0).grad, a),
+        "pair_potential_derivatives(...).value": (
+            lambda x: pair_potential_derivatives(x, b, mu=1.0).value,
+            a,
+        ),
+        "mesh_potential_derivatives(...).hessian": (
+            lambda x: mesh_potential_derivatives(_ico(), x, _box(), pb, mu=1.0).hessian,
+            pa,
+        ),
+        "contact_potential(...).grad": (
+            lambda p: contact_potential([_ico(), _box()], p, mu=1.0, grad=True).grad,
+            torch.stack([pa, pb]),
+        ),
+    }
+    for what, (f, x) in cases.items():
+        xg = x.clone().requires_grad_(True)
+        y = f(xg)
+        assert y.requires_grad and float(y.detach().abs().max()) > 0
+        torch.testing.assert_close(y.detach(), f(x), rtol=0, atol=0)  # the same values
+        with pytest.raises(RuntimeError, match=re.escape(what) + " carries no gradient"):
+            torch.autograd.grad(y.sum(), xg)
+        with pytest.raises(RuntimeError, match="carries no gradient"):
+            torch.func.grad(lambda x_, f=f: f(x_).sum())(x)
+        assert not f(x).requires_grad and not f(xg.detach()).requires_grad
+    # contact_potential's value stays differentiable next to its refusing grad field
+    poses = torch.stack([pa, pb]).requires_grad_(True)
+    c = contact_potential([_ico(), _box()], poses, mu=1.0, grad=True)
+    (g,) = torch.autograd.grad(c.value, poses)
+    assert float(g.abs().max()) > 0
+
+
+def test_plain_torch_functions_run_under_vmap_and_check_values_there():
+    from cfd_torch import blend_weight, central_potential, recentre_rotation
+
+    r = torch.tensor([[0.5, 2.0], [1e3, 0.1]], dtype=F64)
+    torch.testing.assert_close(torch.func.vmap(central_potential)(r), central_potential(r))
+    torch.testing.assert_close(
+        torch.func.vmap(lambda x: blend_weight(x, 0.6, 0.5))(r), blend_weight(r, 0.6, 0.5)
+    )
+    q = torch.tensor([[[0.0, 0, 0, 4.0, 0, 0]], [[1.0, 2, 3, 0.1, -5.0, 0.2]]], dtype=F64)
+    torch.testing.assert_close(torch.func.vmap(recentre_rotation)(q), recentre_rotation(q))
+    assert float(recentre_rotation(q)[0, 0, 3]) == pytest.approx(4.0 - 2 * torch.pi)
+    with pytest.raises(ValueError, match="r must be >= 0"):
+        torch.func.vmap(central_potential)(-r)
+    with pytest.raises(ValueError, match="q contains NaN or inf"):
+        torch.func.vmap(recentre_rotation)(q.clone().index_fill_(0, torch.tensor([1]), float("nan")))
+    with pytest.raises(ValueError, match="d1 is torch.float64 on cpu but r is torch.float32"):
+        blend_weight(r.float(), torch.tensor(0.6, dtype=F64), 0.5)
+
+
+def test_compile_traces_around_the_numba_input_checks_on_a_cold_first_call(tmp_path):
+    """torch.compile of a function calling pair_potential, first call in a fresh process: dynamo failed on numba's
+    first-call compilation inside the triangle check ("exception table entry start instruction has no offset")."""
+    code = (
+        "import torch, cfd_torch\n"
+        "a = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)\n"
+        "b = a + torch.tensor([0.0, 0, 0.5], dtype=torch.float64)\n"
+        "f = torch.compile(lambda x, y: cfd_torch.pair_potential(x, y, mu=1.0) * 2.0, backend='eager')\n"
+        "v = f(a, b)\n"
+        "assert torch.equal(v, 2.0 * cfd_torch.pair_potential(a, b, mu=1.0)), v\n"
+        "print('ok', float(v))\n"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.startswith("ok ")

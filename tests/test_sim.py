@@ -464,6 +464,32 @@ def test_pair_forces_and_step_info_at_rest(bodies):
         (Fg[1, 0, 2] + q[0, 2]).backward()
 
 
+def test_transforms_and_forward_mode_are_refused_by_name_and_batched_gradients_too(bodies):
+    """step and pair_forces under torch.func, forward-mode AD (forward_ad) and autograd's batched gradients
+    (jacobian(vectorize=True)): a NotImplementedError naming the function and the way out, not torch's internal
+    errors; initial_state's checks run under vmap."""
+    import torch.autograd.forward_ad as fwad
+
+    cube, ground, _, _ = bodies
+    scene = Scene((cube, ground), friction=0.5)
+    q = torch.tensor([_pose(0.0, 0.0, 0.1 + 2e-3), _pose()], dtype=F64)
+    state = scene.initial_state(q)
+    f = lambda x: step(scene, State(x, state.q_prev)).q  # noqa: E731
+    with fwad.dual_level():
+        with pytest.raises(NotImplementedError, match="cfd_torch.step: .* forward-mode AD do not pass"):
+            f(fwad.make_dual(q, torch.ones_like(q)))
+    with pytest.raises(NotImplementedError, match=r"cfd_torch.step: batched gradients .* vectorize=False"):
+        torch.autograd.functional.jacobian(f, q, vectorize=True)
+    J = torch.autograd.functional.jacobian(f, q)  # one backward per output: works
+    assert J.shape == (2, 6, 2, 6) and float(J[0, 2, 0, 2]) > 0.5
+    for transform in (torch.func.grad, torch.func.jacrev):
+        with pytest.raises(NotImplementedError, match="cfd_torch.pair_forces: torch.func transforms"):
+            transform(lambda x: pair_forces(scene, x)[1, 0, 2])(q)
+    batch = torch.stack([q, q + torch.tensor([0.0, 0.0, 0.01, 0, 0, 0], dtype=F64)])
+    vm = torch.func.vmap(lambda x: scene.initial_state(x).q_prev)(batch)
+    torch.testing.assert_close(vm, scene.initial_state(batch).q_prev)
+
+
 def test_torch_backend_step_matches_numba(bodies):
     """The GPU route (batched tensor traversal and pair solves) on the CPU: a step with friction and its
     gradient agree with the numba kernels."""

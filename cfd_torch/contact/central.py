@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import torch
 
+from .._autograd import outside_transforms, plain
 from .._validate import check_finite_tensor, check_positive, is_real
 from ..config import DEFAULT_CONTACT
 
@@ -49,8 +50,7 @@ def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness)
     """
     check_finite_tensor(r, "r", allow_inf=True)
     check_positive(mu, "mu")
-    if bool((r < 0).any()):
-        raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
+    _check_distance(r)
     return 12.0 * mu * (1.0 + torch.rsqrt(r)) ** 2
 
 
@@ -98,10 +98,11 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
     if not (is_real(margin) and 0 <= margin < float("inf")):
         raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
     check_finite_tensor(r, "r", allow_inf=True)
-    if bool((r < 0).any()):
-        raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {_first(r < 0)}")
+    _check_distance(r)
     if not (isinstance(d1, torch.Tensor) or is_real(d1)):
         raise TypeError(f"d1 must be a number or a torch.Tensor, got {type(d1).__name__}")
+    if isinstance(d1, torch.Tensor) and (d1.dtype != r.dtype or d1.device != r.device):
+        raise ValueError(f"d1 is {d1.dtype} on {d1.device} but r is {r.dtype} on {r.device}: they must match")
     d1_t = torch.as_tensor(d1, dtype=r.dtype, device=r.device)
     try:
         torch.broadcast_shapes(r.shape, d1_t.shape)
@@ -109,8 +110,9 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
         raise ValueError(
             f"d1 of shape {tuple(d1_t.shape)} does not broadcast with r of shape {tuple(r.shape)}"
         ) from None
-    if not bool((torch.isfinite(d1_t) & (d1_t > 0)).all()):
-        raise ValueError(f"d1 must be finite and > 0 (a sum of two radii), got {d1}")
+    with outside_transforms():  # (values read from the plain tensors: the check runs under torch.func.vmap)
+        if not bool((torch.isfinite(plain(d1_t)) & (plain(d1_t) > 0)).all()):
+            raise ValueError(f"d1 must be finite and > 0 (a sum of two radii), got {plain(d1_t)}")
     w = band_width(d1, eps, margin)
     # beyond the band phi = 1 with zero derivatives: r is capped at d1 + 2 w, so that r = inf gives no inf - inf in
     # the derivatives with respect to d1
@@ -118,5 +120,10 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
     return smoothstep((torch.minimum(r, cap) - d1) / w)
 
 
-def _first(mask: torch.Tensor) -> tuple[int, ...]:
-    return tuple(int(i) for i in torch.nonzero(mask)[0])
+def _check_distance(r: torch.Tensor) -> None:
+    """r >= 0, read from the plain tensor (so that the check runs under torch.func.vmap)."""
+    with outside_transforms():
+        neg = plain(r) < 0
+        if bool(neg.any()):
+            at = tuple(int(i) for i in torch.nonzero(neg)[0])
+            raise ValueError(f"r must be >= 0 (a distance); first negative entry at index {at}")

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._autograd import ClosedFormPotential, outside_transforms, plain, refuse_vmap
+from .._autograd import VALUES_ONLY, ClosedFormPotential, outside_transforms, plain, refuse_vmap, values_only
 from .._validate import _MAX_COORD, FLOATS, check_count, check_not_meta, check_positive, check_tolerance
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
@@ -154,7 +154,8 @@ def mesh_potential_derivatives(
 
     Returns:
         MeshDerivatives(value (...), grad (..., 12), hessian (..., 12, 12) | None, stats), float64 inside, in
-        the poses' dtype. Not connected to autograd (use :func:`mesh_potential` for that).
+        the poses' dtype. Values only: where a pose requires grad, a backward through a field raises (use
+        :func:`mesh_potential` under autograd for derivatives of these).
     """
     refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
@@ -167,12 +168,14 @@ def mesh_potential_derivatives(
             bsh_a, bsh_b, qa, qb, order=2 if hessian else 1, mu=mu, margin=margin, eps=eps, split=split, tol=tol,
             max_iter=max_iter,
         )  # fmt: skip
-    return MeshDerivatives(
+    out = MeshDerivatives(
         v.reshape(batch).to(dt),
         g.reshape(*batch, 12).to(dt),
         h.reshape(*batch, 12, 12).to(dt) if h is not None else None,
         stats,
     )
+    message = VALUES_ONLY.format(name="mesh_potential_derivatives", diff="mesh_potential")
+    return values_only(out, ("value", "grad", "hessian"), (pose_a, pose_b), message)
 
 
 def mesh_potential(

@@ -26,11 +26,13 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import (
+    VALUES_ONLY,
     forward_mode_error,
     outside_transforms,
     plain,
     refuse_third_order,
     refuse_vmap,
+    values_only,
     vmap_error,
 )
 from .._geometry import frame_origin
@@ -424,7 +426,8 @@ def pair_potential_derivatives(
     Returns:
         PairDerivatives(value (...), grad (..., 18), hessian (..., 18, 18) | None, plane (..., 4)), in the input
         dtype. The 18 coordinates are [a0, a1, a2, b0, b1, b2] flattened xyz. Where value is +inf the other
-        fields are zero.
+        fields are zero. Values only: where an input requires grad, a backward through a field raises (use
+        :func:`pair_potential` under autograd for derivatives of these).
     """
     refuse_vmap("pair_potential_derivatives", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
@@ -435,9 +438,11 @@ def pair_potential_derivatives(
         )  # fmt: skip
     val, P, grad, hess = sol.value, sol.world_plane(), sol.grad, sol.hess
     dt = tri_a.dtype
-    return PairDerivatives(
+    out = PairDerivatives(
         value=val.reshape(batch).to(dt),
         grad=grad.reshape(*batch, 18).to(dt),
         hessian=None if hess is None else hess.reshape(*batch, 18, 18).to(dt),
         plane=P.reshape(*batch, 4).to(dt),
     )
+    message = VALUES_ONLY.format(name="pair_potential_derivatives", diff="pair_potential")
+    return values_only(out, out._fields, (tri_a, tri_b), message)

@@ -15,12 +15,14 @@ import numpy as np
 import torch
 
 from .._autograd import (
+    VALUES_ONLY,
     ClosedFormGrad,
     forward_mode_error,
     outside_transforms,
     plain,
     refuse_vmap,
     tracked,
+    values_only,
     vmap_error,
 )
 from .._validate import _MAX_COORD, FLOATS, check_not_meta, is_int
@@ -41,9 +43,9 @@ class ContactPotential(NamedTuple):
             jacrev) to second order.
         grad: (N, 6) d value / d poses with the rows of static bodies set to zero (the forces that move bodies),
             or None when not computed. Autograd through ``value`` gives the full derivative instead, static
-            poses included.
+            poses included. A value: where ``poses`` requires grad, a backward through it raises.
         hessian: (N * 6, N * 6) second derivative over the flattened poses, rows and columns of static bodies set
-            to zero, or None unless asked for.
+            to zero, or None unless asked for (a value, as ``grad``).
         stats: traversal counts ("body_pairs", "node_pairs", "leaf_pairs", "levels": as in
             :class:`cfd_torch.contact.mesh.MeshDerivatives`, -1 from the depth-first CPU kernel).
     """
@@ -245,9 +247,11 @@ def contact_potential(
     if tracked(poses):
         value = _KnownGradPotential.apply(q64.reshape(1, 6 * N), value, G, evaluate)
     value = value[0]
-    return ContactPotential(
+    out = ContactPotential(
         value.to(poses.dtype),
         G_field.to(poses.dtype) if G_field is not None else None,
         H.to(poses.dtype) if H is not None else None,
         stats,
     )
+    message = VALUES_ONLY.format(name="contact_potential", diff="its value (create_graph=True for a Hessian)")
+    return values_only(out, ("grad", "hessian"), (poses,), message)

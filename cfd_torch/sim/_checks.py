@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from .._autograd import outside_transforms, plain
 from .._validate import FLOATS
 from .feasibility import contained
 from .types import Params
@@ -50,12 +51,12 @@ def check_state_tensor(
             raise ValueError(f"{name} is {x.dtype} but {like_name} is {like.dtype}: they must match")
     if x.device.type == "meta":
         raise ValueError(f"{name} is on the 'meta' device (shapes without data): a step needs its values")
-    bad = ~torch.isfinite(x).all(-1)
-    if bool(bad.any()):
-        at = tuple(int(i) for i in torch.nonzero(bad)[0])
-        raise ValueError(
-            f"{name} contains NaN or inf (first at {'scene, body' if x.dim() == 3 else 'body'} {at})"
-        )
+    with outside_transforms():  # (values read from the plain tensor: the check runs under torch.func.vmap)
+        bad = ~torch.isfinite(plain(x)).all(-1)
+        if bool(bad.any()):
+            at = tuple(int(i) for i in torch.nonzero(bad)[0])
+            where = {1: "body", 2: "scene, body"}.get(bad.dim(), "index")  # (vmap adds dimensions in front)
+            raise ValueError(f"{name} contains NaN or inf (first at {where} {at})")
 
 
 def check_params(

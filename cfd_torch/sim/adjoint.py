@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._autograd import refuse_batched
 from ..contact.model import LaggedContacts, sum_pairs
 from ..contact.pair import PairSolveError
 from .energy import (
@@ -186,6 +187,12 @@ class StepFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout, *_):
+        refuse_batched(
+            "cfd_torch.step: batched gradients (autograd.grad(..., is_grads_batched=True), "
+            "autograd.functional.jacobian(..., vectorize=True)) do not pass through a simulation step's adjoint; "
+            "use vectorize=False, or one backward per output vector",
+            gout,
+        )
         if torch.is_grad_enabled():  # create_graph=True
             raise RuntimeError(
                 "cfd_torch.step: second derivatives through a simulation step are not implemented (the step's "

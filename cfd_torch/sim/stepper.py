@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
-from .._autograd import refuse_transforms
+from .._autograd import outside_transforms, plain, refuse_derivative, refuse_transforms
 from .._geometry import frame_origin
 from .._validate import is_int
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
@@ -26,6 +26,14 @@ from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
 from .scene import Scene
 from .types import Action, Params, State, StepError, StepInfo, Trajectory
+
+# contact forces (StepInfo's, pair_forces') are not differentiated (their Hessian-based derivative is not
+# implemented): where the poses require grad, a backward through them raises, as a constant would drop their part of
+# a loss's gradient silently
+_NO_GRADIENT = (
+    "{name} carries no gradient (contact forces are not differentiated); use it for logging, or .detach() it to "
+    "leave it out of the loss"
+)
 
 __all__ = ["step", "rollout", "recentre_rotation", "pair_forces"]
 
@@ -55,8 +63,9 @@ def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
         raise ValueError(
             f"q must be a float tensor of poses (..., 6), got {q.dtype} of shape {tuple(q.shape)}"
         )
-    if not bool(torch.isfinite(q.detach()).all()):
-        raise ValueError("q contains NaN or inf")
+    with outside_transforms():  # (values read from the plain tensor: the check runs under torch.func.vmap)
+        if not bool(torch.isfinite(plain(q)).all()):
+            raise ValueError("q contains NaN or inf")
     return _recentre(q)
 
 
@@ -120,29 +129,11 @@ def _solve(
     ones = torch.ones_like(iters)
     # a differentiated step: a loss through the forces raises instead of dropping their part
     if q.requires_grad:
-        fc = _NoGradient.apply(fc, q, "StepInfo.contact_force")
-        ff = _NoGradient.apply(ff, q, "StepInfo.friction_force")
+        fc = refuse_derivative(fc, q, _NO_GRADIENT.format(name="StepInfo.contact_force"))
+        ff = refuse_derivative(ff, q, _NO_GRADIENT.format(name="StepInfo.friction_force"))
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
     )
-
-
-class _NoGradient(torch.autograd.Function):
-    """x itself, attached to the graph of ``anchor`` so that a backward through it raises: contact forces (StepInfo's,
-    pair_forces') are not differentiated (their Hessian-based derivative is not implemented), and a constant would
-    drop their part of a loss's gradient silently."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, anchor: torch.Tensor, name: str) -> torch.Tensor:
-        ctx.name = name
-        return x.clone()
-
-    @staticmethod
-    def backward(ctx, *_):
-        raise RuntimeError(
-            f"{ctx.name} carries no gradient (contact forces are not differentiated); use it for logging, or "
-            ".detach() it to leave it out of the loss"
-        )
 
 
 def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: Params, k: int):
@@ -269,7 +260,8 @@ def step(
         action: forces ([B,] N, 3), torques ([B,] N, 3) and kinematic targets ([B,] K, 6); unbatched fields are
             shared by a batch; None: nothing acts, kinematic bodies stay put.
         params: differentiable mass / second moment / friction coefficient, shared ((Nd,), (Nd, 3, 3), ()) or per
-            scene ((B, Nd), ...) (default: ``scene.params()``).
+            scene ((B, Nd), ...) (default: ``scene.params()``), float32 or float64 whatever the state's dtype (the
+            step runs in float64; each field's gradient comes back in its dtype).
         return_info: also return the :class:`StepInfo` (solver statistics, end-of-step forces).
 
     Returns:
@@ -291,10 +283,11 @@ def step(
         raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
     if not isinstance(state, State):
         raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
-    # the step's Function is an old-style autograd Function around numba kernels, which the transforms cannot pass
+    # the step's Function is an old-style autograd Function around numba kernels, which the transforms cannot pass,
+    # without a forward-mode rule
     refuse_transforms(
-        "cfd_torch.step: torch.func transforms (grad, jacrev, vmap, jvp) do not pass through a simulation step; "
-        "differentiate with torch.autograd (loss.backward() or torch.autograd.grad)",
+        "cfd_torch.step: torch.func transforms (grad, jacrev, vmap, jvp) and forward-mode AD do not pass through a "
+        "simulation step; differentiate with torch.autograd (loss.backward() or torch.autograd.grad)",
         *state,
         *(() if action is None else action),
         *(() if params is None else params),
@@ -407,6 +400,11 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
 
     Raises:
         ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force)."""
+    refuse_transforms(
+        "cfd_torch.pair_forces: torch.func transforms (grad, jacrev, vmap, jvp) and forward-mode AD do not pass "
+        "through it (contact forces are not differentiated); call it on plain tensors (q.detach())",
+        q,
+    )
     check_state_tensor(q, "q", scene.num_bodies)
     poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
     B, N = poses.shape[:2]
@@ -430,5 +428,5 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     F = F.to(q.dtype)
     F = F if q.dim() == 3 else F[0]
     if q.requires_grad and torch.is_grad_enabled():
-        F = _NoGradient.apply(F, q, "pair_forces")
+        F = refuse_derivative(F, q, _NO_GRADIENT.format(name="pair_forces"))
     return F
