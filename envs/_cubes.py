@@ -10,7 +10,7 @@ import trimesh
 from cfd_torch import Action, Scene, rigid_body
 
 from ._pusher import GAP, Pusher, floor_body
-from .core import EnvState, TaskCore, camera_over, check_task_arguments
+from .core import EnvState, TaskCore, _is_int, camera_over, check_task_arguments
 
 __all__ = ["CubesCore"]
 
@@ -48,8 +48,9 @@ class CubesCore(TaskCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        if isinstance(num_cubes, bool) or not isinstance(num_cubes, int) or num_cubes < 1:
+        if not (_is_int(num_cubes) and num_cubes >= 1):
             raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
+        num_cubes = int(num_cubes)
         check_task_arguments(
             action_cost=action_cost, cube_size=cube_size, cube_density=cube_density, spread=spread,
             max_speed=max_speed,
@@ -167,10 +168,10 @@ class CubesCore(TaskCore):
         high = torch.tensor(body * (self.num_cubes + 1) + [goal] * extra, dtype=torch.float64)
         return -high, high
 
-    def render_camera(self) -> dict:
+    def render_camera(self, aspect: float = 1.0) -> dict:
         # the cubes' and the pusher's starts and the task's goal regions
         start = (0.0, 0.0, self.spread + self.cube_size)
-        return camera_over([start, *self._goal_discs()], azimuth=270.0, elevation=-60.0)
+        return camera_over([start, *self._goal_discs()], azimuth=270.0, elevation=-60.0, aspect=aspect)
 
     def _goal_discs(self) -> list[tuple[float, float, float]]:
         """Floor discs (x, y, radius) [m] that hold every goal region the task can draw."""

@@ -148,10 +148,10 @@ class AntPushCore(BoxToTargetCore):
         high = torch.tensor(pose + vel + joints + pose + vel + [half, half], dtype=torch.float64)
         return -high, high
 
-    def render_camera(self) -> dict:
+    def render_camera(self, aspect: float = 1.0) -> dict:
         # the Ant (legs within about 0.8 m of its base), the box 1 m ahead and the target beyond it
         discs = [(0.0, 0.0, 0.8), (1.0, 0.0, 0.25), (1.0 + self.distance, 0.0, self.success_radius + 0.15)]
-        return camera_over(discs, azimuth=90.0, elevation=-35.0)
+        return camera_over(discs, azimuth=90.0, elevation=-35.0, aspect=aspect)
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         if i == 0:

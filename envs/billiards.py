@@ -16,6 +16,7 @@ __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "ra
 
 # pocket centres of a 1.27 x 2.54 m playing area whose rack apex is at the origin [m]: far corners, sides, near corners
 POCKETS = ((-0.635, 0.94), (0.635, 0.94), (-0.635, -0.33), (0.635, -0.33), (-0.635, -1.6), (0.635, -1.6))
+_POCKET_RADIUS = 0.08  # the default success radius about a pocket [m]
 
 
 def rack_positions(radius: float) -> torch.Tensor:
@@ -78,7 +79,7 @@ class BilliardsCore(TaskCore):
         subdivisions: int = 2,
         max_force: float = 5.0,
         action_cost: float = 1e-3,
-        pocket_radius: float = 0.08,
+        pocket_radius: float = _POCKET_RADIUS,
         target_ball: int | None = None,
         pocket: int | None = None,
         potential: str = "cfd",
@@ -175,17 +176,19 @@ class BilliardsCore(TaskCore):
         high[64:66] = 2.0
         return -high, high
 
-    def render_camera(self) -> dict:
+    def render_camera(self, aspect: float = 1.0) -> dict:
         """Over the rack, the cue ball's start region and the pockets that can be drawn: for the far corners and
-        the sides (0-3, the default draw) a fixed view that holds them all; a near-corner ``pocket`` (4, 5), below
-        that view, gets a view derived from the discs (:func:`~cfd_torch.envs.core.camera_over`)."""
-        if self.pocket is None or self.pocket < 4:
+        the sides (0-3, the default draw) with the default pocket radius, in a square or landscape image, a fixed
+        view that holds them all; otherwise (a near-corner ``pocket`` 4 or 5, below that view; a wider pocket; a
+        portrait image) a view derived from the discs (:func:`~cfd_torch.envs.core.camera_over`)."""
+        drawn = range(4) if self.pocket is None else (self.pocket,)
+        if max(drawn) < 4 and self.pocket_radius <= _POCKET_RADIUS and aspect >= 1.0:
             return {"lookat": (0.0, 0.2, 0.0), "distance": 2.3, "azimuth": 90.0, "elevation": -70.0}
         r = self.ball_radius
         discs = [(float(x), float(y), r) for x, y in self.rack]
         discs.append((0.0, -0.5, math.hypot(0.1, 0.1) + r))  # the cue ball's start region
-        discs.append((*POCKETS[self.pocket], self.pocket_radius))
-        return camera_over(discs, azimuth=90.0, elevation=-70.0)
+        discs += [(*POCKETS[k], self.pocket_radius) for k in drawn]
+        return camera_over(discs, azimuth=90.0, elevation=-70.0, aspect=aspect)
 
     def render_floor(self) -> float:
         return -self.ball_radius

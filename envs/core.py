@@ -42,12 +42,23 @@ def real_array(x: object, name: str) -> np.ndarray:
     return array.astype(np.float64)
 
 
-def camera_over(discs: Sequence[tuple[float, float, float]], azimuth: float, elevation: float) -> dict:
+def half_view_angle(fovy: float, aspect: float) -> float:
+    """Half the narrower field of view [rad] of a camera with vertical field of view ``fovy`` [deg] and image
+    ``aspect`` (width / height): the vertical half-angle, or in a portrait image (aspect < 1) the horizontal one,
+    atan(aspect tan(fovy / 2)). A sphere within it at a distance is in the picture whatever the image's shape."""
+    half = math.radians(0.5 * fovy)
+    return half if aspect >= 1.0 else math.atan(aspect * math.tan(half))
+
+
+def camera_over(
+    discs: Sequence[tuple[float, float, float]], azimuth: float, elevation: float, aspect: float = 1.0
+) -> dict:
     """A free camera (MeshRenderer's settings) that shows the floor discs ``discs`` ((x, y, radius) [m] each: where
-    a task's bodies start and its goals lie, for any draw of them) from ``azimuth`` and ``elevation`` [deg]: it
-    looks at the centre of their bounding box, from the distance at which the smallest circle about that point
-    holding every disc, enlarged by 10 %, fills MuJoCo's 45 degree field of view. Tasks derive their cameras from
-    their arguments so, and a goal moved by an argument stays in the picture."""
+    a task's bodies start and its goals lie, for any draw of them) from ``azimuth`` and ``elevation`` [deg] in an
+    image of ``aspect`` (width / height): it looks at the centre of their bounding box, from the distance at which
+    the smallest circle about that point holding every disc, enlarged by 10 %, fills MuJoCo's 45 degree vertical
+    field of view (the horizontal one in a portrait image, :func:`half_view_angle`). Tasks derive their cameras
+    from their arguments so, and a goal moved by an argument stays in the picture."""
     d = np.asarray(discs, dtype=np.float64)
     lo = (d[:, :2] - d[:, 2:]).min(0)
     hi = (d[:, :2] + d[:, 2:]).max(0)
@@ -55,7 +66,7 @@ def camera_over(discs: Sequence[tuple[float, float, float]], azimuth: float, ele
     radius = float((np.linalg.norm(d[:, :2] - centre, axis=1) + d[:, 2]).max())
     return {
         "lookat": (float(centre[0]), float(centre[1]), 0.0),
-        "distance": 1.1 * radius / math.sin(math.radians(22.5)),
+        "distance": 1.1 * radius / math.sin(half_view_angle(45.0, aspect)),
         "azimuth": azimuth,
         "elevation": elevation,
     }
@@ -292,8 +303,9 @@ class TaskCore(abc.ABC):
         poses = torch.cat([q.detach().cpu().double(), self.marker_poses(task).cpu().double()])
         return renderer.render(poses, self.render_colours(task))
 
-    def render_camera(self) -> dict | None:
-        """A free camera (lookat, distance, azimuth, elevation) framing the task, or None for the default."""
+    def render_camera(self, aspect: float = 1.0) -> dict | None:
+        """A free camera (lookat, distance, azimuth, elevation) framing the task in an image of ``aspect`` (width /
+        height), or None for the renderer's automatic framing."""
         return None
 
     def render_floor(self) -> float | None:
@@ -307,7 +319,7 @@ class TaskCore(abc.ABC):
         meshes = self.render_meshes()
         return MeshRenderer(
             [(v, f) for v, f, _ in meshes], [c for _, _, c in meshes], width=width, height=height,
-            camera=self.render_camera(), floor=self.render_floor(),
+            camera=self.render_camera(width / height), floor=self.render_floor(),
         )  # fmt: skip
 
     def _colour(self, i: int, body: RigidBody) -> tuple[float, float, float, float]:

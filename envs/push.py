@@ -116,14 +116,14 @@ class PushCore(BoxToTargetCore):
         high = torch.tensor(pose + vel + pose + vel + [self.distance + 2.0] * 2, dtype=torch.float64)
         return -high, high
 
-    def render_camera(self) -> dict:
+    def render_camera(self, aspect: float = 1.0) -> dict:
         # the box and the pusher's start (within 0.7 m), and every target the angle range can draw
         arc = [-self.angle_range + 2 * self.angle_range * k / 16 for k in range(17)]
         target = [
             (self.distance * math.cos(a), self.distance * math.sin(a), self.success_radius + 0.15)
             for a in arc
         ]
-        return camera_over([(0.0, 0.0, 0.75), *target], azimuth=90.0, elevation=-50.0)
+        return camera_over([(0.0, 0.0, 0.75), *target], azimuth=90.0, elevation=-50.0, aspect=aspect)
 
     def _colour(self, i: int, body) -> tuple[float, float, float, float]:
         return [(0.8, 0.55, 0.25, 1.0), (0.25, 0.45, 0.85, 1.0), (0.6, 0.62, 0.6, 1.0)][i]

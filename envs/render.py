@@ -29,7 +29,7 @@ from PIL import Image
 
 from cfd_torch._validate import is_int, is_real
 
-from .core import real_array
+from .core import half_view_angle, real_array
 
 __all__ = ["MeshRenderer", "write_gif"]
 
@@ -242,6 +242,7 @@ class MeshRenderer:
         self._geoms = np.array([self._model.body_geomadr[i + 1] for i in range(len(meshes))])  # mesh i's geom
         self._colors = self._model.geom_rgba[self._geoms].copy()
         self._camera_settings = camera
+        self._aspect = width / height
         self._framed = False
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
@@ -266,7 +267,8 @@ class MeshRenderer:
 
     def _frame(self, translation: np.ndarray, rotations: np.ndarray) -> None:
         """Fill the camera settings not given at construction so that the bounding sphere of all meshes, at
-        poses (translation (N, 3) [m], rotations (N, 3, 3)), fills the view."""
+        poses (translation (N, 3) [m], rotations (N, 3, 3)), fills the view (its narrower angle: the horizontal one
+        in a portrait image)."""
         world = np.concatenate(
             [v @ r.T + t for v, r, t in zip(self._vertices, rotations, translation, strict=True)]
         )
@@ -277,10 +279,10 @@ class MeshRenderer:
         else:
             lookat = 0.5 * (lo + hi)
             radius = 0.5 * float(np.linalg.norm(hi - lo))
-        half_fovy = np.deg2rad(0.5 * self._model.vis.global_.fovy)
+        half = half_view_angle(self._model.vis.global_.fovy, self._aspect)
         settings = {
             "lookat": lookat,
-            "distance": _FRAME_MARGIN * max(radius, 1e-9) / np.sin(half_fovy),
+            "distance": _FRAME_MARGIN * max(radius, 1e-9) / np.sin(half),
             "azimuth": _DEFAULT_AZIMUTH,
             "elevation": _DEFAULT_ELEVATION,
         } | self._camera_settings

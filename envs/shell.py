@@ -138,7 +138,8 @@ class CoreVectorEnv(VectorEnv):
 
     Args:
         num_envs: the number of environments.
-        max_episode_steps: truncation (None: the task's horizon; ``gym.make_vec`` passes the registered one).
+        max_episode_steps: truncation after this many steps (None: the task's horizon; ``gym.make_vec`` passes the
+            registered one; -1: never, as ``gym.make`` takes it); the attribute is None for no limit.
         render_mode, device, dtype, width, height, **task: as :class:`CoreEnv`.
         batched: step the environments as one batch of scenes (see below).
 
@@ -173,7 +174,19 @@ class CoreVectorEnv(VectorEnv):
         self.num_envs = num_envs
         self.batched = bool(batched)
         self.render_mode = render_mode
-        self.max_episode_steps = self.core.horizon if max_episode_steps is None else int(max_episode_steps)
+        if max_episode_steps is not None and not (
+            is_int(max_episode_steps) and (max_episode_steps >= 1 or max_episode_steps == -1)
+        ):
+            raise ValueError(
+                f"max_episode_steps must be a positive int, -1 (no time limit, as gym.make takes it) or None (the "
+                f"task's horizon), got {max_episode_steps!r}"
+            )
+        # None: no time limit
+        self.max_episode_steps = (
+            self.core.horizon
+            if max_episode_steps is None
+            else (None if max_episode_steps == -1 else int(max_episode_steps))
+        )
         self.single_action_space, self.single_observation_space = _spaces(self.core)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
@@ -257,7 +270,8 @@ class CoreVectorEnv(VectorEnv):
                 obs[i] = out.obs[k].cpu().numpy()
                 rewards[i] = float(out.reward[k])
                 terminated[i] = bool(out.terminated[k])
-                truncated[i] = int(out.state.t[k]) >= self.max_episode_steps
+                limit = self.max_episode_steps
+                truncated[i] = limit is not None and int(out.state.t[k]) >= limit
                 # the single env's info (Python scalars) gathered as SyncVectorEnv does (its dtypes follow them)
                 infos = self._add_info(infos, {key: v[k].item() for key, v in out.info.items()}, i)
         self.states, self._obs, self._rngs = states, obs, rngs

@@ -186,6 +186,8 @@ class Optimiser:
                 held.masked_fill_((th.abs() >= self.theta_max) & (held * th < 0), 0.0)
 
     def step(self):
+        """One iteration: (the held iterate's evaluation, the evaluation this iteration ran: the new iterate's, or
+        ngd-ls's trial whether accepted or not; None where it ran none)."""
         loss, _, g = self.current[:3]
         unit = g / g.norm().clamp_min(1e-300)
         lr = self.rate()
@@ -199,7 +201,7 @@ class Optimiser:
             if self.theta_max is not None:
                 self._project()
             self.current = self.evaluate(self.theta)
-            return self.current
+            return self.current, self.current
         # a step of length step_size (at most this step's rate) along -unit, taken only if the loss falls (else
         # halved); an accepted step grows the next one by 1.5, up to the rate
         self.step_size = min(self.step_size, lr)
@@ -209,7 +211,7 @@ class Optimiser:
             down = down.masked_fill((th.abs() >= self.theta_max) & (down * th > 0), 0.0)
             # stationary on the bound: nothing to try (and no reason to shrink the step)
             if not bool(down.any()):
-                return self.current
+                return self.current, None
         trial = th + self.step_size * down
         if self.theta_max is not None:
             trial = trial.clamp(-self.theta_max, self.theta_max)
@@ -219,7 +221,7 @@ class Optimiser:
             self.step_size = min(1.5 * self.step_size, lr)
         else:
             self.step_size *= 0.5
-        return self.current
+        return self.current, nxt
 
 
 def _gradient_fn(core, model: str, config: dict, actions, twin=None):
@@ -533,13 +535,18 @@ def run_experiment(config: dict) -> dict:
 
         return counted
 
-    def record(cur, **extra):
-        loss, out, g, t_fwd, t_grad = cur[:5]
+    def record(cur, ran, **extra):
+        """A log row: the held iterate ``cur``'s loss, distance and gradient norm; the times and Newton iterations of
+        the evaluation the iteration ran (``ran``: ngd-ls's trial, accepted or not; zeros where it ran none)."""
+        loss, out, g = cur[:3]
         final = float(task_loss(out.info["reward_distance"].detach(), out.alive, "final").sum())
+        t_fwd, t_grad, newton = (
+            (0.0, 0.0, 0) if ran is None else (*ran[3:5], int(ran[1].info["newton_iters"].sum()))
+        )
         return {
-            "loss": loss, "final_distance": final, "forward_s": t_fwd,
-            "gradient_s": t_grad, "grad_norm": float(g.norm()), "newton_iters": int(out.info["newton_iters"].sum()),
-            "rollouts": spent["rollouts"], "backward": spent["backward"], "wall_s": spent["wall_s"],
+            "loss": loss, "final_distance": final, "forward_s": t_fwd, "gradient_s": t_grad,
+            "grad_norm": float(g.norm()), "newton_iters": newton, "rollouts": spent["rollouts"],
+            "backward": spent["backward"], "wall_s": spent["wall_s"],
         } | extra  # fmt: skip
 
     theta = torch.zeros(knots, 1, core.action_dim, dtype=torch.float64)
@@ -554,12 +561,12 @@ def run_experiment(config: dict) -> dict:
 
     if not cfg["mpc"]:
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
-        cur = opt.start(theta, evaluate_from(s0))
+        cur = ran = opt.start(theta, evaluate_from(s0))
         best, stopped = None, None
         for it in tqdm(range(cfg["iters"] + 1), desc=name, leave=False):
             # the largest knot parameter: beyond about 3 its tanh saturates and passes on under 1 % of the gradient
             rec = record(
-                cur, iter=it, step=opt.step_size, theta_abs_max=float(opt.theta.detach().abs().max())
+                cur, ran, iter=it, step=opt.step_size, theta_abs_max=float(opt.theta.detach().abs().max())
             )
             if best is None or rec["loss"] < best[0]:
                 best = (rec["loss"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
@@ -571,7 +578,7 @@ def run_experiment(config: dict) -> dict:
                 if flat(cur, opt):
                     stopped = it
                     break
-                cur = opt.step()
+                cur, ran = opt.step()
         first, last = log[0], log[-1]
         low = min(log, key=lambda r: r["loss"])  # the optimiser's answer: its best iterate
         summary = {"loss_start": first["loss"], "loss_end": last["loss"], "loss_best": low["loss"],
@@ -594,12 +601,12 @@ def run_experiment(config: dict) -> dict:
         state, executed, qs = (s0 if twin is None else _TwinState(s0, None)), [], [s0.q[0]]
         opt = Optimiser(cfg["optimizer"], cfg["lr"], cfg["lr_final"], cfg["iters"], cfg["theta_max"])
         for t in tqdm(range(steps), desc=f"{name} MPC", leave=False):
-            cur = opt.start(theta, evaluate_from(state))
+            cur = ran = opt.start(theta, evaluate_from(state))
             window0, iters_run = cur[0], 0
             for _ in range(cfg["iters"]):
                 if flat(cur, opt):
                     break
-                cur = opt.step()
+                cur, ran = opt.step()
                 iters_run += 1
             theta = opt.theta.detach()
             act = actions(theta)[0]
@@ -617,6 +624,7 @@ def run_experiment(config: dict) -> dict:
             log.append(
                 record(
                     cur,
+                    ran,
                     step=t,
                     window_loss_start=window0,
                     executed_distance=executed[-1],

@@ -28,6 +28,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _cli import folder_problem  # noqa: E402
 from optimize import MODEL_ONLY  # noqa: E402
 
 
@@ -159,6 +160,9 @@ def main() -> None:
         "--best", action="store_true", help="open loop: plot the best loss so far instead of each iterate's"
     )
     args = ap.parse_args()
+    problem = None if args.out is None else folder_problem(args.out)
+    if problem:
+        ap.error(f"--out {problem}")
     runs, where = [], {}
     folders = [d.resolve() for d in args.sweeps]
     if len(set(folders)) != len(folders):

@@ -696,6 +696,39 @@ def test_billiards_camera_holds_a_near_corner_pocket(pocket):
         assert bool(((xy - centre).norm(dim=-1) + 0.08 < reach).all())
 
 
+def test_native_vector_env_time_limit_follows_gym_make():
+    """max_episode_steps of the native vector env as gym.make takes it: a positive int truncates after that many
+    steps (then the next step is the autoreset), -1 never does, anything else is refused (0 and -5 truncated every
+    step, 2.7 became 2)."""
+    for bad in (0, -5, 2.7, "3"):
+        with pytest.raises(ValueError, match="max_episode_steps must be a positive int, -1"):
+            gym.make_vec("cfd_torch/Push-v0", 2, max_episode_steps=bad)
+    for limit, expect in (
+        (2, [False, True, False]),
+        (-1, [False, False, False]),
+        (np.int64(1), [True, False, True]),
+    ):
+        vec = gym.make_vec("cfd_torch/Push-v0", 2, max_episode_steps=limit)
+        vec.reset(seed=0)
+        got = [bool(vec.step(np.zeros((2, 2), dtype=np.float32))[3].all()) for _ in range(3)]
+        vec.close()
+        assert got == expect, (limit, got)
+    core = make_core("cfd_torch/Gather-v0", num_cubes=np.int64(2))  # a NumPy int is an int
+    assert core.num_cubes == 2 and isinstance(core.num_cubes, int)
+
+
+def test_billiards_camera_holds_wider_pockets():
+    """A pocket radius wider than the default's 0.08 m (whose fixed view a 0.3 m disc about a far-corner pocket
+    overran) gets the derived view: every pocket that can be drawn, with its radius, is within its reach."""
+    from cfd_torch.envs.billiards import POCKETS, BilliardsCore
+
+    cam = BilliardsCore(pocket_radius=0.3).render_camera()
+    reach = cam["distance"] * math.sin(math.radians(22.5))
+    centre = torch.tensor(cam["lookat"][:2], dtype=torch.float64)
+    far = max(float((torch.tensor(POCKETS[k]) - centre).norm()) + 0.3 for k in range(4))
+    assert far > 1.0 and far < reach, (far, reach)
+
+
 @pytest.mark.parametrize(
     "task, kwargs",
     [("Sort", {"spread": 4.0}), ("Sort", {"region_offset": 4.0}), ("Gather", {"region_distance": 4.0})],

@@ -315,6 +315,30 @@ def test_mujoco_fd_on_antpush_is_flat_at_the_trivial_start(tmp_path):
     assert r["log"][0]["grad_norm"] == 0.0 and r["summary"]["stopped_at"] == 0
 
 
+def test_ngd_ls_rows_count_the_work_of_their_own_iteration():
+    """ngd-ls with a rate so large that trials are rejected: a rejected iteration's row keeps the held iterate's
+    loss but reports its own trial's time and Newton iterations, so the rows' times add up to the run's wall time
+    (rejected rows repeated the last accepted evaluation's: 8.3 s of rows against 5.9 s of wall time)."""
+    r = run_experiment(
+        {
+            "task": "Push",
+            "model": "cfd",
+            "optimizer": "ngd-ls",
+            "iters": 4,
+            "horizon": 3,
+            "lr": 50.0,
+            "gif": False,
+        }
+    )
+    log = r["log"]
+    losses = [row["loss"] for row in log]
+    rejected = [k for k in range(1, len(log)) if losses[k] == losses[k - 1]]
+    assert rejected, losses  # the rate makes some trial fail
+    assert all(row["forward_s"] > 0 and row["newton_iters"] > 0 for row in log)
+    rows = sum(row["forward_s"] + row["gradient_s"] for row in log)
+    assert rows == pytest.approx(r["summary"]["wall_s"], rel=1e-9)
+
+
 def test_a_zero_gradient_stops_a_run_only_without_momentum():
     """Optimiser.still: from a zero gradient with no momentum held, a step of every optimiser leaves the parameters
     where they are (so optimize.py stops the run); with momentum held (ngd, adam after a non-zero gradient) the

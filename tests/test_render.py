@@ -172,6 +172,49 @@ def test_a_given_lookat_is_framed_about_itself():
         r.close()
 
 
+def _inside(mask: np.ndarray) -> bool:
+    """Some pixels set, none on the frame's edge."""
+    return bool(mask.any()) and not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
+def _colour_mask(img: np.ndarray, channel: int) -> np.ndarray:
+    img = img.astype(np.int32)
+    a, b = (c for c in range(3) if c != channel)
+    return (img[..., channel] > img[..., a] + 40) & (img[..., channel] > img[..., b] + 40)
+
+
+@pytest.mark.parametrize(
+    "size", [(100, 200), (200, 100), (150, 150)], ids=["portrait", "landscape", "square"]
+)
+def test_automatic_framing_and_task_cameras_hold_everything_in_any_image_shape(size):
+    """The automatic framing (two boxes 4 m apart across the view) and a task's camera (Push: its green target
+    disc, drawn anywhere in its angle range) keep everything inside the frame, portrait images included (the
+    cameras were sized from the vertical field of view only: in a 1:2 portrait frame a box and Push's target fell
+    outside)."""
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.core import task_at
+
+    W, H = size
+    box = trimesh.creation.box((0.2, 0.2, 0.2))
+    r = MeshRenderer([(box.vertices, box.faces)] * 2, [COLORS[0], COLORS[2]], width=W, height=H)
+    try:
+        img = r.render(np.array([[-2.0, 0, 0, 0, 0, 0], [2.0, 0, 0, 0, 0, 0]]))
+        assert _inside(_colour_mask(img, 0)) and _inside(_colour_mask(img, 2))
+    finally:
+        r.close()
+    core = make_core("cfd_torch/Push-v0", angle_range=1.5)
+    r = core.renderer(W, H)
+    try:
+        state = core.reset(seed=[0, 1, 2, 3], batch_size=4)
+        target = state.task["target"]
+        assert float(target[:, 1].abs().max()) > 1.0  # targets drawn far to the sides
+        for b in range(4):
+            img = core.draw(r, state.q[b], task_at(state, b))
+            assert _inside(_colour_mask(img, 1)), (size, b)
+    finally:
+        r.close()
+
+
 def test_write_gif(tmp_path, renderer):
     frames = []
     for k in range(5):

@@ -133,3 +133,16 @@ def test_a_script_refuses_a_bad_option_while_parsing(
     err = capsys.readouterr().err
     assert f"error: argument {option}:" in err, err
     assert not out.exists()
+
+
+def test_plot_results_refuses_an_out_that_is_a_file(scripts_path, monkeypatch, capsys, tmp_path):
+    """As optimize.py and sweep.py do (it raised FileExistsError from mkdir)."""
+    import plot_results
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    monkeypatch.setattr(sys, "argv", ["plot_results.py", str(tmp_path), "--out", str(afile / "sub")])
+    with pytest.raises(SystemExit) as exit_:
+        plot_results.main()
+    assert exit_.value.code == 2
+    assert f"error: --out {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
