@@ -18,6 +18,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from cfd_torch._validate import is_int
+from cfd_torch.sim.types import StepError
 
 from .core import EnvState, TaskCore, real_array, stack_states, task_at
 
@@ -264,7 +265,18 @@ class CoreVectorEnv(VectorEnv):
         for idx in groups:
             a = torch.as_tensor(actions[idx], dtype=self.core.dtype, device=self.core.device)
             with torch.no_grad():
-                out = self.core.step(stack_states([states[i] for i in idx]), a)
+                try:
+                    out = self.core.step(stack_states([states[i] for i in idx]), a)
+                except (
+                    StepError,
+                    ValueError,
+                ) as err:  # (a failed solve, a penetrating state) scene k is idx[k]
+                    where = (
+                        f"environment {idx[0]}"
+                        if len(idx) == 1
+                        else f"environments {idx} stepped as one batch (its scene k is environment {idx}[k])"
+                    )
+                    raise type(err)(f"{where}: {err}") from err
             for k, i in enumerate(idx):
                 states[i] = out.state.select(k)
                 obs[i] = out.obs[k].cpu().numpy()

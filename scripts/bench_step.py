@@ -365,7 +365,7 @@ def ant(args) -> Case:
 
     def action(t: int, state: State) -> Action:
         target = stance + 0.25 * torch.sin(2 * math.pi * 1.5 * t * scene.dt + phase)
-        return Action(ctrl=target[order][None])
+        return Action(ctrl=target[order])
 
     meta = {
         "servos": [100.0, 5.0], "floor_extents": [3.0, 3.0, 0.2], "friction": 1.0, "drop_gap": 2e-3,

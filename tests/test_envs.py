@@ -717,6 +717,25 @@ def test_native_vector_env_time_limit_follows_gym_make():
     assert core.num_cubes == 2 and isinstance(core.num_cubes, int)
 
 
+def test_native_vector_env_names_the_environment_that_failed():
+    """A failure in one environment of the native vector env says which (batched, the core's scene index is the
+    position among the environments stepped, not the environment's index)."""
+    import dataclasses
+
+    for batched, where in ((False, "environment 2: "), (True, r"environments \[1, 2\] stepped as one batch")):
+        vec = gym.make_vec("cfd_torch/Push-v0", 3, batched=batched)
+        vec.reset(seed=0)
+        vec.reset(options={"reset_mask": np.array([False, True, True])})
+        vec.unwrapped._autoreset[0] = True  # environment 0 resets at the next step, 1 and 2 step
+        s = vec.unwrapped.states[2]
+        sunk = s.q.clone()
+        sunk[:, 0, 2] = 0.05  # the box sunk into the floor
+        vec.unwrapped.states[2] = dataclasses.replace(s, q=sunk, q_prev=sunk.clone())
+        with pytest.raises(ValueError, match=where + ".*bodies penetrate"):
+            vec.step(np.zeros((3, 2), dtype=np.float32))
+        vec.close()
+
+
 def test_billiards_camera_holds_wider_pockets():
     """A pocket radius wider than the default's 0.08 m (whose fixed view a 0.3 m disc about a far-corner pocket
     overran) gets the derived view: every pocket that can be drawn, with its radius, is within its reach."""

@@ -166,9 +166,9 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
         )
 
 
-def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor, name: str = "action.ctrl") -> None:
-    """action.ctrl (or another per-scene vector ``name``): a float tensor (U,) or (B, U) of finite values, on the
-    state's device and dtype."""
+def check_ctrl(ctrl, U: int, B: int | None, like: torch.Tensor, name: str = "action.ctrl") -> None:
+    """action.ctrl (or another per-scene vector ``name``): a float tensor (U,) or, in a batch of B scenes (``B``
+    None: the state has no batch dimension), (B, U) of finite values, on the state's device and dtype."""
     what = "the scene's actuators" if name == "action.ctrl" else "the kinematic robots' coordinates"
     if not isinstance(ctrl, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(ctrl).__name__}")
@@ -178,7 +178,11 @@ def check_ctrl(ctrl, U: int, B: int, like: torch.Tensor, name: str = "action.ctr
         raise ValueError(
             f"{name} is {ctrl.dtype} on {ctrl.device}, state.q {like.dtype} on {like.device}: they must match"
         )
-    if ctrl.shape not in ((U,), (B, U)):
+    if B is None and ctrl.shape != (U,):
+        raise ValueError(
+            f"{name} must have shape ({U},) ({what}; state.q has no batch dimension), got {tuple(ctrl.shape)}"
+        )
+    if B is not None and ctrl.shape not in ((U,), (B, U)):
         raise ValueError(f"{name} must have shape ({U},) or ({B}, {U}) ({what}), got {tuple(ctrl.shape)}")
     if not bool(torch.isfinite(ctrl).all()):
         raise ValueError(f"{name} contains NaN or inf")

@@ -100,15 +100,24 @@ def _solve(
     # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
-    # A robot hung from its mount reads the mount as a world pose: then one frame serves the whole batch, and the
-    # step's kinematics hang the robots from their mounts moved into it.
+    # A robot hung from its mount reads the mount as a world pose: then one frame serves a solve, and the step's
+    # kinematics hang the robots from their mounts moved into it. Scenes whose own frames are the same share it;
+    # scenes within _SHARED_FRAME_EXTENT of the batch's frame share that; farther apart, they are solved in groups,
+    # each in the frame its scenes have alone (a batch frame between scenes 1 km apart made a scene fail that
+    # steps alone).
     moving = q_t[:, scene.kinematics.bodies.to(q_t.device), :3].detach()
     if scene.kinematics.translation_invariant:
         c = frame_origin(moving, min_extent=1.0)[:, None]
     else:
-        c = frame_origin(moving.reshape(1, -1, 3), min_extent=1.0)[:, None].expand(q_t.shape[0], 1, 3)
+        own = frame_origin(moving, min_extent=1.0)  # (B, 3): each scene's frame alone
+        origin = own[0]
+        if bool((own != origin).any()):
+            origin = frame_origin(moving.reshape(1, -1, 3), min_extent=1.0)[0]
+            if float((own - origin).abs().max()) > _SHARED_FRAME_EXTENT:
+                return _solve_in_groups(scene, state, force, torque, target, ctrl, params, own)
+        c = origin.expand(q_t.shape[0], 1, 3)
         scene = copy.copy(scene)  # (the caller's scene is not changed)
-        scene.kinematics = scene.kinematics.translated(c[0, 0])
+        scene.kinematics = scene.kinematics.translated(origin)
     # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
     # exact only near the moving bodies
     held = end_poses(scene, q_t, target.to(f64))
@@ -134,6 +143,51 @@ def _solve(
     return q_next, StepInfo(
         iters, int(work[0]), int(work[1]), int(work[2]), nfc, fc, ff, ones, float(seconds)
     )
+
+
+# the farthest [m] a scene of a batch with a mounted robot may lie from the batch's frame to share it (beyond, the
+# batch is solved in groups of scenes that share their own frames)
+_SHARED_FRAME_EXTENT = 16.0
+
+
+def _solve_in_groups(
+    scene: Scene, state: State, force, torque, target, ctrl, params: Params, own: torch.Tensor
+):
+    """_solve for each group of scenes with the same frame origin ``own`` (B, 3), in that frame; the results
+    reassembled in batch order."""
+    _, group = torch.unique(own, dim=0, return_inverse=True)
+    members = [torch.nonzero(group == g)[:, 0] for g in range(int(group.max()) + 1)]
+    outs = []
+    for idx in members:
+        pick = lambda x, idx=idx: x.index_select(0, idx)  # noqa: E731
+        try:
+            outs.append(
+                _solve(
+                    scene,
+                    State(pick(state.q), pick(state.q_prev)),
+                    pick(force),
+                    pick(torque),
+                    pick(target),
+                    pick(ctrl),
+                    Params(*(pick(x) for x in params)),
+                )  # fmt: skip
+            )
+        except StepError as err:  # say which scenes of the batch the group holds
+            raise StepError(f"scenes {idx.tolist()} of the batch, solved in their own frame: {err}") from err
+    back = torch.argsort(torch.cat(members))
+    return torch.cat([q for q, _ in outs])[back], _joined([info for _, info in outs], back)
+
+
+def _joined(infos: Sequence[StepInfo], order: torch.Tensor | None = None) -> StepInfo:
+    """One StepInfo of the batch from the infos of its parts (per-scene fields concatenated, then taken in
+    ``order``; counts and seconds summed)."""
+    pick = (lambda x: x) if order is None else (lambda x: x[order])  # noqa: E731
+    cat = lambda f: pick(torch.cat([getattr(i, f) for i in infos]))  # noqa: E731
+    return StepInfo(
+        cat("newton_iters"), sum(i.contact_evals for i in infos), sum(i.node_pairs for i in infos),
+        sum(i.leaf_pairs for i in infos), cat("friction_contacts"), cat("contact_force"), cat("friction_force"),
+        cat("substeps"), sum(i.seconds for i in infos),
+    )  # fmt: skip
 
 
 def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: Params, k: int):
@@ -181,13 +235,7 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             except StepError as err:  # say which scene of the batch failed
                 raise StepError(f"scene {b} of the batch: {err}") from err
             outs.append((q, _unwrap_previous(state.q[one], q) if q_prev is None else q_prev, info))
-        infos = [o[2] for o in outs]
-        cat = lambda f: torch.cat([getattr(i, f) for i in infos])  # noqa: E731
-        info = StepInfo(
-            cat("newton_iters"), sum(i.contact_evals for i in infos), sum(i.node_pairs for i in infos),
-            sum(i.leaf_pairs for i in infos), cat("friction_contacts"), cat("contact_force"), cat("friction_force"),
-            cat("substeps"), sum(i.seconds for i in infos),
-        )  # fmt: skip
+        info = _joined([o[2] for o in outs])
         return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs]), info
     k = 2
     while True:
@@ -308,7 +356,7 @@ def step(
     check_state_tensor(target, "action.target", K, 6, B if batched else 0, like=state.q)
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
-    check_ctrl(ctrl, U, B if batched else 1, state.q)
+    check_ctrl(ctrl, U, B if batched else None, state.q)
     params = _checked_params(scene, state, params)
     target = _batch(target, B)
     if action.joints is not None and not scene.kinematic_articulations:
@@ -320,7 +368,7 @@ def step(
             links = _batch(state.q[..., kin[K:], :], B)
         else:
             check_ctrl(
-                action.joints, scene.num_kinematic_coords, B if batched else 1, state.q, "action.joints"
+                action.joints, scene.num_kinematic_coords, B if batched else None, state.q, "action.joints"
             )
             joints = action.joints.expand(B, -1) if action.joints.dim() == 1 else action.joints
             links = scene.kinematic_link_poses(joints, _batch(state.q, B)).to(dtype)
