@@ -95,6 +95,7 @@ from cfd_torch import (
     step,
 )
 from cfd_torch._geometry import segment_hits_triangle, triangle_closest_points
+from cfd_torch.contact._pair_torch import _MARGIN_RES
 from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_vector
 
 F64, F32 = torch.float64, torch.float32
@@ -525,7 +526,11 @@ def pair_section(cfg: dict, rng: np.random.Generator) -> list[dict]:
         shift = exact_shift(Xin)
         Xc = Xin - shift
         dist = distance(Xin)
-        band = 64 * EPS64 * (size + dist)
+        # within rounding of the margin (the geometry's, or the library's clear_of_margin: 64 eps of the coordinates'
+        # magnitude, under which it calls a pair infeasible) either answer is right
+        band = torch.maximum(
+            64 * EPS64 * (size + dist), _MARGIN_RES * Xin.abs().flatten(1).amax(1).clamp_min(margin)
+        )
         feas = [
             None if abs(float(dk) - margin) <= float(bk) else bool(dk > margin)
             for dk, bk in zip(dist, band, strict=True)
@@ -704,7 +709,9 @@ def fuzz_section(cfg: dict, seed: int) -> list[dict]:
         d = float(distance(X)[0])
         row["distance"] = d
         extent = float((X[0] - X[0].mean(0)).abs().max())
-        feasible = None if abs(d - margin) <= 64 * EPS64 * (extent + d) else d > margin
+        # (as in the pair section: the geometry's rounding or the library's clear_of_margin)
+        band = max(64 * EPS64 * (extent + d), _MARGIN_RES * max(float(X.abs().max()), margin))
+        feasible = None if abs(d - margin) <= band else d > margin
         kappa = (extent + d) / max(abs(d - margin), 1e-300)
         row["kappa"] = kappa
         kw = {"mu": mu, "margin": margin, "backend": case["backend"]}
