@@ -94,7 +94,7 @@ from cfd_torch import (
     rigid_body,
     step,
 )
-from cfd_torch._geometry import segment_hits_triangle, triangle_closest_points
+from cfd_torch._geometry import frame_origin, segment_hits_triangle, triangle_closest_points
 from cfd_torch.contact._pair_torch import _MARGIN_RES
 from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_vector
 
@@ -527,9 +527,10 @@ def pair_section(cfg: dict, rng: np.random.Generator) -> list[dict]:
         Xc = Xin - shift
         dist = distance(Xin)
         # within rounding of the margin (the geometry's, or the library's clear_of_margin: 64 eps of the coordinates'
-        # magnitude, under which it calls a pair infeasible) either answer is right
+        # magnitude in the pair's own frame, under which it calls a pair infeasible) either answer is right
+        framed = Xin - frame_origin(Xin)[:, None]
         band = torch.maximum(
-            64 * EPS64 * (size + dist), _MARGIN_RES * Xin.abs().flatten(1).amax(1).clamp_min(margin)
+            64 * EPS64 * (size + dist), _MARGIN_RES * framed.abs().flatten(1).amax(1).clamp_min(margin)
         )
         feas = [
             None if abs(float(dk) - margin) <= float(bk) else bool(dk > margin)
@@ -710,7 +711,8 @@ def fuzz_section(cfg: dict, seed: int) -> list[dict]:
         row["distance"] = d
         extent = float((X[0] - X[0].mean(0)).abs().max())
         # (as in the pair section: the geometry's rounding or the library's clear_of_margin)
-        band = max(64 * EPS64 * (extent + d), _MARGIN_RES * max(float(X.abs().max()), margin))
+        framed = X - frame_origin(X)[:, None]
+        band = max(64 * EPS64 * (extent + d), _MARGIN_RES * max(float(framed.abs().max()), margin))
         feasible = None if abs(d - margin) <= band else d > margin
         kappa = (extent + d) / max(abs(d - margin), 1e-300)
         row["kappa"] = kappa
