@@ -125,7 +125,9 @@ VALUES_ONLY = (
 def values_only(result: tuple, fields: tuple[str, ...], inputs: tuple, message: str) -> tuple:
     """``result`` (a NamedTuple) with its tensor ``fields`` made to refuse differentiation: where one of ``inputs``
     is tracked (see :func:`tracked`), a backward (or torch.func.grad) through such a field toward that input raises
-    ``RuntimeError(message.format(field=...))`` instead of silently treating the field as a constant."""
+    ``RuntimeError(message.format(field=...))`` instead of silently treating the field as a constant; an input with
+    a forward-mode tangent raises ``NotImplementedError`` at the call. The fields then require grad (``.detach()``
+    them for ``.numpy()``)."""
     live = [x for x in inputs if isinstance(x, torch.Tensor) and tracked(x)]
     if not live:
         return result
