@@ -82,13 +82,19 @@ def forward_mode_error(name: str) -> NotImplementedError:
     )
 
 
+def _vmapped(x: object) -> bool:
+    """Whether ``x`` is a tensor batched by torch.func.vmap at some level."""
+    while isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
+        if _functorch.is_batchedtensor(x):
+            return True
+        x = _functorch.get_unwrapped(x)
+    return False
+
+
 def refuse_vmap(name: str, *tensors: torch.Tensor) -> None:
     """Raise :func:`vmap_error` if one of ``tensors`` is batched by torch.func.vmap (at any level)."""
-    for x in tensors:
-        while isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
-            if _functorch.is_batchedtensor(x):
-                raise vmap_error(name)
-            x = _functorch.get_unwrapped(x)
+    if any(_vmapped(x) for x in tensors):
+        raise vmap_error(name)
 
 
 def refuse_transforms(message: str, *tensors: object) -> None:
@@ -107,12 +113,9 @@ def refuse_batched(message: str, *tensors: object) -> None:
     """Raise NotImplementedError(``message``) if one of ``tensors`` is batched by vmap: in a backward, the grad
     outputs of ``autograd.grad(..., is_grads_batched=True)`` and ``autograd.functional.jacobian(vectorize=True)``."""
     for x in tensors:
-        if isinstance(x, torch.Tensor) and _functorch.is_legacy_batchedtensor(x):  # autograd's own batching
+        # autograd's own batching (legacy batched tensors), or torch.func's
+        if (isinstance(x, torch.Tensor) and _functorch.is_legacy_batchedtensor(x)) or _vmapped(x):
             raise NotImplementedError(message)
-        while isinstance(x, torch.Tensor) and _functorch.is_functorch_wrapped_tensor(x):
-            if _functorch.is_batchedtensor(x):
-                raise NotImplementedError(message)
-            x = _functorch.get_unwrapped(x)
 
 
 # the message of values_only for a closed-form derivatives function ``name`` whose differentiable twin is ``diff``

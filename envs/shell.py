@@ -270,7 +270,7 @@ class CoreVectorEnv(VectorEnv):
                 except (
                     StepError,
                     ValueError,
-                ) as err:  # (a failed solve, a penetrating state) scene k is idx[k]
+                ) as err:  # a failed solve, a penetrating state: scene k is idx[k]
                     where = (
                         f"environment {idx[0]}"
                         if len(idx) == 1

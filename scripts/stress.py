@@ -499,6 +499,15 @@ def judge_pair(
     return "ok", out
 
 
+def margin_band(X: torch.Tensor, reach: torch.Tensor, margin: float) -> torch.Tensor:
+    """(K,) the gap about the margin within which either answer (finite or +inf) is right for the pairs X (K, 6, 3):
+    the geometry's rounding, 64 eps of ``reach`` (K,) (the pair's extent plus its distance), or the library's
+    (``clear_of_margin``: 64 eps of the coordinates' magnitude in the pair's own frame, under which it calls a pair
+    infeasible), whichever is larger."""
+    framed = X - frame_origin(X)[:, None]
+    return torch.maximum(64 * EPS64 * reach, _MARGIN_RES * framed.abs().flatten(1).amax(1).clamp_min(margin))
+
+
 def pair_section(cfg: dict, rng: np.random.Generator) -> list[dict]:
     combos = []
     skipped = 0
@@ -526,12 +535,7 @@ def pair_section(cfg: dict, rng: np.random.Generator) -> list[dict]:
         shift = exact_shift(Xin)
         Xc = Xin - shift
         dist = distance(Xin)
-        # within rounding of the margin (the geometry's, or the library's clear_of_margin: 64 eps of the coordinates'
-        # magnitude in the pair's own frame, under which it calls a pair infeasible) either answer is right
-        framed = Xin - frame_origin(Xin)[:, None]
-        band = torch.maximum(
-            64 * EPS64 * (size + dist), _MARGIN_RES * framed.abs().flatten(1).amax(1).clamp_min(margin)
-        )
+        band = margin_band(Xin, size + dist, margin)
         feas = [
             None if abs(float(dk) - margin) <= float(bk) else bool(dk > margin)
             for dk, bk in zip(dist, band, strict=True)
@@ -710,9 +714,7 @@ def fuzz_section(cfg: dict, seed: int) -> list[dict]:
         d = float(distance(X)[0])
         row["distance"] = d
         extent = float((X[0] - X[0].mean(0)).abs().max())
-        # (as in the pair section: the geometry's rounding or the library's clear_of_margin)
-        framed = X - frame_origin(X)[:, None]
-        band = max(64 * EPS64 * (extent + d), _MARGIN_RES * max(float(framed.abs().max()), margin))
+        band = float(margin_band(X, torch.tensor([extent + d], dtype=F64), margin)[0])
         feasible = None if abs(d - margin) <= band else d > margin
         kappa = (extent + d) / max(abs(d - margin), 1e-300)
         row["kappa"] = kappa

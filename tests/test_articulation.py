@@ -1481,10 +1481,10 @@ def test_robot_hung_from_its_mount_stays_at_rest_away_from_the_origin(mount_z, b
     assert moved < 1e-9, moved
 
 
-def test_scene_with_a_mounted_robot_steps_as_well_far_from_the_origin():
-    """A mounted robot beside a box sliding with friction (the small-scale settings of the translation test in
-    tests/test_robustness.py), the whole scene and the mount translated by 1 km: the step's frame moves the mount
-    with it, so the trajectory matches the one at the origin (solved in the world frame it raised StepError)."""
+def _reacher_beside_box(off: tuple[float, float, float]) -> tuple[Scene, torch.Tensor, torch.Tensor]:
+    """Gymnasium's reacher mounted beside a box sliding with friction on a floor, all moved by ``off`` [m], at a
+    tenth of the scale (the small-scale settings of the translation test in tests/test_robustness.py): the scene,
+    the start poses and the start velocities (the box at sqrt(0.1) m/s along x)."""
     import importlib.resources
 
     assets = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets"
@@ -1493,27 +1493,31 @@ def test_scene_with_a_mounted_robot_steps_as_well_far_from_the_origin():
           "newton_tol": 1e-9 * s, "friction_eps_v": 1e-4 * math.sqrt(s)}  # fmt: skip
     floor = rigid_body(trimesh.creation.box((4 * s, 4 * s, 0.2 * s)), kind="static")
     box = rigid_body(trimesh.creation.box((0.2 * s, 0.15 * s, 0.1 * s)))
+    mount = (off[0] + 0.5, off[1], off[2] + 0.05, 0.0, 0.0, 0.0)
+    arm = articulation(str(assets / "reacher.xml"), root="body0", mount=mount)
+    rows = arm.poses(torch.zeros(arm.num_joints, dtype=F64), None)
+    q0 = torch.cat([torch.tensor([[0, 0, -0.1 * s, 0, 0, 0], [0, 0, 0.052 * s, 0, 0, 0]], dtype=F64), rows])
+    q0[:2, :3] += torch.tensor(off, dtype=F64)
+    v0 = torch.zeros(len(q0), 6, dtype=F64)
+    v0[1, 0] = math.sqrt(s)
+    return Scene([floor, box], friction=0.5, articulations=[arm], **kw), q0, v0
+
+
+def test_scene_with_a_mounted_robot_steps_as_well_far_from_the_origin():
+    """A mounted robot beside a box sliding with friction, the whole scene and the mount translated by 1 km: the
+    step's frame moves the mount with it, so the trajectory matches the one at the origin (solved in the world frame
+    it raised StepError)."""
 
     def slide(off):
-        off = torch.tensor(off, dtype=F64)
-        mount = (float(off[0]) + 0.5, float(off[1]), float(off[2]) + 0.05, 0.0, 0.0, 0.0)
-        arm = articulation(str(assets / "reacher.xml"), root="body0", mount=mount)
-        rows = arm.poses(torch.zeros(arm.num_joints, dtype=F64), None)
-        q0 = torch.cat(
-            [torch.tensor([[0, 0, -0.1 * s, 0, 0, 0], [0, 0, 0.052 * s, 0, 0, 0]], dtype=F64), rows]
-        )
-        q0[:2, :3] += off
-        scene = Scene([floor, box], friction=0.5, articulations=[arm], **kw)
-        v0 = torch.zeros(len(q0), 6, dtype=F64)
-        v0[1, 0] = math.sqrt(s)
+        scene, q0, v0 = _reacher_beside_box(off)
         with torch.no_grad():
             q = rollout(scene, scene.initial_state(q0, v0), 20).q.clone()
-        q[..., :3] -= off
+        q[..., :3] -= torch.tensor(off, dtype=F64)
         return q
 
-    a = slide([0.0, 0.0, 0.0])
-    assert float((a[-1, 1, :3] - a[0, 1, :3]).norm()) > 0.01 * s  # the box slides
-    b = slide([1e3, -1e3, 1e3])
+    a = slide((0.0, 0.0, 0.0))
+    assert float((a[-1, 1, :3] - a[0, 1, :3]).norm()) > 0.01 * 0.1  # the box slides
+    b = slide((1e3, -1e3, 1e3))
     assert float((b - a)[..., :3].abs().max()) < 1e-10
 
 
@@ -1521,29 +1525,12 @@ def test_a_batch_of_mounted_scenes_far_apart_is_solved_in_their_own_frames():
     """Scenes of one Scene with a mounted robot, 1 km apart in one batch: each group of scenes is solved in the
     frame it has alone (a frame shared by the batch, between them, made the 1 km scene fail: StepError), so the
     batch equals the scenes stepped alone, forward and backward."""
-    import importlib.resources
-
-    assets = importlib.resources.files("gymnasium") / "envs" / "mujoco" / "assets"
-    s = 0.1
-    kw = {"dt": 0.01 * math.sqrt(s), "margin": 1e-3 * s, "mu": 1e-8 * s**5, "ccd_spacing": 0.01 * s,
-          "newton_tol": 1e-9 * s, "friction_eps_v": 1e-4 * math.sqrt(s)}  # fmt: skip
-    floor = rigid_body(trimesh.creation.box((4 * s, 4 * s, 0.2 * s)), kind="static")
-    box = rigid_body(trimesh.creation.box((0.2 * s, 0.15 * s, 0.1 * s)))
-    off = torch.tensor([1e3, -1e3, 1e3], dtype=F64)
-    arm = articulation(
-        str(assets / "reacher.xml"), root="body0", mount=(1000.5, -1000.0, 1000.05, 0.0, 0.0, 0.0)
-    )
-    scene = Scene([floor, box], friction=0.5, articulations=[arm], **kw)
-    rows = arm.poses(torch.zeros(arm.num_joints, dtype=F64), None)
-    q0 = torch.cat([torch.tensor([[0, 0, -0.1 * s, 0, 0, 0], [0, 0, 0.052 * s, 0, 0, 0]], dtype=F64), rows])
-    near = q0.clone()
-    near[:2, :3] += off  # beside the robot, 1 km out
-    away = q0.clone()
+    scene, near, v = _reacher_beside_box((1e3, -1e3, 1e3))  # the box beside the robot, 1 km out
+    away = near.clone()
+    away[:2] = _reacher_beside_box((0.0, 0.0, 0.0))[1][:2]  # the floor and the box at the origin
     away[0, 2] -= 50.0
     away[:2, 0] -= 1000.0  # the box in free fall at the origin's side, its floor 50 m below
-    v0 = torch.zeros(2, len(q0), 6, dtype=F64)
-    v0[:, 1, 0] = math.sqrt(s)
-    v0.requires_grad_(True)
+    v0 = torch.stack([v, v]).requires_grad_(True)
 
     def run(q, v):
         st = scene.initial_state(q, v)
