@@ -608,6 +608,34 @@ def test_params_dtype_and_type(scene, state):
         step(scene, state, params=tuple(p))
 
 
+def test_params_values_name_the_scene_and_body(scene, state):
+    """A bad value of a per-scene parameter names the first scene and body (or actuator) where it is bad; a shared
+    one names the body alone."""
+    p = scene.params()
+
+    def refused(message):
+        return pytest.raises(ValueError, match=re.escape(message))
+
+    with refused("params.mass must be positive (first at body 0)"):
+        step(scene, state, params=p._replace(mass=-p.mass))
+    batch = State(state.q.expand(3, -1, -1), state.q_prev.expand(3, -1, -1))
+    mass = p.mass.expand(3, -1).clone()
+    mass[2, 0] = float("nan")
+    with refused("params.mass contains NaN or inf (first at scene 2, body 0)"):
+        step(scene, batch, params=p._replace(mass=mass))
+    moment = p.second_moment.expand(3, -1, -1, -1).clone()
+    moment[1, 0] = -moment[1, 0]
+    with refused(
+        "params.second_moment must be positive semi-definite with a positive definite inertia (first "
+        "at scene 1, body 0)"
+    ):
+        step(scene, batch, params=p._replace(second_moment=moment))
+    with refused("params.friction must be >= 0 (first at scene 1)"):
+        step(scene, batch, params=p._replace(friction=torch.tensor([0.5, -0.1, -0.2], dtype=F64)))
+    q = step(scene, batch, params=p._replace(mass=p.mass.expand(3, -1).clone())).q
+    assert q.shape == (3, 3, 6) and bool(torch.isfinite(q).all())
+
+
 def test_kinematic_target_wholly_inside_a_static_body():
     """A target sunk wholly into a thick static slab (surfaces clear) is refused like one that pierces its top: it
     was accepted, only the surface test ran."""

@@ -66,10 +66,13 @@ def check_params(
     device: torch.device,
     batched: bool,
     gains: tuple[torch.Tensor, torch.Tensor],
+    bodies: list[int] | None = None,
 ) -> Params:
     """Finite, physical, on the state's device, each field shared or per scene; returned with a batch dimension B:
     mass > 0, friction >= 0, the symmetric part of S positive semi-definite with a positive definite inertia
-    tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv)."""
+    tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv). A message about values names
+    the first offending scene (in a batch) and body (``bodies``: the scene's index of each of the Nd dynamic
+    bodies) or actuator."""
     if not isinstance(params, Params):
         raise TypeError(f"params must be a cfd_torch.Params, got {type(params).__name__}")
     U = gains[0].shape[0]
@@ -86,8 +89,6 @@ def check_params(
             raise ValueError(f"params.{name} must be float32 or float64, got {x.dtype}")
         if x.device != device:
             raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
-        if not bool(torch.isfinite(x).all()):
-            raise ValueError(f"params.{name} contains NaN or inf")
     fields = []
     for name, shape in shapes.items():
         x = getattr(params, name)
@@ -98,30 +99,63 @@ def check_params(
             raise ValueError(f"params.{name} must have shape {want}, got {tuple(x.shape)}")
         fields.append(x)
     params = Params(*fields)
-    if not bool((params.mass > 0).all()):
-        raise ValueError("params.mass must be positive")
-    if bool((params.friction.detach() < 0).any()):
-        raise ValueError("params.friction must be >= 0")
-    for name in ("kp", "kv"):
-        if bool((getattr(params, name).detach() < 0).any()):
-            raise ValueError(f"params.{name} must be >= 0 (a servo gain)")
-    if not physical_second_moment(params.second_moment):
-        raise ValueError(
-            "params.second_moment must be positive semi-definite with a positive definite inertia"
+    where = _Where(batched, bodies)
+    for name in shapes:
+        x = getattr(params, name).detach()
+        where.raise_if(
+            ~torch.isfinite(x.reshape(B, -1)).all(-1) if name == "second_moment" else ~torch.isfinite(x),
+            f"params.{name} contains NaN or inf",
+            name,
         )
+    where.raise_if(params.mass.detach() <= 0, "params.mass must be positive", "mass")
+    where.raise_if(params.friction.detach() < 0, "params.friction must be >= 0", "friction")
+    for name in ("kp", "kv"):
+        where.raise_if(getattr(params, name).detach() < 0, f"params.{name} must be >= 0 (a servo gain)", name)
+    where.raise_if(
+        ~_physical(params.second_moment),
+        "params.second_moment must be positive semi-definite with a positive definite inertia",
+        "second_moment",
+    )
     return params
+
+
+class _Where:
+    """Raises a check's message with where it first fails: the scene (in a batch), the body or the actuator."""
+
+    def __init__(self, batched: bool, bodies: list[int] | None):
+        self.batched, self.bodies = batched, bodies
+
+    def raise_if(self, bad: torch.Tensor, message: str, field: str) -> None:
+        """``bad`` (B,) or (B, K) bool over the field's scenes and entries (bodies or actuators)."""
+        if not bool(bad.any()):
+            return
+        at = torch.nonzero(bad)[0].tolist()
+        parts = [f"scene {at[0]}"] if self.batched else []
+        if len(at) > 1:
+            k = at[1]
+            if field in ("kp", "kv"):
+                parts.append(f"actuator {k}")
+            else:
+                parts.append(f"body {self.bodies[k] if self.bodies is not None else k}")
+        raise ValueError(f"{message} (first at {', '.join(parts)})" if parts else message)
+
+
+def _physical(S: torch.Tensor) -> torch.Tensor:
+    """(...) bool: whether each (3, 3) second moment in ``S`` (..., 3, 3) is, in its symmetric part (what the step
+    uses), positive semi-definite with a positive definite inertia tr(S) I - S."""
+    shape = S.shape[:-2]
+    S = S.detach().to(torch.float64).reshape(-1, 3, 3)
+    S = 0.5 * (S + S.transpose(1, 2))
+    eye = torch.eye(3, dtype=S.dtype, device=S.device)
+    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
+    ok = (torch.linalg.eigvalsh(S) >= -1e-12 * S.abs().amax((1, 2))[:, None]).all(-1)
+    return (ok & (torch.linalg.eigvalsh(inertia) > 0).all(-1)).reshape(shape)
 
 
 def physical_second_moment(S: torch.Tensor) -> bool:
     """Whether every (3, 3) second moment in ``S`` (..., 3, 3) is, in its symmetric part (what the step uses),
     positive semi-definite with a positive definite inertia tr(S) I - S."""
-    S = S.detach().to(torch.float64).reshape(-1, 3, 3)
-    S = 0.5 * (S + S.transpose(1, 2))
-    eye = torch.eye(3, dtype=S.dtype, device=S.device)
-    inertia = torch.diagonal(S, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - S
-    return not bool((torch.linalg.eigvalsh(S) < -1e-12 * S.abs().amax((1, 2))[:, None]).any()) and bool(
-        (torch.linalg.eigvalsh(inertia) > 0).all()
-    )
+    return bool(_physical(S).all())
 
 
 def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:

@@ -289,7 +289,8 @@ def _checked_params(scene: Scene, state: State, params: Params | None) -> Params
     batched = state.q.dim() == 3
     params = scene.params(f64, dev) if params is None else params
     B = state.q.shape[0] if batched else 1
-    return check_params(params, B, len(scene.kinematics.bodies), dev, batched, scene.servo_gains(f64, dev))
+    bodies = scene.kinematics.bodies
+    return check_params(params, B, len(bodies), dev, batched, scene.servo_gains(f64, dev), list(bodies))
 
 
 def step(
