@@ -58,13 +58,46 @@ def _policy_action(core: TaskCore, policy: Policy, obs: torch.Tensor, t: int) ->
     return a
 
 
-def _chunk(core: TaskCore, state: EnvState, policy, t0: int, n: int, params: Params | None):
-    """n steps from ``state`` at time t0: (state, obs (n, B, O), actions, rewards, terminated, info, q)."""
+def _same_actions(a: torch.Tensor, first: torch.Tensor) -> bool:
+    """Whether a recomputed action equals the forward's (to 64 eps of the actions' scale: a GPU kernel may round
+    differently on a second run)."""
+    if a.shape != first.shape:
+        return False
+    if not first.numel():
+        return True
+    eps = torch.finfo(first.dtype).eps if first.is_floating_point() else 0.0
+    return float((a.detach() - first).abs().max()) <= 64 * eps * max(1.0, float(first.abs().max()))
+
+
+def _chunk(
+    core: TaskCore,
+    state: EnvState,
+    policy,
+    t0: int,
+    n: int,
+    params: Params | None,
+    taken: list[torch.Tensor] | None = None,
+):
+    """n steps from ``state`` at time t0: (state, obs (n, B, O), actions, rewards, terminated, info, q).
+    ``taken`` (a checkpointed chunk's): the policy's actions of the forward run, recorded there and compared with
+    the recomputation's in the backward."""
     obs, acts, rews, terms, qs = [], [], [], [], []
     infos: dict[str, list[torch.Tensor]] = {}
     o = core.observe(state)
+    recomputing = taken is not None and len(taken) == n
     for k in range(n):
         a = policy[t0 + k] if isinstance(policy, torch.Tensor) else _policy_action(core, policy, o, t0 + k)
+        if taken is not None and not isinstance(policy, torch.Tensor):
+            if not recomputing:
+                taken.append(a.detach().clone())
+            elif not _same_actions(a, taken[k]):
+                raise RuntimeError(
+                    f"policy(obs, {t0 + k}) returned other actions when rollout(checkpoint_every=...) recomputed "
+                    "its chunk in the backward pass: under checkpointing the policy must be a function of "
+                    "(obs, t) and its parameters alone (no state kept between calls, such as a recurrent "
+                    "policy's hidden state, and noise only from torch's generator, which checkpointing "
+                    "replays); the gradients would be wrong. Use checkpoint_every=None for such a policy."
+                )
         if a.dim() == 1:
             a = a.expand(state.batch_size, -1)
         out = core.step(state, a, params)
@@ -107,12 +140,16 @@ def rollout(
             ``policy(obs (B, O), t) -> action (B, A) or (A,)`` (closed loop; its parameters get gradients).
         horizon: steps (default: T of an action tensor, else ``core.horizon``).
         params: the simulator's physical parameters (``core.scene.params()`` with requires_grad), or None.
-        truncate_every: cut the graph (``EnvState.detach``) every k steps: gradients flow within windows of k steps
-            only (truncated backpropagation through time, as in SHAC / Brax APG). Every window's graph lives until
-            the one backward, so it saves no memory.
+        truncate_every: cut the graph of the poses (``q``, ``q_prev``) every k steps: gradients flow within windows
+            of k steps only (truncated backpropagation through time, as in SHAC / Brax APG); the task variables
+            (``state.task``, goals) are not cut, so a goal's gradient sums every window's. Every window's graph
+            lives until the one backward, so it saves no memory.
         checkpoint_every: recompute chunks of k steps in the backward pass instead of storing the tensors their
             steps save (``torch.utils.checkpoint``, non-reentrant): one more forward per chunk, the same gradients
-            (the forward solve is deterministic). Memory stays linear in the horizon, whatever k: the graph's nodes
+            (the forward solve is deterministic). A callable policy must then be a function of (obs, t) and its
+            parameters alone (noise from torch's generator is replayed): the backward raises RuntimeError if the
+            recomputed chunk's policy returns other actions (a recurrent policy's hidden state kept on the
+            object, NumPy noise). Memory stays linear in the horizon, whatever k: the graph's nodes
             are kept (about 83 per step); a session-45 audit measured 0.14 -> 0.06 MB per step on Billiards, 22 %
             less on Push, 42 % on Sort, and a one-time 45-70 MB for the first checkpoint.
 
@@ -153,9 +190,12 @@ def rollout(
     q0 = state.q
     for t0, t1 in zip(bounds[:-1], bounds[1:], strict=True):
         if truncate_every is not None and t0 > 0 and t0 % truncate_every == 0:
-            state = state.detach()
+            # the dynamics' state is cut; the task variables (goals) enter every window's rewards as they are
+            state = EnvState(state.q.detach(), state.q_prev.detach(), state.t, state.task)
         if checkpoint_every is not None:  # (non-reentrant: the chunk's inputs and outputs may be any pytree)
-            state, *part = checkpoint(_chunk, core, state, policy, t0, t1 - t0, params, use_reentrant=False)
+            state, *part = checkpoint(
+                _chunk, core, state, policy, t0, t1 - t0, params, [], use_reentrant=False
+            )
         else:
             state, *part = _chunk(core, state, policy, t0, t1 - t0, params)
         parts.append(part)

@@ -224,11 +224,18 @@ class CoreVectorEnv(VectorEnv):
             raise TypeError(f"seed must be None, an int or a sequence of ints (or None), got {seed!r}")
         mask = np.ones(self.num_envs, dtype=np.bool_)
         if options is not None and "reset_mask" in options:
-            mask = np.asarray(options["reset_mask"], dtype=np.bool_)
+            mask = options["reset_mask"]  # (as gymnasium's SyncVectorEnv checks it)
+            if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+                raise TypeError(
+                    "options['reset_mask'] must be a NumPy array of dtype bool, got "
+                    f"{getattr(mask, 'dtype', type(mask).__name__)}"
+                )
             if mask.shape != (self.num_envs,):
                 raise ValueError(
                     f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}"
                 )
+            if not mask.any():
+                raise ValueError("options['reset_mask'] must hold at least one True (it resets no environment)")
         for i in np.flatnonzero(mask):
             if seeds[i] is not None:
                 self._rngs[i], self._seeds[i] = seeding.np_random(seeds[i])

@@ -317,6 +317,38 @@ def test_rollout_checkpointed_and_truncated_gradients():
     assert float(g_full[:2].abs().max()) == 0.0 and float(g_ref[:2].abs().max()) > 0
     torch.testing.assert_close(g_full[2:], g_ref[2:], rtol=1e-6, atol=1e-15)
 
+    # the cut is the poses': a goal's gradient sums every window's (open loop: the motion does not depend on it)
+    target = s0.task["target"].clone().requires_grad_(True)
+    s_goal = EnvState(s0.q, s0.q_prev, s0.t, {**s0.task, "target": target})
+    g_cut = torch.autograd.grad(rollout(core, s_goal, U, truncate_every=2).rewards.sum(), target)[0]
+    g_goal = torch.autograd.grad(rollout(core, s_goal, U).rewards.sum(), target)[0]
+    assert float(g_goal.abs().min()) > 0
+    torch.testing.assert_close(g_cut, g_goal, rtol=1e-12, atol=0)
+
+
+def test_checkpointed_rollout_refuses_a_policy_with_hidden_state():
+    """A policy that keeps state between calls returns other actions when a checkpointed chunk is recomputed in the
+    backward: refused there (its gradients would be wrong), not silently differentiated."""
+    core = make_core("cfd_torch/Push-v0")
+    s0 = core.reset(1, 1)
+    b = torch.tensor([0.2, 0.9], dtype=F64, requires_grad=True)
+    calls = []
+
+    def stateful(obs, t):
+        calls.append(t)
+        return torch.tanh(b + 1e-3 * len(calls))
+
+    out = rollout(core, s0, stateful, 4, checkpoint_every=2)
+    with pytest.raises(
+        RuntimeError, match=r"policy\(obs, 2\) returned other actions when rollout\(checkpoint_every"
+    ):
+        out.rewards.sum().backward()
+    calls.clear()
+    plain = torch.autograd.grad(rollout(core, s0, stateful, 4).rewards.sum(), b)[
+        0
+    ]  # fine without checkpoints
+    assert float(plain.abs().max()) > 0
+
 
 def test_core_checks_its_inputs():
     core = make_core("cfd_torch/Push-v0")
@@ -715,6 +747,24 @@ def test_native_vector_env_time_limit_follows_gym_make():
         assert got == expect, (limit, got)
     core = make_core("cfd_torch/Gather-v0", num_cubes=np.int64(2))  # a NumPy int is an int
     assert core.num_cubes == 2 and isinstance(core.num_cubes, int)
+
+
+def test_native_vector_env_checks_reset_mask_as_gymnasium_does():
+    """options['reset_mask'] is checked as gymnasium's SyncVectorEnv checks it: a bool NumPy array (an int array
+    or a list is refused, not read as indices or truthiness) of one entry per environment, with a True in it."""
+    vec = gym.make_vec("cfd_torch/Push-v0", 2)
+    obs, _ = vec.reset(seed=0)
+    for mask, err, msg in (
+        (np.array([0, 1]), TypeError, "must be a NumPy array of dtype bool, got int64"),
+        ([False, True], TypeError, "must be a NumPy array of dtype bool, got list"),
+        (np.array([True]), ValueError, r"must have shape \(2,\)"),
+        (np.array([False, False]), ValueError, "must hold at least one True"),
+    ):
+        with pytest.raises(err, match=r"options\['reset_mask'\] " + msg):
+            vec.reset(options={"reset_mask": mask})
+    again, _ = vec.reset(seed=1, options={"reset_mask": np.array([False, True])})
+    assert np.array_equal(again[0], obs[0]) and not np.array_equal(again[1], obs[1])
+    vec.close()
 
 
 def test_native_vector_env_names_the_environment_that_failed():
