@@ -24,6 +24,38 @@ FLOATS = (torch.float32, torch.float64)  # the dtypes the public entry points ta
 # largest coordinate magnitude of a triangle [m]: the pair solve converges for unit triangles up to 1e32 m apart,
 # not from about 1e35 (its tests cannot resolve what is left), and squared distances overflow float64 from 1e154
 _MAX_COORD = 1e30
+# float32 inputs (solved in float64, derivatives rounded to float32): a unit pair's Hessian underflows float32 from
+# about 1e16 m apart and its gradient from 1e25, so their coordinates stop well short of that
+_MAX_COORD_FLOAT32 = 1e12
+
+
+def narrowed(x: torch.Tensor, dtype: torch.dtype, what: str, inputs: str) -> torch.Tensor:
+    """``x`` (a float64 result) cast to the inputs' ``dtype``: a ValueError if a finite entry overflows it (a
+    float32 Hessian near contact, a huge stiffness), which would read as +inf (infeasible) or poison a solve.
+    ``what`` names the result, ``inputs`` the arguments whose dtype it takes."""
+    y = x.to(dtype)
+    if dtype != x.dtype:
+        with outside_transforms():
+            px = plain(x).detach()
+            over = torch.isfinite(px) & ~torch.isfinite(plain(y))
+            if bool(over.any()):
+                raise ValueError(
+                    f"{what} overflows {dtype} ({float(px[over].abs().max()):.3g} > {torch.finfo(dtype).max:.3g}; the "
+                    f"solve runs in float64): pass {inputs} as float64"
+                )
+    return y
+
+
+# why a pose's translation is limited (the messages of the pose checks)
+FAR = (
+    "the limit pair_potential puts on coordinates of this dtype (float64: from about 1e154 m the spheres' squared "
+    "distances overflow and the gradient rounds to zero; float32: its derivatives underflow from about 1e16 m)"
+)
+
+
+def max_coord(dtype: torch.dtype) -> float:
+    """The largest coordinate magnitude [m] the contact functions take in ``dtype``."""
+    return _MAX_COORD_FLOAT32 if dtype == torch.float32 else _MAX_COORD
 
 
 def _index_str(mask: torch.Tensor) -> str:
@@ -69,23 +101,24 @@ def check_triangles(tri: object, name: str) -> None:
         raise ValueError(f"{name} must have shape (..., 3, 3) (three vertices, xyz), got {tuple(tri.shape)}")
     if tri.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name} must be float32 or float64, got {tri.dtype}")
-    tol = _DEGENERACY_EPS_MULTIPLE * torch.finfo(tri.dtype).eps
+    # the solve's precision (float64, on the float32 values exactly): a thin float32 triangle is as valid as in float64
+    tol = _DEGENERACY_EPS_MULTIPLE * torch.finfo(torch.float64).eps
     with outside_transforms():
-        _check_triangle_values(plain(tri), name, tol)
+        _check_triangle_values(plain(tri), name, tol, max_coord(tri.dtype))
 
 
 # torch.compile: dynamo cannot trace numba's first-call compilation (it fails on its bytecode), so this runs eagerly
 @torch.compiler.disable
-def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
+def _check_triangle_values(tri: torch.Tensor, name: str, tol: float, limit: float) -> None:
     if tri.device.type == "cpu":  # one fused pass (the tensor form below makes ~20 passes over the data)
         flat = tri.detach().reshape(-1, 3, 3).contiguous()
         code = torch.empty(flat.shape[0], dtype=torch.uint8)
         kernel = _triangle_codes_nb if flat.shape[0] >= 100_000 else _triangle_codes_serial
-        kernel(flat.numpy(), float(tol), code.numpy())
+        kernel(flat.numpy(), float(tol), float(limit), code.numpy())
         code = code.reshape(tri.shape[:-2])
         nonfinite, degenerate, huge = code == 1, code == 2, code == 3
     else:
-        huge = tri.abs().flatten(-2).amax(-1) > _MAX_COORD
+        huge = tri.abs().flatten(-2).amax(-1) > limit
         e1 = tri[..., 1, :] - tri[..., 0, :]
         e2 = tri[..., 2, :] - tri[..., 0, :]
         e3 = tri[..., 2, :] - tri[..., 1, :]
@@ -102,8 +135,9 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
         )
     if bool(huge.any()):
         raise ValueError(
-            f"{name} has coordinates beyond {_MAX_COORD:g} in magnitude, where the pair solve cannot resolve the "
-            f"potential (triangle at batch index {_index_str(huge)}, {int(huge.sum())} triangles)"
+            f"{name} has coordinates beyond {limit:g} in magnitude, where the pair solve cannot resolve the "
+            f"potential{' in float32' if tri.dtype == torch.float32 else ''} (triangle at batch index "
+            f"{_index_str(huge)}, {int(huge.sum())} triangles)"
         )
     if bool(degenerate.any()):
         raise ValueError(
@@ -113,8 +147,8 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float) -> None:
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _triangle_codes_nb(tri, tol, code):
-    """code[k] = 1 if triangle k has a NaN/inf coordinate, 3 if one beyond _MAX_COORD in magnitude, 2 if 2 area <=
+def _triangle_codes_nb(tri, tol, limit, code):
+    """code[k] = 1 if triangle k has a NaN/inf coordinate, 3 if one beyond ``limit`` in magnitude, 2 if 2 area <=
     tol * longest edge^2, else 0."""
     for k in numba.prange(tri.shape[0]):
         t = tri[k]
@@ -128,7 +162,7 @@ def _triangle_codes_nb(tri, tol, code):
         if not finite:
             code[k] = 1
             continue
-        if big > _MAX_COORD:
+        if big > limit:
             code[k] = 3
             continue
         ax, ay, az = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
@@ -229,7 +263,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
     tri = np.ascontiguousarray(vertices[faces], dtype=np.float64)  # (F, 3, 3)
     code = np.empty(tri.shape[0], dtype=np.uint8)
     kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 else _triangle_codes_serial
-    kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), code)
+    kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), _MAX_COORD, code)
     huge = code == 3
     if huge.any():
         raise ValueError(

@@ -235,7 +235,9 @@ class CoreVectorEnv(VectorEnv):
                     f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}"
                 )
             if not mask.any():
-                raise ValueError("options['reset_mask'] must hold at least one True (it resets no environment)")
+                raise ValueError(
+                    "options['reset_mask'] must hold at least one True (it resets no environment)"
+                )
         for i in np.flatnonzero(mask):
             if seeds[i] is not None:
                 self._rngs[i], self._seeds[i] = seeding.np_random(seeds[i])

@@ -815,3 +815,74 @@ def test_static_and_kinematic_rows_come_back_exactly():
     nxt = step(scene, scene.initial_state(q0, v), Action(target=target))
     assert torch.equal(nxt.q[1], q0[1]) and torch.equal(nxt.q[2], target[0])
     assert not torch.equal(nxt.q[0], q0[0])  # the cube did move
+
+
+def test_float32_results_that_overflow_are_refused_and_thin_triangles_accepted():
+    """A float64 result too large for float32 (a Hessian at the margin, a huge stiffness) is refused naming the
+    inputs, not returned as inf (which reads as infeasible); a thin float32 triangle that float64 accepts is solved
+    in float64 like it; float32 coordinates stop at 1e12 m, where their derivatives still resolve."""
+    from cfd_torch import pair_potential, pair_potential_derivatives
+
+    A = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F64)
+    B = A + torch.tensor([0.0, 0, 0.5], dtype=F64)
+    assert math.isfinite(float(pair_potential_derivatives(A, B, mu=1e37).value))  # float64 holds it
+    with _says("pair_potential_derivatives' value overflows torch.float32"):
+        pair_potential_derivatives(A.float(), B.float(), mu=1e37)
+    with _says(
+        "pair_potential's value overflows torch.float32 (7.01e+38 > 3.4e+38; the solve runs in float64): "
+        "pass tri_a and tri_b as float64"
+    ):
+        pair_potential(A.float(), B.float(), mu=1e37)
+    needle = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0.5, 1e-6, 0]])
+    P32 = pair_potential(needle, needle + torch.tensor([0.0, 0, 0.5]))
+    P64 = pair_potential(needle.double(), needle.double() + torch.tensor([0.0, 0, 0.5], dtype=F64))
+    assert P32.dtype == F32 and float(P32) == pytest.approx(float(P64), rel=1e-6)
+    far = torch.tensor([0.0, 0, 1e13])
+    with _says(
+        "tri_b has coordinates beyond 1e+12 in magnitude, where the pair solve cannot resolve the potential "
+        "in float32"
+    ):
+        pair_potential(A.float(), A.float() + far)
+    assert float(pair_potential(A, A + far.double(), mu=1.0)) > 0  # float64 takes it
+
+
+def test_rotation_vectors_beyond_a_million_radians_are_refused():
+    """A rotation vector whose float64 spacing is coarser than a step's resolution is refused by name (it failed as
+    'did not converge ... try a smaller dt'); one of 1e4 rad is wrapped and stepped."""
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1), density=500.0)
+    scene = Scene([ball], dt=0.01, gravity=(0, 0, 0))
+    q = torch.tensor([[0.0, 0, 0, 1e4, 0, 0]], dtype=F64)
+    assert float(step(scene, State(q, q.clone())).q[0, 3:].norm()) <= math.pi
+    far = torch.tensor([[0.0, 0, 0, 0, 0, 1e30]], dtype=F64)
+    with _says("state.q has a rotation vector longer than 1e+06 rad (first at body 0)"):
+        step(scene, State(far, far.clone()))
+    with _says("state.q_prev has a rotation vector longer than 1e+06 rad (first at scene, body (1, 0))"):
+        step(scene, State(q.expand(2, -1, -1), torch.stack([q, far])))
+
+
+def test_float32_step_that_rounds_into_the_margin_raises():
+    """A heavy box resting on a floor 2 km up: the float32 spacing there (2.4e-4 m) exceeds the solution's gap
+    beyond the margin, so rounding the float64 solution to the float32 state puts the box within the margin. The
+    step that does so raises StepError saying why (the next step named state.q); float64 steps on."""
+    from cfd_torch import StepError
+
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=1e5, max_edge=0.1)
+    ground = rigid_body(trimesh.creation.box((4, 4, 0.2)), kind="static", max_edge=0.1)
+    scene = Scene([box, ground], dt=0.01, friction=0.5)
+    zmin = float(scene.bodies[0].bsh.vertices[:, 2].min())
+    H = 2048.00034
+    z = torch.tensor(H - zmin + 1e-3 - 2.16e-5, dtype=F32)
+    z = z + 2 * (torch.nextafter(z, torch.tensor(1e9)) - z)  # two float32 values clear of the margin
+    q = torch.tensor([[0.0, 0, 0, 0, 0, 0], [0, 0, H - 0.1, 0, 0, 0]], dtype=F32)
+    q[0, 2] = z
+    state, state64 = State(q, q.clone()), State(q.double(), q.double())
+    with _says(
+        "the step's solution rounded to the state's torch.float32 puts bodies 0 and 1 within the contact "
+        "margin",
+        err=StepError,
+    ):
+        for _ in range(3):
+            state = step(scene, state)
+    for _ in range(3):
+        state64 = step(scene, state64)
+    assert bool(torch.isfinite(state64.q).all())

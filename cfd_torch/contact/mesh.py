@@ -29,7 +29,16 @@ from typing import NamedTuple
 import torch
 
 from .._autograd import VALUES_ONLY, ClosedFormPotential, outside_transforms, plain, refuse_vmap, values_only
-from .._validate import _MAX_COORD, FLOATS, check_count, check_not_meta, check_positive, check_tolerance
+from .._validate import (
+    FAR,
+    FLOATS,
+    check_count,
+    check_not_meta,
+    check_positive,
+    check_tolerance,
+    max_coord,
+    narrowed,
+)
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -71,13 +80,12 @@ def _check_pose(pose: object, name: str) -> None:
         if bool(bad.any()):
             idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
             raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
-        far = plain(pose)[..., :3].abs().amax(-1) > _MAX_COORD
+        limit = max_coord(pose.dtype)
+        far = plain(pose)[..., :3].abs().amax(-1) > limit
         if bool(far.any()):
             idx = tuple(int(i) for i in torch.nonzero(far)[0]) if far.dim() else ()
             raise ValueError(
-                f"{name} has a translation beyond {_MAX_COORD:g} m (first at batch index {idx}): the limit "
-                "pair_potential puts on coordinates (from about 1e154 m the spheres' squared distances overflow "
-                "float64 and the gradient rounds to zero)"
+                f"{name} has a translation beyond {limit:g} m (first at batch index {idx}): {FAR}"
             )
 
 
@@ -168,10 +176,11 @@ def mesh_potential_derivatives(
             bsh_a, bsh_b, qa, qb, order=2 if hessian else 1, mu=mu, margin=margin, eps=eps, split=split, tol=tol,
             max_iter=max_iter,
         )  # fmt: skip
+    name, inputs = "mesh_potential_derivatives'", "pose_a and pose_b"
     out = MeshDerivatives(
-        v.reshape(batch).to(dt),
-        g.reshape(*batch, 12).to(dt),
-        h.reshape(*batch, 12, 12).to(dt) if h is not None else None,
+        narrowed(v.reshape(batch), dt, f"{name} value", inputs),
+        narrowed(g.reshape(*batch, 12), dt, f"{name} grad", inputs),
+        narrowed(h.reshape(*batch, 12, 12), dt, f"{name} hessian", inputs) if h is not None else None,
         stats,
     )
     message = VALUES_ONLY.format(name="mesh_potential_derivatives", diff="mesh_potential")
@@ -213,4 +222,4 @@ def mesh_potential(
         return v, g, h
 
     v = ClosedFormPotential.apply(torch.cat([qa, qb], -1), evaluate, "mesh_potential")
-    return v.reshape(batch).to(pose_a.dtype)
+    return narrowed(v.reshape(batch), pose_a.dtype, "mesh_potential's value", "pose_a and pose_b")

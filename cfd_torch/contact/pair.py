@@ -36,7 +36,7 @@ from .._autograd import (
     vmap_error,
 )
 from .._geometry import frame_origin
-from .._validate import check_count, check_positive, check_tolerance, check_triangles
+from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
@@ -403,7 +403,7 @@ def pair_potential(
     refuse_vmap("pair_potential", tri_a, tri_b)
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
     val = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)[0]
-    return val.reshape(batch).to(tri_a.dtype)
+    return narrowed(val.reshape(batch), tri_a.dtype, "pair_potential's value", "tri_a and tri_b")
 
 
 def pair_potential_derivatives(
@@ -437,11 +437,13 @@ def pair_potential_derivatives(
             want_hess=hessian, backend=backend,
         )  # fmt: skip
     val, P, grad, hess = sol.value, sol.world_plane(), sol.grad, sol.hess
-    dt = tri_a.dtype
+    dt, name, inputs = tri_a.dtype, "pair_potential_derivatives'", "tri_a and tri_b"
     out = PairDerivatives(
-        value=val.reshape(batch).to(dt),
-        grad=grad.reshape(*batch, 18).to(dt),
-        hessian=None if hess is None else hess.reshape(*batch, 18, 18).to(dt),
+        value=narrowed(val.reshape(batch), dt, f"{name} value", inputs),
+        grad=narrowed(grad.reshape(*batch, 18), dt, f"{name} grad", inputs),
+        hessian=None
+        if hess is None
+        else narrowed(hess.reshape(*batch, 18, 18), dt, f"{name} hessian", inputs),
         plane=P.reshape(*batch, 4).to(dt),
     )
     message = VALUES_ONLY.format(name="pair_potential_derivatives", diff="pair_potential")

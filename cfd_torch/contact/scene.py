@@ -25,7 +25,7 @@ from .._autograd import (
     values_only,
     vmap_error,
 )
-from .._validate import _MAX_COORD, FLOATS, check_not_meta, is_int
+from .._validate import FAR, FLOATS, check_not_meta, is_int, max_coord, narrowed
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -170,12 +170,11 @@ def contact_potential(
         bad = ~torch.isfinite(plain(poses)).all(1)
         if bool(bad.any()):
             raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
-        far = plain(poses)[:, :3].abs().amax(1) > _MAX_COORD
+        limit = max_coord(poses.dtype)
+        far = plain(poses)[:, :3].abs().amax(1) > limit
         if bool(far.any()):
             raise ValueError(
-                f"poses has a translation beyond {_MAX_COORD:g} m (first at body {int(torch.nonzero(far)[0])}): "
-                "the limit pair_potential puts on coordinates (from about 1e154 m the spheres' squared distances "
-                "overflow float64 and the gradient rounds to zero)"
+                f"poses has a translation beyond {limit:g} m (first at body {int(torch.nonzero(far)[0])}): {FAR}"
             )
     _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:
@@ -247,10 +246,11 @@ def contact_potential(
     if tracked(poses):
         value = _KnownGradPotential.apply(q64.reshape(1, 6 * N), value, G, evaluate)
     value = value[0]
+    dt = poses.dtype
     out = ContactPotential(
-        value.to(poses.dtype),
-        G_field.to(poses.dtype) if G_field is not None else None,
-        H.to(poses.dtype) if H is not None else None,
+        narrowed(value, dt, "contact_potential's value", "poses"),
+        narrowed(G_field, dt, "contact_potential's grad", "poses") if G_field is not None else None,
+        narrowed(H, dt, "contact_potential's hessian", "poses") if H is not None else None,
         stats,
     )
     message = VALUES_ONLY.format(name="contact_potential", diff="its value (create_graph=True for a Hessian)")

@@ -24,6 +24,7 @@ from .._validate import is_int
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
+from .feasibility import infeasible_pairs
 from .scene import Scene
 from .types import Action, Params, State, StepError, StepInfo, Trajectory
 
@@ -248,6 +249,10 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             k *= 2
 
 
+# the longest rotation vector a state may hold [rad]: its float64 spacing, 1.2e-10 rad, under a step's newton_tol
+_MAX_ROTATION = 1e6
+
+
 def _check_start(scene: Scene, state: State) -> None:
     """The scene and the start state a step or a rollout begins from (a clear error naming the argument)."""
     if not isinstance(scene, Scene):
@@ -264,6 +269,17 @@ def _check_start(scene: Scene, state: State) -> None:
     B = state.q.shape[0] if state.q.dim() == 3 else 1
     if B == 0:
         raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
+    for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
+        with outside_transforms():
+            turns = plain(x).detach()[..., 3:].norm(dim=-1) > _MAX_ROTATION
+        if bool(turns.any()):
+            at = tuple(int(i) for i in torch.nonzero(turns)[0])
+            raise ValueError(
+                f"{name} has a rotation vector longer than {_MAX_ROTATION:g} rad (first at "
+                f"{'scene, body' if len(at) == 2 else 'body'} {at if len(at) == 2 else at[0]}): its float64 "
+                "spacing there is too coarse for a step's rotation; wrap it to the same rotation "
+                "(cfd_torch.recentre_rotation)"
+            )
     if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
         dyn = scene.dynamic.to(state.q.device)
         for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
@@ -305,7 +321,9 @@ def step(
 
     Args:
         scene: bodies and settings.
-        state: State(q, q_prev), each ([B,] N, 6), float32 or float64 (solved in float64, returned in its dtype).
+        state: State(q, q_prev), each ([B,] N, 6), float32 or float64 (solved in float64, returned in its dtype:
+            a float32 state knows velocities only to its coordinates' spacing over dt, so slow motion is rounded
+            away); rotation vectors no longer than 1e6 rad.
         action: forces ([B,] N, 3), torques ([B,] N, 3) and kinematic targets ([B,] K, 6); unbatched fields are
             shared by a batch; None: nothing acts, kinematic bodies stay put.
         params: differentiable mass / second moment / friction coefficient, shared ((Nd,), (Nd, 3, 3), ()) or per
@@ -324,7 +342,8 @@ def step(
             penetrates, or a kinematic target that penetrates a static body.
         TypeError: an argument of the wrong type.
         StepError: the Newton solve stopped without converging (the message says why), also after the
-            ``scene.solver.substeps`` retries.
+            ``scene.solver.substeps`` retries; or, for a float32 state, the solution rounded to float32 falls
+            within the contact margin.
     """
     if action is not None and not isinstance(action, Action):
         raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
@@ -385,12 +404,32 @@ def step(
     ctrl = ctrl.expand(B, U) if ctrl.dim() == 1 else ctrl
     q_next, q_prev_next, si = _advance(scene, st, force, torque, target, ctrl, params)
     q_next = q_next.to(dtype)
+    if dtype != torch.float64:
+        _check_rounded(scene, q_next)
     q_prev_next = _unwrap_previous(st.q, q_next) if q_prev_next is None else q_prev_next.to(dtype)
     nxt = State(q_next, q_prev_next)
     if not batched:
         nxt = State(nxt.q[0], nxt.q_prev[0])
         si = si._replace(**{f: getattr(si, f)[0] for f in _PER_SCENE})
     return (nxt, si) if return_info else nxt
+
+
+def _check_rounded(scene: Scene, q: torch.Tensor) -> None:
+    """The step's end poses ``q`` (B, N, 6), the float64 solution rounded to a float32 state: a StepError if the
+    rounding moved bodies within the contact margin of each other (the solution's gap beyond the margin was below
+    the float32 spacing of its coordinates), which the next step could not start from."""
+    B = q.shape[0]
+    bad = infeasible_pairs(scene, q.detach().to(torch.float64))
+    if bool(bad.any()):
+        b, k = (int(i) for i in torch.nonzero(bad)[0])
+        i, j = scene.pairs[k].tolist()
+        spacing = float(torch.finfo(q.dtype).eps * q[b, :, :3].detach().abs().max())
+        where = f" (scene {b})" if B > 1 else ""
+        raise StepError(
+            f"the step's solution rounded to the state's {q.dtype} puts bodies {i} and {j} within the contact "
+            f"margin {scene.contact.margin}{where}: its coordinates are spaced up to {spacing:.2g} m apart there, "
+            "more than the bodies' gap beyond the margin; step float64 states (or a scene nearer the origin)"
+        )
 
 
 _PER_SCENE = ("newton_iters", "friction_contacts", "contact_force", "friction_force", "substeps")
