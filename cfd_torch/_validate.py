@@ -203,9 +203,10 @@ def check_tolerance(value: float, name: str) -> None:
         )
 
 
-def check_count(value: int, name: str) -> None:
-    if not (is_int(value) and value > 0):
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
+def check_count(value: int, name: str, most: int = 10**6) -> None:
+    """A positive int of at most ``most`` (an iteration cap: the kernels take it as an int64 loop bound)."""
+    if not (is_int(value) and 0 < value <= most):
+        raise ValueError(f"{name} must be a positive int of at most {most:,}, got {value!r}")
 
 
 _triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)

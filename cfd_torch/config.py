@@ -30,9 +30,10 @@ def _positive(owner: str, name: str, value: object) -> None:
         raise ValueError(f"{owner}.{name} must be a finite positive number, got {_got(value)}")
 
 
-def _count(owner: str, name: str, value: object) -> None:
-    if not (is_int(value) and value > 0):
-        raise ValueError(f"{owner}.{name} must be a positive int, got {value!r}")
+def _count(owner: str, name: str, value: object, most: int = 10**6) -> None:
+    """A positive int of at most ``most`` (the kernels take it as an int64 loop bound; more is never meant)."""
+    if not (is_int(value) and 0 < value <= most):
+        raise ValueError(f"{owner}.{name} must be a positive int of at most {most:,}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,7 @@ class SolverConfig:
         _positive("SolverConfig", "newton_tol", self.newton_tol)
         _positive("SolverConfig", "ccd_spacing", self.ccd_spacing)
         _count("SolverConfig", "max_newton_iter", self.max_newton_iter)
-        _count("SolverConfig", "substeps", self.substeps)
+        _count("SolverConfig", "substeps", self.substeps, 2**16)
         if not (is_real(self.reach_shrink) and 0 <= self.reach_shrink < 1):
             raise ValueError(
                 f"SolverConfig.reach_shrink must be a number in [0, 1), got {self.reach_shrink!r}"

@@ -411,6 +411,7 @@ def test_gravity_pair_eps_contact_model_and_body_inertia_are_checked():
         (9.81, TypeError),
         (torch.zeros(2, 3), ValueError),
         ((0, 0), ValueError),
+        ((True, 0.0, 0.0), TypeError),
     ):
         with _says("gravity must be", kind):
             Scene([box, ground], gravity=bad)
@@ -886,3 +887,36 @@ def test_float32_step_that_rounds_into_the_margin_raises():
     for _ in range(3):
         state64 = step(scene, state64)
     assert bool(torch.isfinite(state64.q).all())
+
+
+def test_a_scene_is_read_only_once_built_and_its_settings_are_checked_up_front():
+    """Assigning a scene's setting (which left the contact model, pairs and tables built from the old one, or shadowed
+    a shorthand name) raises, pointing to replace(); contact settings beside a contact_model (which has its own) are
+    refused; an iteration cap beyond 1e6, exclude=None and bool gravity are refused at construction."""
+    from cfd_torch import ContactConfig
+    from cfd_torch.contact import CfdContact
+
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)))
+    ground = rigid_body(trimesh.creation.box((1.0, 1.0, 0.2)), kind="static")
+    scene = Scene([box, ground])
+    for name, value in (("margin", 0.01), ("dt", -0.01), ("exclude", ((0, 1),)), ("friction", 0.5)):
+        with _says("a Scene is read-only once built", AttributeError):
+            setattr(scene, name, value)
+        assert getattr(scene, name) != value
+    with _says("so 'pairs' cannot be set: scene.replace(...) builds one", AttributeError):
+        scene.pairs = scene.pairs[:0]
+    assert scene.replace(margin=0.01).margin == 0.01 and scene.margin == 1e-3
+    model = CfdContact([box.bsh, ground.bsh])
+    with _says("the contact_model given has its own: leave them out (changed: stiffness, margin)"):
+        Scene([box, ground], contact_model=model, margin=0.01, mu=1e-6)
+    with _says("the contact_model given has its own: leave them out (changed: margin)"):
+        Scene([box, ground], contact_model=model).replace(margin=0.01)
+    assert Scene([box, ground], contact_model=model, contact=ContactConfig()).replace(dt=0.02).dt == 0.02
+    with _says(
+        "ContactConfig.pair_max_iter must be a positive int of at most 1,000,000, got 9223372036854775808"
+    ):
+        Scene([box, ground], pair_max_iter=2**63)
+    with _says("SolverConfig.substeps must be a positive int of at most 65,536"):
+        Scene([box, ground], substeps=2**20)
+    with _says("exclude must be a sequence of body pairs (i, j), got None", TypeError):
+        Scene([box, ground], exclude=None)

@@ -3,10 +3,12 @@ needs computed once (which bodies are simulated, which pairs interact, the kinem
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 
+import numpy as np
 import torch
 
 from .._validate import body_pair, check_pair_eps, closed_surface, is_real
@@ -65,6 +67,11 @@ def _gravity(gravity: object) -> tuple[float, float, float]:
         raise TypeError(
             "gravity must be numbers, not a tensor that requires grad: a scene's gravity is not differentiable"
         )
+    if any(
+        isinstance(x, (bool, np.bool_)) or (isinstance(x, torch.Tensor) and x.dtype == torch.bool)
+        for x in items
+    ):
+        raise TypeError(f"gravity must be 3 numbers, got {gravity!r} (bools)")
     try:
         g = tuple(float(x) for x in items)
     except (TypeError, ValueError, RuntimeError) as err:
@@ -107,6 +114,23 @@ def _same_surface(a: BSH, b: BSH) -> bool:
     return bool((box_a - box_b).abs().max() <= 1e-9 * scale) and math.isclose(area(a), area(b), rel_tol=1e-9)
 
 
+# the constructor's arguments other than the bodies (what ``Scene.replace`` takes besides the shorthand)
+_REPLACEABLE = frozenset(
+    {
+        "dt",
+        "gravity",
+        "contact",
+        "friction",
+        "solver",
+        "exclude",
+        "pair_eps",
+        "contact_model",
+        "articulations",
+        "planar",
+    }
+)
+
+
 class Scene:
     """Bodies and every physical and numerical setting of a simulation.
 
@@ -136,7 +160,10 @@ class Scene:
             ``split``, ``pair_tol``, ``pair_max_iter``, ``backend``, ``refine_obstacles``, ``potential`` ("cfd", "ipc"
             or "sdrs": the contact potential), ``dhat``, ``barrier_stiffness``, ``friction_eps_v``
             (``friction.eps_v``), ``friction_active``, ``newton_tol``, ``max_newton_iter``, ``ccd_spacing``,
-            ``reach_shrink``, ``substeps``, ``fast``.
+            ``reach_shrink``, ``substeps``, ``fast``; it overrides that field of a config given as well.
+
+    A scene is read-only once built (its contact model, pairs and tables are built from its settings): assigning
+    an attribute raises AttributeError; :meth:`replace` builds one with other settings.
 
     Attributes (computed once): ``bodies`` as simulated (static and kinematic bodies coarser than the dynamic
     bodies they touch are refined, ``ContactConfig.refine_obstacles``, unless a ``contact_model`` is given),
@@ -229,9 +256,21 @@ class Scene:
         self.contact: ContactConfig = cfg["contact"]
         self.friction: FrictionConfig = cfg["friction"]
         self.solver: SolverConfig = cfg["solver"]
+        if isinstance(exclude, (str, bytes)) or not isinstance(exclude, Iterable):
+            raise TypeError(f"exclude must be a sequence of body pairs (i, j), got {exclude!r}")
         self.exclude = tuple(body_pair(p, "exclude") for p in exclude)
         N = len(bodies)
         self.pair_eps = check_pair_eps(pair_eps, N)
+        if contact_model is not None and self.contact != ContactConfig():
+            changed = [
+                f.name
+                for f in dataclasses.fields(ContactConfig)
+                if getattr(self.contact, f.name) != getattr(ContactConfig(), f.name)
+            ]
+            raise ValueError(
+                "contact settings (contact=, or shorthand such as margin= or mu=) configure this library's own "
+                f"contact models; the contact_model given has its own: leave them out (changed: {', '.join(changed)})"
+            )
         if self.pair_eps and (contact_model is not None or self.contact.potential != "cfd"):
             raise ValueError(
                 "pair_eps sets blend widths of this library's potential; the contact model "
@@ -300,6 +339,27 @@ class Scene:
             if self.probe_forest is not None
             else None
         )
+        self._built = True
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if self.__dict__.get("_built", False):
+            hint = (
+                f"scene.replace({name}=...) builds one with it changed"
+                if name in _REPLACEABLE or name in _SHORTHAND
+                else "scene.replace(...) builds one with other settings"
+            )
+            raise AttributeError(
+                f"a Scene is read-only once built (its contact model, pairs and tables come from its settings), "
+                f"so {name!r} cannot be set: {hint}"
+            )
+        object.__setattr__(self, name, value)
+
+    def in_frame(self, kinematics: FreeBodies | ArticulatedKinematics) -> Scene:
+        """A shallow copy whose map from the step's unknowns to poses is ``kinematics`` (the step's solve frame;
+        this scene is not changed)."""
+        new = copy.copy(self)
+        object.__setattr__(new, "kinematics", kinematics)
+        return new
 
     @property
     def num_bodies(self) -> int:

@@ -12,8 +12,8 @@ equals stepping it alone.
 
 from __future__ import annotations
 
-import copy
 import math
+import time
 from collections.abc import Iterable, Sequence
 
 import torch
@@ -117,8 +117,7 @@ def _solve(
             if float((own - origin).abs().max()) > _SHARED_FRAME_EXTENT:
                 return _solve_in_groups(scene, state, force, torque, target, ctrl, params, own)
         c = origin.expand(q_t.shape[0], 1, 3)
-        scene = copy.copy(scene)  # (the caller's scene is not changed)
-        scene.kinematics = scene.kinematics.translated(origin)
+        scene = scene.in_frame(scene.kinematics.translated(origin))
     # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
     # exact only near the moving bodies
     held = end_poses(scene, q_t, target.to(f64))
@@ -216,7 +215,9 @@ def _substeps(scene: Scene, state: State, force, torque, target, ctrl, params: P
 def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Params):
     """The step of a batch: next poses, previous poses (None: from the step itself) and StepInfo. A step that
     fails is retried in sub-steps (``scene.solver.substeps``); in a batch, each scene on its own, so that every
-    scene's result is the one it gets alone."""
+    scene's result is the one it gets alone. After a retry the StepInfo's ``seconds`` is the wall time of every
+    attempt; its work counts are the attempt that succeeded."""
+    start = time.perf_counter()
     try:
         q, info = _solve(scene, state, force, torque, target, ctrl, params)
         return q, None, info
@@ -236,12 +237,13 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             except StepError as err:  # say which scene of the batch failed
                 raise StepError(f"scene {b} of the batch: {err}") from err
             outs.append((q, _unwrap_previous(state.q[one], q) if q_prev is None else q_prev, info))
-        info = _joined([o[2] for o in outs])
+        info = _joined([o[2] for o in outs])._replace(seconds=time.perf_counter() - start)
         return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs]), info
     k = 2
     while True:
         try:
-            return _substeps(scene, state, force, torque, target, ctrl, params, k)
+            q, q_prev, info = _substeps(scene, state, force, torque, target, ctrl, params, k)
+            return q, q_prev, info._replace(seconds=time.perf_counter() - start)
         except StepError as err:
             if 2 * k > scene.solver.substeps:
                 tried = ", ".join(str(2**i) for i in range(1, k.bit_length()))

@@ -104,7 +104,8 @@ class StepInfo(NamedTuple):
     """Solver statistics and end-of-step forces of one step (``step(..., return_info=True)``).
 
     Attributes:
-        newton_iters: ([B]) Newton iterations of each scene's solve.
+        newton_iters: ([B]) Newton iterations of each scene's solve (after a sub-step retry, this and the other
+            work counts are the sub-steps' that succeeded; ``seconds`` includes the failed attempts).
         contact_evals: evaluations of the incremental potential, each one contact-model call over the scenes still
             iterating (line-search trials included).
         node_pairs: hierarchy node pairs visited over those evaluations.
@@ -119,7 +120,7 @@ class StepInfo(NamedTuple):
         friction_force: ([B,] N, 6) -dD/dq of the lagged friction potential, same layout and dtype.
         substeps: ([B]) sub-steps each scene's step took (1 unless it was retried after a StepError,
             ``SolverConfig.substeps``).
-        seconds: wall time of the forward solve [s].
+        seconds: wall time of the forward solve [s], every attempt of a retried step included.
     """
 
     newton_iters: torch.Tensor
