@@ -137,7 +137,8 @@ def rollout(
         core: the task.
         state: the start (its tensors may require grad).
         policy: a (T, B, A) or (T, A) tensor of actions (open loop; T >= horizon), or a callable
-            ``policy(obs (B, O), t) -> action (B, A) or (A,)`` (closed loop; its parameters get gradients).
+            ``policy(obs (B, O), t) -> action (B, A) or (A,)`` (closed loop; its parameters get gradients; t counts
+            this rollout's steps from 0, whatever ``state.t`` is: an MPC window's first step is t = 0).
         horizon: steps (default: T of an action tensor, else ``core.horizon``).
         params: the simulator's physical parameters (``core.scene.params()`` with requires_grad), or None.
         truncate_every: cut the graph of the poses (``q``, ``q_prev``) every k steps: gradients flow within windows
