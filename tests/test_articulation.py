@@ -1546,3 +1546,51 @@ def test_a_batch_of_mounted_scenes_far_apart_is_solved_in_their_own_frames():
         assert float(g_alone[b].abs().max()) > 1e-3  # about 3 dt
         assert torch.equal(both[b], alone)
         torch.testing.assert_close(g_both[b], g_alone[b], rtol=1e-12, atol=1e-15)
+
+
+_STATIC_ROOT_ARM = """<mujoco><worldbody><body name="base"><geom type="sphere" size="0.04"/>
+ <body name="upper"><joint name="yaw" type="hinge" axis="0 0 1" damping="0.5"/>
+  <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" density="1000"/>
+  <body name="fore" pos="0.4 0 0"><joint name="bend" type="hinge" axis="0 0 1" range="-120 120" damping="0.1"/>
+   <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.025" density="1000"/></body></body></body></worldbody>
+<actuator><motor joint="yaw" gear="5" ctrlrange="-1 1"/><position joint="bend" kp="20" kv="1"/></actuator></mujoco>"""
+
+
+@pytest.mark.parametrize("with_box", [False, True])
+def test_gradient_in_the_row_of_a_joint_less_root(with_box):
+    """A fixed-base arm whose MJCF root has no joint stands where the state's root row puts it, its links hung from
+    that row: the gradient in the row (where the arm stands) matches central differences, alone (tilted, gravity
+    swings it) and sweeping a box on a floor. The adjoint held the links' poses and Jacobian fixed in the root's
+    row, and missed the contact Hessian through the links: gradients 100 % off."""
+    arm = articulation(_STATIC_ROOT_ARM)
+    assert arm.first_moving == 1  # a joint-less root: a static body placed by the state
+    ground = trimesh.creation.box((3.0, 3.0, 0.2))
+    ground.apply_translation((0.0, 0.0, -0.1))
+    bodies = (
+        [rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)), density=300.0), rigid_body(ground, kind="static")]
+        if with_box
+        else []
+    )
+    scene = Scene(bodies, articulations=[arm], dt=0.01, friction=0.5)
+    th0, v0 = torch.tensor([0.0, 0.3], dtype=F64), torch.tensor([3.0, -1.0], dtype=F64)
+    pre = [torch.tensor([[0.55, 0.22, 0.052, 0.0, 0.0, 0.0]], dtype=F64), torch.zeros(1, 6, dtype=F64)]
+    pre = pre if with_box else []
+    ctrl = torch.tensor([0.7, 0.5], dtype=F64)
+    T = 8 if with_box else 3
+    weights = torch.arange(1, 6 * scene.num_bodies + 1, dtype=F64).reshape(-1, 6).sin()
+
+    def loss(root):
+        q0 = torch.cat([*pre, arm.poses(th0, root)])
+        qp = torch.cat([*pre, arm.poses(th0 - 0.01 * v0, root)])
+        traj = rollout(scene, State(q0, qp), [Action(ctrl=ctrl)] * T)
+        return (traj.q[-1] * weights).sum()
+
+    root = torch.tensor([0.0, 0.0, 0.1, 0.0 if with_box else 0.5, 0.0, 0.0], dtype=F64, requires_grad=True)
+    (g,) = torch.autograd.grad(loss(root), root)
+    assert float(g[3:].abs().max()) > 1e-3
+    h = 1e-6
+    with torch.no_grad():
+        fd = torch.stack(
+            [(loss(root + h * e) - loss(root - h * e)) / (2 * h) for e in torch.eye(6, dtype=F64)]
+        )
+    torch.testing.assert_close(g, fd, rtol=0, atol=1e-6 * float(fd.norm()))

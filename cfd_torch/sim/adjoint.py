@@ -154,9 +154,14 @@ class StepFn(torch.autograd.Function):
                 res, work = solve_step(prob, exact_end=any(ctx.needs_input_grad))
             except PairSolveError as err:  # a leaf pair's plane solve at some trial point: the step failed
                 raise StepError(f"the step failed: {err}") from err
-        # the adjoint needs the contact Hessian's cross blocks with the pose components the map does not move only
-        rows6 = torch.nonzero(~scene.kinematics.moved.reshape(-1))[:, 0].to(q_t.device)
+        # the adjoint needs the contact Hessian's cross blocks with the pose components that depend on the inputs
+        # at fixed coordinates: those the map does not move, and those of bodies hung from a fixed pose
+        kin = scene.kinematics
+        hung = kin.hung[:, None].expand(-1, 6)
+        rows6 = torch.nonzero((~kin.moved | hung).reshape(-1))[:, 0].to(q_t.device)
         cross = res.at.contact_hess[:, rows6]  # (B, F, 6 N)
+        # and, where the map's Jacobian depends on a fixed pose, the contact gradient it pulls back
+        contact_grad = -res.at.contact_force if bool(kin.hung.any()) else None
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
             res.q,
@@ -175,6 +180,7 @@ class StepFn(torch.autograd.Function):
             kp,
             kv,
             pred.free_rotation,
+            contact_grad,
         )
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
@@ -208,9 +214,25 @@ class StepFn(torch.autograd.Function):
         # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
         # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
         scene = ctx.scene
-        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_free = (
-            ctx.saved_tensors
-        )
+        (
+            q,
+            H,
+            cross,
+            rows6,
+            q_t,
+            q_p,
+            force,
+            torque,
+            target,
+            mass,
+            S,
+            mu_f,
+            ctrl,
+            kp,
+            kv,
+            r_free,
+            contact_grad,
+        ) = ctx.saved_tensors
         # q is this Function's output: unpacked, it carries this node as its grad_fn, and a graph built from it
         # would reach the whole rollout behind it, which autograd.grad below would walk at every step (a 200-step
         # rollout's backward took 4x longer than 200 times one step's)
@@ -223,18 +245,20 @@ class StepFn(torch.autograd.Function):
         if bool((info != 0).any()):  # cannot happen: Newton converges only at a positive definite Hessian
             raise RuntimeError("cfd_torch.step backward: the step's Hessian is not positive definite")
         lam = torch.cholesky_solve(gout.to(H.dtype)[:, :, None], chol)[:, :, 0]
-        Jlam = kin.push(q, lam, end_poses(scene, q_t, target))  # (B, N, 6)
         inputs = (q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv)
         with torch.enable_grad():
             th = [x.detach().requires_grad_(True) for x in inputs]
             tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl, tkp, tkv = th
             fixed = end_poses(scene, tq_t, ttarget)
+            # J lam and the poses at the solution, as functions of the inputs through the fixed poses (a fixed-base
+            # robot's links hang from its root's row; free bodies' do not depend on them)
+            Jlam = kin.push(q, lam, fixed)  # (B, N, 6)
             poses_next = kin.poses(q, fixed)
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
             pred = _predicted(scene, tq_t, tq_p, fixed, tmass, tS, r_free)
             _, g_b, _ = body_terms(
-                rows(poses_next[:, dyn].detach()), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
+                rows(poses_next[:, dyn]), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
                 rows(tf[:, dyn]), rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
                 None if pred.shift is None else rows(pred.shift),
             )  # fmt: skip
@@ -259,8 +283,10 @@ class StepFn(torch.autograd.Function):
                 s = s + (Gf * Jlam).sum()
             # contact: d(g)/d(pose_j) for a pose component the map does not move is the cross block of the contact
             # Hessian
-            c = (cross @ Jlam.reshape(B, 6 * N, 1))[:, :, 0]  # (B, F)
+            c = (cross @ Jlam.detach().reshape(B, 6 * N, 1))[:, :, 0]  # (B, F)
             s = s + (c * poses_next.reshape(B, 6 * N)[:, rows6]).sum()
+            if contact_grad is not None:  # (dJ/dinput)^T of the contact gradient
+                s = s + (contact_grad * Jlam).sum()
             grads = torch.autograd.grad(-s, th, allow_unused=True)
         out = [None if gth is None else gth.to(x.dtype) for gth, x in zip(grads, inputs, strict=True)]
         return (None, *out)

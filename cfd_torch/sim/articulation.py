@@ -926,6 +926,10 @@ class ArticulatedKinematics:
         self.bodies = torch.tensor(moving, dtype=torch.long)
         self.moved = torch.zeros(num_bodies, 6, dtype=torch.bool)
         self.moved[self.bodies] = True
+        self.hung = torch.zeros(num_bodies, dtype=torch.bool)
+        for art, r in zip(self.arts, self.first, strict=True):
+            if art.first_moving:  # a joint-less root: the links hang from its (fixed) row
+                self.hung[r + art.first_moving : r + art.num_links] = True
         self.coord_body = torch.tensor(coord_body, dtype=torch.long)
         self.num_coords = start
         self._f6 = (free[:, None] * 6 + torch.arange(6)).reshape(-1)

@@ -34,6 +34,9 @@ class Kinematics(Protocol):
     freezable: bool
     #: (N, 6) bool, the pose components the map moves (the others come from the fixed poses)
     moved: torch.Tensor
+    #: (N,) bool, the moved bodies whose poses also depend on the fixed poses (the links of a fixed-base robot
+    #: whose joint-less root stands where the state puts it): the adjoint differentiates them in those
+    hung: torch.Tensor
     #: whether translating q's bodies and the fixed poses together translates every pose the map gives (False
     #: when some body hangs from a frame fixed in the world, as a robot hung from its mount: see ``translated``)
     translation_invariant: bool
@@ -105,6 +108,7 @@ class FreeBodies:
         self.moved = torch.zeros(num_bodies * 6, dtype=torch.bool)
         self.moved[self._d6] = True
         self.moved = self.moved.reshape(num_bodies, 6)
+        self.hung = torch.zeros(num_bodies, dtype=torch.bool)
 
     def poses(self, q: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         A = q.shape[0]
