@@ -1594,3 +1594,19 @@ def test_gradient_in_the_row_of_a_joint_less_root(with_box):
             [(loss(root + h * e) - loss(root - h * e)) / (2 * h) for e in torch.eye(6, dtype=F64)]
         )
     torch.testing.assert_close(g, fd, rtol=0, atol=1e-6 * float(fd.norm()))
+
+
+def test_servo_gains_are_checked_on_servos_only():
+    """Params.kp / kv entries of motors are unused: a negative one is accepted and changes nothing; a servo's
+    negative gain is refused naming its actuator."""
+    arm = articulation(_STATIC_ROOT_ARM)  # actuator 0 a motor, 1 a position servo
+    scene = Scene([], articulations=[arm], dt=0.01)
+    q = arm.poses(torch.tensor([0.0, 0.3], dtype=F64), torch.zeros(6, dtype=F64))
+    state, action = State(q, q.clone()), Action(ctrl=torch.tensor([0.7, 0.5], dtype=F64))
+    p = scene.params()
+    assert p.kp.tolist() == [0.0, 20.0]
+    ref = step(scene, state, action, p)
+    odd = step(scene, state, action, p._replace(kp=torch.tensor([-3.0, 20.0], dtype=F64)))
+    assert torch.equal(odd.q, ref.q)
+    with pytest.raises(ValueError, match=r"params\.kv must be >= 0 \(a servo gain\) \(first at actuator 1\)"):
+        step(scene, state, action, p._replace(kv=torch.tensor([0.0, -1.0], dtype=F64)))

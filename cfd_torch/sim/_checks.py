@@ -67,12 +67,14 @@ def check_params(
     batched: bool,
     gains: tuple[torch.Tensor, torch.Tensor],
     bodies: list[int] | None = None,
+    servos: torch.Tensor | None = None,
 ) -> Params:
     """Finite, physical, on the state's device, each field shared or per scene; returned with a batch dimension B:
     mass > 0, friction >= 0, the symmetric part of S positive semi-definite with a positive definite inertia
-    tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv). A message about values names
-    the first offending scene (in a batch) and body (``bodies``: the scene's index of each of the Nd dynamic
-    bodies) or actuator."""
+    tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv; ``servos`` (U,) bool: which
+    actuators are servos, the others' entries unused and not checked). A message about values names the first
+    offending scene (in a batch) and body (``bodies``: the scene's index of each of the Nd dynamic bodies) or
+    actuator."""
     if not isinstance(params, Params):
         raise TypeError(f"params must be a cfd_torch.Params, got {type(params).__name__}")
     U = gains[0].shape[0]
@@ -109,8 +111,10 @@ def check_params(
         )
     where.raise_if(params.mass.detach() <= 0, "params.mass must be positive", "mass")
     where.raise_if(params.friction.detach() < 0, "params.friction must be >= 0", "friction")
+    servo = torch.ones(U, dtype=torch.bool) if servos is None else servos
     for name in ("kp", "kv"):
-        where.raise_if(getattr(params, name).detach() < 0, f"params.{name} must be >= 0 (a servo gain)", name)
+        negative = (getattr(params, name).detach() < 0) & servo.to(device)
+        where.raise_if(negative, f"params.{name} must be >= 0 (a servo gain)", name)
     where.raise_if(
         ~_physical(params.second_moment),
         "params.second_moment must be positive semi-definite with a positive definite inertia",

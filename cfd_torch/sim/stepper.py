@@ -307,8 +307,10 @@ def _checked_params(scene: Scene, state: State, params: Params | None) -> Params
     batched = state.q.dim() == 3
     params = scene.params(f64, dev) if params is None else params
     B = state.q.shape[0] if batched else 1
-    bodies = scene.kinematics.bodies
-    return check_params(params, B, len(bodies), dev, batched, scene.servo_gains(f64, dev), list(bodies))
+    kin = scene.kinematics
+    servos = kin.actuator_servo if scene.simulates_joints else None
+    gains = scene.servo_gains(f64, dev)
+    return check_params(params, B, len(kin.bodies), dev, batched, gains, list(kin.bodies), servos)
 
 
 def step(
