@@ -30,8 +30,8 @@ _MAX_COORD_FLOAT32 = 1e12
 
 
 def narrowed(x: torch.Tensor, dtype: torch.dtype, what: str, inputs: str) -> torch.Tensor:
-    """``x`` (a float64 result) cast to the inputs' ``dtype``: a ValueError if a finite entry overflows it (a
-    float32 Hessian near contact, a huge stiffness), which would read as +inf (infeasible) or poison a solve.
+    """``x`` (a float64 result) cast to the inputs' ``dtype``: a ValueError if a finite entry overflows it (with a
+    huge stiffness, or tiny triangles nearly at the margin), which would read as +inf (infeasible) or poison a solve.
     ``what`` names the result, ``inputs`` the arguments whose dtype it takes."""
     y = x.to(dtype)
     if dtype != x.dtype:
@@ -204,7 +204,8 @@ def check_tolerance(value: float, name: str) -> None:
 
 
 def check_count(value: int, name: str, most: int = 10**6) -> None:
-    """A positive int of at most ``most`` (an iteration cap: the kernels take it as an int64 loop bound)."""
+    """A positive int of at most ``most`` (an iteration cap: more is never meant, and the kernels take it as an
+    int64 loop bound)."""
     if not (is_int(value) and 0 < value <= most):
         raise ValueError(f"{name} must be a positive int of at most {most:,}, got {value!r}")
 

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from ._validate import is_int, is_real
+from ._validate import check_count, is_real
 
 __all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "POTENTIALS", "DEFAULT_CONTACT"]
 
@@ -31,9 +31,8 @@ def _positive(owner: str, name: str, value: object) -> None:
 
 
 def _count(owner: str, name: str, value: object, most: int = 10**6) -> None:
-    """A positive int of at most ``most`` (the kernels take it as an int64 loop bound; more is never meant)."""
-    if not (is_int(value) and 0 < value <= most):
-        raise ValueError(f"{owner}.{name} must be a positive int of at most {most:,}, got {value!r}")
+    """A positive int of at most ``most`` (an iteration cap or a count of sub-steps: more is never meant)."""
+    check_count(value, f"{owner}.{name}", most)
 
 
 @dataclass(frozen=True)

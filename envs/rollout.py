@@ -95,7 +95,7 @@ def _chunk(
                     f"policy(obs, {t0 + k}) returned other actions when rollout(checkpoint_every=...) recomputed "
                     "its chunk in the backward pass: under checkpointing the policy must be a function of "
                     "(obs, t) and its parameters alone (no state kept between calls, such as a recurrent "
-                    "policy's hidden state, and noise only from torch's generator, which checkpointing "
+                    "policy's hidden state, and noise only from torch's default generator, which checkpointing "
                     "replays); the gradients would be wrong. Use checkpoint_every=None for such a policy."
                 )
         if a.dim() == 1:
@@ -148,11 +148,12 @@ def rollout(
         checkpoint_every: recompute chunks of k steps in the backward pass instead of storing the tensors their
             steps save (``torch.utils.checkpoint``, non-reentrant): one more forward per chunk, the same gradients
             (the forward solve is deterministic). A callable policy must then be a function of (obs, t) and its
-            parameters alone (noise from torch's generator is replayed): the backward raises RuntimeError if the
-            recomputed chunk's policy returns other actions (a recurrent policy's hidden state kept on the
-            object, NumPy noise). Memory stays linear in the horizon, whatever k: the graph's nodes
-            are kept (about 83 per step); a session-45 audit measured 0.14 -> 0.06 MB per step on Billiards, 22 %
-            less on Push, 42 % on Sort, and a one-time 45-70 MB for the first checkpoint.
+            parameters alone (noise from torch's default generator is replayed, not an explicit
+            torch.Generator's): the backward raises RuntimeError if the recomputed chunk's policy returns other
+            actions (a recurrent policy's hidden state kept on the object, NumPy noise). Memory stays linear in
+            the horizon, whatever k: the graph's nodes are kept (about 83 per step); a session-45 audit measured
+            0.14 -> 0.06 MB per step on Billiards, 22 % less on Push, 42 % on Sort, and a one-time 45-70 MB for
+            the first checkpoint.
 
     Returns:
         A :class:`Rollout`.

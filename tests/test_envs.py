@@ -344,9 +344,8 @@ def test_checkpointed_rollout_refuses_a_policy_with_hidden_state():
     ):
         out.rewards.sum().backward()
     calls.clear()
-    plain = torch.autograd.grad(rollout(core, s0, stateful, 4).rewards.sum(), b)[
-        0
-    ]  # fine without checkpoints
+    # fine without checkpoints
+    plain = torch.autograd.grad(rollout(core, s0, stateful, 4).rewards.sum(), b)[0]
     assert float(plain.abs().max()) > 0
 
 

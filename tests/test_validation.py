@@ -631,6 +631,12 @@ def test_params_values_name_the_scene_and_body(scene, state):
         "at scene 1, body 0)"
     ):
         step(scene, batch, params=p._replace(second_moment=moment))
+    with refused("params.mass must be positive (first at body 0)"):  # shared by the batch: no scene named
+        step(scene, batch, params=p._replace(mass=-p.mass))
+    nan_moment = p.second_moment.clone()
+    nan_moment[0, 1, 2] = float("nan")
+    with refused("params.second_moment contains NaN or inf (first at body 0)"):
+        step(scene, state, params=p._replace(second_moment=nan_moment))
     with refused("params.friction must be >= 0 (first at scene 1)"):
         step(scene, batch, params=p._replace(friction=torch.tensor([0.5, -0.1, -0.2], dtype=F64)))
     q = step(scene, batch, params=p._replace(mass=p.mass.expand(3, -1).clone())).q
@@ -900,18 +906,28 @@ def test_a_scene_is_read_only_once_built_and_its_settings_are_checked_up_front()
     ground = rigid_body(trimesh.creation.box((1.0, 1.0, 0.2)), kind="static")
     scene = Scene([box, ground])
     for name, value in (("margin", 0.01), ("dt", -0.01), ("exclude", ((0, 1),)), ("friction", 0.5)):
+        before = getattr(scene, name)
         with _says("a Scene is read-only once built", AttributeError):
             setattr(scene, name, value)
-        assert getattr(scene, name) != value
+        assert getattr(scene, name) is before
+    with _says("so 'dt' cannot be deleted", AttributeError):
+        del scene.dt
     with _says("so 'pairs' cannot be set: scene.replace(...) builds one", AttributeError):
         scene.pairs = scene.pairs[:0]
     assert scene.replace(margin=0.01).margin == 0.01 and scene.margin == 1e-3
     model = CfdContact([box.bsh, ground.bsh])
-    with _says("the contact_model given has its own: leave them out (changed: stiffness, margin)"):
+    with _says(
+        "beside a contact_model must be the model's own (its config, or the defaults for a model without "
+        "one): leave them out (these differ: stiffness, margin)"
+    ):
         Scene([box, ground], contact_model=model, margin=0.01, mu=1e-6)
-    with _says("the contact_model given has its own: leave them out (changed: margin)"):
+    with _says("(these differ: margin)"):
         Scene([box, ground], contact_model=model).replace(margin=0.01)
     assert Scene([box, ground], contact_model=model, contact=ContactConfig()).replace(dt=0.02).dt == 0.02
+    wide = ContactConfig(margin=0.01)  # a model with its own margin: the scene's settings are its
+    own = CfdContact([box.bsh, ground.bsh], wide)
+    assert Scene([box, ground], contact_model=own).margin == 0.01
+    assert Scene([box, ground], contact_model=own, contact=wide).replace(dt=0.02).contact == wide
     with _says(
         "ContactConfig.pair_max_iter must be a positive int of at most 1,000,000, got 9223372036854775808"
     ):

@@ -92,20 +92,22 @@ def check_params(
         if x.device != device:
             raise ValueError(f"params.{name} is on {x.device}, the state on {device}")
     fields = []
+    shared = set()
     for name, shape in shapes.items():
         x = getattr(params, name)
         if x.shape == shape:
             x = x.expand(B, *shape)  # shared by the batch
+            shared.add(name)
         elif x.shape != (B, *shape) or not batched:
             want = f"{shape} or {(B, *shape)}" if batched else f"{shape}"
             raise ValueError(f"params.{name} must have shape {want}, got {tuple(x.shape)}")
         fields.append(x)
     params = Params(*fields)
-    where = _Where(batched, bodies)
+    where = _Where(batched, bodies, shared)
     for name in shapes:
         x = getattr(params, name).detach()
         where.raise_if(
-            ~torch.isfinite(x.reshape(B, -1)).all(-1) if name == "second_moment" else ~torch.isfinite(x),
+            ~torch.isfinite(x.flatten(-2)).all(-1) if name == "second_moment" else ~torch.isfinite(x),
             f"params.{name} contains NaN or inf",
             name,
         )
@@ -124,17 +126,18 @@ def check_params(
 
 
 class _Where:
-    """Raises a check's message with where it first fails: the scene (in a batch), the body or the actuator."""
+    """Raises a check's message with where it first fails: the scene (of a field given per scene in a batch), the
+    body or the actuator."""
 
-    def __init__(self, batched: bool, bodies: list[int] | None):
-        self.batched, self.bodies = batched, bodies
+    def __init__(self, batched: bool, bodies: list[int] | None, shared: set[str]):
+        self.batched, self.bodies, self.shared = batched, bodies, shared
 
     def raise_if(self, bad: torch.Tensor, message: str, field: str) -> None:
         """``bad`` (B,) or (B, K) bool over the field's scenes and entries (bodies or actuators)."""
         if not bool(bad.any()):
             return
         at = torch.nonzero(bad)[0].tolist()
-        parts = [f"scene {at[0]}"] if self.batched else []
+        parts = [f"scene {at[0]}"] if self.batched and field not in self.shared else []
         if len(at) > 1:
             k = at[1]
             if field in ("kp", "kv"):

@@ -211,8 +211,11 @@ class StepFn(torch.autograd.Function):
     def _backward(ctx, gout):
         # lam = H^-1 v (H symmetric positive definite), dtheta = -lam^T dg/dtheta, with g = J^T g_pose(theta) for
         # the pose-space gradient g_pose of body, friction and contact terms: lam^T g = (J lam) . g_pose.
-        # dg/dtheta: autograd through the closed-form body and friction gradients (functions of theta at fixed q*),
-        # and, for the contact term, the cross blocks of the contact Hessian with the poses the map does not move.
+        # dg/dtheta at fixed q*: autograd through the closed-form body and friction gradients; for the contact term,
+        # the contact Hessian's cross blocks with the pose components that depend on theta (those the map does not
+        # move, and the links hung from a fixed-base robot's joint-less root), times their derivatives. Where J
+        # itself depends on theta (a hung robot's Jacobian turns with its root's row), (dJ/dtheta)^T g_pose too:
+        # J lam is then formed in the graph, and the contact gradient at q* enters as a constant.
         scene = ctx.scene
         (
             q,
@@ -250,15 +253,17 @@ class StepFn(torch.autograd.Function):
             th = [x.detach().requires_grad_(True) for x in inputs]
             tq_t, tq_p, tf, ttau, ttarget, tmass, tS, tmu, tctrl, tkp, tkv = th
             fixed = end_poses(scene, tq_t, ttarget)
-            # J lam and the poses at the solution, as functions of the inputs through the fixed poses (a fixed-base
-            # robot's links hang from its root's row; free bodies' do not depend on them)
-            Jlam = kin.push(q, lam, fixed)  # (B, N, 6)
             poses_next = kin.poses(q, fixed)
+            # J lam and the moving bodies' poses depend on the inputs (through the fixed poses) only for links hung
+            # from a joint-less root: elsewhere they are constants (no graph to build and walk)
+            hung = contact_grad is not None
+            Jlam = kin.push(q, lam, fixed if hung else fixed.detach())  # (B, N, 6)
+            moving = poses_next[:, dyn] if hung else poses_next[:, dyn].detach()
             gravity = torch.tensor(scene.gravity, dtype=q.dtype, device=q.device)
             rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
             pred = _predicted(scene, tq_t, tq_p, fixed, tmass, tS, r_free)
             _, g_b, _ = body_terms(
-                rows(poses_next[:, dyn]), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
+                rows(moving), rows(tq_t[:, dyn]), rows(tq_p[:, dyn]), rows(pred.rotation),
                 rows(tf[:, dyn]), rows(ttau[:, dyn]), tmass.reshape(-1), rows(tS), gravity, scene.dt, 1,
                 None if pred.shift is None else rows(pred.shift),
             )  # fmt: skip
@@ -281,11 +286,10 @@ class StepFn(torch.autograd.Function):
                 )
                 Gf, _ = sum_pairs(B, N, cp, gf, None)
                 s = s + (Gf * Jlam).sum()
-            # contact: d(g)/d(pose_j) for a pose component the map does not move is the cross block of the contact
-            # Hessian
+            # contact: lam^T J^T H_c d(pose)/dtheta over the pose components rows6 that depend on theta
             c = (cross @ Jlam.detach().reshape(B, 6 * N, 1))[:, :, 0]  # (B, F)
             s = s + (c * poses_next.reshape(B, 6 * N)[:, rows6]).sum()
-            if contact_grad is not None:  # (dJ/dinput)^T of the contact gradient
+            if hung:  # and lam^T (dJ/dtheta)^T g_contact
                 s = s + (contact_grad * Jlam).sum()
             grads = torch.autograd.grad(-s, th, allow_unused=True)
         out = [None if gth is None else gth.to(x.dtype) for gth, x in zip(grads, inputs, strict=True)]

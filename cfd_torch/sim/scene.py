@@ -114,21 +114,11 @@ def _same_surface(a: BSH, b: BSH) -> bool:
     return bool((box_a - box_b).abs().max() <= 1e-9 * scale) and math.isclose(area(a), area(b), rel_tol=1e-9)
 
 
-# the constructor's arguments other than the bodies (what ``Scene.replace`` takes besides the shorthand)
-_REPLACEABLE = frozenset(
-    {
-        "dt",
-        "gravity",
-        "contact",
-        "friction",
-        "solver",
-        "exclude",
-        "pair_eps",
-        "contact_model",
-        "articulations",
-        "planar",
-    }
-)
+# the constructor's arguments other than the bodies, each kept as the attribute of its name (the contact model
+# given as ``_given_contact_model``): what ``Scene.replace`` carries over
+_REPLACEABLE = (
+    "dt", "gravity", "contact", "friction", "solver", "exclude", "pair_eps", "contact_model", "articulations", "planar",
+)  # fmt: skip
 
 
 class Scene:
@@ -261,16 +251,21 @@ class Scene:
         self.exclude = tuple(body_pair(p, "exclude") for p in exclude)
         N = len(bodies)
         self.pair_eps = check_pair_eps(pair_eps, N)
-        if contact_model is not None and self.contact != ContactConfig():
-            changed = [
-                f.name
-                for f in dataclasses.fields(ContactConfig)
-                if getattr(self.contact, f.name) != getattr(ContactConfig(), f.name)
-            ]
-            raise ValueError(
-                "contact settings (contact=, or shorthand such as margin= or mu=) configure this library's own "
-                f"contact models; the contact_model given has its own: leave them out (changed: {', '.join(changed)})"
-            )
+        if contact_model is not None:  # its settings are the model's own (its ``config``, else the defaults)
+            own = getattr(contact_model, "config", None)
+            own = own if isinstance(own, ContactConfig) else ContactConfig()
+            if self.contact not in (ContactConfig(), own):
+                changed = [
+                    f.name
+                    for f in dataclasses.fields(ContactConfig)
+                    if getattr(self.contact, f.name) != getattr(own, f.name)
+                ]
+                raise ValueError(
+                    "contact settings (contact=, or shorthand such as margin= or mu=) beside a contact_model must "
+                    "be the model's own (its config, or the defaults for a model without one): leave them out "
+                    f"(these differ: {', '.join(changed)})"
+                )
+            self.contact = own
         if self.pair_eps and (contact_model is not None or self.contact.potential != "cfd"):
             raise ValueError(
                 "pair_eps sets blend widths of this library's potential; the contact model "
@@ -354,7 +349,10 @@ class Scene:
             )
         object.__setattr__(self, name, value)
 
-    def in_frame(self, kinematics: FreeBodies | ArticulatedKinematics) -> Scene:
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"a Scene is read-only once built, so {name!r} cannot be deleted")
+
+    def _in_frame(self, kinematics: FreeBodies | ArticulatedKinematics) -> Scene:
         """A shallow copy whose map from the step's unknowns to poses is ``kinematics`` (the step's solve frame;
         this scene is not changed)."""
         new = copy.copy(self)
@@ -414,12 +412,7 @@ class Scene:
         """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand); a change of the
         contact settings, the potential, ``refine_obstacles``, ``exclude`` or the articulations builds it from the
         bodies as given (their obstacles refined afresh); ``friction=`` a number changes only the coefficient."""
-        kw = {
-            "dt": self.dt, "gravity": self.gravity, "contact": self.contact, "friction": self.friction,
-            "solver": self.solver, "exclude": self.exclude, "pair_eps": self.pair_eps,
-            "contact_model": self._given_contact_model,
-            "articulations": self.articulations, "planar": self.planar,
-        }  # fmt: skip
+        kw = {k: getattr(self, "_given_contact_model" if k == "contact_model" else k) for k in _REPLACEABLE}
         if is_real(changes.get("friction")):
             changes = {
                 **changes,

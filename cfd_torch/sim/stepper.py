@@ -117,7 +117,7 @@ def _solve(
             if float((own - origin).abs().max()) > _SHARED_FRAME_EXTENT:
                 return _solve_in_groups(scene, state, force, torque, target, ctrl, params, own)
         c = origin.expand(q_t.shape[0], 1, 3)
-        scene = scene.in_frame(scene.kinematics.translated(origin))
+        scene = scene._in_frame(scene.kinematics.translated(origin))
     # the rows the step does not solve (static, kinematic), from the unshifted inputs: the shift's round trip is
     # exact only near the moving bodies
     held = end_poses(scene, q_t, target.to(f64))
@@ -310,7 +310,7 @@ def _checked_params(scene: Scene, state: State, params: Params | None) -> Params
     kin = scene.kinematics
     servos = kin.actuator_servo if scene.simulates_joints else None
     gains = scene.servo_gains(f64, dev)
-    return check_params(params, B, len(kin.bodies), dev, batched, gains, list(kin.bodies), servos)
+    return check_params(params, B, len(kin.bodies), dev, batched, gains, kin.bodies.tolist(), servos)
 
 
 def step(
