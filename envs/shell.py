@@ -1,9 +1,11 @@
 """Gymnasium faces of a :class:`~cfd_torch.envs.core.TaskCore`: a NumPy ``gym.Env`` and a native ``VectorEnv``.
 
 Both hold one core and run it under ``torch.no_grad()``; physics, rewards and initial states are the core's. Actions
-are float32 in [-1, 1]; observations float64 within the task's physical bounds. Seeding follows Gymnasium: an
-environment reset with seed s draws its core seed from ``np_random`` seeded with s, and the vector environment seeds
-its copy i with s + i, as ``gym.make_vec(..., vectorization_mode="sync")`` does, so the two give identical rollouts.
+are float32 in [-1, 1]; observations float64 within the task's physical bounds. Seeding: a reset with seed s starts
+the episode ``core.reset(s)`` starts (the same scene as the differentiable core's, for the same seed) and seeds
+``np_random`` with s, from which later resets without a seed draw their core seeds; the vector environment seeds its
+copy i with s + i, as ``gym.make_vec(..., vectorization_mode="sync")`` does (and ``core.reset(s, batch_size)``), so
+the three give identical starts.
 """
 
 from __future__ import annotations
@@ -107,7 +109,9 @@ class CoreEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         with torch.no_grad():
-            self.state = self.core.reset(int(self.np_random.integers(_SEED_HIGH)))
+            self.state = self.core.reset(
+                int(self.np_random.integers(_SEED_HIGH)) if seed is None else int(seed)
+            )
             obs = self.core.observe(self.state)
         return obs[0].cpu().numpy().astype(np.float64), {}
 
@@ -199,10 +203,11 @@ class CoreVectorEnv(VectorEnv):
         self._autoreset = np.zeros(num_envs, dtype=np.bool_)
         self._frames = _Frames(self.core, width, height)
 
-    def _initial(self, rng: np.random.Generator) -> tuple[EnvState, np.ndarray]:
-        """A fresh environment's state and observation, its core seed drawn from ``rng``."""
+    def _initial(self, rng: np.random.Generator, seed: int | None = None) -> tuple[EnvState, np.ndarray]:
+        """A fresh environment's state and observation: the core's for ``seed``, else for a seed drawn from
+        ``rng``."""
         with torch.no_grad():
-            state = self.core.reset(int(rng.integers(_SEED_HIGH)))
+            state = self.core.reset(int(rng.integers(_SEED_HIGH)) if seed is None else seed)
             return state, self.core.observe(state)[0].cpu().numpy()
 
     @property
@@ -241,7 +246,7 @@ class CoreVectorEnv(VectorEnv):
         for i in np.flatnonzero(mask):
             if seeds[i] is not None:
                 self._rngs[i], self._seeds[i] = seeding.np_random(seeds[i])
-            self.states[i], self._obs[i] = self._initial(self._rngs[i])
+            self.states[i], self._obs[i] = self._initial(self._rngs[i], seeds[i])
             self._autoreset[i] = False
         return self._obs.copy(), {}
 

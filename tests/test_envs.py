@@ -427,6 +427,22 @@ def test_shells_check_action_shapes_before_stepping():
     vec.close()
 
 
+def test_a_seeded_reset_starts_the_cores_episode_of_that_seed():
+    """gym.make's reset(seed=s), make_vec's copy i under seed s and core.reset(s, B)'s environment i are one start
+    (debug in one face, optimise the same episode in another); later unseeded resets draw other starts."""
+    core = make_core("cfd_torch/Sort-v0", num_cubes=2)
+    states = core.reset(5, batch_size=2)
+    env = gym.make("cfd_torch/Sort-v0", num_cubes=2)
+    obs, _ = env.reset(seed=5)
+    np.testing.assert_array_equal(obs, core.observe(states)[0].numpy())
+    assert torch.equal(env.unwrapped.state.q, states.q[:1])
+    assert not np.array_equal(env.reset()[0], obs)
+    env.close()
+    vec = gym.make_vec("cfd_torch/Sort-v0", 2, num_cubes=2)
+    np.testing.assert_array_equal(vec.reset(seed=5)[0], core.observe(states).numpy())
+    vec.close()
+
+
 def test_native_vector_env_step_is_all_or_nothing_and_seeds_like_sync(monkeypatch):
     """A step in which one environment's solve fails leaves every environment as it was (no environment stepped
     twice on a retry); reset takes NumPy integer seeds and np_random_seed reports them as SyncVectorEnv does."""
