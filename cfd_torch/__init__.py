@@ -29,6 +29,7 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
     rollout(scene, state, actions) -> Trajectory            T steps (ordinary autograd through all of them)
     pair_forces(scene, q)                                    contact force of every body on every other
     recentre_rotation(q)                                     rotation vectors wrapped back to |omega| <= pi
+    articulation(mjcf, mount=, kinematic=)                   a robot from MJCF (Scene(..., articulations=[...]))
     FreeBodies, Kinematics                                   the kinematics seam (q -> poses and derivatives)
     StepInfo, StepError                                      step(..., return_info=True)'s statistics; a failed solve
 
@@ -39,21 +40,21 @@ LaggedContacts, RigidBody.
 Poses are (..., 6): translation then rotation vector; a body-frame point X is at R(omega) X + t.
 """
 
-import ctypes.util
-import os
-import sys
+import ctypes.util as _ctypes_util
+import os as _os
+import sys as _sys
 
 # Headless rendering (cfd_torch.envs) needs MuJoCo's EGL backend, chosen when mujoco is first imported; this
 # package's MJCF loader and pytorch_kinematics import mujoco, so the choice is made here (an explicit MUJOCO_GL or a
 # display wins; without an EGL library mujoco would fail to import with it, so it is left alone; once mujoco is
 # imported its backend is chosen, and setting the variable would only misreport it)
 if (
-    "MUJOCO_GL" not in os.environ
-    and "mujoco" not in sys.modules
-    and not os.environ.get("DISPLAY")
-    and ctypes.util.find_library("EGL")
+    "MUJOCO_GL" not in _os.environ
+    and "mujoco" not in _sys.modules
+    and not _os.environ.get("DISPLAY")
+    and _ctypes_util.find_library("EGL")
 ):
-    os.environ["MUJOCO_GL"] = "egl"
+    _os.environ["MUJOCO_GL"] = "egl"
 
 from .config import ContactConfig, FrictionConfig, SolverConfig  # noqa: E402
 from .contact.bsh import BSH  # noqa: E402
@@ -64,6 +65,7 @@ from .contact.model import ContactEval, ContactModel, LaggedContacts  # noqa: E4
 from .contact.pair import LAMBDA, PairDerivatives, PairSolveError, pair_potential, pair_potential_derivatives  # noqa: E402
 from .contact.reference import mesh_potential_reference  # noqa: E402
 from .contact.scene import ContactPotential, contact_potential  # noqa: E402
+from .sim.articulation import Articulation, articulation  # noqa: E402
 from .sim.bodies import RigidBody, rigid_body  # noqa: E402
 from .sim.kinematics import FreeBodies, Kinematics  # noqa: E402
 from .sim.scene import Scene  # noqa: E402
@@ -74,6 +76,7 @@ __all__ = [
     "BSH",
     "LAMBDA",
     "Action",
+    "Articulation",
     "CfdContact",
     "ContactConfig",
     "ContactEval",
@@ -94,6 +97,7 @@ __all__ = [
     "StepError",
     "StepInfo",
     "Trajectory",
+    "articulation",
     "blend_weight",
     "central_potential",
     "contact_potential",

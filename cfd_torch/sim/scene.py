@@ -157,7 +157,9 @@ class Scene:
 
     Attributes (computed once): ``bodies`` as simulated (static and kinematic bodies coarser than the dynamic
     bodies they touch are refined, ``ContactConfig.refine_obstacles``, unless a ``contact_model`` is given),
-    ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies, ``pairs`` (P, 2) the
+    ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies, ``num_kinematic_bodies`` (the
+    kinematic rigid bodies, ``Action.target``'s rows), ``articulation_rows`` (each robot's first state row),
+    ``pairs`` (P, 2) the
     interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map from the step's
     unknowns to poses, ``contact_model``.
     """
