@@ -159,9 +159,9 @@ class Scene:
     bodies they touch are refined, ``ContactConfig.refine_obstacles``, unless a ``contact_model`` is given),
     ``dynamic`` (Nd,), ``kinematic`` (K,) and ``static_mask`` (N,) of the bodies, ``num_kinematic_bodies`` (the
     kinematic rigid bodies, ``Action.target``'s rows), ``articulation_rows`` (each robot's first state row),
-    ``pairs`` (P, 2) the
-    interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map from the step's
-    unknowns to poses, ``contact_model``.
+    ``pairs`` (P, 2) the interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map
+    from the step's unknowns to poses, ``contact_model`` (given, or built from ``contact``; ``contact`` is then
+    the model's own ``config``, or the defaults for a model without one).
     """
 
     def __init__(
