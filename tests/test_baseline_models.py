@@ -275,8 +275,10 @@ def test_baseline_friction_rollout_gradient_matches_finite_differences(potential
     its final pose in the force and in its initial velocity (through the lagged friction contacts' dependence on the
     previous poses) matches central differences to 1e-6 (SDRS: its plane solves stop about 1e-10 from the optimum,
     a noise of about 1e-11 m in the poses, so its differences take longer steps, and its yaw component, 8e-6 m s,
-    is checked to 1e-3; measured in session 39, the differences agree with the gradient to 1e-7 at steps 3e-2 and
-    1e-3 and drift with the noise below: 6e-7 at 1e-2 in the force, 1.2e-6 at 1e-4 in the velocity)."""
+    is checked to 1e-4 at a step of 1e-2; measured in session 47, the yaw differences agree with the gradient to
+    1.3e-6 and 2.0e-6 at steps 3e-2 and 1e-2 and drift with the noise below: 7e-5 at 3e-3, 1.1e-3 at 1e-3, the
+    step this test took until then (in session 39 that one agreed to 1e-7); the force's to 2e-7 at 3e-2, the
+    velocity's to 1.7e-7 at 1e-3)."""
     floor = trimesh.creation.box((2.0, 2.0, 0.2))
     floor.apply_translation((0.0, 0.0, -0.1))
     scene = Scene([_box(0.2), rigid_body(floor, kind="static")], potential=potential, friction=0.5)
@@ -295,7 +297,7 @@ def test_baseline_friction_rollout_gradient_matches_finite_differences(potential
     (g,) = torch.autograd.grad(final(theta), theta)
     assert float(g.abs().min()) > (1e-4 if potential == "ipc" else 1e-6)
     steps, rel = (
-        ((1e-4, 1e-6, 1e-6), (1e-6,) * 3) if potential == "ipc" else ((3e-2, 1e-3, 1e-3), (1e-6, 1e-6, 1e-3))
+        ((1e-4, 1e-6, 1e-6), (1e-6,) * 3) if potential == "ipc" else ((3e-2, 1e-3, 1e-2), (1e-6, 1e-6, 1e-4))
     )
     for k, h in enumerate(steps):
         e = torch.zeros(3, dtype=F64)
