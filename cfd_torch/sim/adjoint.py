@@ -164,24 +164,9 @@ class StepFn(torch.autograd.Function):
         contact_grad = -res.at.contact_force if bool(kin.hung.any()) else None
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
         ctx.save_for_backward(
-            res.q,
-            res.at.hess,
-            cross,
-            rows6,
-            q_t,
-            q_p,
-            force,
-            torque,
-            target,
-            mass,
-            S,
-            mu_f,
-            ctrl,
-            kp,
-            kv,
-            pred.free_rotation,
-            contact_grad,
-        )
+            res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv,
+            pred.free_rotation, contact_grad,
+        )  # fmt: skip
         if lagged is None:
             n_fc = torch.zeros(B, dtype=torch.long, device=q_t.device)
         else:
@@ -217,25 +202,9 @@ class StepFn(torch.autograd.Function):
         # itself depends on theta (a hung robot's Jacobian turns with its root's row), (dJ/dtheta)^T g_pose too:
         # J lam is then formed in the graph, and the contact gradient at q* enters as a constant.
         scene = ctx.scene
-        (
-            q,
-            H,
-            cross,
-            rows6,
-            q_t,
-            q_p,
-            force,
-            torque,
-            target,
-            mass,
-            S,
-            mu_f,
-            ctrl,
-            kp,
-            kv,
-            r_free,
-            contact_grad,
-        ) = ctx.saved_tensors
+        q, H, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv, r_free, contact_grad = (
+            ctx.saved_tensors
+        )  # fmt: skip
         # q is this Function's output: unpacked, it carries this node as its grad_fn, and a graph built from it
         # would reach the whole rollout behind it, which autograd.grad below would walk at every step (a 200-step
         # rollout's backward took 4x longer than 200 times one step's)
