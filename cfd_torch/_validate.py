@@ -320,20 +320,28 @@ def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return (2.0 * np.arctan2(det, den)).sum(1) / (4.0 * np.pi)
 
 
-def nested_component(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> int | None:
-    """A connected component (``labels`` (F,): each face's) of a closed, outward-wound, self-intersection-free
-    mesh that lies inside another outward-wound one (its solid counted twice); None if there is none. Tested at a
-    point just behind each component's largest face, where the whole mesh's winding number must be 1."""
+def miscounted_component(
+    vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray
+) -> tuple[int, bool] | None:
+    """A connected component (``labels`` (F,): each face's) of a closed, consistently wound, self-intersection-free
+    mesh whose solid the volume integrals miscount, and whether it faces inward: an outward-wound one inside another
+    (its solid counted twice), or an inward-wound one (a cavity) inside no outward one (its solid counted negative);
+    None if there is none. Tested at a point just behind each component's largest face, where the whole mesh's
+    winding number must be 1."""
     tri = vertices[faces]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area2 = np.linalg.norm(cross, axis=1)
     comps = np.unique(labels)
     lo = np.array([tri[labels == k].reshape(-1, 3).min(0) for k in comps])
     hi = np.array([tri[labels == k].reshape(-1, 3).max(0) for k in comps])
-    # a component can lie inside another only within its bounding box: test only those
+    # signed volume of each component (negative: wound inward)
+    volume = np.array(
+        [np.einsum("ij,ij->i", tri[labels == k, 0], cross[labels == k]).sum() / 6.0 for k in comps]
+    )
+    # an outward component can lie inside another only within its bounding box: test those, and every inward one
     within = ((lo[:, None] >= lo[None]) & (hi[:, None] <= hi[None])).all(2)
     np.fill_diagonal(within, False)
-    cand = np.flatnonzero(within.any(1))
+    cand = np.flatnonzero(within.any(1) | (volume < 0))
     if len(cand) == 0:
         return None
     points = []
@@ -346,7 +354,7 @@ def nested_component(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray
     step = max(1, 200_000 // len(tri))  # points per chunk: (step, T, 3) arrays of about 5 MB
     w = np.concatenate([winding_numbers(points[i : i + step], tri) for i in range(0, len(points), step)])
     bad = np.flatnonzero(np.abs(w - 1.0) > 0.25)
-    return int(comps[cand[bad[0]]]) if len(bad) else None
+    return (int(comps[cand[bad[0]]]), bool(volume[cand[bad[0]]] < 0)) if len(bad) else None
 
 
 def self_intersection(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, int] | None:

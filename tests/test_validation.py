@@ -87,6 +87,16 @@ def test_a_shell_nested_in_another_is_refused_and_a_cavity_is_not():
     apart.apply_translation([1.0, 0.0, 0.0])
     two = trimesh.util.concatenate([trimesh.creation.box((0.2, 0.2, 0.2)), apart])
     assert rigid_body(two, density=1000.0).mass == pytest.approx(16.0)
+    # an inward-facing shell inside no outward one is not a cavity: it weighed 992 kg (its 8 kg subtracted)
+    stray = trimesh.creation.box((0.2, 0.2, 0.2))
+    stray.apply_translation([0.8, 0.0, 0.0])
+    stray.invert()
+    alone = trimesh.util.concatenate([outer, stray])
+    assert alone.is_watertight and alone.is_winding_consistent and float(alone.volume) > 0
+    with pytest.raises(
+        ValueError, match=r"closed shell facing inward outside every outward one \(component 1,"
+    ):
+        rigid_body(alone)
 
 
 def test_vertex_pushed_through_the_mesh_is_a_self_intersection():
@@ -388,6 +398,9 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
     assert Scene([box, ground], friction=np.float32(0.5)).friction.coefficient == 0.5
     with _says("max_edge must be a finite number > 0"):
         BSH.from_trimesh(trimesh.creation.box((1.0, 1.0, 1.0)), max_edge="0.1")
+    # (it ran a 23 GB machine out of memory, splitting 12 triangles towards 2e8)
+    with _says("max_edge=0.0001 would split the mesh's 12 triangles into about 2.01e+08 (more than 2,000,000"):
+        rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), max_edge=1e-4)
     P = torch.tensor([[0.0] * 6, [1.1, 0, 0, 0, 0, 0]], dtype=F64)
     with _says("static must be N = 2 booleans"):
         contact_potential([box.bsh, box.bsh], P, static=[0.3, 0.0])

@@ -102,11 +102,30 @@ class BSH:
         if max_edge is not None:
             if not (is_real(max_edge) and 0 < max_edge < float("inf")):
                 raise ValueError(f"max_edge must be a finite number > 0 (or None), got {max_edge!r}")
+            longest = np.linalg.norm(V[Fc][:, [1, 2, 0]] - V[Fc], axis=-1).max(1)
+            count = refined_faces(longest, float(max_edge))
+            if count > MAX_FACES:
+                raise ValueError(
+                    f"max_edge={max_edge!r} would split the mesh's {len(Fc)} triangles into about {count:.3g} (more "
+                    f"than {MAX_FACES:,}, memory and time to match): choose a longer max_edge"
+                )
             import trimesh.remesh
 
             V, Fc = trimesh.remesh.subdivide_to_size(V, Fc, max_edge=max_edge, max_iter=64)
             Fc = np.asarray(Fc, dtype=np.int64)
         return cls(**_build_tree(np.asarray(V, dtype=np.float64), Fc))
+
+
+# the most triangles ``max_edge`` may split a mesh into (393k took 16 s to build; 2e8 ran a 23 GB machine out of
+# memory)
+MAX_FACES = 2_000_000
+
+
+def refined_faces(longest: np.ndarray, edge: float) -> int:
+    """Faces after midpoint splits of faces whose longest edges are ``longest`` (F,) until no edge exceeds ``edge``
+    (each split level quarters a face)."""
+    levels = np.ceil(np.log2(np.maximum(longest / edge, 1.0)))
+    return int((4.0**levels).sum())
 
 
 def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:

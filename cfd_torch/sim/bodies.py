@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, closed_surface, is_real, nested_component, self_intersection
-from ..contact.bsh import BSH
+from .._validate import check_mesh, closed_surface, is_real, miscounted_component, self_intersection
+from ..contact.bsh import BSH, refined_faces
 from ._checks import physical_second_moment
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -98,8 +98,13 @@ def rigid_body(
 ) -> RigidBody:
     """Build a body from a ``trimesh.Trimesh``.
 
+    A dynamic body's frame is at its centre of mass (the mesh shifted by -``com``; ``RigidBody.com`` says where
+    the centre of mass was in the mesh's frame), so its pose in a state places its centre of mass; a static or
+    kinematic body keeps the mesh's own frame.
+
     Args:
-        mesh: closed triangle mesh (watertight, consistently wound) for dynamic bodies; any mesh otherwise.
+        mesh: closed triangle mesh (watertight, consistently wound; a shell facing inward is a cavity inside an
+            outward one) for dynamic bodies; any mesh otherwise.
         kind: "dynamic", "static" or "kinematic".
         density: [kg/m^3], dynamic bodies only; mass = density * volume.
         max_edge: refine triangles longer than this when building the contact hierarchy (see :class:`BSH`).
@@ -107,7 +112,9 @@ def rigid_body(
     Raises:
         TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
         ValueError: unknown kind, non-positive density, a mesh with NaN/inf vertices or degenerate (zero-area)
-            faces, or a dynamic mesh that is not a watertight closed volume or that intersects itself.
+            faces, a ``max_edge`` that would split it into more than 2,000,000 triangles, or a dynamic mesh that
+            is not a watertight closed volume, that intersects itself, or whose shells would miscount its solid
+            (one facing outward inside another, one facing inward inside none).
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -148,14 +155,17 @@ def rigid_body(
         import trimesh
 
         labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(Fc))
-        inner = nested_component(V, Fc, labels)
-        if inner is not None:
+        found = miscounted_component(V, Fc, labels)
+        if found is not None:
+            k, inward = found
+            where = f"(component {k}, faces {str(np.flatnonzero(labels == k)[:3].tolist())[1:-1]}, ...)"
             raise ValueError(
-                f"mesh of a dynamic body has a closed shell inside another, both facing outward (component {inner}, "
-                "faces "
-                + str(np.flatnonzero(labels == inner)[:3].tolist())[1:-1]
-                + ", ...): its volume would be "
-                "counted twice; a cavity's shell must face inward"
+                f"mesh of a dynamic body has a closed shell facing inward outside every outward one {where}: its "
+                "solid would count as negative mass; a shell facing inward is a cavity and must lie inside the "
+                "solid it hollows (mesh.invert() the shell if it is a part)"
+                if inward
+                else f"mesh of a dynamic body has a closed shell inside another, both facing outward {where}: its "
+                "volume would be counted twice; a cavity's shell must face inward"
             )
     # the mass properties of the mesh moved to its bounding box's centre: the volume integrals' sums cancel no
     # digits against a far origin
@@ -183,12 +193,6 @@ def _edges(bsh: BSH) -> np.ndarray:
     """(F, 3) edge lengths of each triangle."""
     T = bsh.triangles.numpy()
     return np.linalg.norm(T[:, [1, 2, 0]] - T, axis=-1)
-
-
-def _refined_faces(longest: np.ndarray, edge: float) -> int:
-    """Faces after midpoint splits until no edge exceeds ``edge`` (each split level quarters a face)."""
-    levels = np.ceil(np.log2(np.maximum(longest / edge, 1.0)))
-    return int((4.0**levels).sum())
 
 
 def refine_obstacles(
@@ -219,9 +223,9 @@ def refine_obstacles(
         longest = _edges(b.bsh).max(1)
         if not longest.max() > 2.0 * edge:  # not much coarser: one split would give no real saving
             continue
-        if _refined_faces(longest, edge) > MAX_REFINED_FACES:
+        if refined_faces(longest, edge) > MAX_REFINED_FACES:
             wanted = edge
-            while _refined_faces(longest, edge) > MAX_REFINED_FACES:
+            while refined_faces(longest, edge) > MAX_REFINED_FACES:
                 edge *= math.sqrt(2.0)
             warnings.warn(
                 f"body {k}: refining this obstacle to edges of {wanted:.3g} m (refine_obstacles={factor} x its "

@@ -443,6 +443,9 @@ class Scene:
     def initial_state(self, poses: torch.Tensor, velocities: torch.Tensor | None = None) -> State:
         """State at rest (or moving with constant generalised ``velocities``) at ``poses``, both ([B,] N, 6).
 
+        A dynamic body's pose places its centre of mass (its frame, :func:`cfd_torch.rigid_body`); a static or
+        kinematic body's places its mesh's own frame.
+
         The velocities are rates of the pose coordinates: the translation's (m/s), and the rotation vector's (its
         rate of change, q_prev = poses - dt velocities), which equals the angular velocity only where the rotation
         vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis)."""
