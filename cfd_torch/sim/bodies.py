@@ -149,7 +149,8 @@ def rigid_body(
     if hit is not None:
         raise ValueError(
             f"mesh of a dynamic body intersects itself: faces {hit[0]} and {hit[1]} (which share no vertex) "
-            "intersect or touch; its volume and mass properties would be wrong"
+            "intersect or touch; its shells must be disjoint closed surfaces (parts that touch merged into one), "
+            "or its volume, mass properties and contact could be wrong"
         )
     if mesh.body_count > 1:
         import trimesh
