@@ -399,7 +399,9 @@ def test_scene_and_body_settings_of_the_wrong_kind_are_refused():
     with _says("max_edge must be a finite number > 0"):
         BSH.from_trimesh(trimesh.creation.box((1.0, 1.0, 1.0)), max_edge="0.1")
     # (it ran a 23 GB machine out of memory, splitting 12 triangles towards 2e8)
-    with _says("max_edge=0.0001 would split the mesh's 12 triangles into about 2.01e+08 (more than 2,000,000"):
+    with _says(
+        "max_edge=0.0001 would split the mesh's 12 triangles into about 2.01e+08 (more than 2,000,000"
+    ):
         rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), max_edge=1e-4)
     P = torch.tensor([[0.0] * 6, [1.1, 0, 0, 0, 0, 0]], dtype=F64)
     with _says("static must be N = 2 booleans"):
@@ -597,6 +599,17 @@ def test_non_float_action_names_the_field(scene, state, field, dtype):
         x.requires_grad_()
     with _raises(f"action.{field} must be float32 or float64"):
         step(scene, state, Action(**{field: x}))
+
+
+def test_a_non_finite_target_names_the_kinematic_body(scene, state):
+    """action.target's rows are the kinematic bodies: a NaN in row 0 names body 2 (the paddle), batched with its
+    scene (the message named "body (0,)")."""
+    target = torch.tensor([[-0.3, 0.0, float("nan"), 0.0, 0.0, 0.0]], dtype=F64)
+    with _says("action.target contains NaN or inf (first at body 2)"):
+        step(scene, state, Action(target=target))
+    batch = State(state.q.expand(2, -1, -1), state.q_prev.expand(2, -1, -1))
+    with _says("action.target contains NaN or inf (first at scene 1, body 2)"):
+        step(scene, batch, Action(target=torch.stack([state.q[2:3], target])))
 
 
 def test_action_must_be_an_action(scene, state):
@@ -876,7 +889,7 @@ def test_rotation_vectors_beyond_a_million_radians_are_refused():
     far = torch.tensor([[0.0, 0, 0, 0, 0, 1e30]], dtype=F64)
     with _says("state.q has a rotation vector longer than 1e+06 rad (first at body 0)"):
         step(scene, State(far, far.clone()))
-    with _says("state.q_prev has a rotation vector longer than 1e+06 rad (first at scene, body (1, 0))"):
+    with _says("state.q_prev has a rotation vector longer than 1e+06 rad (first at scene 1, body 0)"):
         step(scene, State(q.expand(2, -1, -1), torch.stack([q, far])))
 
 

@@ -13,7 +13,7 @@ from .._validate import FLOATS
 from .feasibility import contained
 from .types import Params
 
-__all__ = ["check_state_tensor", "check_params", "check_targets_clear"]
+__all__ = ["check_state_tensor", "check_params", "check_targets_clear", "first_row"]
 
 
 def check_state_tensor(
@@ -25,10 +25,12 @@ def check_state_tensor(
     *,
     like: torch.Tensor | None = None,
     like_name: str = "state.q",
+    bodies: list[int] | None = None,
 ) -> None:
     """x must be a finite float tensor of shape (n, cols) or (B, n, cols) (B = ``batch`` when given; ``batch=0``: no
     batch dimension allowed), with the dtype and device of ``like`` (named ``like_name``) when given. Devices and
-    dtypes are compared before any value is read, so a tensor on another device fails here, not inside a kernel."""
+    dtypes are compared before any value is read, so a tensor on another device fails here, not inside a kernel.
+    ``bodies``: the scene's body of each of the n rows (default: row k is body k), for the messages."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     ok = (
@@ -54,9 +56,17 @@ def check_state_tensor(
     with outside_transforms():  # (values read from the plain tensor: the check runs under torch.func.vmap)
         bad = ~torch.isfinite(plain(x)).all(-1)
         if bool(bad.any()):
-            at = tuple(int(i) for i in torch.nonzero(bad)[0])
-            where = {1: "body", 2: "scene, body"}.get(bad.dim(), "index")  # (vmap adds dimensions in front)
-            raise ValueError(f"{name} contains NaN or inf (first at {where} {at})")
+            raise ValueError(f"{name} contains NaN or inf (first at {first_row(bad, bodies)})")
+
+
+def first_row(bad: torch.Tensor, bodies: list[int] | None = None) -> str:
+    """Where the (n,) or (B, n) mask ``bad`` is first True: "body i" or "scene b, body i" (``bodies``: the scene's
+    body of each row; default the row itself); "index (...)" for more dimensions (vmap adds them in front)."""
+    at = [int(i) for i in torch.nonzero(bad)[0]]
+    if bad.dim() not in (1, 2):
+        return f"index {tuple(at)}"
+    body = at[-1] if bodies is None else bodies[at[-1]]
+    return f"body {body}" if bad.dim() == 1 else f"scene {at[0]}, body {body}"
 
 
 def check_params(

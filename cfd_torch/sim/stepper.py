@@ -21,7 +21,7 @@ import torch
 from .._autograd import outside_transforms, plain, refuse_derivative, refuse_transforms
 from .._geometry import frame_origin
 from .._validate import is_int
-from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear
+from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear, first_row
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
 from .feasibility import infeasible_pairs
@@ -275,11 +275,9 @@ def _check_start(scene: Scene, state: State) -> None:
         with outside_transforms():
             turns = plain(x).detach()[..., 3:].norm(dim=-1) > _MAX_ROTATION
         if bool(turns.any()):
-            at = tuple(int(i) for i in torch.nonzero(turns)[0])
             raise ValueError(
-                f"{name} has a rotation vector longer than {_MAX_ROTATION:g} rad (first at "
-                f"{'scene, body' if len(at) == 2 else 'body'} {at if len(at) == 2 else at[0]}): its float64 "
-                "spacing there is too coarse for a step's rotation; wrap it to the same rotation "
+                f"{name} has a rotation vector longer than {_MAX_ROTATION:g} rad (first at {first_row(turns)}): its "
+                "float64 spacing there is too coarse for a step's rotation; wrap it to the same rotation "
                 "(cfd_torch.recentre_rotation)"
             )
     if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
@@ -377,7 +375,9 @@ def step(
     K = scene.num_kinematic_bodies
     kin = scene.kinematic.to(dev)
     target = action.target if action.target is not None else state.q[..., kin[:K], :]
-    check_state_tensor(target, "action.target", K, 6, B if batched else 0, like=state.q)
+    check_state_tensor(
+        target, "action.target", K, 6, B if batched else 0, like=state.q, bodies=scene.kinematic[:K].tolist()
+    )
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else None, state.q)
