@@ -335,9 +335,7 @@ def miscounted_component(
     lo = np.array([tri[labels == k].reshape(-1, 3).min(0) for k in comps])
     hi = np.array([tri[labels == k].reshape(-1, 3).max(0) for k in comps])
     # signed volume of each component (negative: wound inward)
-    volume = np.array(
-        [np.einsum("ij,ij->i", tri[labels == k, 0], cross[labels == k]).sum() / 6.0 for k in comps]
-    )
+    volume = np.bincount(labels, weights=np.einsum("ij,ij->i", tri[:, 0], cross) / 6.0)[comps]
     # an outward component can lie inside another only within its bounding box: test those, and every inward one
     within = ((lo[:, None] >= lo[None]) & (hi[:, None] <= hi[None])).all(2)
     np.fill_diagonal(within, False)

@@ -37,6 +37,11 @@ def _check_shell_arguments(render_mode: str | None, width: int, height: int) -> 
             raise ValueError(f"{name} must be a positive int [pixels], got {v!r}")
 
 
+def _core_seed(rng: np.random.Generator, seed: int | None) -> int:
+    """The core seed of a reset: ``seed`` as given, else one drawn from the environment's generator."""
+    return int(rng.integers(_SEED_HIGH)) if seed is None else int(seed)
+
+
 def _fps(core: TaskCore) -> int:
     """Frames per second of a rollout played at its own pace (at least 1)."""
     return max(1, round(1.0 / core.scene.dt))
@@ -109,9 +114,7 @@ class CoreEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         with torch.no_grad():
-            self.state = self.core.reset(
-                int(self.np_random.integers(_SEED_HIGH)) if seed is None else int(seed)
-            )
+            self.state = self.core.reset(_core_seed(self.np_random, seed))
             obs = self.core.observe(self.state)
         return obs[0].cpu().numpy().astype(np.float64), {}
 
@@ -207,7 +210,7 @@ class CoreVectorEnv(VectorEnv):
         """A fresh environment's state and observation: the core's for ``seed``, else for a seed drawn from
         ``rng``."""
         with torch.no_grad():
-            state = self.core.reset(int(rng.integers(_SEED_HIGH)) if seed is None else seed)
+            state = self.core.reset(_core_seed(rng, seed))
             return state, self.core.observe(state)[0].cpu().numpy()
 
     @property
@@ -281,10 +284,8 @@ class CoreVectorEnv(VectorEnv):
             with torch.no_grad():
                 try:
                     out = self.core.step(stack_states([states[i] for i in idx]), a)
-                except (
-                    StepError,
-                    ValueError,
-                ) as err:  # a failed solve, a penetrating state: scene k is idx[k]
+                # a failed solve, a penetrating state: name the environment (the batch's scene k is idx[k])
+                except (StepError, ValueError) as err:
                     where = (
                         f"environment {idx[0]}"
                         if len(idx) == 1

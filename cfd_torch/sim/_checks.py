@@ -59,14 +59,15 @@ def check_state_tensor(
             raise ValueError(f"{name} contains NaN or inf (first at {first_row(bad, bodies)})")
 
 
-def first_row(bad: torch.Tensor, bodies: list[int] | None = None) -> str:
+def first_row(bad: torch.Tensor, bodies: list[int] | None = None, what: str = "body") -> str:
     """Where the (n,) or (B, n) mask ``bad`` is first True: "body i" or "scene b, body i" (``bodies``: the scene's
-    body of each row; default the row itself); "index (...)" for more dimensions (vmap adds them in front)."""
+    body of each row, default the row itself; ``what``: what a row is, e.g. "actuator"); "index (...)" for more
+    dimensions (vmap adds them in front)."""
     at = [int(i) for i in torch.nonzero(bad)[0]]
     if bad.dim() not in (1, 2):
         return f"index {tuple(at)}"
-    body = at[-1] if bodies is None else bodies[at[-1]]
-    return f"body {body}" if bad.dim() == 1 else f"scene {at[0]}, body {body}"
+    row = at[-1] if bodies is None else bodies[at[-1]]
+    return f"{what} {row}" if bad.dim() == 1 else f"scene {at[0]}, {what} {row}"
 
 
 def check_params(
@@ -113,48 +114,41 @@ def check_params(
             raise ValueError(f"params.{name} must have shape {want}, got {tuple(x.shape)}")
         fields.append(x)
     params = Params(*fields)
-    where = _Where(batched, bodies, shared)
+
+    def refuse(bad: torch.Tensor, message: str, name: str) -> None:
+        """Raise ``message`` with where ``bad`` ((B,) or (B, K) over the scenes and the field's bodies or
+        actuators) is first True; the scene only for a field given per scene in a batch."""
+        if not bool(bad.any()):
+            return
+        if not batched or name in shared:
+            bad = bad.any(0)  # alike in every scene
+        if bad.dim() == 0:
+            raise ValueError(message)
+        what = {"friction": "scene", "kp": "actuator", "kv": "actuator"}.get(name, "body")
+        raise ValueError(f"{message} (first at {first_row(bad, bodies if what == 'body' else None, what)})")
+
     for name in shapes:
         x = getattr(params, name).detach()
-        where.raise_if(
+        refuse(
             ~torch.isfinite(x.flatten(-2)).all(-1) if name == "second_moment" else ~torch.isfinite(x),
             f"params.{name} contains NaN or inf",
             name,
         )
-    where.raise_if(params.mass.detach() <= 0, "params.mass must be positive", "mass")
-    where.raise_if(params.friction.detach() < 0, "params.friction must be >= 0", "friction")
+    refuse(params.mass.detach() <= 0, "params.mass must be positive", "mass")
+    refuse(params.friction.detach() < 0, "params.friction must be >= 0", "friction")
     servo = torch.ones(U, dtype=torch.bool) if servos is None else servos
     for name in ("kp", "kv"):
-        negative = (getattr(params, name).detach() < 0) & servo.to(device)
-        where.raise_if(negative, f"params.{name} must be >= 0 (a servo gain)", name)
-    where.raise_if(
+        refuse(
+            (getattr(params, name).detach() < 0) & servo.to(device),
+            f"params.{name} must be >= 0 (a servo gain)",
+            name,
+        )
+    refuse(
         ~_physical(params.second_moment),
         "params.second_moment must be positive semi-definite with a positive definite inertia",
         "second_moment",
     )
     return params
-
-
-class _Where:
-    """Raises a check's message with where it first fails: the scene (of a field given per scene in a batch), the
-    body or the actuator."""
-
-    def __init__(self, batched: bool, bodies: list[int] | None, shared: set[str]):
-        self.batched, self.bodies, self.shared = batched, bodies, shared
-
-    def raise_if(self, bad: torch.Tensor, message: str, field: str) -> None:
-        """``bad`` (B,) or (B, K) bool over the field's scenes and entries (bodies or actuators)."""
-        if not bool(bad.any()):
-            return
-        at = torch.nonzero(bad)[0].tolist()
-        parts = [f"scene {at[0]}"] if self.batched and field not in self.shared else []
-        if len(at) > 1:
-            k = at[1]
-            if field in ("kp", "kv"):
-                parts.append(f"actuator {k}")
-            else:
-                parts.append(f"body {self.bodies[k] if self.bodies is not None else k}")
-        raise ValueError(f"{message} (first at {', '.join(parts)})" if parts else message)
 
 
 def _physical(S: torch.Tensor) -> torch.Tensor:

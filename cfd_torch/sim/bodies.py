@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from .._validate import check_mesh, closed_surface, is_real, miscounted_component, self_intersection
-from ..contact.bsh import BSH, refined_faces
+from ..contact.bsh import BSH, edge_lengths, refined_faces
 from ._checks import physical_second_moment
 
 __all__ = ["RigidBody", "rigid_body", "refine_obstacles", "KINDS"]
@@ -190,12 +190,6 @@ def rigid_body(
 MAX_REFINED_FACES = 200_000
 
 
-def _edges(bsh: BSH) -> np.ndarray:
-    """(F, 3) edge lengths of each triangle."""
-    T = bsh.triangles.numpy()
-    return np.linalg.norm(T[:, [1, 2, 0]] - T, axis=-1)
-
-
 def refine_obstacles(
     bodies: Sequence[RigidBody], pairs: torch.Tensor, factor: float
 ) -> tuple[RigidBody, ...]:
@@ -210,7 +204,9 @@ def refine_obstacles(
     slots stay shared; dynamic bodies are never changed.
     """
     bodies = tuple(bodies)
-    longest_edge = {id(b): float(_edges(b.bsh).max()) for b in bodies if b.kind == "dynamic"}
+    longest_edge = {
+        id(b): float(edge_lengths(b.bsh.triangles.numpy()).max()) for b in bodies if b.kind == "dynamic"
+    }
     out = list(bodies)
     done: dict[tuple[int, float], RigidBody] = {}
     for k, b in enumerate(bodies):
@@ -221,7 +217,7 @@ def refine_obstacles(
         if not scales:
             continue
         edge = factor * min(scales)
-        longest = _edges(b.bsh).max(1)
+        longest = edge_lengths(b.bsh.triangles.numpy()).max(1)
         if not longest.max() > 2.0 * edge:  # not much coarser: one split would give no real saving
             continue
         if refined_faces(longest, edge) > MAX_REFINED_FACES:

@@ -161,16 +161,9 @@ def _solve_in_groups(
     for idx in members:
         pick = lambda x, idx=idx: x.index_select(0, idx)  # noqa: E731
         try:
+            part = State(pick(state.q), pick(state.q_prev))
             outs.append(
-                _solve(
-                    scene,
-                    State(pick(state.q), pick(state.q_prev)),
-                    pick(force),
-                    pick(torque),
-                    pick(target),
-                    pick(ctrl),
-                    Params(*(pick(x) for x in params)),
-                )  # fmt: skip
+                _solve(scene, part, *map(pick, (force, torque, target, ctrl)), Params(*map(pick, params)))
             )
         except StepError as err:  # say which scenes of the batch the group holds
             raise StepError(f"scenes {idx.tolist()} of the batch, solved in their own frame: {err}") from err
