@@ -7,7 +7,7 @@ Names are unambiguous: ``stiffness`` is the contact coefficient mu of the potent
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 from ._validate import check_count, is_real
@@ -102,7 +102,25 @@ class ContactConfig:
         _count("ContactConfig", "pair_max_iter", self.pair_max_iter)
         if self.split not in SPLIT_RULES:
             raise ValueError(f"ContactConfig.split must be one of {SPLIT_RULES}, got {self.split!r}")
+        # a setting the chosen potential does not read must keep its default (it would be silently ignored)
+        unused = _BASELINE_ONLY if self.potential == "cfd" else _CFD_ONLY
+        changed = [n for n in unused if getattr(self, n) != _CONTACT_DEFAULTS[n]]
+        if changed:
+            names = ", ".join(f"{n} (Scene's {_SHORT.get(n, n)}=)" for n in changed)
+            whose = "the baselines' barrier" if self.potential == "cfd" else "this library's potential"
+            raise ValueError(
+                f"ContactConfig {names} {'sets' if len(changed) == 1 else 'set'} {whose}, which "
+                f"potential={self.potential!r} does not use: leave "
+                f"{'it' if len(changed) == 1 else 'them'} at the default"
+            )
 
+
+# the settings only one kind of potential reads (``margin`` is the SDRS barrier's too, and a length scale of the
+# step's line search for every potential)
+_CFD_ONLY = ("stiffness", "eps", "split", "pair_tol", "pair_max_iter", "backend", "refine_obstacles")
+_BASELINE_ONLY = ("dhat", "barrier_stiffness")
+_SHORT = {"stiffness": "mu"}
+_CONTACT_DEFAULTS = {f.name: f.default for f in fields(ContactConfig)}
 
 DEFAULT_CONTACT = ContactConfig()  # the contact functions' keyword defaults read this (no literal elsewhere)
 

@@ -108,7 +108,7 @@ class BilliardsCore(TaskCore):
             substeps=8,
             planar=True,
             potential=potential,
-            dhat=dhat,
+            **({} if potential == "cfd" else {"dhat": dhat}),
             pair_eps={(15, k): eps for k in range(15)} if potential == "cfd" else None,
         )
         super().__init__(scene, device=device, dtype=dtype)

@@ -42,6 +42,23 @@ def _touching_at(model, q: torch.Tensor, direction: torch.Tensor, gap: float) ->
     return out
 
 
+def _ipctk_reference(ipctk, bshes, F: np.ndarray, q: torch.Tensor, dhat: float, kappa: float):
+    """ipc-toolkit's BarrierPotential of the bodies at poses q (2, 6), chained to the poses: value, J^T g,
+    J^T H J + g . d2V, and the number of its collisions."""
+    V = _world(bshes, q).numpy()
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    mesh.can_collide = ipctk.make_connected_components_filter(F)
+    C = ipctk.NormalCollisions()
+    C.build(mesh, V, dhat)
+    B = ipctk.BarrierPotential(dhat, kappa)
+    g = torch.tensor(B.gradient(C, mesh, V))
+    H = torch.tensor(B.hessian(C, mesh, V).toarray())
+    x = q.reshape(-1)
+    J = torch.autograd.functional.jacobian(lambda z: _world(bshes, z.reshape(2, 6)).reshape(-1), x)
+    Hg = torch.autograd.functional.hessian(lambda z: _world(bshes, z.reshape(2, 6)).reshape(-1) @ g, x)
+    return B(C, mesh, V), J.T @ g, J.T @ H @ J + Hg, len(C)
+
+
 def test_ipc_matches_ipc_toolkit_on_random_configurations():
     """Value, pose gradient and pose Hessian of an icosphere and a box in random relative poses within dhat equal
     ipc-toolkit 1.6.1's BarrierPotential on the world vertices, chained to the poses (J^T g and J^T H J + g . d2V),
@@ -60,26 +77,49 @@ def test_ipc_matches_ipc_toolkit_on_random_configurations():
         d = torch.randn(3, generator=gen, dtype=F64)
         q = _touching_at(model, q, d / d.norm(), float(torch.rand(1, generator=gen)) * 0.8 * dhat)
         ev = model.evaluate(q[None], PAIR, 2)
-        V = _world(bshes, q).numpy()
-        mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
-        mesh.can_collide = ipctk.make_connected_components_filter(F)
-        C = ipctk.NormalCollisions()
-        C.build(mesh, V, dhat)
-        B = ipctk.BarrierPotential(dhat, kappa)
-        g = torch.tensor(B.gradient(C, mesh, V))
-        H = torch.tensor(B.hessian(C, mesh, V).toarray())
-        x = q.reshape(-1)
-        J = torch.autograd.functional.jacobian(lambda z: _world(bshes, z.reshape(2, 6)).reshape(-1), x)
-        Hg = torch.autograd.functional.hessian(
-            lambda z, g=g: _world(bshes, z.reshape(2, 6)).reshape(-1) @ g, x
-        )
-        assert len(C) > 0 and float(ev.value[0]) > 0
-        assert float(ev.value[0]) == pytest.approx(B(C, mesh, V), rel=1e-12)
-        gq, Hq = J.T @ g, J.T @ H @ J + Hg
+        value, gq, Hq, count = _ipctk_reference(ipctk, bshes, F, q, dhat, kappa)
+        assert count > 0 and float(ev.value[0]) > 0
+        assert float(ev.value[0]) == pytest.approx(value, rel=1e-12)
         assert float((ev.grad[0] - gq).abs().max()) <= 1e-12 * float(gq.abs().max())
         assert float((ev.hess[0] - Hq).abs().max()) <= 1e-12 * float(Hq.abs().max())
         checked += 1
     assert checked == 4
+
+
+def test_ipc_closest_features_follow_ipc_toolkit_at_ties():
+    """Where two closest features are equally near (a point over a triangle's edge or vertex, edges crossing at an
+    end, parallel edges: every coordinate an integer, so the ties are exact), the distance is the same but its
+    Hessian is not: the classification follows ipc-toolkit's ``point_triangle_distance_type`` and
+    ``edge_edge_distance_type`` exactly (it differed at 3 % of such configurations). Then a box lying square on a
+    floor (its corners over the floor's edges and vertices) has ipc-toolkit's pose Hessian (it was 4 % off)."""
+    ipctk = pytest.importorskip("ipctk")
+    from cfd_torch.contact.ipc import _classify_ee, _classify_vf
+
+    vf_kinds = ["P_T", "P_E0", "P_E1", "P_E2", "P_T0", "P_T1", "P_T2"]
+    ee_kinds = ["EA_EB", "EA0_EB", "EA1_EB", "EA_EB0", "EA_EB1", "EA0_EB0", "EA0_EB1", "EA1_EB0", "EA1_EB1"]
+    rng = np.random.default_rng(0)
+    x = rng.integers(-2, 3, size=(6000, 4, 3)).astype(np.float64)
+    x[:, 0] /= 2
+    tri = np.linalg.norm(np.cross(x[:, 2] - x[:, 1], x[:, 3] - x[:, 1]), axis=-1) > 0
+    seg = (np.abs(x[:, 1] - x[:, 0]).sum(-1) > 0) & (np.abs(x[:, 3] - x[:, 2]).sum(-1) > 0)
+    got_vf, got_ee = _classify_vf(torch.from_numpy(x[tri])), _classify_ee(torch.from_numpy(x[seg]))
+    want_vf = [vf_kinds.index(str(ipctk.point_triangle_distance_type(*r)).split(".")[-1]) for r in x[tri]]
+    want_ee = [ee_kinds.index(str(ipctk.edge_edge_distance_type(*r)).split(".")[-1]) for r in x[seg]]
+    assert len(want_vf) > 4000 and len(want_ee) > 4000 and len(set(want_ee)) == 9 and len(set(want_vf)) == 7
+    assert got_vf.tolist() == want_vf
+    assert got_ee.tolist() == want_ee
+
+    floor, box = trimesh.creation.box((1.0, 1.0, 0.1)), trimesh.creation.box((0.2, 0.2, 0.2))
+    bshes = (BSH.from_trimesh(floor), BSH.from_trimesh(box))
+    F = np.concatenate([floor.faces, box.faces + len(floor.vertices)])
+    q = torch.zeros(2, 6, dtype=F64)
+    q[1, 2] = 0.15 + 0.005
+    ev = IpcContact(bshes, 0.02, 1e6).evaluate(q[None], PAIR, 2)
+    value, g, H, count = _ipctk_reference(ipctk, bshes, F, q, 0.02, 1e6)
+    assert count > 0 and value > 0
+    assert float(ev.value[0]) == pytest.approx(value, rel=1e-12)
+    assert float((ev.grad[0] - g).abs().max()) <= 1e-12 * float(g.abs().max())
+    assert float((ev.hess[0] - H).abs().max()) <= 1e-12 * float(H.abs().max())
 
 
 def test_ipc_vanishes_beyond_dhat_where_ours_does_not():
@@ -305,3 +345,37 @@ def test_baseline_friction_rollout_gradient_matches_finite_differences(potential
         with torch.no_grad():
             fd = (final(theta + e) - final(theta - e)) / (2 * h)
         assert float(g[k]) == pytest.approx(float(fd), rel=rel[k]), k
+
+
+def test_settings_a_potential_does_not_read_are_refused_and_penetration_names_its_limit():
+    """A setting the chosen potential does not read is refused unless at its default (they were silently
+    ignored); a penetrating start state is refused with what +inf means for the model: IPC's barrier at contact,
+    SDRS's and ours within the margin (the IPC message quoted a margin IPC does not have)."""
+    floor = trimesh.creation.box((2.0, 2.0, 0.2))
+    floor.apply_translation((0.0, 0.0, -0.1))
+    bodies = [_box(0.2), rigid_body(floor, kind="static")]
+    for kw, match in (
+        (
+            {"potential": "ipc", "mu": 1e-6},
+            "stiffness \\(Scene's mu=\\) sets this library's potential, which ",
+        ),
+        ({"potential": "sdrs", "eps": 0.1, "refine_obstacles": None}, "eps .*refine_obstacles .* set this "),
+        (
+            {"dhat": 0.05},
+            "dhat \\(Scene's dhat=\\) sets the baselines' barrier, which potential='cfd' does not",
+        ),
+        ({"barrier_stiffness": 5.0}, "barrier_stiffness"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            Scene(bodies, **kw)
+    assert (
+        Scene(bodies, potential="ipc", margin=2e-3, dhat=0.02).contact.margin == 2e-3
+    )  # (the line search's)
+    q = torch.tensor([[0.0, 0.0, 0.0995, 0.0, 0.0, 0.0], [0.0] * 6], dtype=F64)  # 0.5 mm into the floor
+    for potential, match in (
+        ("ipc", "bodies penetrate \\(touching or intersecting\\)"),
+        ("sdrs", "bodies penetrate \\(within the contact margin 0.001\\)"),
+        ("cfd", "bodies penetrate \\(within the contact margin 0.001\\)"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            step(Scene(bodies, potential=potential), State(q, q.clone()))

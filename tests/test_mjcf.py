@@ -4,6 +4,7 @@ refusals."""
 
 import importlib.resources
 import math
+import warnings
 
 import mujoco
 import numpy as np
@@ -351,6 +352,41 @@ def test_unnamed_bodies_and_settotalmass(asset: str) -> None:
     assert load_mjcf(_one_body('<joint name="h"/>', name="")).links[1].name == "a/0"
 
 
+def test_unnamed_bodies_and_includes_keep_the_text_as_written(tmp_path) -> None:
+    """A model with an unnamed body or an <include> loads from its own text (bodies named, includes inlined), not
+    from MuJoCo's rewrite of it, which drops settotalmass and inertiagrouprange and rounds numbers to 6 digits:
+    masses, inertias, ranges and refs against MuJoCo compiled from the user's file (the rewrite gave 219.67 kg for a
+    3.67 kg link, ranges off by 1e-7); the refusals read the same text."""
+    inner = """<body NAME pos="0.5 0 0" euler="17 23 41"><joint name="j1" range="-33 47" ref="11"/>
+      <geom type="capsule" size="0.05 0.2" group="1"/><geom type="box" size="0.3 0.3 0.3" contype="0"
+      conaffinity="0"/><inertial pos="0.1 -0.2 0.3" mass="1.5" fullinertia="0.1 0.2 0.25 0.01 -0.02 0.03"/></body>"""
+    head = '<mujoco><compiler settotalmass="10" inertiagrouprange="1 3" inertiafromgeom="auto"/><worldbody>'
+    xml = f'{head}<body name="r"><geom size="0.1" group="1"/>{inner}</body></worldbody></mujoco>'
+    named = inner.replace("NAME", 'name="a"')
+    (tmp_path / "parts.xml").write_text(f"<mujocoinclude>{named}</mujocoinclude>")
+    (tmp_path / "model.xml").write_text(xml.replace(inner, '<include file="parts.xml"/>'))
+    for source, name in ((xml.replace("NAME", ""), "r/0"), (str(tmp_path / "model.xml"), "a")):
+        model = load_mjcf(source)
+        m = mujoco.MjModel.from_xml_path(source) if name == "a" else mujoco.MjModel.from_xml_string(source)
+        assert [link.name for link in model.links] == ["r", name]
+        assert sum(link.mass for link in model.links) == pytest.approx(10.0, rel=1e-12)
+        for b, link in enumerate(model.links, start=1):  # (MuJoCo's body ids: world 0, r 1, its child 2)
+            assert link.mass == pytest.approx(float(m.body_mass[b]), rel=1e-12)
+            S = link.second_moment
+            moments = np.linalg.eigvalsh(np.trace(S) * np.eye(3) - S)
+            np.testing.assert_allclose(moments, np.sort(m.body_inertia[b]), rtol=1e-10)
+        assert model.joints[0].range == tuple(float(x) for x in m.jnt_range[0])
+        assert model.joints[0].ref == float(m.qpos0[0])
+        assert "<include" not in model.xml and 'settotalmass="10"' in model.xml
+    with pytest.raises(ValueError, match='compiler fusestatic="true" is not supported'):
+        load_mjcf(xml.replace("NAME", "").replace("<compiler ", '<compiler fusestatic="true" '))
+    (tmp_path / "loop.xml").write_text('<mujoco><include file="loop.xml"/></mujoco>')
+    with pytest.raises(ValueError, match="includes itself"):
+        load_mjcf(str(tmp_path / "loop.xml"))
+    with pytest.raises(ValueError, match="<include file='missing.xml'>: cannot read"):
+        load_mjcf(xml.replace(inner, '<include file="missing.xml"/>'))
+
+
 def test_refusals() -> None:
     with pytest.raises(ValueError, match="free joint 'fj' in body 'b'"):
         load_mjcf(_one_body('<freejoint name="fj"/>'))
@@ -418,6 +454,23 @@ def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() 
     ):  # (the link masses lost the dropped geoms' or merged bodies')
         with pytest.raises(ValueError, match=f'compiler {option}="true" is not supported'):
             load_mjcf(free.replace("<mujoco>", f'<mujoco><compiler {option}="true"/>'))
+    disabled = body.replace("<mujoco>", '<mujoco><option actuatorgroupdisable="2"/>').replace(
+        "</worldbody>", '</worldbody><actuator><motor name="m" joint="h" group="2"/></actuator>'
+    )
+    with pytest.raises(
+        ValueError, match="actuator 'm': its group 2 is disabled by <option actuatorgroupdisable>"
+    ):
+        load_mjcf(disabled)  # (its torque was applied: MuJoCo applies none)
+    pid = body.replace(
+        "<mujoco>",
+        '<mujoco><extension><plugin plugin="mujoco.pid"><instance name="p"><config key="kp" value="40"/>'
+        "</instance></plugin></extension>",
+    ).replace(
+        "</worldbody>",
+        '</worldbody><actuator><plugin joint="h" plugin="mujoco.pid" instance="p"/></actuator>',
+    )
+    with pytest.raises(ValueError, match="actuator plugins \\(such as mujoco.pid\\) are not supported"):
+        load_mjcf(pid)  # (it loaded as a motor, torque = ctrl)
     tendon = '<tendon><fixed name="t" frictionloss="5"><joint joint="h" coef="1"/></fixed></tendon>'
     with pytest.raises(ValueError, match="tendon 't': .*frictionloss are not supported"):
         load_mjcf(body.replace("</worldbody>", "</worldbody>" + tendon))
@@ -451,6 +504,21 @@ def test_keyframes_other_bodies_actuators_and_the_model_friction() -> None:
     mixed = xml.replace('<geom size="0.1"/></body></body>', '<geom size="0.1" friction="0.5"/></body></body>')
     with pytest.warns(UserWarning, match="geom friction differs"):
         assert load_mjcf(mixed, root="a").friction is None
+    # geoms MuJoCo never collides do not count, unless they are all their link has (then they collide here)
+    visual = mixed.replace('friction="0.5"', 'friction="0.5" contype="0" conaffinity="0"')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert (
+            load_mjcf(
+                visual.replace("</body></body>", '<geom size="0.02"/></body></body>'), root="a"
+            ).friction
+            == 1
+        )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert load_mjcf(visual, root="a").friction is None
+    messages = " | ".join(str(w.message) for w in caught)
+    assert "contype = conaffinity = 0" in messages and "colliding geoms (0.5, 1.0)" in messages, messages
 
 
 def test_gymnasium_ant_with_servos() -> None:

@@ -41,6 +41,8 @@ __all__ = ["IpcContact", "ipc_barrier_derivatives"]
 
 #: edge-edge mollifier threshold factor (ipc-toolkit's ``edge_edge_mollifier_threshold``)
 _MOLLIFIER = 1e-3
+#: sin^2 of the angle below which two edges are parallel (ipc-toolkit's ``edge_edge_distance_type``)
+_PARALLEL = 2.5e-16
 
 
 def ipc_barrier_derivatives(x: torch.Tensor, xhat: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -120,46 +122,59 @@ def _energy(x: torch.Tensor, kind: torch.Tensor, eps_x: torch.Tensor, edge: torc
 
 
 def _classify_vf(x: torch.Tensor) -> torch.Tensor:
-    """(C,) the closest feature (0-6, as ``_vf_distance2``) of triangles x[:, 1:4] to points x[:, 0]."""
+    """(C,) the closest feature (0-6, as ``_vf_distance2``) of triangles x[:, 1:4] to points x[:, 0], by
+    ipc-toolkit's rule (``point_triangle_distance_type``), ties included: a point whose projection lies on an edge's
+    line or beyond it, within the edge's span, is that edge's (tested in the order ab, bc, ca); else a vertex whose
+    two edges' spans it lies beyond; else the plane. (At a tie the distances agree but the Hessians do not.)"""
     p, a, b, c = x.unbind(1)
-    ab, ac = b - a, c - a
-    # barycentric coordinates of the projection onto the plane
-    n = torch.linalg.cross(ab, ac)
-    nn = (n * n).sum(-1)
-    u = (torch.linalg.cross(b - p, c - p) * n).sum(-1) / nn
-    v = (torch.linalg.cross(c - p, a - p) * n).sum(-1) / nn
-    w = 1.0 - u - v
-    inside = (u >= 0) & (v >= 0) & (w >= 0)
-    # otherwise the nearest of the three edges (segments: clamped), reported as the edge's line or an endpoint
-    edges = [(a, b, 1, 4, 5), (b, c, 2, 5, 6), (c, a, 3, 6, 4)]
-    best = torch.full_like(nn, float("inf"))
-    kind = torch.zeros_like(nn, dtype=torch.long)
-    for e0, e1, line, k0, k1 in edges:
+    n = torch.linalg.cross(b - a, c - a)
+    along = []  # each edge's parameter of the point along it
+    kind = torch.zeros(len(x), dtype=torch.long, device=x.device)
+    found = torch.zeros(len(x), dtype=torch.bool, device=x.device)
+    for k, (e0, e1) in enumerate(((a, b), (b, c), (c, a))):
         e = e1 - e0
-        s = (((p - e0) * e).sum(-1) / (e * e).sum(-1)).clamp(0.0, 1.0)
-        d = ((p - e0 - s[:, None] * e) ** 2).sum(-1)
-        k = torch.where(s <= 0, k0, torch.where(s >= 1, k1, line))
-        better = d < best
-        best, kind = torch.where(better, d, best), torch.where(better, k, kind)
-    return torch.where(inside, torch.zeros_like(kind), kind)
+        out = torch.linalg.cross(e, n)  # in the plane, away from the triangle
+        s = ((p - e0) * e).sum(-1) / (e * e).sum(-1)
+        beyond = ((p - e0) * out).sum(-1) >= 0
+        along.append(s)
+        hit = ~found & (s > 0) & (s < 1) & beyond
+        kind, found = torch.where(hit, k + 1, kind), found | hit
+    for k, (after, before) in enumerate(((0, 2), (1, 0), (2, 1))):  # vertex a: before edge ab, after edge ca
+        hit = ~found & (along[after] <= 0) & (along[before] >= 1)
+        kind, found = torch.where(hit, k + 4, kind), found | hit
+    return kind
 
 
 def _classify_ee(x: torch.Tensor) -> torch.Tensor:
-    """(C,) the closest feature pair (0-8, as ``_ee_distance2``) of segments x[:, 0:2] and x[:, 2:4]."""
+    """(C,) the closest feature pair (0-8, as ``_ee_distance2``) of segments x[:, 0:2] and x[:, 2:4], by
+    ipc-toolkit's rule (``edge_edge_distance_type``), ties included: edges with sin^2 of their angle below
+    ``_PARALLEL`` are parallel, classified by where edge b's ends project onto edge a."""
     a0, a1, b0, b1 = x.unbind(1)
     u, v, w = a1 - a0, b1 - b0, a0 - b0
     a, b, c, d, e = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1), (u * w).sum(-1), (v * w).sum(-1)
     den = a * c - b * b
-    parallel = den <= 1e-14 * a * c
-    s = torch.where(parallel, torch.zeros_like(a), (b * e - c * d) / _safe(den)).clamp(0.0, 1.0)
-    t = (b * s + e) / c
-    t_cl = t.clamp(0.0, 1.0)
-    s = torch.where((t < 0) | (t > 1), ((b * t_cl - d) / a).clamp(0.0, 1.0), s)
-    t = t_cl
-    sa = torch.where(s <= 0, 0, torch.where(s >= 1, 1, 2))  # a0, a1, interior
-    tb = torch.where(t <= 0, 0, torch.where(t >= 1, 1, 2))
-    table = torch.tensor([[5, 6, 1], [7, 8, 2], [3, 4, 0]], device=x.device)
-    return table[sa, tb]
+    n = torch.linalg.cross(u, v)
+    parallel = (n * n).sum(-1) < _PARALLEL * a * c
+    # closest points' parameters s on a, t = tn / td on b; s clamped first
+    sn = b * e - c * d
+    s0, s1 = sn <= 0, sn >= den
+    tn = torch.where(s0, e, torch.where(s1, e + b, a * e - b * d))
+    td = torch.where(s0 | s1, c, den)
+    kind = torch.where(s0, 1, torch.where(s1, 2, 0))
+    at_b0 = torch.where(-d <= 0, 5, torch.where(-d >= a, 7, 3))
+    at_b1 = torch.where(b - d <= 0, 6, torch.where(b - d >= a, 8, 4))
+    kind = torch.where(tn <= 0, at_b0, torch.where(tn >= td, at_b1, kind))
+    # parallel: b's ends at alpha, beta along a; ea: 0 a0, 1 a1, 2 inside a; eb: 0 b0, 1 b1, 2 inside b
+    alpha, beta = ((b0 - a0) * u).sum(-1) / a, ((b1 - a0) * u).sum(-1) / a
+    beta_on_a = (beta >= 0) & (beta <= 1)
+    ea = torch.where(
+        alpha < 0, torch.where(beta_on_a, 2, 0), torch.where(alpha > 1, torch.where(beta_on_a, 2, 1), 2)
+    )
+    eb_below = torch.where(beta <= alpha, 0, torch.where(beta <= 1, 1, 2))
+    eb_above = torch.where(beta >= alpha, 0, torch.where(beta >= 0, 1, 2))
+    eb = torch.where(alpha < 0, eb_below, torch.where(alpha > 1, eb_above, 0))
+    by_ends = torch.where(eb < 2, torch.where(ea < 2, 5 + 2 * ea + eb, 3 + eb), 1 + ea)
+    return torch.where(parallel, by_ends, kind)
 
 
 def _closest_points(

@@ -10,7 +10,7 @@ import torch
 
 from .._autograd import outside_transforms, plain
 from .._validate import FLOATS
-from .feasibility import contained
+from .feasibility import contained, infeasible_reason
 from .types import Params
 
 __all__ = ["check_state_tensor", "check_params", "check_targets_clear", "first_row"]
@@ -198,8 +198,8 @@ def check_targets_clear(scene, q: torch.Tensor, target: torch.Tensor) -> None:
     if bool(bad.any()):
         head, _, st, where = culprit(*rows[int(torch.nonzero(bad)[0, 0])].tolist())
         raise ValueError(
-            f"{head} at its target penetrates static body {st} (is within the contact margin {scene.contact.margin} "
-            f"of it){where}; neither moves, so no step can resolve it"
+            f"{head} at its target penetrates static body {st} ({infeasible_reason(scene)}){where}; neither "
+            "moves, so no step can resolve it"
         )
     inside = contained(scene, poses, pairs=base)
     if inside:

@@ -35,6 +35,7 @@ from .energy import StepProblem
 
 __all__ = [
     "infeasible_pairs",
+    "infeasible_reason",
     "feasible",
     "penetrating",
     "displacement",
@@ -64,6 +65,23 @@ def infeasible_pairs(scene, poses: torch.Tensor, sel: torch.Tensor | None = None
 def feasible(scene, poses: torch.Tensor) -> torch.Tensor:
     """(S,) bool: whether each pose set (S, N, 6) is feasible."""
     return ~infeasible_pairs(scene, poses).any(1)
+
+
+def infeasible_reason(scene) -> str:
+    """Where the scene's contact potential is +inf, for messages: "within the contact margin 0.001" (this library's
+    potential, SDRS), "touching or intersecting" (IPC's barrier, which is finite at any positive distance), or, for
+    a model given as ``contact_model``, where that model's potential is +inf."""
+    from ..contact.cfd import CfdContact
+    from ..contact.ipc import IpcContact
+    from ..contact.sdrs import SdrsContact
+
+    model = scene.contact_model
+    if isinstance(model, IpcContact):
+        return "touching or intersecting"
+    if isinstance(model, (CfdContact, SdrsContact)):
+        margin = model.margin if isinstance(model, SdrsContact) else scene.contact.margin
+        return f"within the contact margin {margin:g}"
+    return "where the contact model's potential is +inf"
 
 
 def penetrating(scene, poses: torch.Tensor) -> str:

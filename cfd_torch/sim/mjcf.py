@@ -29,8 +29,8 @@ root joint, and physics the simulator does not model: joint
 collision mesh holds the geoms MuJoCo may collide (`contype` or `conaffinity` nonzero; every geom's mass counts);
 a link whose geoms are all visual-only keeps them, and they collide (with a warning). Which geoms collide with
 which (the bits themselves) is not modelled. Unnamed bodies are named after their parent and their
-place among its children ("aux_1/0"; `MJCFModel.xml` then holds MuJoCo's own rewrite of the file with those
-names), and `settotalmass` scales the geoms' masses as MuJoCo does.
+place among its children ("aux_1/0"; `MJCFModel.xml` then holds the text with those names and any `<include>`d
+files inlined, every attribute as written), and `settotalmass` scales the geoms' masses as MuJoCo does.
 """
 
 from __future__ import annotations
@@ -198,7 +198,7 @@ class MJCFModel:
         chain: float64 `pytorch_kinematics.Chain` built from `xml` with the root's free joint removed, or None where
             pytorch-kinematics cannot reproduce MuJoCo's kinematics (several joints on one body, or a joint
             anchor pos != 0, which it mis-handles: it translates by pos without translating back).
-        xml: the MJCF text actually used (after any patching; the free joint kept).
+        xml: the MJCF text actually used (its <include>s inlined and unnamed bodies named; the free joint kept).
         friction: the sliding friction coefficient of the model's geoms (MuJoCo's default 1 where unset) when they
             all share one, else None. The simulator has one coefficient per scene, Scene(friction=...), 0 by
             default: pass this one to simulate the model's.
@@ -301,26 +301,22 @@ def load_mjcf(
         )
     if not (is_int(cylinder_sections) and cylinder_sections >= 3):
         raise ValueError(f"cylinder_sections must be an int >= 3, got {cylinder_sections!r}")
-    # the model file's folder: asset files (meshes) are read from it at compile time, as MuJoCo does
+    # the model file's folder: asset files (meshes) and <include>d files are read from it, as MuJoCo does
     base = None
     if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
         with open(source) as f:
             xml = f.read()
         base = os.path.dirname(os.path.abspath(source))
-        try:
-            spec = _spec(xml, base)
-        except ValueError:  # <include> or assets relative to the file: MuJoCo's own rewrite holds them inline
-            spec = mujoco.MjSpec.from_file(str(source))
-            spec.compile()
-            xml = spec.to_xml()
-            spec = _spec(xml, base)
     else:
         xml = str(source)
-        spec = _spec(xml, base)
-    if _name_bodies(spec.worldbody):  # the text of the model carries the names given
-        spec.compile()
-        xml = spec.to_xml()
-        spec = _spec(xml, base)
+    xml = _prepared_xml(xml, base)
+    spec = _spec(xml, base)
+    unnamed = _unnamed_bodies(spec.worldbody)
+    if unnamed:
+        raise ValueError(
+            f"{len(unnamed)} unnamed bodies made by <replicate> or <attach> (children of {sorted(set(unnamed))[:4]}):"
+            " name them in the MJCF"
+        )
     root = _root_name(spec, root)
     _check_spec(spec)
     geom_source = _tag_geoms(spec)
@@ -377,10 +373,12 @@ def load_mjcf(
             link_bodies[link_of[b]].append(b)
 
     links = []
+    frictions: set[float] = set()  # of the geoms in collision meshes
     # the geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
     visual_only: list[str] = []
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
+        geom_ids: list[int] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
         parts: list[tuple[float, np.ndarray, np.ndarray]] = []
         for b in group:
@@ -415,11 +413,17 @@ def load_mjcf(
                     R = quat_to_matrix(geom.quat)
                     parts.append((geom.mass, geom.pos, R @ _geom_second_moment(geom) @ R.T))
                 geoms.append(geom)
+                geom_ids.append(g)
         mass, com, S = _combine(parts)
         pose = link_pose[k]
         # the collision mesh: the geoms MuJoCo may collide (contype or conaffinity nonzero); a link with none keeps
         # all of its geoms (a body needs a mesh), and they collide
         colliding = [g for g in geoms if g.contype or g.conaffinity]
+        frictions.update(
+            float(m.geom_friction[g, 0])
+            for g, geom in zip(geom_ids, geoms, strict=True)
+            if not colliding or geom.contype or geom.conaffinity
+        )
         if geoms and not colliding:
             visual_only += [g.name or f"{m.body(group[0]).name}/#{i}" for i, g in enumerate(geoms)]
         links.append(
@@ -448,7 +452,12 @@ def load_mjcf(
             stacklevel=3,
         )
     actuators = tuple(_actuator_spec(m, a, joint_index) for a in range(m.nu) if _acts_in_tree(m, a, in_tree))
-    frictions = {float(m.geom_friction[g, 0]) for g in range(m.ngeom) if int(m.geom_bodyid[g]) in in_tree}
+    if len(frictions) > 1:
+        warnings.warn(
+            f"MJCF geom friction differs between the model's colliding geoms ({', '.join(map(repr, sorted(frictions)))}"
+            "): ignored; one coefficient, Scene(friction=...), applies to every contact",
+            stacklevel=2,
+        )
     pk_ok = all(len(ids) <= 1 for ids in link_joint) and all(not np.any(j.pos) and j.ref == 0 for j in joints)
     return MJCFModel(
         name=spec.modelname,
@@ -463,16 +472,88 @@ def load_mjcf(
     )
 
 
-def _name_bodies(parent, prefix: str = "") -> bool:
-    """Name every unnamed body after its parent and its place among the parent's children ("torso/2"); whether
-    any was unnamed."""
+def _prepared_xml(xml: str, base: str | None) -> str:
+    """The MJCF text with its <include> elements replaced by the included files' elements and every unnamed body
+    named after its parent and its place among the parent's child bodies ("torso/2"; pytorch-kinematics keys frames
+    by body name); the text itself where it has neither. Attributes are kept as written: MuJoCo's own rewrite
+    (``MjSpec.to_xml``) would drop compiler options such as settotalmass and round numbers to 6 digits."""
+    try:
+        tree = ET.fromstring(xml)
+    except ET.ParseError as e:
+        raise ValueError(f"the MJCF is not well-formed XML: {e}") from None
+    changed = _inline_includes(tree, base or os.getcwd(), ())
+    for world in tree.iter("worldbody"):
+        changed = _name_body_elements(world, "") or changed
+    return ET.tostring(tree, encoding="unicode") if changed else xml
+
+
+def _inline_includes(element: ET.Element, base: str, chain: tuple[str, ...]) -> bool:
+    """Replace each <include file="..."/> below ``element`` by the children of the included file's root (MuJoCo's
+    rule; the file's path relative to the main model's folder ``base``), recursively; whether any was found."""
+    found = False
+    for parent in list(element.iter()):
+        children = list(parent)
+        if not any(c.tag == "include" for c in children):
+            continue
+        found = True
+        for i in reversed(range(len(children))):
+            include = children[i]
+            if include.tag != "include":
+                continue
+            name = include.get("file")
+            if not name:
+                raise ValueError("MJCF <include> without a file attribute")
+            path = os.path.normpath(os.path.join(base, name))
+            if path in chain:
+                raise ValueError(
+                    f"MJCF <include file={name!r}> includes itself (through {' -> '.join(chain)})"
+                )
+            try:
+                with open(path) as f:
+                    included = ET.fromstring(f.read())
+            except OSError as e:
+                raise ValueError(f"MJCF <include file={name!r}>: cannot read {path}: {e.strerror}") from None
+            except ET.ParseError as e:
+                raise ValueError(f"MJCF <include file={name!r}>: not well-formed XML: {e}") from None
+            _inline_includes(included, base, (*chain, path))
+            parent.remove(include)
+            for k, child in enumerate(list(included)):
+                parent.insert(i + k, child)
+    return found
+
+
+def _child_bodies(element: ET.Element) -> list[ET.Element]:
+    """The <body> elements directly below ``element``, looking through <frame> elements, in document order."""
+    out = []
+    for child in element:
+        if child.tag == "body":
+            out.append(child)
+        elif child.tag == "frame":
+            out += _child_bodies(child)
+    return out
+
+
+def _name_body_elements(parent: ET.Element, prefix: str) -> bool:
+    """Name every unnamed <body> below ``parent`` after its parent and its place among the parent's child bodies;
+    whether any was unnamed."""
     named = False
-    for k, body in enumerate(parent.bodies):
-        if not body.name:
-            body.name = f"{prefix or 'world'}/{k}"
+    for k, body in enumerate(_child_bodies(parent)):
+        if not body.get("name"):
+            body.set("name", f"{prefix or 'world'}/{k}")
             named = True
-        named = _name_bodies(body, body.name) or named
+        named = _name_body_elements(body, body.get("name")) or named
     return named
+
+
+def _unnamed_bodies(parent, prefix: str = "world") -> list[str]:
+    """The names of the parents of the spec's unnamed bodies (none once `_prepared_xml` has named them, unless
+    <replicate> or <attach> made them)."""
+    out = []
+    for body in parent.bodies:
+        if not body.name:
+            out.append(prefix)
+        out += _unnamed_bodies(body, body.name or f"{prefix}/?")
+    return out
 
 
 def _root_name(spec: mujoco.MjSpec, root: str | None) -> str:
@@ -551,13 +632,6 @@ def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
         warnings.warn(
             f"MJCF <contact>: {m.npair} <pair> and {m.nexclude} <exclude> elements ignored; the Scene's contact model "
             "acts between every two bodies it pairs, with one friction coefficient",
-            stacklevel=4,
-        )
-    geoms = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) in in_tree]
-    if len({float(m.geom_friction[g, 0]) for g in geoms}) > 1:
-        warnings.warn(
-            "MJCF geom friction differs between the model's geoms: ignored; one coefficient, "
-            "Scene(friction=...), applies to every contact",
             stacklevel=4,
         )
     fluid = [f"{k}={getattr(m.opt, k)}" for k in ("density", "viscosity") if float(getattr(m.opt, k)) != 0]
@@ -824,6 +898,14 @@ def _inertia_to_S(inertia: np.ndarray) -> np.ndarray:
 def _actuator_spec(m: mujoco.MjModel, a: int, joint_index: dict[int, int]) -> ActuatorSpec:
     name = m.actuator(a).name
     label = f"actuator '{name}'" if name else f"actuator #{a} (unnamed)"
+    if int(m.actuator_plugin[a]) >= 0:
+        raise ValueError(f"{label}: actuator plugins (such as mujoco.pid) are not supported")
+    group = int(m.actuator_group[a])
+    if 0 <= group < 31 and (int(m.opt.disableactuator) >> group) & 1:
+        raise ValueError(
+            f"{label}: its group {group} is disabled by <option actuatorgroupdisable> (MuJoCo applies no force from "
+            "it), which the step does not model: remove the actuator or the option"
+        )
     if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
         raise ValueError(f"{label}: only joint transmissions are supported")
     j = int(m.actuator_trnid[a, 0])

@@ -13,7 +13,16 @@ from __future__ import annotations
 import torch
 
 from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
-from .feasibility import contained, displacement, feasible, path_clear, penetrating, reachable, sweep_clear
+from .feasibility import (
+    contained,
+    displacement,
+    feasible,
+    infeasible_reason,
+    path_clear,
+    penetrating,
+    reachable,
+    sweep_clear,
+)
 from .newton import NewtonResult, Stop, _assign, _rows, newton
 from .types import StepError
 
@@ -187,7 +196,7 @@ def _continuation(prob: StepProblem, q: torch.Tensor, where: str = "") -> tuple[
             inc *= 0.5
             if inc < 1e-4:
                 raise StepError(
-                    f"the kinematic targets{where}: bodies penetrate (within the margin {scene.contact.margin}): pairs "
+                    f"the kinematic targets{where}: bodies penetrate ({infeasible_reason(scene)}): pairs "
                     f"{penetrating(scene, scene.kinematics.poses(q, fixed)[0])}, and pushing them out of the way "
                     "failed; move kinematic bodies less per step"
                 )
@@ -258,7 +267,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
         bad = penetrating(scene, prob.q_t[b])
         if bad:
             raise ValueError(
-                f"state.q: bodies penetrate (are within the margin {scene.contact.margin} of each other): "
+                f"state.q: bodies penetrate ({infeasible_reason(scene)}): "
                 f"pairs {bad}" + (f" (scene {b})" if B > 1 else "")
             )
         where = f" (scene {b})" if B > 1 else ""

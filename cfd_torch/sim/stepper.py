@@ -24,7 +24,7 @@ from .._validate import is_int
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear, first_row
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
-from .feasibility import infeasible_pairs
+from .feasibility import infeasible_pairs, infeasible_reason
 from .scene import Scene
 from .types import Action, Params, State, StepError, StepInfo, Trajectory
 
@@ -423,9 +423,9 @@ def _check_rounded(scene: Scene, q: torch.Tensor) -> None:
         spacing = float(torch.finfo(q.dtype).eps * q[b, :, :3].detach().abs().max())
         where = f" (scene {b})" if B > 1 else ""
         raise StepError(
-            f"the step's solution rounded to the state's {q.dtype} puts bodies {i} and {j} within the contact "
-            f"margin {scene.contact.margin}{where}: its coordinates are spaced up to {spacing:.2g} m apart there, "
-            "more than the bodies' gap beyond the margin; step float64 states (or a scene nearer the origin)"
+            f"the step's solution rounded to the state's {q.dtype} puts bodies {i} and {j} "
+            f"{infeasible_reason(scene)}{where}: its coordinates are spaced up to {spacing:.2g} m apart there, "
+            "more than the bodies' gap; step float64 states (or a scene nearer the origin)"
         )
 
 
@@ -503,7 +503,7 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
                 f"({a}, {b})" + (f" of scene {c}" if B > 1 else "") for c, a, b in pairs[bad][:5].tolist()
             )
             raise ValueError(
-                f"q: bodies penetrate (are within the margin {scene.contact.margin} of each other), where the "
+                f"q: bodies penetrate ({infeasible_reason(scene)}), where the "
                 f"potential is +inf and has no force: pairs {first}"
             )
         g = ev.grad
