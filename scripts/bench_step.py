@@ -700,7 +700,8 @@ def tables(out: dict) -> str:
         )
     lines += [
         "",
-        "Forward + backward: forward with q requiring grad, backward of (w * q_next).sum()",
+        "Forward + backward: forward with q requiring grad, backward of (w * q_next).sum(); medians over the steps "
+        "(fwd + bwd: the median of each step's sum, not the sum of the two medians)",
         "",
         "| case | fwd (grad) | bwd | fwd + bwd | bwd vs C++ 60 ms |",
         "|" + "---|" * 5,

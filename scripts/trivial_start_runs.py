@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -83,11 +84,11 @@ def main() -> None:
     }
     (args.out / "trivial_start_runs.json").write_text(json.dumps(meta, indent=1))
     lines = [
-        "| task | seed | loss start | loss best | decrease 1 - best / start | s per iteration |",
+        "| task | seed | loss start | loss best | decrease 1 - best / start | s per iteration (median) |",
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r in runs:
-        sec = sorted(r["seconds"])[len(r["seconds"]) // 2]
+        sec = statistics.median(r["seconds"])
         lines.append(
             f"| {r['task']} | {r['seed']} | {r['losses'][0]:.10g} | {min(r['losses']):.10g} | {r['decrease']:.2g} "
             f"| {sec:.1f} |"

@@ -464,6 +464,13 @@ def test_bad_ctrl_is_refused():
         step(scene, State(q0, q0), Action(ctrl=torch.zeros(1, 1, dtype=F64)))
     with pytest.raises(ValueError, match="action.ctrl must be a float tensor"):
         step(scene, State(q0, q0), Action(ctrl=torch.zeros(1, dtype=torch.long)))
+    batch = State(q0.expand(3, -1, -1), q0.expand(3, -1, -1))
+    ctrl = torch.zeros(3, 1, dtype=F64)
+    ctrl[2, 0] = float("nan")
+    with pytest.raises(
+        ValueError, match=r"action\.ctrl contains NaN or inf \(first at scene 2, actuator 0\)"
+    ):
+        step(scene, batch, Action(ctrl=ctrl))  # (it named neither)
 
 
 def _xml(joints: str, root_joints: str = "") -> str:
@@ -1546,6 +1553,25 @@ def test_a_batch_of_mounted_scenes_far_apart_is_solved_in_their_own_frames():
         assert float(g_alone[b].abs().max()) > 1e-3  # about 3 dt
         assert torch.equal(both[b], alone)
         torch.testing.assert_close(g_both[b], g_alone[b], rtol=1e-12, atol=1e-15)
+
+
+def test_errors_of_scenes_solved_in_their_own_frames_name_the_batch_scene():
+    """In a batch solved in groups, a bad scene is named by its index in the batch (it was its index in its group,
+    "scene 1" for batch scene 2) and the message says which scenes the group holds."""
+    scene, near, _ = _reacher_beside_box((1e3, -1e3, 1e3))
+    away = near.clone()
+    away[:2] = _reacher_beside_box((0.0, 0.0, 0.0))[1][:2]
+    away[0, 2] -= 50.0
+    away[:2, 0] -= 1000.0
+    sunk = away.clone()
+    sunk[1, 2] = sunk[0, 2] + 0.015 - 0.001  # the box 1 mm into its floor
+    q = torch.stack([near, away, sunk])
+    with pytest.raises(ValueError) as caught:
+        step(scene, State(q, q.clone()))
+    assert str(caught.value) == (
+        "scenes [1, 2] of the batch, solved in their own frame: state.q: bodies penetrate (within the contact "
+        "margin 0.0001): pairs (0, 1) (scene 2)"
+    )
 
 
 _STATIC_ROOT_ARM = """<mujoco><worldbody><body name="base"><geom type="sphere" size="0.04"/>

@@ -700,6 +700,22 @@ def test_kinematic_target_into_a_static_body(scene, state, z):
         step(scene, batch, Action(target=targets))
 
 
+def test_a_kinematic_body_penetrating_at_the_start_is_refused_though_its_target_is_clear(scene, state):
+    """The paddle 0.5 mm into the cube at the start, its target 10 cm back: the start is refused, as when the target
+    stays (it stepped, friction taken at the +inf start kicking the cube); in a batch the message names the scene."""
+    q = state.q.clone()
+    q[2, 0] = -0.1 - 0.025 + 5e-4
+    target = q[2:3].clone()
+    target[0, 0] -= 0.1
+    message = r"state\.q: bodies penetrate \(within the contact margin 0\.001\): pairs \(0, 2\)"
+    for to in (q[2:3], target):
+        with pytest.raises(ValueError, match=message + "$"):
+            step(scene, State(q, q.clone()), Action(target=to))
+    batch = State(torch.stack([state.q, q]), torch.stack([state.q, q]))
+    with pytest.raises(ValueError, match=message + r" \(scene 1\)"):
+        step(scene, batch, Action(target=torch.stack([state.q[2:3], target])))
+
+
 def test_kinematic_target_clear_of_static_bodies_steps(scene, state):
     target = torch.tensor([[-0.3, 0.0, 0.06 - 1e-3, 0.0, 0.0, 0.0]], dtype=F64)  # 9 mm above the ground
     nxt = step(scene, state, Action(target=target))

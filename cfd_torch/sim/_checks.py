@@ -229,5 +229,7 @@ def check_ctrl(ctrl, U: int, B: int | None, like: torch.Tensor, name: str = "act
         )
     if B is not None and ctrl.shape not in ((U,), (B, U)):
         raise ValueError(f"{name} must have shape ({U},) or ({B}, {U}) ({what}), got {tuple(ctrl.shape)}")
-    if not bool(torch.isfinite(ctrl).all()):
-        raise ValueError(f"{name} contains NaN or inf")
+    bad = ~torch.isfinite(ctrl)
+    if bool(bad.any()):
+        row = "actuator" if name == "action.ctrl" else "coordinate"
+        raise ValueError(f"{name} contains NaN or inf (first at {first_row(bad, what=row)})")

@@ -17,6 +17,7 @@ from .feasibility import (
     contained,
     displacement,
     feasible,
+    infeasible_pairs,
     infeasible_reason,
     path_clear,
     penetrating,
@@ -239,6 +240,14 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             p0 = p1.clone()
             p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
             kp = _kinematic_pairs(scene)
+            # the start itself (at its targets the kinematic body may be clear of what it penetrates now)
+            start_bad = infeasible_pairs(scene, p0, kp).any(1)
+            if bool(start_bad.any()):
+                k = int(torch.nonzero(start_bad)[0, 0])
+                raise ValueError(
+                    f"state.q: bodies penetrate ({infeasible_reason(scene)}): pairs {penetrating(scene, p0[k])}"
+                    + (f" (scene {int(m[k])})" if B > 1 else "")
+                )
             ok_t[m] = sweep_clear(scene, p0, p1, kp)
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
             # shorter than ccd_spacing): nothing could push that body out

@@ -13,6 +13,7 @@ equals stepping it alone.
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Iterable, Sequence
 
@@ -165,8 +166,16 @@ def _solve_in_groups(
             outs.append(
                 _solve(scene, part, *map(pick, (force, torque, target, ctrl)), Params(*map(pick, params)))
             )
-        except StepError as err:  # say which scenes of the batch the group holds
-            raise StepError(f"scenes {idx.tolist()} of the batch, solved in their own frame: {err}") from err
+        except (
+            StepError,
+            ValueError,
+        ) as err:  # which scenes of the batch the group holds, indices of the batch
+            batch = re.sub(
+                r"\bscene (\d+)", lambda s, idx=idx: f"scene {int(idx[int(s.group(1))])}", str(err)
+            )
+            raise type(err)(
+                f"scenes {idx.tolist()} of the batch, solved in their own frame: {batch}"
+            ) from err
     back = torch.argsort(torch.cat(members))
     return torch.cat([q for q, _ in outs])[back], _joined([info for _, info in outs], back)
 
