@@ -306,6 +306,12 @@ def test_baseline_rows_evaluate_as_alone_and_margin_agrees_with_infeasible(poten
     assert bool(model.infeasible(inside[None], PAIR)[0]) == bool(
         torch.isinf(model.evaluate(inside[None], PAIR, 0).value[0])
     )
+    deep = sets[0].clone()
+    deep[1, :3] = 0.0  # the bodies' centres together: deep inside each other
+    ev = model.evaluate(torch.stack([deep, sets[1]]), rows[:2], 2)
+    assert float(ev.value[0]) == np.inf and bool(torch.isfinite(ev.value[1]))
+    assert float(ev.grad[1].abs().max()) > 0  # (the feasible row keeps its derivatives)
+    assert float(ev.grad[0].abs().max()) == 0.0 and float(ev.hess[0].abs().max()) == 0.0  # no force at +inf
 
 
 @pytest.mark.slow

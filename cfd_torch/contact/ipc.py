@@ -342,7 +342,11 @@ class IpcContact:
                 hess.index_add_(0, col.pair, H)
         if len(col.near):  # touching or intersecting triangles: +inf (as ``infeasible``)
             bad = self.infeasible(poses, pairs[col.near])
-            value[col.near[bad]] = float("inf")
+            inf = col.near[bad]
+            value[inf] = float("inf")
+            for d in (grad, hess):  # no force from an infeasible pair, as this library's potential
+                if d is not None:
+                    d[inf] = 0.0
         return ContactEval(value, grad, hess, 0, C)
 
     def lagged(

@@ -19,7 +19,8 @@ class ContactEval(NamedTuple):
     """A contact model's potential over P body pairs.
 
     Attributes:
-        value: (P,) potential of each pair, +inf where the pair is infeasible (within the margin).
+        value: (P,) potential of each pair, +inf where the pair is infeasible (within the margin), its
+            derivatives zero there (the built-in models).
         grad: (P, 12) d value / d [q_i, q_j] (pose coordinates: translation, rotation vector), or None.
         hess: (P, 12, 12), or None.
         node_pairs: work done: node pairs visited (0 for models without a hierarchy).

@@ -161,7 +161,11 @@ class SdrsContact:
                 hess.index_add_(0, pair, H)
         if len(near):  # within the margin or intersecting: +inf (as ``infeasible``)
             bad = self.infeasible(poses, pairs[near])
-            value[near[bad]] = float("inf")
+            inf = near[bad]
+            value[inf] = float("inf")
+            for d in (grad, hess):  # no force from an infeasible pair, as this library's potential
+                if d is not None:
+                    d[inf] = 0.0
         return ContactEval(value, grad, hess, 0, C)
 
     def lagged(
