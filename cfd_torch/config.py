@@ -7,7 +7,7 @@ Names are unambiguous: ``stiffness`` is the contact coefficient mu of the potent
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Literal
 
 from ._validate import check_count, is_real
@@ -121,6 +121,14 @@ _CFD_ONLY = ("stiffness", "eps", "split", "pair_tol", "pair_max_iter", "backend"
 _BASELINE_ONLY = ("dhat", "barrier_stiffness")
 _SHORT = {"stiffness": "mu"}
 _CONTACT_DEFAULTS = {f.name: f.default for f in fields(ContactConfig)}
+
+
+def with_potential(config: ContactConfig, potential: str) -> ContactConfig:
+    """``config`` with another ``potential``, the settings that potential does not read back at their defaults
+    (``Scene.replace(potential=...)``: a scene's ``mu`` does not carry over to IPC, nor IPC's ``dhat`` to ours)."""
+    unused = _BASELINE_ONLY if potential == "cfd" else _CFD_ONLY
+    return replace(config, potential=potential, **{n: _CONTACT_DEFAULTS[n] for n in unused})
+
 
 DEFAULT_CONTACT = ContactConfig()  # the contact functions' keyword defaults read this (no literal elsewhere)
 

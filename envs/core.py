@@ -375,13 +375,7 @@ class TaskCore(abc.ABC):
             ValueError: an action of the wrong shape or with NaN/inf.
             cfd_torch.StepError: the simulator's solve did not converge.
         """
-        if not isinstance(state, EnvState):
-            raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
-        if state.q.dtype != self.dtype or not _same_device(state.q.device, self.device):
-            raise TypeError(
-                f"state is {state.q.dtype} on {state.q.device} but this core is {self.dtype} on {self.device} "
-                "(make_core(..., dtype=, device=)); make the state with core.reset"
-            )
+        self.check_state(state)
         action = self.check_action(action, state.batch_size)
         sim_action = self._action(state, action.clamp(-1.0, 1.0))
         nxt, info = step(self.scene, state.sim, sim_action, params, return_info=True)
@@ -393,11 +387,45 @@ class TaskCore(abc.ABC):
         out_info["substeps"] = info.substeps.reshape(-1)
         return StepOut(next_state, self.observe(next_state), reward, self.terminated(next_state), out_info)
 
+    def check_state(self, state: EnvState) -> None:
+        """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
+        and device whose every field has the batch size of ``state.q`` (its float task variables finite)."""
+        if not isinstance(state, EnvState):
+            raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
+        fields = {"state.q": state.q, "state.q_prev": state.q_prev, "state.t": state.t}
+        fields.update({f"state.task[{k!r}]": v for k, v in state.task.items()})
+        for name, x in fields.items():
+            if not isinstance(x, torch.Tensor):
+                raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+            wrong_dtype = x.is_floating_point() and x.dtype != self.dtype
+            if wrong_dtype or not _same_device(x.device, self.device):
+                raise TypeError(
+                    f"{name} is {x.dtype} on {x.device} but this core is {self.dtype} on {self.device} "
+                    "(make_core(..., dtype=, device=)); make the state with core.reset"
+                )
+        B = state.batch_size
+        if state.q_prev.shape != state.q.shape:
+            raise ValueError(
+                f"state.q_prev has shape {tuple(state.q_prev.shape)}, state.q {tuple(state.q.shape)}"
+            )
+        if state.t.shape != (B,) or state.t.is_floating_point():
+            raise ValueError(
+                f"state.t must be an integer tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"
+            )
+        for k, v in state.task.items():
+            if v.dim() == 0 or v.shape[0] != B:
+                raise ValueError(
+                    f"state.task[{k!r}] must have the batch size {B} first, got shape {tuple(v.shape)}"
+                )
+            if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+                raise ValueError(f"state.task[{k!r}] contains NaN or inf")
+
     def check_action(self, action: torch.Tensor, batch_size: int) -> torch.Tensor:
         """``action`` as a (B, A) tensor of the core's dtype and device; a clear TypeError (not real numbers) or
         ValueError (shape, NaN/inf, overflow) otherwise."""
         if not isinstance(action, torch.Tensor):
-            action = torch.as_tensor(real_array(action, "action"), dtype=self.dtype, device=self.device)
+            # (float64 first: a value beyond the core's dtype is named as such, not as inf)
+            action = torch.as_tensor(real_array(action, "action"), dtype=torch.float64, device=self.device)
         if action.dtype == torch.bool or action.is_complex():
             raise TypeError(f"action must be a tensor of real numbers, got {action.dtype}")
         if action.shape != (batch_size, self.action_dim):
@@ -406,11 +434,11 @@ class TaskCore(abc.ABC):
             )
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action contains NaN or inf")
+        largest = float(action.abs().max()) if action.numel() else 0.0
         action = action.to(dtype=self.dtype, device=self.device)
         if not bool(torch.isfinite((action * action).sum(1)).all()):
             raise ValueError(
-                f"action: |a|^2 overflows {self.dtype} (largest |a_i| {float(action.abs().max()):.3g}); "
-                "actions are in [-1, 1]"
+                f"action: |a|^2 overflows {self.dtype} (largest |a_i| {largest:.3g}); actions are in [-1, 1]"
             )
         return action
 

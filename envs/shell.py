@@ -124,7 +124,7 @@ class CoreEnv(gym.Env):
         action = real_array(action, "action")
         if action.shape != (self.core.action_dim,):
             raise ValueError(f"action must have shape ({self.core.action_dim},), got {action.shape}")
-        a = torch.as_tensor(action, dtype=self.core.dtype, device=self.core.device)
+        a = torch.as_tensor(action, dtype=torch.float64, device=self.core.device)  # (cast by the core)
         with torch.no_grad():
             out = self.core.step(self.state, a[None])
         self.state = out.state
@@ -280,7 +280,7 @@ class CoreVectorEnv(VectorEnv):
         run = [int(i) for i in np.flatnonzero(stepping)]
         groups = [run] if self.batched and run else [[i] for i in run]
         for idx in groups:
-            a = torch.as_tensor(actions[idx], dtype=self.core.dtype, device=self.core.device)
+            a = torch.as_tensor(actions[idx], dtype=torch.float64, device=self.core.device)
             with torch.no_grad():
                 try:
                     out = self.core.step(stack_states([states[i] for i in idx]), a)

@@ -374,9 +374,15 @@ def test_settings_a_potential_does_not_read_are_refused_and_penetration_names_it
     ):
         with pytest.raises(ValueError, match=match):
             Scene(bodies, **kw)
-    assert (
-        Scene(bodies, potential="ipc", margin=2e-3, dhat=0.02).contact.margin == 2e-3
-    )  # (the line search's)
+    # margin is read by every potential (the line search's length scale); a change of potential resets what the
+    # new one does not read (it raised: the old scene's mu, or dhat, carried over)
+    ours = Scene(bodies, mu=1e-7, margin=2e-3)
+    ipc = ours.replace(potential="ipc", dhat=0.02)
+    assert (ipc.contact.stiffness, ipc.contact.margin, ipc.contact.dhat) == (1e-8, 2e-3, 0.02)
+    back = ipc.replace(potential="cfd")
+    assert (back.contact.stiffness, back.contact.dhat, back.contact.potential) == (1e-8, 1e-2, "cfd")
+    with pytest.raises(ValueError, match="stiffness \\(Scene's mu=\\) sets this library's potential"):
+        ours.replace(potential="ipc", mu=1e-7)
     q = torch.tensor([[0.0, 0.0, 0.0995, 0.0, 0.0, 0.0], [0.0] * 6], dtype=F64)  # 0.5 mm into the floor
     for potential, match in (
         ("ipc", "bodies penetrate \\(touching or intersecting\\)"),

@@ -4,6 +4,7 @@ rollout helper's truncated and checkpointed gradients."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gymnasium as gym
@@ -512,8 +513,35 @@ def test_task_arguments_actions_and_states_are_checked():
         core.step(s0, torch.zeros(2, 2, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"action: \|a\|\^2 overflows"):
         core.step(s0, torch.full((2, 2), 1e160, dtype=F64))
-    with pytest.raises(TypeError, match="state is torch.float32 on cpu but this core is torch.float64"):
+    with pytest.raises(TypeError, match="state.q is torch.float32 on cpu but this core is torch.float64"):
         core.step(make_core("cfd_torch/Push-v0", dtype=torch.float32).reset(0, 2), torch.zeros(2, 2))
+    # every field of the state is checked, not only q: a float64 goal in a float32 core made the observations and
+    # rewards float64; a float64 q_prev, a wrong batch size or a NaN goal failed inside torch, or passed
+    core32 = make_core("cfd_torch/Push-v0", dtype=torch.float32)
+    s32 = core32.reset(0, 2)
+    for change, err, match in (
+        (
+            {"task": {"target": s32.task["target"].double()}},
+            TypeError,
+            r"state.task\['target'\] is torch.float64",
+        ),
+        ({"q_prev": s32.q_prev.double()}, TypeError, "state.q_prev is torch.float64 on cpu but this core is"),
+        (
+            {"task": {"target": s32.task["target"][:1]}},
+            ValueError,
+            r"state.task\['target'\] must have the batch",
+        ),
+        (
+            {"t": torch.zeros(3, dtype=torch.long)},
+            ValueError,
+            r"state.t must be an integer tensor of shape \(2,\)",
+        ),
+        ({"task": {"target": s32.task["target"] * float("nan")}}, ValueError, r"\['target'\] contains NaN"),
+    ):
+        with pytest.raises(err, match=match):
+            core32.step(dataclasses.replace(s32, **change), torch.zeros(2, 2))
+    with pytest.raises(ValueError, match=r"overflows torch.float32 \(largest \|a_i\| 1e\+39\)"):
+        core32.step(s32, np.full((2, 2), 1e39))  # (a non-tensor was cast first, and called NaN or inf)
     s1 = core.step(s0, torch.zeros(2, 2, dtype=F64)).state
     assert s1.task is not s0.task and s1.task.keys() == s0.task.keys()
     s1.task["target"] = s1.task["target"] + 1.0

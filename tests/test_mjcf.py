@@ -381,10 +381,61 @@ def test_unnamed_bodies_and_includes_keep_the_text_as_written(tmp_path) -> None:
     with pytest.raises(ValueError, match='compiler fusestatic="true" is not supported'):
         load_mjcf(xml.replace("NAME", "").replace("<compiler ", '<compiler fusestatic="true" '))
     (tmp_path / "loop.xml").write_text('<mujoco><include file="loop.xml"/></mujoco>')
-    with pytest.raises(ValueError, match="includes itself"):
+    with pytest.raises(ValueError, match="loop.xml is already included"):
         load_mjcf(str(tmp_path / "loop.xml"))
     with pytest.raises(ValueError, match="<include file='missing.xml'>: cannot read"):
         load_mjcf(xml.replace(inner, '<include file="missing.xml"/>'))
+
+
+def test_include_and_naming_rules_follow_mujoco(tmp_path) -> None:
+    """MuJoCo's rules, against its compiled masses: two <worldbody> sections (a scene including its robot, each with
+    unnamed bodies) are one world, numbered together (both were named "world/0"); a nested include is looked for
+    beside the including file when the main folder lacks it; unnamed bodies inside <replicate> are named (they were
+    refused); a generated name never takes a user's ("a/0"); a file included twice is refused, as MuJoCo does."""
+
+    def write(name: str, text: str) -> str:
+        path = tmp_path / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+        return str(path)
+
+    def masses(path: str, **kw) -> None:
+        m = mujoco.MjModel.from_xml_path(path)
+        model = load_mjcf(path, **kw)
+        for b, link in enumerate(model.links, start=1):  # (each link one body, MuJoCo's in the same order)
+            assert link.mass == pytest.approx(float(m.body_mass[b]), rel=1e-12), link.name
+        return model
+
+    box = '<geom type="box" size=".1 .1 .1" mass="2"/>'
+    ball = '<geom type="sphere" size=".05" mass=".5"/>'
+    write("robot.xml", f'<mujoco><worldbody><body pos="0 0 1"><freejoint/>{box}<body pos=".2 0 0"><joint name="j1"/>'
+          f"{ball}</body></body></worldbody></mujoco>")  # fmt: skip
+    scene = write("scene.xml", '<mujoco><include file="robot.xml"/><worldbody><body pos="3 0 .5">'
+                  '<geom type="box" size=".3 .3 .5" mass="7"/></body></worldbody></mujoco>')  # fmt: skip
+    assert [link.name for link in masses(scene, root="world/0").links] == ["world/0", "world/0/0"]
+    assert "world/1" in load_mjcf(scene, root="world/1").xml
+    write(
+        "sub/deeper/foot.xml",
+        f'<mujoco><body name="foot" pos=".2 0 0"><joint name="ankle"/>{ball}</body></mujoco>',
+    )
+    write("sub/leg.xml", f'<mujoco><body name="leg" pos=".2 0 0"><joint name="hip"/>{ball}'
+          '<include file="deeper/foot.xml"/></body></mujoco>')  # fmt: skip
+    nested = write("nested.xml", f'<mujoco><worldbody><body name="root">{box}<include file="sub/leg.xml"/></body>'
+                   "</worldbody></mujoco>")  # fmt: skip
+    assert [link.name for link in masses(nested).links] == ["root", "leg", "foot"]
+    rep = write("rep.xml", f'<mujoco><worldbody><body name="a">{box}<replicate count="3" offset=".3 0 0">'
+                f'<body name="r" pos=".2 0 0"><joint name="jr"/>{ball}<body pos=".1 0 0">{ball}</body></body>'
+                "</replicate></body></worldbody></mujoco>")  # fmt: skip
+    assert [link.mass for link in load_mjcf(rep).links] == pytest.approx([2.0, 1.0, 1.0, 1.0], rel=1e-12)
+    clash = write("clash.xml", f'<mujoco><worldbody><body name="a">{box}<body pos=".2 0 0"><joint name="j1"/>'
+                  f'{ball}</body><body name="a/0" pos="-.2 0 0"><joint name="j2"/>{box}</body></body></worldbody>'
+                  "</mujoco>")  # fmt: skip
+    assert [link.name for link in masses(clash).links] == ["a", "a/0_", "a/0"]
+    write("part.xml", f"<mujoco>{ball}</mujoco>")
+    twice = write("twice.xml", '<mujoco><worldbody><body name="a"><include file="part.xml"/><body name="b">'
+                  '<joint name="j"/><include file="part.xml"/></body></body></worldbody></mujoco>')  # fmt: skip
+    with pytest.raises(ValueError, match="part.xml is already included"):
+        load_mjcf(twice)
 
 
 def test_refusals() -> None:

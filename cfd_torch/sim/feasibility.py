@@ -41,6 +41,7 @@ __all__ = [
     "displacement",
     "path_clear",
     "sweep_clear",
+    "start_and_sweep",
     "reachable",
 ]
 
@@ -189,14 +190,35 @@ def sweep_clear(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | N
     ccd_spacing apart (ends excluded; p0 feasible, p1 checked by the caller), for the pairs the (P,) mask ``sel``
     selects (default all). The kinematic bodies' own motion over a step is checked this way: the Newton moves hold
     them at their targets."""
+    return _sweep(scene, p0, p1, sel, start=False)[1]
+
+
+def start_and_sweep(
+    scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(S,) bool twice: whether each start p0 (S, N, 6) is infeasible for the selected pairs, and whether its path
+    to p1 is clear (as :func:`sweep_clear`), in one collision query."""
+    return _sweep(scene, p0, p1, sel, start=True)
+
+
+def _sweep(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None, start: bool):
     d = p1 - p0
     r = scene.extent.to(p0)
     dist = (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
     ps, path = _spaced(dist, scene.solver.ccd_spacing, p0, p1)
-    clear = torch.ones(len(p0), dtype=torch.bool, device=p0.device)
-    if len(ps):
-        clear[path[infeasible_pairs(scene, ps, sel).any(1)]] = False
-    return clear
+    S = len(p0)
+    clear = torch.ones(S, dtype=torch.bool, device=p0.device)
+    if start:
+        ps = torch.cat([p0, ps])
+    bad = (
+        infeasible_pairs(scene, ps, sel).any(1)
+        if len(ps)
+        else torch.zeros(0, dtype=torch.bool, device=p0.device)
+    )
+    if start:
+        bad, start_bad = bad[S:], bad[:S]
+    clear[path[bad]] = False
+    return (start_bad if start else None), clear
 
 
 def path_clear(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:

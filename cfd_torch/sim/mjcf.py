@@ -314,7 +314,7 @@ def load_mjcf(
     unnamed = _unnamed_bodies(spec.worldbody)
     if unnamed:
         raise ValueError(
-            f"{len(unnamed)} unnamed bodies made by <replicate> or <attach> (children of {sorted(set(unnamed))[:4]}):"
+            f"{len(unnamed)} unnamed bodies made by <attach> (children of {sorted(set(unnamed))[:4]}):"
             " name them in the MJCF"
         )
     root = _root_name(spec, root)
@@ -481,15 +481,19 @@ def _prepared_xml(xml: str, base: str | None) -> str:
         tree = ET.fromstring(xml)
     except ET.ParseError as e:
         raise ValueError(f"the MJCF is not well-formed XML: {e}") from None
-    changed = _inline_includes(tree, base or os.getcwd(), ())
-    for world in tree.iter("worldbody"):
-        changed = _name_body_elements(world, "") or changed
+    here = base or os.getcwd()
+    changed = _inline_includes(tree, here, here, set())
+    # the <worldbody> sections (a model and the files it includes may each have one) are one world, as in MuJoCo
+    taken = {b.get("name") for b in tree.iter("body") if b.get("name")}
+    changed = _name_body_elements(list(tree.iter("worldbody")), "", taken) or changed
     return ET.tostring(tree, encoding="unicode") if changed else xml
 
 
-def _inline_includes(element: ET.Element, base: str, chain: tuple[str, ...]) -> bool:
-    """Replace each <include file="..."/> below ``element`` by the children of the included file's root (MuJoCo's
-    rule; the file's path relative to the main model's folder ``base``), recursively; whether any was found."""
+def _inline_includes(element: ET.Element, base: str, folder: str, seen: set[str]) -> bool:
+    """Replace each <include file="..."/> below ``element`` by the children of the included file's root,
+    recursively, as MuJoCo does: the file is looked for relative to the main model's folder ``base``, then to the
+    including file's ``folder``; a file included twice is refused (``seen``: the files included so far). Whether
+    any was found."""
     found = False
     for parent in list(element.iter()):
         children = list(parent)
@@ -504,10 +508,13 @@ def _inline_includes(element: ET.Element, base: str, chain: tuple[str, ...]) -> 
             if not name:
                 raise ValueError("MJCF <include> without a file attribute")
             path = os.path.normpath(os.path.join(base, name))
-            if path in chain:
+            if not os.path.isfile(path) and os.path.isfile(os.path.join(folder, name)):
+                path = os.path.normpath(os.path.join(folder, name))
+            if path in seen:
                 raise ValueError(
-                    f"MJCF <include file={name!r}> includes itself (through {' -> '.join(chain)})"
+                    f"MJCF <include file={name!r}>: {path} is already included (MuJoCo refuses it)"
                 )
+            seen.add(path)
             try:
                 with open(path) as f:
                     included = ET.fromstring(f.read())
@@ -515,7 +522,7 @@ def _inline_includes(element: ET.Element, base: str, chain: tuple[str, ...]) -> 
                 raise ValueError(f"MJCF <include file={name!r}>: cannot read {path}: {e.strerror}") from None
             except ET.ParseError as e:
                 raise ValueError(f"MJCF <include file={name!r}>: not well-formed XML: {e}") from None
-            _inline_includes(included, base, (*chain, path))
+            _inline_includes(included, base, os.path.dirname(path), seen)
             parent.remove(include)
             for k, child in enumerate(list(included)):
                 parent.insert(i + k, child)
@@ -523,31 +530,37 @@ def _inline_includes(element: ET.Element, base: str, chain: tuple[str, ...]) -> 
 
 
 def _child_bodies(element: ET.Element) -> list[ET.Element]:
-    """The <body> elements directly below ``element``, looking through <frame> elements, in document order."""
+    """The <body> elements directly below ``element``, looking through <frame> and <replicate> elements (MuJoCo
+    suffixes a replicated body's name), in document order."""
     out = []
     for child in element:
         if child.tag == "body":
             out.append(child)
-        elif child.tag == "frame":
+        elif child.tag in ("frame", "replicate"):
             out += _child_bodies(child)
     return out
 
 
-def _name_body_elements(parent: ET.Element, prefix: str) -> bool:
-    """Name every unnamed <body> below ``parent`` after its parent and its place among the parent's child bodies;
+def _name_body_elements(parents: list[ET.Element], prefix: str, taken: set[str]) -> bool:
+    """Name every unnamed <body> below the ``parents`` (the elements of one body, or the worldbody sections) after
+    their body and its place among that body's child bodies, with "_" appended while the name is ``taken``;
     whether any was unnamed."""
     named = False
-    for k, body in enumerate(_child_bodies(parent)):
+    for k, body in enumerate(b for p in parents for b in _child_bodies(p)):
         if not body.get("name"):
-            body.set("name", f"{prefix or 'world'}/{k}")
+            name = f"{prefix or 'world'}/{k}"
+            while name in taken:
+                name += "_"
+            body.set("name", name)
+            taken.add(name)
             named = True
-        named = _name_body_elements(body, body.get("name")) or named
+        named = _name_body_elements([body], body.get("name"), taken) or named
     return named
 
 
 def _unnamed_bodies(parent, prefix: str = "world") -> list[str]:
     """The names of the parents of the spec's unnamed bodies (none once `_prepared_xml` has named them, unless
-    <replicate> or <attach> made them)."""
+    <attach> made them)."""
     out = []
     for body in parent.bodies:
         if not body.name:

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from .._validate import body_pair, check_pair_eps, closed_surface, is_real
-from ..config import ContactConfig, FrictionConfig, SolverConfig
+from ..config import ContactConfig, FrictionConfig, SolverConfig, with_potential
 from ..contact._traverse import build_forest
 from ..contact.bsh import BSH
 from ..contact.cfd import CfdContact
@@ -413,13 +413,17 @@ class Scene:
     def replace(self, **changes) -> Scene:
         """A copy with some arguments changed (e.g. ``dt``, ``friction``, or any shorthand); a change of the
         contact settings, the potential, ``refine_obstacles``, ``exclude`` or the articulations builds it from the
-        bodies as given (their obstacles refined afresh); ``friction=`` a number changes only the coefficient."""
+        bodies as given (their obstacles refined afresh); ``friction=`` a number changes only the coefficient; a
+        change of ``potential`` resets the settings the new potential does not read (``mu`` for IPC, ``dhat`` for
+        this library's) to their defaults."""
         kw = {k: getattr(self, "_given_contact_model" if k == "contact_model" else k) for k in _REPLACEABLE}
         if is_real(changes.get("friction")):
             changes = {
                 **changes,
                 "friction": dataclasses.replace(self.friction, coefficient=changes["friction"]),
             }
+        if "potential" in changes and "contact" not in changes:
+            kw["contact"] = with_potential(self.contact, changes["potential"])
         kw.update(changes)
         # the obstacles as refined here serve unless a change can change their refinement (refining them again
         # would cost each sub-step retry's replace(dt=...) about 0.1 s)

@@ -17,11 +17,11 @@ from .feasibility import (
     contained,
     displacement,
     feasible,
-    infeasible_pairs,
     infeasible_reason,
     path_clear,
     penetrating,
     reachable,
+    start_and_sweep,
     sweep_clear,
 )
 from .newton import NewtonResult, Stop, _assign, _rows, newton
@@ -240,15 +240,14 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
             p0 = p1.clone()
             p0[:, kin_idx] = prob.q_t[m][:, kin_idx]
             kp = _kinematic_pairs(scene)
-            # the start itself (at its targets the kinematic body may be clear of what it penetrates now)
-            start_bad = infeasible_pairs(scene, p0, kp).any(1)
+            # the start itself too (at its target the kinematic body may be clear of what it penetrates now)
+            start_bad, ok_t[m] = start_and_sweep(scene, p0, p1, kp)
             if bool(start_bad.any()):
                 k = int(torch.nonzero(start_bad)[0, 0])
                 raise ValueError(
                     f"state.q: bodies penetrate ({infeasible_reason(scene)}): pairs {penetrating(scene, p0[k])}"
                     + (f" (scene {int(m[k])})" if B > 1 else "")
                 )
-            ok_t[m] = sweep_clear(scene, p0, p1, kp)
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
             # shorter than ccd_spacing): nothing could push that body out
             clear = m[ok_t[m]]
