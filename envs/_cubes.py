@@ -10,7 +10,7 @@ import trimesh
 from cfd_torch import Action, Scene, rigid_body
 
 from ._pusher import GAP, Pusher, floor_body
-from .core import EnvState, TaskCore, _is_int, camera_over, check_task_arguments
+from .core import EnvState, TaskCore, _is_int, camera_over, check_task_arguments, check_unused_by_potential
 
 __all__ = ["CubesCore"]
 
@@ -51,6 +51,7 @@ class CubesCore(TaskCore):
         if not (_is_int(num_cubes) and num_cubes >= 1):
             raise ValueError(f"num_cubes must be an int >= 1, got {num_cubes!r}")
         num_cubes = int(num_cubes)
+        check_unused_by_potential(potential, "eps", eps, 1.0)
         check_task_arguments(
             action_cost=action_cost, cube_size=cube_size, cube_density=cube_density, spread=spread,
             max_speed=max_speed,

@@ -14,7 +14,7 @@ from cfd_torch.sim.mjcf import gymnasium_ant_xml
 
 from ._pusher import GAP, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState, camera_over, check_task_arguments
+from .core import EnvState, camera_over, check_task_arguments, check_unused_by_potential
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["AntPushCore", "AntPushEnv", "AntPushVectorEnv"]
@@ -69,6 +69,7 @@ class AntPushCore(BoxToTargetCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        check_unused_by_potential(potential, "eps", eps, 1.0)
         check_task_arguments(
             action_cost=action_cost, distance=distance, box_density=box_density, success_radius=success_radius
         )

@@ -9,7 +9,16 @@ import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
 
-from .core import EnvState, TaskCore, _is_int, camera_over, check_task_arguments, disc, marker_rows
+from .core import (
+    EnvState,
+    TaskCore,
+    _is_int,
+    camera_over,
+    check_task_arguments,
+    check_unused_by_potential,
+    disc,
+    marker_rows,
+)
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "rack_positions"]
@@ -95,6 +104,8 @@ class BilliardsCore(TaskCore):
             raise ValueError(
                 f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket!r}"
             )
+        check_unused_by_potential(potential, "eps", eps, 0.01)
+        check_unused_by_potential(potential, "dhat", dhat, 1e-3)
         check_task_arguments(
             action_cost=action_cost, ball_radius=ball_radius, ball_mass=ball_mass, max_force=max_force,
             pocket_radius=pocket_radius,

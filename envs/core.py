@@ -86,6 +86,19 @@ def check_task_arguments(*, action_cost: float, **positive: float) -> None:
         check_positive(value, name)
 
 
+def check_unused_by_potential(potential: str, name: str, value: float, default: float) -> None:
+    """A task setting the chosen contact potential does not read keeps its default (it would be silently ignored):
+    ``eps`` (this library's blend width, its ``pair_eps``) with a baseline, ``dhat`` (the baselines' reach) with
+    "cfd"."""
+    for_cfd = name == "eps"
+    if value != default and (potential == "cfd") != for_cfd:
+        reads = "potential='cfd'" if for_cfd else "the baselines (potential 'ipc' or 'sdrs')"
+        raise ValueError(
+            f"{name} is read only by {reads}; potential={potential!r} does not use it: leave it at its default "
+            f"{default!r}"
+        )
+
+
 @dataclass(frozen=True)
 class EnvState:
     """The full state of B environments.

@@ -12,7 +12,7 @@ from cfd_torch._validate import is_real
 
 from ._pusher import GAP, Pusher, floor_body
 from ._target import BoxToTargetCore
-from .core import EnvState, camera_over, check_task_arguments
+from .core import EnvState, camera_over, check_task_arguments, check_unused_by_potential
 from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["PushCore", "PushEnv", "PushVectorEnv"]
@@ -70,6 +70,7 @@ class PushCore(BoxToTargetCore):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        check_unused_by_potential(potential, "eps", eps, 1.0)
         check_task_arguments(
             action_cost=action_cost, distance=distance, max_speed=max_speed, box_density=box_density,
             success_radius=success_radius,

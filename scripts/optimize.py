@@ -470,15 +470,15 @@ def _check_settings(cfg: dict) -> None:
 
 
 def _core_kwargs(cfg: dict) -> dict:
-    """The task core's arguments of a run: the task's defaults here, ``task_args``, ``dt``, ``eps`` and the
-    baselines' ``potential``."""
+    """The task core's arguments of a run: the task's defaults here, ``task_args``, ``dt``, ``eps`` (this library's
+    potential's, so not for ipc and sdrs) and the baselines' ``potential``."""
     kwargs = dict(TASK_KWARGS.get(cfg["task"], {})) | dict(cfg["task_args"] or {})
     if cfg["dt"] is not None:
         kwargs["dt"] = cfg["dt"]
-    if cfg["eps"] is not None:
-        kwargs["eps"] = cfg["eps"]
-    if cfg["model"] in ("ipc", "sdrs"):
+    if cfg["model"] in ("ipc", "sdrs"):  # (their cores refuse eps, this library's blend: a sweep's --eps skips them)
         kwargs["potential"] = cfg["model"]
+    elif cfg["eps"] is not None:
+        kwargs["eps"] = cfg["eps"]
     return kwargs
 
 

@@ -500,6 +500,15 @@ def test_task_arguments_actions_and_states_are_checked():
     ]:
         with pytest.raises(ValueError, match=f"{name} must be"):
             make_core(env_id, **kwargs)
+    # a setting the chosen potential does not read (it was silently ignored)
+    with pytest.raises(
+        ValueError, match="eps is read only by potential='cfd'; potential='ipc' does not use it"
+    ):
+        make_core("cfd_torch/Push-v0", potential="ipc", eps=0.5)
+    with pytest.raises(
+        ValueError, match="dhat is read only by the baselines .* potential='cfd' does not use it"
+    ):
+        make_core("cfd_torch/Billiards-v0", dhat=0.01)
     with pytest.raises(ValueError, match="width must be a positive int"):
         gym.make("cfd_torch/Push-v0", width=0)
     with pytest.raises(ValueError, match="height must be a positive int"):
