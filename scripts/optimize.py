@@ -475,10 +475,8 @@ def _core_kwargs(cfg: dict) -> dict:
     kwargs = dict(TASK_KWARGS.get(cfg["task"], {})) | dict(cfg["task_args"] or {})
     if cfg["dt"] is not None:
         kwargs["dt"] = cfg["dt"]
-    if cfg["model"] in (
-        "ipc",
-        "sdrs",
-    ):  # (their cores refuse eps, this library's blend: a sweep's --eps skips them)
+    # the baselines' cores refuse eps, this library's blend: a sweep's --eps skips them
+    if cfg["model"] in ("ipc", "sdrs"):
         kwargs["potential"] = cfg["model"]
     elif cfg["eps"] is not None:
         kwargs["eps"] = cfg["eps"]
