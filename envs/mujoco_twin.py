@@ -307,7 +307,7 @@ class MujocoTwin:
         cur = EnvState(state.q.detach().double(), state.q_prev.detach().double(), state.t, state.task)
         ids = np.array(self._body_id)
         for t in range(a.shape[0]):
-            act = core._action(cur, a[t : t + 1])
+            act = core._action(cur, a[t : t + 1].clamp(-1.0, 1.0))  # (as TaskCore.step clips them)
             d.xfrc_applied[:] = 0.0
             if act.force is not None:
                 d.xfrc_applied[ids, :3] = act.force[0].numpy()

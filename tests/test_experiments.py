@@ -85,6 +85,8 @@ def test_mujoco_twin_pushes_the_box_like_the_simulator():
     moved, moved_ours = 3.0 - float(d[-1]), 3.0 - float(ours[-1])
     assert moved_ours > 1e-4
     assert 0.3 * moved_ours < moved < 3.0 * moved_ours
+    # actions beyond [-1, 1] are clipped as TaskCore.step clips them (the twin drove the pole twice as fast)
+    assert torch.equal(twin.rollout(s, 2.0 * a[:5])[0], d[:5])
     # actions of another shape are refused, not reshaped; NaN is refused before MuJoCo sees it
     with pytest.raises(ValueError, match=r"actions must be \(T, 2\) or \(T, 1, 2\), got \(2, 2, 1\)"):
         twin.rollout(s, torch.zeros(2, 2, 1, dtype=torch.float64))
