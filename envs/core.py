@@ -447,7 +447,7 @@ class TaskCore(abc.ABC):
             )
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action contains NaN or inf")
-        largest = float(action.abs().max()) if action.numel() else 0.0
+        largest = float(action.detach().abs().max()) if action.numel() else 0.0
         action = action.to(dtype=self.dtype, device=self.device)
         if not bool(torch.isfinite((action * action).sum(1)).all()):
             raise ValueError(

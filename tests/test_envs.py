@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -551,6 +552,9 @@ def test_task_arguments_actions_and_states_are_checked():
             core32.step(dataclasses.replace(s32, **change), torch.zeros(2, 2))
     with pytest.raises(ValueError, match=r"overflows torch.float32 \(largest \|a_i\| 1e\+39\)"):
         core32.step(s32, np.full((2, 2), 1e39))  # (a non-tensor was cast first, and called NaN or inf)
+    with warnings.catch_warnings():  # an action that requires grad is checked quietly (torch warned)
+        warnings.simplefilter("error")
+        core.step(s0, torch.zeros(2, 2, dtype=F64, requires_grad=True))
     s1 = core.step(s0, torch.zeros(2, 2, dtype=F64)).state
     assert s1.task is not s0.task and s1.task.keys() == s0.task.keys()
     s1.task["target"] = s1.task["target"] + 1.0

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from ._traverse import build_forest, penetrating
 from .bsh import unique_hierarchies
@@ -75,9 +76,10 @@ class CollisionQuery:
         S, N = poses.shape[:2]
         p = pairs.to(cpu)
         sc = None if scale is None else scale.to(cpu, torch.float64).repeat(S)
+        c = DEFAULT_CONTACT  # (the query's traversal settings: only which pairs are within the margin counts)
         out = penetrating(
             forest, p[:, :1] * N + p[:, 1:], roots[p[:, 1:]], poses.detach().to(cpu, torch.float64).reshape(S * N, 6),
-            margin=self.margin, eps=0.01, split="both", tol=1e-12, max_iter=100, scale=sc,
+            margin=self.margin, eps=c.eps, split=c.split, tol=c.pair_tol, max_iter=c.pair_max_iter, scale=sc,
         )  # fmt: skip
         return out.to(poses.device)
 

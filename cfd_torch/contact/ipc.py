@@ -32,6 +32,7 @@ from typing import NamedTuple
 import torch
 
 from .._validate import check_positive
+from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from ._primitives import CollisionQuery, Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
 from .bsh import BSH
@@ -248,7 +249,9 @@ class IpcContact:
 
     warm_start = False
 
-    def __init__(self, bshes: Sequence[BSH], dhat: float = 1e-2, stiffness: float = 1e6) -> None:
+    def __init__(
+        self, bshes: Sequence[BSH], dhat: float = DEFAULT_CONTACT.dhat, stiffness: float = 1e6
+    ) -> None:
         if not all(isinstance(b, BSH) for b in bshes) or not bshes:
             raise ValueError("bshes must be a non-empty sequence of cfd_torch.BSH")
         check_positive(dhat, "dhat")

@@ -36,6 +36,7 @@ from ..baselines import (
     sdrs_energy,
     sdrs_planes,
 )
+from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from ._primitives import CollisionQuery, Meshes, chain_to_poses, grouped_cross, near_pairs, primitives
 from .bsh import BSH
@@ -60,7 +61,11 @@ class SdrsContact:
     warm_start = False
 
     def __init__(
-        self, bshes: Sequence[BSH], dhat: float = 1e-2, stiffness: float = 10.0, margin: float = 1e-3
+        self,
+        bshes: Sequence[BSH],
+        dhat: float = DEFAULT_CONTACT.dhat,
+        stiffness: float = 10.0,
+        margin: float = DEFAULT_CONTACT.margin,
     ):
         if not bshes or not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a non-empty sequence of cfd_torch.BSH")
