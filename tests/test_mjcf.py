@@ -438,6 +438,22 @@ def test_include_and_naming_rules_follow_mujoco(tmp_path) -> None:
         load_mjcf(twice)
 
 
+def test_hinge_ranges_that_look_like_radians_are_warned_of() -> None:
+    """MJCF angles are degrees unless <compiler angle="radian"/> says otherwise: a model that leaves the compiler's
+    angle unset and whose every limited hinge lies within +-2 pi "degrees" is warned of (a user's range="-2.8 2.8"
+    loaded silently as +-0.049 rad); radians declared, or ranges in plain degrees, load quietly."""
+    arm = _one_body('<joint name="h" range="-2.8 2.8"/>')
+    with pytest.warns(UserWarning, match="joint 'h': -2.8 .. 2.8 degrees.*angle=\"radian\""):
+        assert load_mjcf(arm).joints[0].range == pytest.approx((-2.8 * math.pi / 180, 2.8 * math.pi / 180))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_mjcf(arm.replace("<mujoco>", '<mujoco><compiler angle="radian"/>')).joints[0].range == (
+            -2.8,
+            2.8,
+        )
+        load_mjcf(_one_body('<joint name="h" range="-120 120"/>'))
+
+
 def test_refusals() -> None:
     with pytest.raises(ValueError, match="free joint 'fj' in body 'b'"):
         load_mjcf(_one_body('<freejoint name="fj"/>'))

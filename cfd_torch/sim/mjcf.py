@@ -340,6 +340,8 @@ def load_mjcf(
             in_tree.add(b)
     bodies = sorted(in_tree)
     _check_model(m, in_tree)
+    if spec.compiler.degree and not any(c.get("angle") for c in ET.fromstring(xml).iter("compiler")):
+        _warn_if_radians_in_degrees(m, in_tree)
 
     link_of: dict[int, int] = {}  # body id -> link index
     T_in_link: dict[int, np.ndarray] = {}  # body id -> (4, 4) body frame in its link frame
@@ -603,6 +605,29 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
                 f"links' mass properties here are computed from): remove it (bodies without joints are welded into "
                 "their link here anyway)"
             )
+
+
+def _warn_if_radians_in_degrees(m: mujoco.MjModel, in_tree: set[int]) -> None:
+    """Warn where the model leaves <compiler angle> at MuJoCo's default, degrees, and every limited hinge of the
+    subtree has a range within +-2 pi "degrees": most likely a range written in radians (range="-2.8 2.8" is
+    +-0.049 rad)."""
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    limited = [
+        j
+        for j in range(m.njnt)
+        if int(m.jnt_bodyid[j]) in in_tree and int(m.jnt_type[j]) == hinge and bool(m.jnt_limited[j])
+    ]
+    degrees = [np.degrees(m.jnt_range[j]) for j in limited]
+    if limited and all(float(np.abs(r).max()) <= 2 * math.pi + 1e-9 for r in degrees):
+        j = limited[0]
+        lo, hi = (float(x) for x in degrees[0])
+        warnings.warn(
+            f"every limited hinge's range is within +-2 pi degrees (joint '{m.joint(j).name}': {lo:g} .. {hi:g} "
+            'degrees): MJCF angles are in degrees unless <compiler angle="radian"/> says otherwise; add it if the '
+            "ranges are radians",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _check_model(m: mujoco.MjModel, in_tree: set[int]) -> None:
