@@ -22,7 +22,8 @@ axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agre
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos (those acting only outside the root's
-subtree are left out), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
+subtree are left out; actuator plugins and actuators in a group ``<option actuatorgroupdisable>`` disables are
+refused), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
 geoms and bodies whose mass counts (`discardvisual`, `fusestatic`), damping, armature or stiffness on the free
 root joint, and physics the simulator does not model: joint
 `frictionloss` and `actuatorfrcrange`, `<equality>` constraints, tendon limits, stiffness and damping. A link's
