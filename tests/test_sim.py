@@ -778,37 +778,6 @@ def test_lagged_contacts_from_the_numba_pass_equal_the_differentiable_form(bodie
         torch.testing.assert_close(a, b.detach(), rtol=1e-12, atol=1e-12 * float(b.abs().max()))
 
 
-@pytest.mark.parametrize("active", [0.0, 0.2])
-def test_differentiable_lagged_contacts_from_a_forward_solve_are_bit_for_bit_the_same(bodies, active):
-    """The step's backward gives its differentiable lagged contacts (create_graph=True) the forward's leaf-pair
-    solve at the same poses (``solved``) instead of solving again: the contacts and their derivatives in the poses
-    are bit for bit those of a call that solves; ``solved`` from other poses or pairs, or without create_graph, is
-    refused."""
-    from cfd_torch.sim.energy import scene_pairs
-
-    scene, state, _, _ = _scene_batch(bodies)
-    model = scene.contact_model
-    pairs = scene_pairs(scene, state.q.shape[0])
-    fwd = model.lagged(state.q.detach(), pairs, active)
-    assert fwd.solved is not None
-    outs = []
-    for solved in (None, fwd.solved):
-        poses = state.q.detach().clone().requires_grad_()
-        lag = model.lagged(poses, pairs, active, create_graph=True, solved=solved)
-        assert lag.pair.numel() > 10
-        s = (lag.normal_force**2).sum() + (lag.x_t * lag.X.detach()).sum() + (lag.tangent[:, 0, 1]).sum()
-        (g,) = torch.autograd.grad(s, poses)
-        outs.append((lag, g))
-    (a, ga), (b, gb) = outs
-    assert float(ga.abs().max()) > 0 and torch.equal(ga, gb)
-    for x, y in zip(a[:5], b[:5], strict=True):
-        assert torch.equal(x.detach(), y.detach())
-    with pytest.raises(ValueError, match="create_graph"):
-        model.lagged(state.q.detach(), pairs, active, solved=fwd.solved)
-    with pytest.raises(ValueError, match="same poses and pairs"):
-        model.lagged(state.q.detach(), pairs[:1], active, create_graph=True, solved=fwd.solved)
-
-
 def test_pair_sums_in_numba_equal_the_tensor_scatter():
     """sum_pairs' CPU loop (no autograd wanted) equals its tensor form (taken when an input needs a graph), with
     repeated rows, several pose sets and either input alone."""

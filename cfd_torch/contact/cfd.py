@@ -144,17 +144,11 @@ class CfdContact:
         active: float,
         create_graph: bool = False,
         ids: torch.Tensor | None = None,
-        solved: tuple | None = None,
     ) -> LaggedContacts:
         """The lagged friction contacts (see ``ContactModel``); with ``ids`` (P,), on the numba kernels, also the
         warm-start data of every feasible leaf pair (keys of (id, leaf, leaf) and planes in the pair's frame, as
-        :meth:`evaluate` makes them). On the numba kernels the result's ``solved`` is the leaf pairs' solve (their
-        vertex forces and planes); given back as ``solved`` to a ``create_graph`` call at the same poses and pairs
-        (whose traversal finds the same leaf pairs in the same order, at any order), it replaces that call's plane
-        solves: the same contacts and derivatives, bit for bit."""
+        :meth:`evaluate` makes them)."""
         c = self.config
-        if solved is not None and not create_graph:
-            raise ValueError("lagged: 'solved' is for a create_graph call (the step's backward)")
         kw = {"mu": c.stiffness, "margin": c.margin, "tol": c.pair_tol, "max_iter": c.pair_max_iter}
         forest, table, rows, roots = self._rows(poses, pairs)
         fused = poses.device.type == "cpu" and poses.dtype == torch.float64 and c.backend != "torch"
@@ -179,30 +173,20 @@ class CfdContact:
                 from ._traverse_numba import leaf_inputs, warm_table
                 from .pair import _solve
 
-                if solved is not None:  # an earlier call's solve of these leaf pairs
-                    g, planes = solved
-                    if g.shape[0] != LI.shape[0]:
-                        raise ValueError(
-                            f"lagged: 'solved' holds {g.shape[0]} leaf pairs, the traversal found {LI.shape[0]} "
-                            "(it must come from a call at the same poses and pairs)"
-                        )
-                    # (the body-frame triangles, as leaf_inputs copies them)
-                    Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]
-                else:
-                    R = rotation_matrix(table[:, 3:].detach())
-                    e = lp[:0]
-                    Xa, Xb, X, *_ = (
-                        torch.from_numpy(x)
-                        for x in leaf_inputs(
-                            forest.tris.numpy(), forest.tri.numpy(), LI.numpy(), LJ.numpy(), lp.numpy(),
-                            rows.contiguous().numpy(), R.contiguous().numpy(),
-                            table[:, :3].detach().contiguous().numpy(), e.numpy(), e.numpy(),
-                            table.new_zeros(0, 4).numpy(), 0,
-                        )
-                    )  # fmt: skip
-                    sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **kw)
-                    g = sol.grad.reshape(-1, 2, 3, 3)
-                    planes = (sol.local_plane, sol.centre, sol.offset, torch.isfinite(sol.value))
+                R = rotation_matrix(table[:, 3:].detach())
+                e = lp[:0]
+                Xa, Xb, X, *_ = (
+                    torch.from_numpy(x)
+                    for x in leaf_inputs(
+                        forest.tris.numpy(), forest.tri.numpy(), LI.numpy(), LJ.numpy(), lp.numpy(),
+                        rows.contiguous().numpy(), R.contiguous().numpy(),
+                        table[:, :3].detach().contiguous().numpy(), e.numpy(), e.numpy(),
+                        table.new_zeros(0, 4).numpy(), 0,
+                    )
+                )  # fmt: skip
+                sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **kw)
+                g = sol.grad.reshape(-1, 2, 3, 3)
+                planes = (sol.local_plane, sol.centre, sol.offset, torch.isfinite(sol.value))
                 # with ids, the planes (in frames at the solve's centres C) in the frames at body a: d - n.(C - t_a)
                 if ids is not None:
                     M = forest.centre.shape[0]
@@ -233,7 +217,7 @@ class CfdContact:
                         bb.contiguous().numpy(), float(active), pairs.shape[0],
                     )
                 )  # fmt: skip
-                return LaggedContacts(lp[keep], X, x, T, lam, warm, (g, planes))
+                return LaggedContacts(lp[keep], X, x, T, lam, warm)
             ga, gb = g[:, 0], g[:, 1]
             if active > 0 and lp.numel():
                 lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)

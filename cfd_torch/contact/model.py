@@ -47,8 +47,6 @@ class LaggedContacts(NamedTuple):
         normal_force: (C,) lambda_c, the lagged normal force magnitude [N].
         warm: with ``ids``, the model's warm-start data of the start-of-step poses (as ``ContactEval.warm``), for
             the step's first evaluation at nearby poses; else None.
-        solved: the model's own solve behind these contacts (opaque), which a ``create_graph`` call at the same
-            poses and pairs may take as ``solved`` instead of solving again; None where the model has none.
     """
 
     pair: torch.Tensor
@@ -57,7 +55,6 @@ class LaggedContacts(NamedTuple):
     tangent: torch.Tensor
     normal_force: torch.Tensor
     warm: object | None = None
-    solved: object | None = None
 
 
 @runtime_checkable
@@ -79,9 +76,6 @@ class ContactModel(Protocol):
     friction depends on the previous state); ``active`` in [0, 1) drops contacts carrying less than that fraction
     of their pair's largest normal force. ``ids`` (P,), passed (as to ``evaluate``) only to a model whose
     ``warm_start`` is True: the result's ``warm`` carries warm-start data for the step's first evaluation.
-    ``solved``, passed only to a model whose earlier result at the same poses and pairs carried one (its
-    ``solved``): that result's solve, reused by the ``create_graph`` call (the step's backward) instead of solving
-    the same problem again; the result must be the same as without it.
     """
 
     def evaluate(

@@ -50,13 +50,9 @@ def _serial_torch():
         torch.set_num_threads(n)
 
 
-def _lagged(
-    scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = False, solved: object | None = None
-) -> LaggedContacts:
+def _lagged(scene, q_t: torch.Tensor, on: torch.Tensor, create_graph: bool = False) -> LaggedContacts:
     """The lagged friction contacts of the scenes ``on`` (B,) bool at the start-of-step poses q_t (B, N, 6),
-    indexed into the pairs of all B scenes (``scene_pairs(scene, B)``); ``solved``: the ``solved`` of the forward's
-    contacts at the same poses, which the backward's differentiable ones reuse (not passed when None: a model
-    without its own solve need not accept it)."""
+    indexed into the pairs of all B scenes (``scene_pairs(scene, B)``)."""
     B, P = q_t.shape[0], scene.pairs.shape[0]
     idx = torch.nonzero(on)[:, 0]
     pairs = scene_pairs(scene, len(idx)).to(q_t.device)
@@ -67,8 +63,6 @@ def _lagged(
         # in the step's evaluations: scene * P + pair)
         rows = torch.arange(pairs.shape[0], device=q_t.device)
         kw["ids"] = idx[rows // P] * P + rows % P
-    if solved is not None:
-        kw["solved"] = solved
     lag = model.lagged(q_t[idx], pairs, scene.friction.active, create_graph=create_graph, **kw)
     if len(idx) < B and P:  # renumber into the pairs of all B scenes
         lag = lag._replace(pair=idx[lag.pair // P] * P + lag.pair % P)
@@ -169,9 +163,6 @@ class StepFn(torch.autograd.Function):
         # and, where the map's Jacobian depends on a fixed pose, the contact gradient it pulls back
         contact_grad = -res.at.contact_force if bool(kin.hung.any()) else None
         ctx.scene, ctx.friction_on = scene, on if lagged is not None else None
-        # the lagged contacts' leaf pairs solved at q_t: the backward's differentiable contacts at the same poses
-        # take their planes and vertex forces instead of solving them again
-        ctx.lagged_solved = lagged.solved if lagged is not None else None
         ctx.save_for_backward(
             res.q, res.at.hess, cross, rows6, q_t, q_p, force, torque, target, mass, S, mu_f, ctrl, kp, kv,
             pred.free_rotation, contact_grad,
@@ -251,7 +242,7 @@ class StepFn(torch.autograd.Function):
                 _, g_j, _ = kin.joint_terms(q, joint, scene.dt, 1)
                 s = s + (g_j * lam).sum()
             if ctx.friction_on is not None:
-                lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True, solved=ctx.lagged_solved)
+                lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True)
                 cp = scene_pairs(scene, B).to(q.device)[lagged.pair]
                 frows = cp[:, :1] * N + cp[:, 1:]
                 _, gf, _ = friction_terms(
