@@ -390,6 +390,17 @@ def test_a_contact_model_is_a_class_not_a_stepper_change(bodies):
     assert model.calls > 0
     # the same solve, except that CfdContact warm-starts its plane solves (observed 8.8e-15 m apart)
     torch.testing.assert_close(a.q, b.q, rtol=0, atol=1e-12)
+    # and its backward (friction's lagged contacts with a graph through the model's own lagged): the same gradient
+    grads = []
+    for scene in (ref, own):
+        q0 = q.clone().requires_grad_(True)
+        s = scene.initial_state(q0)
+        for _ in range(2):
+            s = step(scene, s)
+        (g,) = torch.autograd.grad(s.q[0, :3].sum(), q0)
+        grads.append(g)
+    assert float(grads[0].abs().max()) > 0
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-9, atol=1e-12)
 
 
 def test_replace_rebuilds_from_the_bodies_as_given_and_keeps_the_other_settings(bodies):
