@@ -447,9 +447,9 @@ class TaskCore(abc.ABC):
             )
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action contains NaN or inf")
-        largest = float(action.detach().abs().max()) if action.numel() else 0.0
-        action = action.to(dtype=self.dtype, device=self.device)
+        given, action = action, action.to(dtype=self.dtype, device=self.device)
         if not bool(torch.isfinite((action * action).sum(1)).all()):
+            largest = float(given.detach().abs().max())  # (as given: in the core's dtype it may read inf)
             raise ValueError(
                 f"action: |a|^2 overflows {self.dtype} (largest |a_i| {largest:.3g}); actions are in [-1, 1]"
             )
