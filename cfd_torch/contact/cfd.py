@@ -54,6 +54,8 @@ class CfdContact:
         if not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a sequence of cfd_torch.BSH")
         self.config = ContactConfig() if config is None else config
+        #: the gap below which the potential is +inf
+        self.margin = self.config.margin
         self._bshes, self._which = unique_hierarchies(bshes)
         self.num_bodies = N = len(bshes)
         self.bshes = tuple(bshes)  # one per body, in the scene's order

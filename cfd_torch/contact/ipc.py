@@ -260,7 +260,9 @@ class IpcContact:
         self.num_bodies = len(bshes)
         self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._meshes = Meshes.build(bshes)
-        self._query = CollisionQuery(bshes, 0.0)
+        #: the gap below which the potential is +inf: IPC's barrier is finite at any positive distance
+        self.margin = 0.0
+        self._query = CollisionQuery(bshes, self.margin)
 
     # -- the collision query: triangles touching or intersecting
     def infeasible(

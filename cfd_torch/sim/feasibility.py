@@ -69,20 +69,13 @@ def feasible(scene, poses: torch.Tensor) -> torch.Tensor:
 
 
 def infeasible_reason(scene) -> str:
-    """Where the scene's contact potential is +inf, for messages: "within the contact margin 0.001" (this library's
-    potential, SDRS), "touching or intersecting" (IPC's barrier, which is finite at any positive distance), or, for
-    a model given as ``contact_model``, where that model's potential is +inf."""
-    from ..contact.cfd import CfdContact
-    from ..contact.ipc import IpcContact
-    from ..contact.sdrs import SdrsContact
-
-    model = scene.contact_model
-    if isinstance(model, IpcContact):
-        return "touching or intersecting"
-    if isinstance(model, (CfdContact, SdrsContact)):
-        margin = model.margin if isinstance(model, SdrsContact) else scene.contact.margin
-        return f"within the contact margin {margin:g}"
-    return "where the contact model's potential is +inf"
+    """Where the scene's contact potential is +inf, for messages, from its model's ``margin``: "within the contact
+    margin 0.001" (this library's potential, SDRS), "touching or intersecting" (a margin of 0: IPC's barrier), or,
+    for a model without one, where that model's potential is +inf."""
+    margin = getattr(scene.contact_model, "margin", None)
+    if margin is None:
+        return "where the contact model's potential is +inf"
+    return f"within the contact margin {margin:g}" if margin > 0 else "touching or intersecting"
 
 
 def penetrating(scene, poses: torch.Tensor) -> str:
@@ -202,23 +195,20 @@ def start_and_sweep(
 
 
 def _sweep(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None, start: bool):
+    """(S,) bool or None, (S,) bool: the starts' infeasibility (with ``start``) and the paths' clearance."""
     d = p1 - p0
     r = scene.extent.to(p0)
     dist = (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
     ps, path = _spaced(dist, scene.solver.ccd_spacing, p0, p1)
     S = len(p0)
     clear = torch.ones(S, dtype=torch.bool, device=p0.device)
-    if start:
-        ps = torch.cat([p0, ps])
-    bad = (
-        infeasible_pairs(scene, ps, sel).any(1)
-        if len(ps)
-        else torch.zeros(0, dtype=torch.bool, device=p0.device)
-    )
-    if start:
-        bad, start_bad = bad[S:], bad[:S]
+    query = torch.cat([p0, ps]) if start else ps
+    if len(query) == 0:
+        return None, clear
+    bad = infeasible_pairs(scene, query, sel).any(1)
+    start_bad, bad = (bad[:S], bad[S:]) if start else (None, bad)
     clear[path[bad]] = False
-    return (start_bad if start else None), clear
+    return start_bad, clear
 
 
 def path_clear(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:

@@ -108,6 +108,7 @@ class GeomSpec:
         contype: MuJoCo contact type bits.
         conaffinity: MuJoCo contact affinity bits.
         mesh: closed, outward-wound triangulation in the link frame (inscribed in the ideal shape).
+        friction: MuJoCo's sliding friction coefficient of the geom.
     """
 
     name: str
@@ -120,6 +121,7 @@ class GeomSpec:
     contype: int
     conaffinity: int
     mesh: trimesh.Trimesh
+    friction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -310,7 +312,7 @@ def load_mjcf(
         base = os.path.dirname(os.path.abspath(source))
     else:
         xml = str(source)
-    xml = _prepared_xml(xml, base)
+    xml, tree = _prepared_xml(xml, base)
     spec = _spec(xml, base)
     unnamed = _unnamed_bodies(spec.worldbody)
     if unnamed:
@@ -341,7 +343,7 @@ def load_mjcf(
             in_tree.add(b)
     bodies = sorted(in_tree)
     _check_model(m, in_tree)
-    if spec.compiler.degree and not any(c.get("angle") for c in ET.fromstring(xml).iter("compiler")):
+    if spec.compiler.degree and not any(c.get("angle") for c in tree.iter("compiler")):
         _warn_if_radians_in_degrees(m, in_tree)
 
     link_of: dict[int, int] = {}  # body id -> link index
@@ -381,7 +383,6 @@ def load_mjcf(
     visual_only: list[str] = []
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
-        geom_ids: list[int] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
         parts: list[tuple[float, np.ndarray, np.ndarray]] = []
         for b in group:
@@ -416,17 +417,12 @@ def load_mjcf(
                     R = quat_to_matrix(geom.quat)
                     parts.append((geom.mass, geom.pos, R @ _geom_second_moment(geom) @ R.T))
                 geoms.append(geom)
-                geom_ids.append(g)
         mass, com, S = _combine(parts)
         pose = link_pose[k]
         # the collision mesh: the geoms MuJoCo may collide (contype or conaffinity nonzero); a link with none keeps
         # all of its geoms (a body needs a mesh), and they collide
         colliding = [g for g in geoms if g.contype or g.conaffinity]
-        frictions.update(
-            float(m.geom_friction[g, 0])
-            for g, geom in zip(geom_ids, geoms, strict=True)
-            if not colliding or geom.contype or geom.conaffinity
-        )
+        frictions.update(g.friction for g in colliding or geoms)
         if geoms and not colliding:
             visual_only += [g.name or f"{m.body(group[0]).name}/#{i}" for i, g in enumerate(geoms)]
         links.append(
@@ -475,11 +471,12 @@ def load_mjcf(
     )
 
 
-def _prepared_xml(xml: str, base: str | None) -> str:
+def _prepared_xml(xml: str, base: str | None) -> tuple[str, ET.Element]:
     """The MJCF text with its <include> elements replaced by the included files' elements and every unnamed body
     named after its parent and its place among the parent's child bodies ("torso/2"; pytorch-kinematics keys frames
-    by body name); the text itself where it has neither. Attributes are kept as written: MuJoCo's own rewrite
-    (``MjSpec.to_xml``) would drop compiler options such as settotalmass and round numbers to 6 digits."""
+    by body name), the text itself where it has neither; and its element tree. Attributes are kept as written:
+    MuJoCo's own rewrite (``MjSpec.to_xml``) would drop compiler options such as settotalmass and round numbers to 6
+    digits."""
     try:
         tree = ET.fromstring(xml)
     except ET.ParseError as e:
@@ -489,7 +486,7 @@ def _prepared_xml(xml: str, base: str | None) -> str:
     # the <worldbody> sections (a model and the files it includes may each have one) are one world, as in MuJoCo
     taken = {b.get("name") for b in tree.iter("body") if b.get("name")}
     changed = _name_body_elements(list(tree.iter("worldbody")), "", taken) or changed
-    return ET.tostring(tree, encoding="unicode") if changed else xml
+    return (ET.tostring(tree, encoding="unicode") if changed else xml), tree
 
 
 def _inline_includes(element: ET.Element, base: str, folder: str, seen: set[str]) -> bool:
@@ -856,6 +853,7 @@ def _geom_spec(
         contype=int(m.geom_contype[g]),
         conaffinity=int(m.geom_conaffinity[g]),
         mesh=mesh,
+        friction=float(m.geom_friction[g, 0]),
     )
 
 

@@ -166,10 +166,8 @@ def _solve_in_groups(
             outs.append(
                 _solve(scene, part, *map(pick, (force, torque, target, ctrl)), Params(*map(pick, params)))
             )
-        except (
-            StepError,
-            ValueError,
-        ) as err:  # which scenes of the batch the group holds, indices of the batch
+        # which scenes of the batch the group holds, the group's scene indices turned into the batch's
+        except (StepError, ValueError) as err:
             batch = re.sub(
                 r"\bscene (\d+)", lambda s, idx=idx: f"scene {int(idx[int(s.group(1))])}", str(err)
             )
