@@ -22,9 +22,10 @@ curvature) is also within ``tol`` is frozen, and the evaluations that follow cov
 still iterating (their own terms and their pairs). Nothing freezes in a scene expected to converge in its next
 iteration (largest step^3 <= tol x previous largest step^2, Newton's quadratic rate; in the first iteration, a
 largest step within about 2,000 tol): there a freeze would only add
-the two whole evaluations that end it. A scene converges only at an evaluation of all its bodies: when
+the whole evaluation that ends it. A scene converges only at an evaluation of all its bodies: when
 the bodies still iterating converge, the scene is evaluated whole, and bodies whose step is then above ``tol``
-iterate again. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
+iterate again; else that evaluation's step (at most ``tol`` per coordinate, the frozen bodies' included) is the
+final step. Frozen bodies keep their coordinates, so the result satisfies the same test as without freezing.
 With ``pair_bodies``, the line search also splits each scene into islands of coupled bodies, each backtracking on
 its own (one body's tight contact does not shorten the steps of bodies far from it); the full step, tried first, is
 taken by every island whenever the whole step passes the scene's own test, as an unsplit search would take it.
@@ -220,7 +221,6 @@ def newton(
     may_freeze = torch.ones(B, dtype=torch.bool, device=dev)
     # scenes whose islands' separate steps ended infeasible together search whole from then on
     split = torch.ones(B, dtype=torch.bool, device=dev)
-    checked = torch.zeros(B, dtype=torch.bool, device=dev)  # cur is the whole evaluation that ended a freeze
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
     for it in range(1, max_iter + 1):
@@ -257,15 +257,9 @@ def newton(
         p_max = p.abs().amax(1)
         small = pd & ~maj & (p_max <= tol)
         # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
-        # converge in its next iteration does not freeze bodies, which would cost it two whole evaluations more
+        # converge in its next iteration does not freeze bodies, which would cost it a whole evaluation more
         soon = pd & ~maj & (p_max**3 <= tol * last_step[idx] ** 2)
         last_step[idx] = p_max
-        # the first whole evaluation after freezing: the frozen bodies' steps, up to tol each, are taken by one
-        # more iteration instead of as an unchecked final step, so that the solve ends at (nearly) the point of
-        # its last evaluation, whose Hessian the adjoint uses
-        again = small & checked[idx]
-        checked[idx] = False
-        small = small & ~again
         done = small & whole[idx]
         if bool(done.any()):
             dn = idx[done]
@@ -281,7 +275,6 @@ def newton(
             sc = idx[check]
             act[sc] = True
             whole[sc] = True
-            checked[sc] = True
             may_freeze[sc] = False
             ev = _call(energy, q[sc], sc, 2, None)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
