@@ -42,7 +42,14 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from _cli import apply_preset, nonnegative_float, nonnegative_int, positive_float, positive_int
+from _cli import (
+    apply_preset,
+    folder_problem,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -183,6 +190,28 @@ def main(argv: list[str] | None = None) -> dict:
         )
     if args.duration < args.dt:
         p.error(f"argument --duration: {args.duration:g} s is shorter than --dt {args.dt:g} s")
+    margin = ContactConfig().margin  # GapPotential's
+    if args.gap0 <= margin:
+        p.error(
+            f"argument --gap0: must exceed the contact margin {margin:g} m (the cubes start apart), got {args.gap0:g}"
+        )
+    # the latest phase reaches contact in free flight at gap0 / v + dt; a step more resolves it (else e is read
+    # before the impact, e = -1, or after a far-field bounce, and the amplification T - t_impact is negative)
+    late = args.gap0 / args.speed + 2 * args.dt
+    if late > args.duration:
+        p.error(
+            f"argument --duration: {args.duration:g} s ends before the impact is over (gap0 / speed + 2 dt = "
+            f"{late:g} s); give a longer --duration, a smaller --gap0 or a faster --speed"
+        )
+    for scheme in args.schemes:
+        if scheme.startswith("aligned:") and float(scheme.split(":")[1]) >= args.gap0:
+            p.error(
+                f"argument --schemes: {scheme}: the gap G must lie below --gap0 ({args.gap0:g} m), else the "
+                "phases that start below G never cross it and are stepped plain"
+            )
+    problem = folder_problem(args.out)
+    if problem:
+        p.error(f"argument --out: {problem}")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     P = GapPotential()

@@ -41,8 +41,10 @@ Definitions (every figure in the outputs is one of these):
   bodies, so the force through interface c deviates from statics by the resultant of the forces that the bodies
   below the interface exert on the bodies above it, except the touching pair:
   ``e_c = | sum_{i below c, j above c, (i, j) != (c - 1, c)} F_ij |``, F_ij the force of body i on body j from
-  their two-body potential (``cfd_torch.pair_forces``, ``-grad`` of that pair's potential). At rest this is
-  |F_contact,c - F_statics,c| up to friction and inertia, which vanish at rest. The contact force itself is not
+  their two-body potential (``cfd_torch.pair_forces``, ``-grad`` of that pair's potential). At rest (no inertia)
+  this is |F_contact,c + F_friction,c - F_statics,c|; friction does not vanish at rest (5 boards at mu = 1e-10:
+  its vertical part 1.1e-2 to 1.5e-2 N per interface, 100x e_c), so e_c is not |F_contact,c - F_statics,c| of
+  the pair force alone. The contact force itself is not
   differenced against the weight because at rest the tilted contact planes give it a horizontal part that friction
   carries: that is not a long-range effect. Headline: the largest e_c over the interfaces (each e_c, the top board's
   value, which is the long-range force on the top board, and the long-range resultant on every board, from every
@@ -110,6 +112,7 @@ import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import (  # noqa: E402
     apply_preset,
+    folder_problem,
     nonnegative_float,
     nonnegative_int,
     positive_float,
@@ -210,6 +213,15 @@ def parse_args() -> argparse.Namespace:
         p.error(f"argument --retract: must be a finite number, got {a.retract}")
     if a.t_max < a.dt:
         p.error(f"argument --t-max: must be at least --dt ({a.dt:g} s), got {a.t_max:g}")
+    # a run can only come to rest at some t with t_min <= t <= t_max, after rest_time of quiet: else every run
+    # would be reported unstable ("not at rest by t_max") whatever the stack does
+    if a.t_min > a.t_max:
+        p.error(f"argument --t-min: must be at most --t-max ({a.t_max:g} s), got {a.t_min:g}")
+    if a.rest_time > a.t_max:
+        p.error(f"argument --rest-time: must be at most --t-max ({a.t_max:g} s), got {a.rest_time:g}")
+    problem = folder_problem(a.out)
+    if problem:
+        p.error(f"argument --out: {problem}")
     if a.bisect_retract:
         if not 0 < a.retract <= 1:
             p.error(f"argument --retract: with --bisect-retract it must lie in (0, 1], got {a.retract:g}")

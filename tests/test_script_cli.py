@@ -69,6 +69,14 @@ REFUSED = [
     ("impact_phase", ["--quick", "--phases", "2", "--substeps", "0"], "--substeps"),
     ("impact_phase", ["--dts", "-0.01"], "--dts"),
     ("impact_phase", ["--phases", "0"], "--phases"),
+    (
+        "impact_phase",
+        ["--quick", "--gap0", "0"],
+        "--gap0",
+    ),  # within the contact margin: a ValueError traceback
+    ("impact_phase", ["--quick", "--gap0", "0.0005"], "--gap0"),
+    ("impact_phase", ["--quick", "--gap0", "0.5"], "--duration"),  # no impact by 0.3 s: e = -1, bias 0
+    ("impact_phase", ["--quick", "--speeds", "0.01"], "--duration"),  # a far-field bounce: e = 2
     ("bench_contact", ["--repeats", "-1"], "--repeats"),
     ("bench_contact", ["--repeats", "0"], "--repeats"),
     ("bench_contact", ["--brute-max-s", "0"], "--brute-max-s"),
@@ -77,6 +85,8 @@ REFUSED = [
     ("stacked_books", ["--boards", "-2"], "--boards"),
     ("stacked_books", ["--mu", "-1"], "--mu"),
     ("stacked_books", ["--dt", "0"], "--dt"),
+    ("stacked_books", ["--t-min", "30"], "--t-min"),  # never at rest: every run 'unstable'
+    ("stacked_books", ["--rest-time", "25"], "--rest-time"),
     ("step_history", ["--revs", "HEAD", "--runs", "0"], "--runs"),
     ("bench_step", ["--num-boxes", "0"], "--num-boxes"),
     ("bench_step", ["--num-cubes", "0"], "--num-cubes"),
@@ -93,6 +103,10 @@ REFUSED = [
     ("impact_model_1d", ["--schemes", "sub:0"], "--schemes"),
     ("impact_model_1d", ["--schemes", "foo"], "--schemes"),
     ("impact_model_1d", ["--dt", "-0.01"], "--dt"),
+    ("impact_model_1d", ["--quick", "--gap0", "0.0005"], "--gap0"),  # e = 0.0000 at phase 0, bias 3.5
+    ("impact_model_1d", ["--quick", "--gap0", "0.5"], "--duration"),  # e = -1, bias -0.000
+    ("impact_model_1d", ["--quick", "--speed", "0.01"], "--duration"),  # e = 2, negative predicted bias
+    ("impact_model_1d", ["--schemes", "aligned:0.05:1"], "--schemes"),  # G above gap0: silently plain
     ("stress", ["--seed", "-1"], "--seed"),
     ("bench_pair", ["--device", "foo"], "--device"),
     ("demo_pair", ["--margin", "-1"], "--margin"),
@@ -146,3 +160,22 @@ def test_plot_results_refuses_an_out_that_is_a_file(scripts_path, monkeypatch, c
         plot_results.main()
     assert exit_.value.code == 2
     assert f"error: --out {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", ["stacked_books", "impact_phase", "impact_model_1d"])
+def test_an_experiment_script_refuses_an_out_that_is_a_file(
+    scripts_path, monkeypatch, capsys, tmp_path, script
+):
+    """As plot_results.py does (they raised NotADirectoryError from mkdir after parsing)."""
+    import importlib
+
+    module = importlib.import_module(script)
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", "--quick", "--out", str(afile / "sub")])
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 2
+    assert (
+        f"error: argument --out: {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
+    )
