@@ -868,3 +868,44 @@ def test_cube_tasks_floor_holds_the_spread_and_the_goal_regions(task, kwargs):
     cubes = state.q[:, : core.num_cubes, :2].abs().amax()
     reach = max(math.hypot(x, y) + r for x, y, r in core._goal_discs())
     assert half >= float(cubes) + 1.0 and half >= reach + 1.0, (half, float(cubes), reach)
+
+
+def test_vector_env_frame_i_is_environment_i():
+    """Frame i of the native vector env is the frame of copy i (the single env reset with seed s + i draws the same
+    scene), in order (reversed frames passed the suite); the sync vector env gives the same frames."""
+    kwargs = dict(render_mode="rgb_array", width=64, height=48)
+    single = gym.make("cfd_torch/Sort-v0", **kwargs)
+    expected = []
+    for i in range(3):
+        single.reset(seed=7 + i)
+        expected.append(single.render())
+    single.close()
+    for mode in ("vector_entry_point", "sync"):
+        vec = gym.make_vec("cfd_torch/Sort-v0", 3, vectorization_mode=mode, **kwargs)
+        vec.reset(seed=7)
+        frames = vec.render()
+        vec.close()
+        assert len(frames) == 3
+        for i in range(3):
+            np.testing.assert_array_equal(frames[i], expected[i], err_msg=f"{mode}: frame {i}")
+    assert not np.array_equal(expected[0], expected[1])
+
+
+def test_render_metadata_and_render_mode_none():
+    """``metadata["render_fps"]`` is the step rate 1 / dt (a frame per step: real time), for the native vector env
+    too; render() without a render mode returns None; an unsupported mode is refused naming ``render_mode``."""
+    for dt, fps in ((0.01, 100), (0.02, 50)):
+        env = gym.make("cfd_torch/Push-v0", dt=dt)
+        assert env.metadata["render_fps"] == fps and env.metadata["render_modes"] == ["rgb_array"]
+        env.reset(seed=0)
+        assert env.unwrapped.render() is None  # render_mode None
+        env.close()
+        vec = gym.make_vec("cfd_torch/Push-v0", 2, vectorization_mode="vector_entry_point", dt=dt)
+        assert vec.metadata["render_fps"] == fps
+        vec.reset(seed=0)
+        assert vec.render() is None
+        vec.close()
+    with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array'"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # gym.make's own "not in the possible render_modes"
+            gym.make("cfd_torch/Push-v0", render_mode="ansi")

@@ -262,3 +262,107 @@ def test_per_frame_colors_override_and_restore(renderer):
         renderer.render(POSES, colors=COLORS[:2])
     with pytest.raises(ValueError, match="colors must be RGBA values in \\[0, 1\\]; row 0"):
         renderer.render(POSES, colors=[(2.0, 0.0, 0.0, 1.0)] * 3)
+
+
+def _project(camera, point, width: int, height: int, fovy: float = 45.0) -> tuple[float, float]:
+    """Pixel (column, row) of world ``point`` [m] through a free MuJoCo camera (its azimuth, elevation, lookat and
+    distance; MuJoCo's 45 degree vertical field of view): an independent pinhole model, y up in the world, rows down
+    in the image."""
+    az, el = np.radians(camera.azimuth), np.radians(camera.elevation)
+    forward = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+    eye = np.asarray(camera.lookat, dtype=np.float64) - camera.distance * forward
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    d = np.asarray(point, dtype=np.float64) - eye
+    f = 0.5 * height / np.tan(np.radians(0.5 * fovy))
+    return 0.5 * width + f * (d @ right) / (d @ forward), 0.5 * height - f * (d @ up) / (d @ forward)
+
+
+@pytest.mark.parametrize("azimuth, elevation", [(90.0, -45.0), (270.0, -60.0), (30.0, -20.0)])
+def test_bodies_are_drawn_where_the_camera_projects_them(azimuth, elevation):
+    """A small box's pixels are centred where a pinhole model of the camera puts its centre, for moves along x, y
+    and z: the frame is neither mirrored nor upside down (frames that were flipped left-right or top-bottom passed
+    every other test here)."""
+    box = trimesh.creation.box((0.06, 0.06, 0.06))
+    W, H = 200, 150
+    camera = dict(lookat=(0.0, 0.0, 0.0), distance=2.0, azimuth=azimuth, elevation=elevation)
+    r = MeshRenderer([(box.vertices, box.faces)], [COLORS[0]], width=W, height=H, camera=camera)
+    try:
+        for centre in ([0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, 0.4, 0.0], [0.0, 0.0, 0.3], [-0.3, 0.2, 0.1]):
+            img = r.render(np.array([[*centre, 0.0, 0.0, 0.0]]))
+            rows, cols = np.nonzero(_colour_mask(img, 0))
+            u, v = _project(r.camera, centre, W, H)
+            # pixel k covers [k, k + 1): its centre is k + 0.5
+            assert abs(cols.mean() + 0.5 - u) < 1.5 and abs(rows.mean() + 0.5 - v) < 1.5, (centre, u, v)
+    finally:
+        r.close()
+
+
+def _pixel(img: np.ndarray, uv: tuple[float, float]) -> np.ndarray:
+    return img[int(uv[1]), int(uv[0])].astype(np.int32)
+
+
+def test_billiards_draws_the_object_ball_black():
+    """The task's object ball (``task["target"]``) is the dark one, whichever it is (drawing another ball black
+    passed the suite)."""
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.core import task_at
+
+    core = make_core("cfd_torch/Billiards-v0")
+    r = core.renderer(320, 320)
+    try:
+        for seed in range(3):
+            state = core.reset(seed, 1)
+            task = task_at(state, 0)
+            img = core.draw(r, state.q[0], task)
+            brightest = [int(_pixel(img, _project(r.camera, p, 320, 320)).max()) for p in state.q[0, :16, :3]]
+            k = int(task["target"])
+            others = brightest[:k] + brightest[k + 1 :]
+            # observed 54-60 against >= 201
+            assert brightest[k] < 90 and min(others) > 150, (seed, k, brightest)
+    finally:
+        r.close()
+
+
+def test_sort_draws_each_cube_and_region_in_its_class_colour():
+    """Each cube is drawn in its class's colour (red 0, yellow 1) and region k, at ``task["centres"][k]``, in class
+    k's (cubes drawn in the other class's colour passed the suite)."""
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.core import task_at
+
+    def hue(px: np.ndarray) -> int | None:
+        r_, g, b = px
+        if r_ - g > 60 and g - b < 40:
+            return 0  # red
+        if g - b > 60 and r_ - b > 60:
+            return 1  # yellow
+        return None
+
+    core = make_core("cfd_torch/Sort-v0")
+    r = core.renderer(320, 320)
+    try:
+        for seed in range(3):
+            state = core.reset(seed, 1)
+            task = task_at(state, 0)
+            img = core.draw(r, state.q[0], task)
+            for i in range(core.num_cubes):
+                top = state.q[0, i, :3].numpy() + [0.0, 0.0, 0.5 * core.cube_size]
+                drawn = hue(_pixel(img, _project(r.camera, top, 320, 320)))
+                assert drawn == int(task["classes"][i]), (seed, i)
+            for k in range(2):
+                centre = [*task["centres"][k].tolist(), 0.0]
+                assert hue(_pixel(img, _project(r.camera, centre, 320, 320))) == k, (seed, k)
+    finally:
+        r.close()
+
+
+def test_write_gif_keeps_the_last_frame(tmp_path):
+    """At 100 fps every second frame is kept and the last one: six frames give frames 0, 2, 4 and 5."""
+    frames = [np.full((8, 8, 3), 30 * k, dtype=np.uint8) for k in range(6)]
+    with Image.open(write_gif(frames, tmp_path / "even.gif", fps=100.0)) as gif:
+        shown = []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            shown.append(int(np.asarray(gif.convert("RGB"))[0, 0, 0]))
+    assert shown == [0, 60, 120, 150]
