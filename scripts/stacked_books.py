@@ -629,7 +629,7 @@ def margin_md(sets: list[dict]) -> str:
         lines += [
             "",
             f"log-log slope of the stability margin (bracket mid) vs mu: {'-' if k is None else f'{k:.2f}'} "
-            "(paper's margin column: 0.55).",
+            "(paper's margin column: 0.56).",
             "",
         ]
     return "\n".join(lines)
