@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 from pathlib import Path
 
@@ -9,15 +10,21 @@ from pathlib import Path
 _ROOT = Path(__file__).resolve().parent.parent
 
 
+# set by scripts/sweep.py --ray for its jobs: their scripts are a copy outside the checkout (Ray's working_dir)
+REVISION_ENV = "CFD_TORCH_REVISION"
+
+
 def git_revision() -> str | None:
     """Short commit of this checkout's HEAD, with "+dirty" when the library (cfd_torch/, envs/) or the scripts have
-    uncommitted changes; None when the scripts are not in a git checkout."""
+    uncommitted changes; when the scripts are not in a git checkout, ``$CFD_TORCH_REVISION`` (the sweep's
+    checkout's, for a copy shipped to Ray) or None."""
+    fallback = os.environ.get(REVISION_ENV) or None
     try:
         top = subprocess.run(
             ["git", "rev-parse", "--show-toplevel"], capture_output=True, text=True, check=True, cwd=_ROOT
         ).stdout.strip()
         if Path(top).resolve() != _ROOT:  # the scripts sit in some other repository's tree
-            return None
+            return fallback
         rev = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, cwd=_ROOT
         )
@@ -27,4 +34,4 @@ def git_revision() -> str | None:
         ).stdout  # fmt: skip
         return rev.stdout.strip() + ("+dirty" if dirty.strip() else "")
     except (OSError, subprocess.CalledProcessError):
-        return None
+        return fallback

@@ -383,6 +383,14 @@ def _constructor_parameters(cls: type) -> dict:
 MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
 
 
+def check_seed(seed) -> None:
+    """Raise ValueError unless ``seed`` is None or one torch takes (scripts/sweep.py checks every seed of its grid)."""
+    if seed is not None and not (is_int(seed) and -(2**63) <= seed < 2**64):
+        raise ValueError(
+            f"config['seed'] (--seed) must be an int in [-2^63, 2^64) (torch's seeds), got {seed!r}"
+        )
+
+
 def _check_settings(cfg: dict) -> None:
     """Raise ValueError naming the first setting of ``cfg`` out of its range."""
 
@@ -402,10 +410,7 @@ def _check_settings(cfg: dict) -> None:
 
     count("iters", 1)
     count("horizon", 1)
-    if cfg["seed"] is not None and not (is_int(cfg["seed"]) and -(2**63) <= cfg["seed"] < 2**64):
-        raise ValueError(
-            f"config['seed'] (--seed) must be an int in [-2^63, 2^64) (torch's seeds), got {cfg['seed']!r}"
-        )
+    check_seed(cfg["seed"])
     count("smooth_samples", 0)
     if cfg["smooth_samples"] and cfg["model"] not in ("cfd", "ipc", "sdrs"):
         raise ValueError(
@@ -499,8 +504,10 @@ def run_experiment(config: dict) -> dict:
     if cfg["threads"] is not None:
         import numba
 
-        torch.set_num_threads(int(cfg["threads"]))
+        # numba first: its first set_num_threads launches its pool, and its OpenMP layer then sets OpenMP's thread
+        # count (torch's too: one libgomp) to NUMBA_NUM_THREADS, undoing a torch.set_num_threads made before it
         numba.set_num_threads(min(int(cfg["threads"]), numba.config.NUMBA_NUM_THREADS))
+        torch.set_num_threads(int(cfg["threads"]))
     torch.manual_seed(cfg["seed"])
     out_dir = Path(cfg["out"]) if cfg["out"] is not None else None
     if out_dir is not None:

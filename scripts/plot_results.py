@@ -29,7 +29,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from _cli import folder_problem  # noqa: E402
-from optimize import MODEL_ONLY  # noqa: E402
+from optimize import DEFAULTS, MODEL_ONLY  # noqa: E402
 
 
 def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -71,7 +71,7 @@ def mixed_settings(runs: list[dict]) -> str | None:
     settings (iterations, horizon, learning rate, ...: their mean would mix two experiments), else None."""
     first: dict[tuple, dict] = {}
     for r in runs:
-        c = r["config"]
+        c = DEFAULTS | r["config"]  # keys added since a run: their defaults (as sweep.py --resume takes them)
         key = (c["task"], c["model"])
         ref = first.setdefault(key, c)
         for k in sorted((set(c) | set(ref)) - _PER_RUN):

@@ -28,21 +28,33 @@ import json
 import multiprocessing
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _cli import folder_problem  # noqa: E402
-from optimize import DEFAULTS, MODEL_ONLY, MODELS, TASKS, _check_settings, add_arguments, run_experiment  # noqa: E402
+from _provenance import REVISION_ENV, git_revision  # noqa: E402
+from optimize import (  # noqa: E402
+    DEFAULTS,
+    MODEL_ONLY,
+    MODELS,
+    TASKS,
+    _check_settings,
+    add_arguments,
+    check_seed,
+    run_experiment,
+)
 
 
 def configs(args: argparse.Namespace) -> list[dict]:
     """The grid's configs, task-major."""
     shared = {k: getattr(args, k) for k in DEFAULTS if k not in ("task", "model", "seed", "out")}
+    out = args.out.absolute()  # a run's folder whatever its working directory (Ray's is its working_dir copy)
     return [
-        {**shared, "task": t, "model": m, "seed": s, "out": str(args.out / t / m / f"seed{s}")}
+        {**shared, "task": t, "model": m, "seed": s, "out": str(out / t / m / f"seed{s}")}
         for t in args.tasks
         for m in args.models
         for s in args.seeds
@@ -83,26 +95,51 @@ def _write(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
+def _spawn_pool(workers: int) -> ProcessPoolExecutor:
+    # spawn, not fork: a forked child of a process whose torch / numba thread pools have started can hang
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def _run_alone(config: dict) -> dict:
+    """run_one(config) in a process of its own: a process that dies (a crash, the OOM killer) fails this run only."""
+    with _spawn_pool(1) as pool:
+        try:
+            return pool.submit(run_one, config).result()
+        except BrokenProcessPool as e:
+            return {"config": config, "error": f"the run's process died: {e}"}
+
+
 def _run_local(todo: list[dict], workers: int):
     if workers <= 1:
         for c in todo:
             yield run_one(c)
         return
-    # spawn, not fork: a forked child of a process whose torch / numba thread pools have started can hang
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(run_one, c) for c in todo]
+    broken = []
+    with _spawn_pool(workers) as pool:
+        futures = {pool.submit(run_one, c): c for c in todo}
         for f in as_completed(futures):
+            try:
+                r = f.result()
+            except BrokenProcessPool:  # a worker died: every unfinished run of the pool fails with it
+                broken.append(futures[f])
+                continue
+            yield r
+    # which run killed the pool is unknown: each unfinished one again, in a process of its own
+    with ThreadPoolExecutor(workers) as threads:
+        for f in as_completed([threads.submit(_run_alone, c) for c in broken]):
             yield f.result()
 
 
 def _run_ray(todo: list[dict], workers: int):
     import ray
 
-    # the scripts travel with the job (working_dir), so nodes without this checkout can import them
+    # the scripts travel with the job (working_dir), so nodes without this checkout can import them; the copy is
+    # outside any git checkout, so the runs' logs take this checkout's commit from the environment
+    env = {REVISION_ENV: git_revision()} if git_revision() else {}
     ray.init(
         **({} if os.environ.get("RAY_ADDRESS") else {"num_cpus": workers}),
         include_dashboard=False,
-        runtime_env={"working_dir": str(Path(__file__).resolve().parent)},
+        runtime_env={"working_dir": str(Path(__file__).resolve().parent), "env_vars": env},
     )
     script_dir = "."  # the job's working_dir: this scripts folder
 
@@ -113,10 +150,16 @@ def _run_ray(todo: list[dict], workers: int):
 
         return run_one(config)
 
-    pending = [remote.remote(c) for c in todo]
+    config_of = {}
+    for c in todo:
+        config_of[remote.remote(c)] = c
+    pending = list(config_of)
     while pending:
         done, pending = ray.wait(pending, num_returns=1)
-        yield ray.get(done[0])
+        try:
+            yield ray.get(done[0])
+        except ray.exceptions.RayError as e:  # its worker died (run_one catches what the run raises)
+            yield {"config": config_of[done[0]], "error": f"{type(e).__name__}: {e}"}
 
 
 def main() -> None:
@@ -125,7 +168,10 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=Path("results/sweep"))
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="parallel runs")
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    ap.add_argument(
+        "--workers", type=int, default=cpus, help="parallel runs (default: the CPUs this process may use)"
+    )
     ap.add_argument("--ray", action="store_true", help="run on Ray (RAY_ADDRESS or a local instance)")
     ap.add_argument("--resume", action="store_true", help="skip the runs already in <out>/sweep.json")
     add_arguments(ap)
@@ -146,6 +192,11 @@ def main() -> None:
             import ray  # noqa: F401
         except ImportError:
             ap.error("--ray needs Ray: pip install '.[ray]'")
+    for s in args.seeds:  # (the settings' check below runs for one seed of each set of settings)
+        try:
+            check_seed(s)
+        except ValueError as err:
+            ap.error(f"argument --seeds: {err}")
     grid = configs(args)
     checked = set()
     for c in (

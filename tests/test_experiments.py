@@ -588,3 +588,133 @@ def test_articulated_accuracy_script(tmp_path):
     err = {n: [out["this"]["errors"][n][dt]["error"] for dt in ("0.02", "0.01")] for n in ("bar", "gimbal")}
     assert max(err["bar"]) < 1e-10
     assert err["gimbal"][1] > 0 and 1.6 < err["gimbal"][0] / err["gimbal"][1] < 2.4
+
+
+def test_run_experiment_leaves_torch_one_thread_after_numba_starts(tmp_path):
+    """threads=1 is one torch thread for the whole run: numba's OpenMP layer, started by numba.set_num_threads,
+    set OpenMP's thread count (torch's) back to NUMBA_NUM_THREADS after torch.set_num_threads(1). A fresh process:
+    numba's pool starts once per process."""
+    code = (
+        f"import sys; sys.path.insert(0, {str(SCRIPTS)!r})\n"
+        "import torch\nfrom optimize import run_experiment\n"
+        "run_experiment({'task': 'Push', 'iters': 1, 'horizon': 2, 'threads': 1, 'gif': False})\n"
+        "import numba; print(torch.get_num_threads(), numba.get_num_threads())\n"
+    )
+    env = {**__import__("os").environ, "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split()[-2:] == ["1", "1"], out.stdout
+
+
+def _sweep_module():
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        import sweep
+    finally:
+        sys.path.pop(0)
+    return sweep
+
+
+def test_sweep_run_folders_are_absolute(monkeypatch, tmp_path):
+    """A relative --out names the same folders wherever a run's process stands (a Ray job's working directory is
+    its copy of the scripts: the runs' log.json went there)."""
+    import argparse
+
+    sweep = _sweep_module()
+    monkeypatch.chdir(tmp_path)
+    args = argparse.Namespace(**{**DEFAULTS, "out": Path("rel")}, tasks=["Push"], models=["cfd"], seeds=[4])
+    (c,) = sweep.configs(args)
+    assert c["out"] == str(tmp_path / "rel" / "Push" / "cfd" / "seed4")
+
+
+def test_sweep_on_ray_passes_the_commit_and_records_a_dead_worker(monkeypatch, tmp_path):
+    """--ray (a stand-in for Ray, in this process): the jobs' environment carries this checkout's commit (their
+    copy of the scripts is outside it: git_revision() was None in every run's log), and a run whose worker died is
+    a failed run, not the sweep's end."""
+    import types
+
+    sweep = _sweep_module()
+    import _provenance
+
+    seen = {}
+
+    class RayError(Exception):
+        pass
+
+    class Ref:  # an ObjectRef: hashable, its value read by ray.get
+        def __init__(self, value):
+            self.value = value
+
+    def remote(**_):
+        return lambda fn: types.SimpleNamespace(
+            remote=lambda c: Ref(RayError("died") if c["seed"] == 1 else fn(c))
+        )
+
+    def get(ref):
+        if isinstance(ref.value, Exception):
+            raise ref.value
+        return ref.value
+
+    fake = types.SimpleNamespace(
+        init=lambda **kw: seen.update(kw), remote=remote, wait=lambda p, num_returns: (p[:1], p[1:]), get=get,
+        exceptions=types.SimpleNamespace(RayError=RayError),
+    )  # fmt: skip
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setattr(sweep, "run_one", lambda c: {"config": c, "commit": _provenance.git_revision()})
+    todo = [{"task": "Push", "model": "cfd", "seed": s} for s in (0, 1)]
+    results = list(sweep._run_ray(todo, 1))
+    assert seen["runtime_env"]["env_vars"] == {_provenance.REVISION_ENV: _provenance.git_revision()}
+    assert [r["config"]["seed"] for r in results] == [0, 1] and "died" in results[1]["error"]
+    # the scripts outside a checkout (Ray's copy) read the commit from there
+    monkeypatch.setattr(_provenance, "_ROOT", tmp_path)
+    monkeypatch.setenv(_provenance.REVISION_ENV, "abc1234")
+    assert _provenance.git_revision() == "abc1234"
+
+
+def test_sweep_pool_records_a_run_whose_process_died(monkeypatch, tmp_path):
+    """A worker killed mid-run (a crash, the OOM killer) broke the whole pool: BrokenProcessPool ended the sweep
+    with a traceback. Now that run is failed and the others run (stand-in runs, no simulation)."""
+    (tmp_path / "dying.py").write_text(
+        "import os\ndef run(c):\n    if c['seed'] == 1:\n        os._exit(3)\n    return {'config': c}\n"
+    )
+    sweep = _sweep_module()
+    monkeypatch.syspath_prepend(str(tmp_path))  # (spawned workers import dying.py from the parent's sys.path)
+    import dying
+
+    monkeypatch.setattr(sweep, "run_one", dying.run)
+    todo = [{"task": "Push", "model": "cfd", "seed": s} for s in range(4)]
+    results = list(sweep._run_local(todo, 2))
+    assert sorted(r["config"]["seed"] for r in results) == [0, 1, 2, 3]
+    assert [r["config"]["seed"] for r in results if "error" in r] == [1]
+
+
+def test_sweep_workers_default_to_the_usable_cpus(monkeypatch, tmp_path):
+    """--workers defaults to the CPUs this process may run on (taskset, cpusets), not the machine's count."""
+    import os
+
+    sweep = _sweep_module()
+    if not hasattr(os, "sched_getaffinity"):
+        pytest.skip("no CPU affinity here")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+
+    class Stop(Exception):
+        pass
+
+    def stop(args):
+        raise Stop(args.workers)
+
+    monkeypatch.setattr(sweep, "configs", stop)
+    monkeypatch.setattr(sys, "argv", ["sweep.py", "--tasks", "Push", "--out", str(tmp_path / "o")])
+    with pytest.raises(Stop) as got:
+        sweep.main()
+    assert got.value.args == (1,)
+
+
+def test_plot_results_takes_missing_settings_as_defaults():
+    """A run logged before a setting existed ran with its default: sweep.py --resume adds new seeds beside it, and
+    plot_results.py refused that folder ("different loss (None and 'sum')")."""
+    old = {k: v for k, v in DEFAULTS.items() if k not in ("loss", "smooth_samples")}
+    assert mixed_settings([{"config": old}, {"config": {**DEFAULTS, "seed": 1}}]) is None
+    assert "different loss" in mixed_settings(
+        [{"config": old}, {"config": {**DEFAULTS, "seed": 1, "loss": "final"}}]
+    )
