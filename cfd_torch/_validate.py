@@ -14,6 +14,7 @@ import torch
 
 from ._autograd import outside_transforms, plain
 from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
+from ._threads import start_numba_pool
 
 # A triangle is degenerate when twice its area is below this many machine epsilons of its longest edge squared
 # (scale-free: a tiny well-shaped triangle is valid, a needle or a collinear triple is not).
@@ -114,6 +115,8 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float, limit: floa
         flat = tri.detach().reshape(-1, 3, 3).contiguous()
         code = torch.empty(flat.shape[0], dtype=torch.uint8)
         kernel = _triangle_codes_nb if flat.shape[0] >= 100_000 else _triangle_codes_serial
+        if kernel is _triangle_codes_nb:
+            start_numba_pool()
         kernel(flat.numpy(), float(tol), float(limit), code.numpy())
         code = code.reshape(tri.shape[:-2])
         nonfinite, degenerate, huge = code == 1, code == 2, code == 3
@@ -265,6 +268,8 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
     tri = np.ascontiguousarray(vertices[faces], dtype=np.float64)  # (F, 3, 3)
     code = np.empty(tri.shape[0], dtype=np.uint8)
     kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 else _triangle_codes_serial
+    if kernel is _triangle_codes_nb:
+        start_numba_pool()
     kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), _MAX_COORD, code)
     huge = code == 3
     if huge.any():

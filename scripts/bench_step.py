@@ -617,10 +617,10 @@ def worker(spec_path: Path) -> None:
     spec = json.loads(spec_path.read_text())
     args = argparse.Namespace(**spec["args"])
     args.out, args.profile = Path(args.out), False
+    if args.numba_threads:  # first: starting numba's pool resets the OpenMP thread count torch shares
+        numba.set_num_threads(args.numba_threads)
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.numba_threads:
-        numba.set_num_threads(args.numba_threads)
     (case,) = [c for c in make_cases(args) if c.name == spec["case"]]
     res = run_case(case, args)
     res["cfd_torch_file"] = cfd_torch.__file__
@@ -976,10 +976,10 @@ def main() -> None:
         plot(out, args.out / "bench_step_breakdown.png")
         print(text)
         return
+    if args.numba_threads:  # first: starting numba's pool resets the OpenMP thread count torch shares
+        numba.set_num_threads(args.numba_threads)
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.numba_threads:
-        numba.set_num_threads(args.numba_threads)
     try:
         cases = make_cases(args)
     except SettingsError as err:

@@ -70,8 +70,9 @@ def main() -> None:
             ap.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if not args.lr > 0:
         ap.error(f"--lr must be > 0, got {args.lr}")
-    torch.set_num_threads(args.threads)
+    # numba first: starting its pool resets the OpenMP thread count torch shares
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     cells = [(t, s) for t in args.tasks for s in args.seeds]
     runs = [run(t, s, args.horizon, args.iters, args.lr) for t, s in tqdm(cells, desc="runs")]

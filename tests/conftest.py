@@ -18,8 +18,8 @@ def pytest_configure(config):
     this project's 2-core machine: 302 s with each worker's default threads, 216 s with one thread each, against
     358 s for the suite in one process). Tests of threaded results raise their thread count themselves."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
+        numba.set_num_threads(1)  # first: starting numba's pool resets the OpenMP thread count torch shares
         torch.set_num_threads(1)
-        numba.set_num_threads(1)
 
 
 def _t(rows) -> torch.Tensor:

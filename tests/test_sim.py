@@ -1018,3 +1018,53 @@ def test_predicted_rotation_refuses_a_turn_beyond_its_solvable_range():
         F0 = rotation_matrix(-q_p[:, 3:])
         assert abs(float(((R - F0) * S).sum())) <= 1e-9 * float(S[0].trace())  # the energy-conserving root
     assert 0 < refused < 40
+
+
+_THREADS_PROBE = """
+import sys, torch
+torch.set_num_threads(1)
+assert torch.get_num_threads() == 1  # (a read of the count, as the stepper makes, is what exposes it to numba's reset)
+case = sys.argv[1]
+if case == "bare":  # numba alone: its pool's start resets the OpenMP thread count torch shares
+    import numba
+    numba.get_num_threads()
+elif case == "pairs":  # the parallel plane solve (2,000 pairs and more)
+    from cfd_torch import pair_potential
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(2500, 3, 3, dtype=torch.float64, generator=g)
+    pair_potential(a, a + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), mu=1e-8, margin=1e-3)
+elif case == "triangles":  # the parallel triangle check (100,000 triangles and more)
+    from cfd_torch._validate import check_triangles
+    g = torch.Generator().manual_seed(0)
+    check_triangles(torch.rand(100_000, 3, 3, dtype=torch.float64, generator=g), "tri")
+elif case == "rollout":  # the node traversal's thread count (32 body pairs and more)
+    from cfd_torch.envs import make_core, rollout
+    core = make_core("cfd_torch/Sort-v0")
+    rollout(core, core.reset(seed=0), torch.zeros(2, 1, 2, dtype=torch.float64))
+from numba.np.ufunc import parallel
+print(int(parallel._is_initialized), torch.get_num_threads())
+"""
+
+
+def _threads_after(case: str) -> tuple[int, int]:
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"} | {"NUMBA_NUM_THREADS": "2"}
+    out = subprocess.run(
+        [sys.executable, "-c", _THREADS_PROBE, case], env=env, capture_output=True, text=True, check=True
+    )
+    started, threads = out.stdout.split()
+    return int(started), int(threads)
+
+
+def test_torch_thread_count_survives_the_start_of_numba_threads():
+    """A process set to one torch thread keeps it through the library's numba kernels: numba's pool, started by
+    them, resets the OpenMP thread count torch shares (a worker set to one thread ran torch on two)."""
+    started, threads = _threads_after("bare")
+    if threads == 1:
+        pytest.skip("this numba's threading layer leaves torch's thread count alone")
+    assert started == 1 and threads == 2
+    for case in ("pairs", "triangles", "rollout"):
+        assert _threads_after(case) == (1, 1), case

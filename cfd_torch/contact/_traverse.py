@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._threads import start_numba_pool
 from ..rotation import point_jacobian, rot_second, rotation_derivatives
 from .bsh import BSH
 from .central import BAND_MARGINS
@@ -179,6 +180,7 @@ def _node_threads(P: int, leaves: int | None = None) -> int:
 
     if P < _THREAD_MIN_PAIRS or (leaves is not None and leaves < _THREAD_MIN_LEAVES):
         return 1
+    start_numba_pool()  # (numba.get_num_threads starts it)
     return min(numba.get_num_threads(), 4)
 
 

@@ -36,6 +36,7 @@ from .._autograd import (
     vmap_error,
 )
 from .._geometry import frame_origin
+from .._threads import start_numba_pool
 from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
@@ -165,6 +166,8 @@ def _solve(
 
         if K < PARALLEL_MIN_PAIRS:
             solve_pairs = solve_pairs_serial  # noqa: F811
+        else:
+            start_numba_pool()
 
         Xc = X.contiguous()
         C = torch.empty(K, 3, dtype=X.dtype)  # frame origins, computed by the kernel
