@@ -5,11 +5,21 @@ import sys
 from pathlib import Path
 
 import numba
+import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
 F64 = torch.float64
+SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
+
+
+@pytest.fixture
+def scripts_path():
+    """scripts/ importable (its modules import each other by name) for the test."""
+    sys.path.insert(0, str(SCRIPTS))
+    yield
+    sys.path.remove(str(SCRIPTS))
 
 
 def pytest_configure(config):

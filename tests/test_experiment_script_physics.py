@@ -4,20 +4,9 @@ scripts/stacked_books.py's placement and support margin, scripts/impact_model_1d
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import pytest
 import torch
-
-SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
-
-
-@pytest.fixture
-def scripts_path():
-    sys.path.insert(0, str(SCRIPTS))
-    yield
-    sys.path.remove(str(SCRIPTS))
 
 
 @pytest.mark.parametrize("retract", [0.0, 1e-3, 0.25])
