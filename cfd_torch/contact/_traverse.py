@@ -337,7 +337,6 @@ def traverse(
     value = torch.zeros(P, dtype=dt, device=dev)
     grad = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
-    eye = torch.eye(3, dtype=dt, device=dev)
     min_width = BAND_MARGINS * float(margin)
     eps = _pair_eps(eps, P, dev)
 
@@ -350,12 +349,12 @@ def traverse(
         I = pair_root[:0, 0]  # skip the tensor traversal below
     else:
         leaves, n_pairs, levels, wtable = [], 0, 0, None
-        I = pair_root[:, 0]
-    # frontier
-    J, pid = pair_root[: len(I), 1], torch.arange(len(I), device=dev)
-    W = torch.ones(len(I), dtype=dt, device=dev)
-    dW = torch.zeros(len(I), 12, dtype=dt, device=dev) if order >= 1 else None
-    d2W = torch.zeros(len(I), 12, 12, dtype=dt, device=dev) if order >= 2 else None
+        eye = torch.eye(3, dtype=dt, device=dev)
+        # frontier
+        I, J, pid = pair_root[:, 0], pair_root[:, 1], torch.arange(P, device=dev)
+        W = torch.ones(P, dtype=dt, device=dev)
+        dW = torch.zeros(P, 12, dtype=dt, device=dev) if order >= 1 else None
+        d2W = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
     while I.numel():
         levels += 1
         n_pairs += I.numel()
@@ -487,7 +486,7 @@ def traverse(
             WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
             lwid, tables, bounds, offsets = wtable
             gx = gx if gx is not None else z.reshape(0, 18)
-            per_leaf = [lp, lwid, pv, gx, WT, gaps, Pl, Xa, Xb, ba, bb]
+            per_leaf = [x.numpy() for x in (lp, lwid, pv, gx, WT, gaps, Pl, Xa, Xb, ba, bb)]
             shared = (
                 dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy(),
                 d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
@@ -497,7 +496,7 @@ def traverse(
 
             def accumulate(part: tuple[int, int, int]) -> None:
                 a, b, i = part  # the leaves of part i, with its own weight table
-                x = [t[a:b].numpy() if t.shape[0] else t.numpy() for t in per_leaf]
+                x = [t[a:b] if t.shape[0] else t for t in per_leaf]
                 accumulate_leaves_lowrank(x[0], x[1] - offsets[i], *tables[i], *x[2:], *shared)
 
             parts = [(a, b, i) for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)) if b > a]
@@ -557,8 +556,8 @@ def traverse(
         if hv is not None:
             hv = torch.where(inf[:, None, None], torch.zeros((), dtype=dt, device=dev), hv)
             _segment_add(hess, lp, hv, P)
-    if grad is not None:
-        infp = torch.isinf(value)
+    infp = torch.isinf(value) if grad is not None else None
+    if infp is not None and bool(infp.any()):
         grad = torch.where(infp[:, None], torch.zeros((), dtype=dt, device=dev), grad)
         if hess is not None:
             hess = torch.where(infp[:, None, None], torch.zeros((), dtype=dt, device=dev), hess)

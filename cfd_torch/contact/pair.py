@@ -195,7 +195,9 @@ def _solve(
         _raise_unconverged(status, resid, max_iter, tol)
         if lowrank:
             hess = (WT, gaps)
-        O = torch.where(torch.isfinite(val)[:, None], O, torch.zeros_like(O))
+        finite = torch.isfinite(val)
+        if not bool(finite.all()):
+            O = torch.where(finite[:, None], O, torch.zeros_like(O))
         return _Solved(
             val, to_world(P, O), C, O, P, (grad if want_grad else None), (hess if want_hess else None)
         )

@@ -39,6 +39,8 @@ __all__ = [
     "StepProblem",
     "JointInputs",
     "EnergyEval",
+    "BatchRows",
+    "batch_rows",
     "incremental_potential",
     "select_scenes",
     "body_terms",
@@ -141,6 +143,50 @@ class EnergyEval(NamedTuple):
     body_value: torch.Tensor | None = None
     pair_value: torch.Tensor | None = None
     warm: object | None = None
+
+
+class BatchRows(NamedTuple):
+    """What every evaluation of one :class:`StepProblem` reads of it the same way (:func:`batch_rows`; a Newton
+    solve evaluates it some twenty times).
+
+    Attributes:
+        dyn: (Nd,) the moving bodies.
+        pairs: (B P, 3) the batch's interacting body pairs (:func:`scene_pairs`).
+        pair_moving: (B P, 2) each pair's two bodies as moving-body indices (Nd for a body that does not move).
+        body: the moving bodies' rows (B Nd, ...) of q_t, q_p, r_pred, force, torque, mass, second_moment and
+            t_shift (None for None), as :func:`body_terms` takes them.
+        contact_rows, contact_friction: per lagged friction contact, its bodies' rows (C, 2) of the (B N, 6) poses
+            and its scene's coefficient (C,); None without.
+    """
+
+    dyn: torch.Tensor
+    pairs: torch.Tensor
+    pair_moving: torch.Tensor
+    body: tuple[torch.Tensor | None, ...]
+    contact_rows: torch.Tensor | None
+    contact_friction: torch.Tensor | None
+
+
+def batch_rows(prob: StepProblem, device: torch.device) -> BatchRows:
+    """The :class:`BatchRows` of ``prob`` on ``device`` (the device of the coordinates it is evaluated at)."""
+    scene = prob.scene
+    B, N = prob.q_t.shape[:2]
+    dyn = scene.kinematics.bodies.to(device)
+    Nd = len(dyn)
+    pairs = scene_pairs(scene, B).to(device)
+    moving = torch.full((N,), Nd, dtype=torch.long, device=device)
+    moving[dyn] = torch.arange(Nd, device=device)
+    rows = lambda x: None if x is None else x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
+    body = (
+        rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.r_pred), rows(prob.force[:, dyn]),
+        rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0], rows(prob.second_moment), rows(prob.t_shift),
+    )  # fmt: skip
+    frows = mu = None
+    if prob.lagged is not None:
+        cc = pairs[prob.lagged.pair]  # (C, 3) each contact's scene and bodies
+        frows = cc[:, :1] * N + cc[:, 1:]
+        mu = prob.friction[cc[:, 0]]
+    return BatchRows(dyn, pairs, moving[pairs[:, 1:]], body, frows, mu)
 
 
 def scene_pairs(scene, num_scenes: int) -> torch.Tensor:
@@ -386,22 +432,24 @@ def incremental_potential(
     active: torch.Tensor | None = None,
     scene_ids: torch.Tensor | None = None,
     warm: object | None = None,
+    batch: BatchRows | None = None,
 ) -> EnergyEval:
     """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2); with ``active``
     (B, M) bool over the moving bodies, only the terms that involve an active body (see :class:`EnergyEval`).
     ``scene_ids`` (B,) name the scenes stably across calls (their pairs' ids for the contact model's warm start,
-    ``warm`` from an earlier evaluation of the same step)."""
+    ``warm`` from an earlier evaluation of the same step). ``batch``: ``batch_rows(prob, q.device)``, when the
+    caller evaluates ``prob`` many times (default: computed here)."""
     scene = prob.scene
     B, N = prob.q_t.shape[:2]
-    dyn = scene.kinematics.bodies.to(q.device)  # the moving bodies: inertia, gravity, actuation
+    c = batch_rows(prob, q.device) if batch is None else batch
+    dyn = c.dyn  # the moving bodies: inertia, gravity, actuation
     Nd = len(dyn)
     kin = scene.kinematics
     poses = kin.poses(q, prob.fixed)  # (B, N, 6)
-    rows = lambda x: x.reshape(B * Nd, *x.shape[2:])  # noqa: E731
+    q_t, q_p, r_pred, force, torque, mass, S, t_shift = c.body
     vb, g_b, h_b = body_terms(
-        rows(poses[:, dyn]), rows(prob.q_t[:, dyn]), rows(prob.q_p[:, dyn]), rows(prob.r_pred),
-        rows(prob.force[:, dyn]), rows(prob.torque[:, dyn]), rows(prob.mass[:, :, None])[:, 0],
-        rows(prob.second_moment), prob.gravity, scene.dt, order, None if prob.t_shift is None else rows(prob.t_shift),
+        poses[:, dyn].reshape(B * Nd, 6), q_t, q_p, r_pred, force, torque, mass, S, prob.gravity, scene.dt, order,
+        t_shift,
     )  # fmt: skip
     # each body's "local" energy: its own terms plus the contact and friction terms it takes part in (the sum of
     # their magnitudes sets the line search's rounding scale)
@@ -411,16 +459,13 @@ def incremental_potential(
     local = q.new_zeros(B, N)
     local[:, dyn] = vb.reshape(B, Nd)
     value = vb.reshape(B, Nd).sum(1)
-    pairs = scene_pairs(scene, B).to(q.device)
+    pairs = c.pairs
     P = scene.pairs.shape[0]
     pair_value = q.new_zeros(B * P)
     on = None  # (B P,) the pairs evaluated: all, or those with an active body
     if active is not None and P:
-        pos = torch.full((N,), -1, dtype=torch.long, device=q.device)
-        pos[dyn] = torch.arange(Nd, device=q.device)
         act = torch.cat([active, active.new_zeros(B, 1)], 1)  # column Nd: "not a moving body"
-        pi, pj = pos[pairs[:, 1]], pos[pairs[:, 2]]
-        on = act[pairs[:, 0], torch.where(pi >= 0, pi, Nd)] | act[pairs[:, 0], torch.where(pj >= 0, pj, Nd)]
+        on = act[pairs[:, 0], c.pair_moving[:, 0]] | act[pairs[:, 0], c.pair_moving[:, 1]]
     G = Hc = ce = None
     node_pairs = leaf_pairs = 0
     if pairs.shape[0]:
@@ -451,11 +496,9 @@ def incremental_potential(
     Gf = Hf = gap = None
     lag = prob.lagged
     if lag is not None:
-        cc = pairs[lag.pair]  # (C, 3) each contact's scene and bodies
-        frows = cc[:, :1] * N + cc[:, 1:]
         fp, vf, gf, hf, *gap_c = friction_by_pair(
-            lag, poses.reshape(B * N, 6), frows, prob.friction[cc[:, 0]], scene.friction.eps_v * scene.dt, order,
-            majorizer_gap=order >= 2,
+            lag, poses.reshape(B * N, 6), c.contact_rows, c.contact_friction, scene.friction.eps_v * scene.dt,
+            order, majorizer_gap=order >= 2,
         )  # fmt: skip
         cp = pairs[fp]  # (F, 3) the body pairs with contacts, each one's terms summed over its contacts
         if on is not None:  # the contacts of pairs without an active body do not count

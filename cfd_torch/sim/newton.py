@@ -88,6 +88,9 @@ def _assign(cur: EnergyEval, idx: torch.Tensor, ev: EnergyEval) -> None:
 
 
 def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
+    """The rows ``sel`` (A,) bool of ``ev`` (``ev`` itself when they are all of it: read it only)."""
+    if bool(sel.all()):
+        return ev
     return EnergyEval(*(x[sel] if isinstance(x, torch.Tensor) else x for x in ev))
 
 
@@ -108,8 +111,12 @@ def _islands(
     A, M = act.shape
     R = (coupled | ~split[:, None, None]) & act[:, :, None] & act[:, None, :]
     R = R | torch.diag_embed(act)
-    for _ in range(max(1, (M - 1).bit_length())):  # transitive closure by squaring
-        R = (R.double() @ R.double()) > 0
+    for _ in range(max(1, (M - 1).bit_length())):  # transitive closure by squaring, up to its fixed point
+        Rd = R.double()
+        closed = (Rd @ Rd) > 0
+        if torch.equal(closed, R):
+            break
+        R = closed
     first = torch.where(R, torch.arange(M, device=R.device), M).amin(2)  # (A, M) smallest body of each island
     lead = act & (first == torch.arange(M, device=R.device))  # (A, M): the bodies that name an island
     gs, gb = torch.nonzero(lead, as_tuple=True)
@@ -125,31 +132,27 @@ def _restricted(
     ev: EnergyEval,
     rows: torch.Tensor,
     act: torch.Tensor,
-    pair_bodies: torch.Tensor,
+    incidence: torch.Tensor,
     others: torch.Tensor | None = None,
 ):
     """The value and rounding scale of the terms of ``ev``'s scenes ``rows`` (A,) (evaluated over a superset of
-    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of
-    ``others`` (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move);
-    third, with ``others``, the value with those pairs included (else None). Only the per-body and per-pair values
-    are read (not the rows of the whole evaluation)."""
-    A, M = act.shape
-    ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
-    pb = torch.where(pair_bodies >= 0, pair_bodies, M)
-    on = ext[:, pb[:, 0]] | ext[:, pb[:, 1]]  # (A, P)
-    zero = torch.zeros((), dtype=ev.body_value.dtype, device=act.device)
+    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs' (``incidence`` (M, P): 1 where
+    body m is one of pair p's bodies, else 0), except pairs with a body of ``others`` (A, M) (an island's energy
+    leaves out its far-field pairs with the other islands, which they move); third, with ``others``, the value with
+    those pairs included (else None). Only the per-body and per-pair values are read (not the rows of the whole
+    evaluation)."""
+    on = (act.to(incidence.dtype) @ incidence) > 0  # (A, P)
     body_value = ev.body_value[rows]
-    own = torch.where(act, body_value, zero).sum(1)
+    own_terms = torch.where(act, body_value, 0.0)
+    own = own_terms.sum(1)
     pair_value = ev.pair_value[rows]
     every = None
     if others is not None:
-        every = own + torch.where(on, pair_value, zero).sum(1)
-        oth = torch.cat([others, others.new_zeros(A, 1)], 1)
-        on = on & ~(oth[:, pb[:, 0]] | oth[:, pb[:, 1]])
-    pv = torch.where(on, pair_value, zero)
+        every = own + torch.where(on, pair_value, 0.0).sum(1)
+        on = on & ~((others.to(incidence.dtype) @ incidence) > 0)
+    pv = torch.where(on, pair_value, 0.0)
     value = own + pv.sum(1)
-    own_abs = torch.where(act, body_value.abs(), zero).sum(1)
-    return value, value.abs() + own_abs + 2.0 * pv.abs().sum(1), every
+    return value, value.abs() + own_terms.abs().sum(1) + 2.0 * pv.abs().sum(1), every
 
 
 def newton(
@@ -223,6 +226,7 @@ def newton(
     split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
+        incidence = (pair_bodies[:, :, None] == torch.arange(M, device=dev)).any(1).T.to(q.dtype)  # (M, P)
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
         if idx.numel() == 0:
@@ -240,8 +244,9 @@ def newton(
             idx, L, g, H, Hd, maj = idx[fin], L[fin], g[fin], H[fin], Hd[fin], maj[fin]
             if idx.numel() == 0:
                 continue
-        if freeze and not bool(act[idx].all()):  # frozen coordinates: identity rows, no step
-            cm = act[idx][:, block]  # (A, Q)
+        act_i = act[idx] if freeze else None
+        if freeze and not bool(act_i.all()):  # frozen coordinates: identity rows, no step
+            cm = act_i[:, block]  # (A, Q)
             eye = torch.eye(Hd.shape[1], dtype=Hd.dtype, device=dev)
             Hd = torch.where(cm[:, :, None] & cm[:, None, :], Hd, eye)
             g = torch.where(cm, g, torch.zeros((), dtype=g.dtype, device=dev))
@@ -255,12 +260,14 @@ def newton(
             mag = torch.maximum(ev.abs(), floor[:, None])
             p[bad] = -(V @ ((V.transpose(1, 2) @ g[bad][:, :, None])[:, :, 0] / mag)[:, :, None])[:, :, 0]
         p_max = p.abs().amax(1)
-        small = pd & ~maj & (p_max <= tol)
+        newton_step = pd & ~maj
+        small = newton_step & (p_max <= tol)
         # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
         # converge in its next iteration does not freeze bodies, which would cost it a whole evaluation more
-        soon = pd & ~maj & (p_max**3 <= tol * last_step[idx] ** 2)
+        soon = newton_step & (p_max**3 <= tol * last_step[idx] ** 2)
         last_step[idx] = p_max
-        done = small & whole[idx]
+        whole_i = whole[idx]
+        done = small & whole_i
         if bool(done.any()):
             dn = idx[done]
             reason[dn] = int(Stop.CONVERGED)
@@ -270,7 +277,7 @@ def newton(
                 take = displacement(q[dn], q_fin, dn) <= final_move
                 q[dn[take]] = q_fin[take]
                 stepped[dn[take]] = True
-        check = small & ~whole[idx]  # the bodies iterating converged: evaluate the whole scene
+        check = small & ~whole_i  # the bodies iterating converged: evaluate the whole scene
         if bool(check.any()):
             sc = idx[check]
             act[sc] = True
@@ -283,18 +290,19 @@ def newton(
         if freeze and bool(keep.any()):
             # freeze the bodies within tol whose coupled bodies are all within tol
             k = torch.nonzero(keep)[:, 0]
+            sc = idx[k]
+            ak = act_i[k]  # (a scene evaluated whole above converged: not one of these)
             pb = (p[k].abs()[:, :, None] * onehot).amax(1)  # (A, M) largest step per body
             coupled = _coupling(H[k], onehot)  # (A, M, M), also the line search's islands below
-            moving = act[idx[k]] & (pb > tol)
-            frz = act[idx[k]] & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[idx[k], None]
-            frz = frz & (act[idx[k]] & ~frz).any(1, keepdim=True)  # never the last body still iterating
+            moving = ak & (pb > tol)
+            frz = ak & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[sc, None]
+            frz = frz & (ak & ~frz).any(1, keepdim=True)  # never the last body still iterating
             frz = frz & ~soon[k, None]
             if bool(frz.any()):
-                sc = idx[k]
-                act[sc] = act[sc] & ~frz
-                whole[sc] = whole[sc] & ~frz.any(1)
+                act[sc] = ak & ~frz
+                whole[sc] = whole_i[k] & ~frz.any(1)
                 p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
-                value, scale, _ = _restricted(cur, sc, act[sc], pair_bodies)
+                value, scale, _ = _restricted(cur, sc, act[sc], incidence)
                 cur.value[sc], cur.scale[sc] = value, scale
                 L = L.clone()
                 L[k] = value
@@ -306,26 +314,30 @@ def newton(
         A = idx.numel()
         q0 = q[idx]
         if freeze:
-            gs, gm = _islands(coupled, act[idx], split[idx])
+            act_i = act[idx]
+            gs, gm = _islands(coupled, act_i, split[idx])
             gp = p[gs] * gm[:, block].to(p.dtype)  # (G, Q) each island's part of the step
         else:
             gs = torch.arange(A, device=dev)
             gm = None
             gp = p
-        reach = displacement(q0[gs], q0[gs] + gp, idx[gs])
+        sg, q0g = idx[gs], q0[gs]  # each island's scene and start
+        reach = displacement(q0g, q0g + gp, sg)
         over = reach > max_move
         gp = torch.where(over[:, None], gp * (max_move / torch.where(over, reach, 1.0))[:, None], gp)
         reach = torch.where(over, torch.full_like(reach, max_move), reach)
         slope = (g[gs] * gp).sum(1)
         if freeze:
-            others = act[idx[gs]] & ~gm  # (G, M) the bodies of the other islands of each island's scene
-            L0, scale0, every0 = _restricted(cur, idx[gs], gm, pair_bodies, others)
+            others = act_i[gs] & ~gm  # (G, M) the bodies of the other islands of each island's scene
+            L0, scale0, every0 = _restricted(cur, sg, gm, incidence, others)
             cross0 = every0 - L0  # its pairs with the other islands
-        else:
-            L0, scale0 = L, cur.scale[idx]
+        scale_i = cur.scale[idx]
+        if not freeze:
+            L0, scale0 = L, scale_i
         noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
         G = gs.numel()
-        many = torch.bincount(gs, minlength=A)[gs] > 1  # (G,) the island is one of several in its scene
+        several = torch.bincount(gs, minlength=A) > 1  # (A,) the scenes split into several islands
+        many = several[gs]  # (G,) the island is one of several in its scene
         alpha = torch.ones(G, dtype=q.dtype, device=dev)
         pending = torch.ones(G, dtype=torch.bool, device=dev)
         taken = torch.full((G,), -1, dtype=torch.long, device=dev)  # the try at which each group was accepted
@@ -334,35 +346,39 @@ def newton(
             sub = torch.nonzero(pending)[:, 0]
             if sub.numel() == 0:
                 break
-            step_ = torch.where((pending | (taken >= 0))[:, None], alpha[:, None] * gp, torch.zeros_like(gp))
+            step_ = torch.where((pending | (taken >= 0))[:, None], alpha[:, None] * gp, 0.0)
             q_try = q0.index_add(0, gs, step_)  # (A, Q): every group at its trial (or accepted) step
-            rows = torch.unique(gs[sub])  # the scenes with groups pending
+            gsub = gs[sub]
+            rows = torch.unique(gsub)  # the scenes with groups pending
             pos = torch.full((A,), -1, dtype=torch.long, device=dev)
             pos[rows] = torch.arange(rows.numel(), device=dev)
-            on = None
+            psub = pos[gsub]  # each pending group's row of the evaluation
+            on = gm_sub = None
             if freeze:
+                gm_sub = gm[sub]
                 on = torch.zeros(rows.numel(), M, dtype=torch.bool, device=dev)
-                on.index_put_((pos[gs[sub]],), gm[sub], accumulate=True)
+                on.index_put_((psub,), gm_sub, accumulate=True)
             # the full step is usually accepted: evaluate it with derivatives at once, backtrack value-only
             ev = _call(energy, q_try[rows], idx[rows], 2 if k == 0 else 0, on)
             evals, nodes, leaves = evals + 1, nodes + ev.node_pairs, leaves + ev.leaf_pairs
             if k == 0:
                 full = ev
             if freeze:
-                L_try, _, with_others = _restricted(ev, pos[gs[sub]], gm[sub], pair_bodies, others[sub])
+                L_try, _, with_others = _restricted(ev, psub, gm_sub, incidence, others[sub])
                 # feasible: all its pairs finite, those with the other islands too
                 feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
                 # cannot show (a body at rest pulled only by the far field of another island)
-                slack = torch.where(feas, (with_others - L_try - cross0[sub]).abs(), torch.zeros_like(L_try))
+                slack = torch.where(feas, (with_others - L_try - cross0[sub]).abs(), 0.0)
             else:
-                L_try = ev.value[pos[gs[sub]]]
+                L_try = ev.value[psub]
                 feas = torch.isfinite(L_try)
                 slack = torch.zeros_like(L_try)
             # an island's decrease is measured without its far-field pairs with the other islands (they move those
             # too); an island whose predicted decrease is below L's rounding is accepted when feasible
-            tiny = (-slope[sub] <= noise[sub]) & many[sub]
-            ok = feas & ((L_try <= L0[sub] + 1e-4 * alpha[sub] * slope[sub] + noise[sub] + slack) | tiny)
+            slope_sub, noise_sub = slope[sub], noise[sub]
+            tiny = (-slope_sub <= noise_sub) & many[sub]
+            ok = feas & ((L_try <= L0[sub] + 1e-4 * alpha[sub] * slope_sub + noise_sub + slack) | tiny)
             whole_only = None  # (at the full step) the islands accepted only for the whole step's sake
             if freeze and k == 0:
                 # the whole step (every island's full step, as one scene's search would try it) passes the scene's
@@ -370,10 +386,10 @@ def newton(
                 # pairs with the other islands from theirs, and rejects the full step of a body driven only by the
                 # far field of an island that moves toward it
                 total = torch.zeros(A, dtype=q.dtype, device=dev).index_add(0, gs, slope)
-                lim = L + 1e-4 * total + 1e-12 * cur.scale[idx]
-                passed = ev.value[pos] <= lim  # (A,): NaN and +inf fail
-                whole_only = passed[gs[sub]] & ~ok
-                ok = ok | passed[gs[sub]]
+                lim = L + 1e-4 * total + 1e-12 * scale_i
+                passed = (ev.value[pos] <= lim)[gsub]  # NaN and +inf fail
+                whole_only = passed & ~ok
+                ok = ok | passed
             if bool(ok.any()):
                 cand = sub[ok]
                 near = alpha[cand] * reach[cand] <= free_move
@@ -394,7 +410,7 @@ def newton(
             alpha[pending] = alpha[pending] * 0.5
             if k + 1 == _ISLAND_TRIES:  # islands that backtrack this far: their scene searches whole
                 pending = pending & ~many
-        step_ = torch.where((taken >= 0)[:, None], alpha[:, None] * gp, torch.zeros_like(gp))
+        step_ = torch.where((taken >= 0)[:, None], alpha[:, None] * gp, 0.0)
         q_new = q0.index_add(0, gs, step_)
         a_done = torch.where(taken >= 0, alpha, alpha * 2.0)
         alpha_last[idx] = torch.full((A,), 2.0, dtype=q.dtype, device=dev).scatter_reduce(
@@ -403,7 +419,6 @@ def newton(
         failed = torch.zeros(A, dtype=torch.bool, device=dev).index_put_((gs,), taken < 0, accumulate=True)
         # a split scene whose island found no step is not a failure: it keeps q0 (and its evaluation there) and
         # searches whole from the next iteration
-        several = torch.bincount(gs, minlength=A) > 1
         retry = failed & several
         # each island's path was checked with the others at q0: the islands' moves together must be clear too
         joint = several & ~failed
@@ -423,7 +438,7 @@ def newton(
         # each island's step decreased its own energy: together they must not raise the scene's (islands judged
         # uncoupled at q0 can move into each other's blend band; accepting that can cycle between a split and a
         # whole iteration forever); a scene whose islands did raise it keeps q0 and searches whole from then on
-        lim = L + 1e-12 * cur.scale[idx]
+        lim = L + 1e-12 * scale_i
         rose = first_try & several & ~(full.value <= lim) if full is not None else torch.zeros_like(first_try)
         if bool(rose.any()):
             q_new[rose] = q0[rose]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from .energy import EnergyEval, StepProblem, incremental_potential, select_scenes
+from .energy import EnergyEval, StepProblem, batch_rows, incremental_potential, select_scenes
 from .feasibility import (
     contained,
     displacement,
@@ -82,17 +82,19 @@ def _energy(prob: StepProblem, warm: WarmStarts | None = None):
     """(q (A, Q), scenes (A,), order, active (A, M) | None) -> L of those scenes of ``prob`` (the leaf pairs'
     plane solves warm-started from ``warm``, which each evaluation updates)."""
     B = prob.q_t.shape[0]
+    every = torch.arange(B, device=prob.q_t.device)
+    rows = batch_rows(prob, prob.q_t.device)  # (what the evaluations of all B scenes share)
 
     def energy(
         q: torch.Tensor, scenes: torch.Tensor, order: int, active: torch.Tensor | None = None
     ) -> EnergyEval:
-        whole = len(scenes) == B and bool((scenes == torch.arange(B, device=scenes.device)).all())
+        whole = len(scenes) == B and bool((scenes == every).all())
         if active is not None and bool(active.all()):
             active = None
-        sub = prob if whole else select_scenes(prob, scenes)
+        sub, batch = (prob, rows) if whole else (select_scenes(prob, scenes), None)
         if warm is None:
-            return incremental_potential(sub, q, order, active)
-        ev = incremental_potential(sub, q, order, active, scene_ids=scenes, warm=warm.data)
+            return incremental_potential(sub, q, order, active, batch=batch)
+        ev = incremental_potential(sub, q, order, active, scene_ids=scenes, warm=warm.data, batch=batch)
         warm.update(ev.warm)
         return ev
 
