@@ -28,7 +28,7 @@ import json
 import multiprocessing
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -124,10 +124,10 @@ def _run_local(todo: list[dict], workers: int):
                 broken.append(futures[f])
                 continue
             yield r
-    # which run killed the pool is unknown: each unfinished one again, in a process of its own
-    with ThreadPoolExecutor(workers) as threads:
-        for f in as_completed([threads.submit(_run_alone, c) for c in broken]):
-            yield f.result()
+    # which run killed the pool is unknown: each unfinished one again, in a process of its own, one at a time (a
+    # run killed for memory beside others would die again)
+    for c in broken:
+        yield _run_alone(c)
 
 
 def _run_ray(todo: list[dict], workers: int):
@@ -135,7 +135,8 @@ def _run_ray(todo: list[dict], workers: int):
 
     # the scripts travel with the job (working_dir), so nodes without this checkout can import them; the copy is
     # outside any git checkout, so the runs' logs take this checkout's commit from the environment
-    env = {REVISION_ENV: git_revision()} if git_revision() else {}
+    commit = git_revision()
+    env = {REVISION_ENV: commit} if commit else {}
     ray.init(
         **({} if os.environ.get("RAY_ADDRESS") else {"num_cpus": workers}),
         include_dashboard=False,

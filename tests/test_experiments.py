@@ -659,10 +659,11 @@ def test_sweep_on_ray_passes_the_commit_and_records_a_dead_worker(monkeypatch, t
         exceptions=types.SimpleNamespace(RayError=RayError),
     )  # fmt: skip
     monkeypatch.setitem(sys.modules, "ray", fake)
-    monkeypatch.setattr(sweep, "run_one", lambda c: {"config": c, "commit": _provenance.git_revision()})
+    monkeypatch.setattr(sweep, "run_one", lambda c: {"config": c})
+    monkeypatch.setattr(sweep, "git_revision", lambda: "0123abc")  # (a checkout or not, the driver's commit)
     todo = [{"task": "Push", "model": "cfd", "seed": s} for s in (0, 1)]
     results = list(sweep._run_ray(todo, 1))
-    assert seen["runtime_env"]["env_vars"] == {_provenance.REVISION_ENV: _provenance.git_revision()}
+    assert seen["runtime_env"]["env_vars"] == {_provenance.REVISION_ENV: "0123abc"}
     assert [r["config"]["seed"] for r in results] == [0, 1] and "died" in results[1]["error"]
     # the scripts outside a checkout (Ray's copy) read the commit from there
     monkeypatch.setattr(_provenance, "_ROOT", tmp_path)

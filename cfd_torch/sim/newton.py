@@ -132,16 +132,17 @@ def _restricted(
     ev: EnergyEval,
     rows: torch.Tensor,
     act: torch.Tensor,
-    incidence: torch.Tensor,
+    pair_moving: torch.Tensor,
     others: torch.Tensor | None = None,
 ):
     """The value and rounding scale of the terms of ``ev``'s scenes ``rows`` (A,) (evaluated over a superset of
-    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs' (``incidence`` (M, P): 1 where
-    body m is one of pair p's bodies, else 0), except pairs with a body of ``others`` (A, M) (an island's energy
-    leaves out its far-field pairs with the other islands, which they move); third, with ``others``, the value with
-    those pairs included (else None). Only the per-body and per-pair values are read (not the rows of the whole
-    evaluation)."""
-    on = (act.to(incidence.dtype) @ incidence) > 0  # (A, P)
+    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs' (``pair_moving`` (P, 2): each
+    pair's bodies as moving-body indices, M for a body that does not move), except pairs with a body of ``others``
+    (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move); third, with
+    ``others``, the value with those pairs included (else None). Only the per-body and per-pair values are read (not
+    the rows of the whole evaluation)."""
+    ext = torch.cat([act, act.new_zeros(act.shape[0], 1)], 1)  # column M: a body that does not move
+    on = ext[:, pair_moving[:, 0]] | ext[:, pair_moving[:, 1]]  # (A, P)
     body_value = ev.body_value[rows]
     own_terms = torch.where(act, body_value, 0.0)
     own = own_terms.sum(1)
@@ -149,7 +150,8 @@ def _restricted(
     every = None
     if others is not None:
         every = own + torch.where(on, pair_value, 0.0).sum(1)
-        on = on & ~((others.to(incidence.dtype) @ incidence) > 0)
+        oth = torch.cat([others, others.new_zeros(others.shape[0], 1)], 1)
+        on = on & ~(oth[:, pair_moving[:, 0]] | oth[:, pair_moving[:, 1]])
     pv = torch.where(on, pair_value, 0.0)
     value = own + pv.sum(1)
     return value, value.abs() + own_terms.abs().sum(1) + 2.0 * pv.abs().sum(1), every
@@ -226,7 +228,7 @@ def newton(
     split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
-        incidence = (pair_bodies[:, :, None] == torch.arange(M, device=dev)).any(1).T.to(q.dtype)  # (M, P)
+        pair_moving = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
         if idx.numel() == 0:
@@ -302,7 +304,7 @@ def newton(
                 act[sc] = ak & ~frz
                 whole[sc] = whole_i[k] & ~frz.any(1)
                 p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
-                value, scale, _ = _restricted(cur, sc, act[sc], incidence)
+                value, scale, _ = _restricted(cur, sc, act[sc], pair_moving)
                 cur.value[sc], cur.scale[sc] = value, scale
                 L = L.clone()
                 L[k] = value
@@ -329,7 +331,7 @@ def newton(
         slope = (g[gs] * gp).sum(1)
         if freeze:
             others = act_i[gs] & ~gm  # (G, M) the bodies of the other islands of each island's scene
-            L0, scale0, every0 = _restricted(cur, sg, gm, incidence, others)
+            L0, scale0, every0 = _restricted(cur, sg, gm, pair_moving, others)
             cross0 = every0 - L0  # its pairs with the other islands
         scale_i = cur.scale[idx]
         if not freeze:
@@ -364,7 +366,7 @@ def newton(
             if k == 0:
                 full = ev
             if freeze:
-                L_try, _, with_others = _restricted(ev, psub, gm_sub, incidence, others[sub])
+                L_try, _, with_others = _restricted(ev, psub, gm_sub, pair_moving, others[sub])
                 # feasible: all its pairs finite, those with the other islands too
                 feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
