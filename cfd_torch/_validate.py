@@ -14,7 +14,7 @@ import torch
 
 from ._autograd import outside_transforms, plain
 from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
-from ._threads import start_numba_pool
+from ._threads import parallel_kernels, serial_twin, start_numba_pool
 
 # A triangle is degenerate when twice its area is below this many machine epsilons of its longest edge squared
 # (scale-free: a tiny well-shaped triangle is valid, a needle or a collinear triple is not).
@@ -114,7 +114,9 @@ def _check_triangle_values(tri: torch.Tensor, name: str, tol: float, limit: floa
     if tri.device.type == "cpu":  # one fused pass (the tensor form below makes ~20 passes over the data)
         flat = tri.detach().reshape(-1, 3, 3).contiguous()
         code = torch.empty(flat.shape[0], dtype=torch.uint8)
-        kernel = _triangle_codes_nb if flat.shape[0] >= 100_000 else _triangle_codes_serial
+        kernel = (
+            _triangle_codes_nb if flat.shape[0] >= 100_000 and parallel_kernels() else _triangle_codes_serial
+        )
         if kernel is _triangle_codes_nb:
             start_numba_pool()
         kernel(flat.numpy(), float(tol), float(limit), code.numpy())
@@ -213,7 +215,7 @@ def check_count(value: int, name: str, most: int = 10**6) -> None:
         raise ValueError(f"{name} must be a positive int of at most {most:,}, got {value!r}")
 
 
-_triangle_codes_serial = numba.njit(cache=True, error_model="numpy")(_triangle_codes_nb.py_func)
+_triangle_codes_serial = serial_twin(_triangle_codes_nb, cache=True, error_model="numpy")
 
 
 def body_pair(p: object, name: str) -> tuple[int, int]:
@@ -267,7 +269,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
         raise ValueError(f"{fname} index vertices out of range [0, {vertices.shape[0]})")
     tri = np.ascontiguousarray(vertices[faces], dtype=np.float64)  # (F, 3, 3)
     code = np.empty(tri.shape[0], dtype=np.uint8)
-    kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 else _triangle_codes_serial
+    kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 and parallel_kernels() else _triangle_codes_serial
     if kernel is _triangle_codes_nb:
         start_numba_pool()
     kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), _MAX_COORD, code)

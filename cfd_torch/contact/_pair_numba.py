@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from .._geometry import tri_tri_closest_nb
+from .._threads import serial_twin
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 
@@ -787,4 +788,4 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
 # serially, larger ones in parallel. 2,000: a step of a ball on a 12-triangle box (3,583 leaf pairs per evaluation,
 # torch serial inside the step) took a median 20-24 ms with the parallel kernel against 26 ms serial (2 cores).
 PARALLEL_MIN_PAIRS = 2000
-solve_pairs_serial = numba.njit(**_JIT)(solve_pairs.py_func)
+solve_pairs_serial = serial_twin(solve_pairs, **_JIT)  # (its own cache entry: see serial_twin)

@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._threads import start_numba_pool
+from .._threads import parallel_kernels, start_numba_pool
 from ..rotation import point_jacobian, rot_second, rotation_derivatives
 from .bsh import BSH
 from .central import BAND_MARGINS
@@ -178,8 +178,12 @@ def _node_threads(P: int, leaves: int | None = None) -> int:
     when an earlier evaluation's count of leaf pairs is known (``leaves``), from _THREAD_MIN_LEAVES of them."""
     import numba
 
-    if P < _THREAD_MIN_PAIRS or (leaves is not None and leaves < _THREAD_MIN_LEAVES):
-        return 1
+    if (
+        P < _THREAD_MIN_PAIRS
+        or (leaves is not None and leaves < _THREAD_MIN_LEAVES)
+        or not parallel_kernels()
+    ):
+        return 1  # (in a fork() child the pool's threads, like OpenMP's, are gone)
     start_numba_pool()  # (numba.get_num_threads starts it)
     return min(numba.get_num_threads(), 4)
 

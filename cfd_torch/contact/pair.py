@@ -36,7 +36,7 @@ from .._autograd import (
     vmap_error,
 )
 from .._geometry import frame_origin
-from .._threads import start_numba_pool
+from .._threads import parallel_kernels, start_numba_pool
 from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
@@ -164,7 +164,7 @@ def _solve(
     if _use_numba(X, backend):
         from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
 
-        if K < PARALLEL_MIN_PAIRS:
+        if K < PARALLEL_MIN_PAIRS or not parallel_kernels():
             solve_pairs = solve_pairs_serial  # noqa: F811
         else:
             start_numba_pool()

@@ -1,0 +1,71 @@
+"""The library under fork() and numba's cache: serial twins of the parallel kernels keep their own cache entries, and a
+process forked after the library ran its parallel kernels computes (on one thread) instead of hanging."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from cfd_torch import _validate
+from cfd_torch.contact import _pair_numba
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_serial_twins_have_their_own_cache_entries():
+    """numba names a cache entry by module, qualified name and line, not by ``parallel``: a serial twin compiled
+    from the parallel kernel's own function shared its entry, and whichever compiled first in a cold cache ran for
+    both (found by a threads audit: the serial pair solve started numba's pool, or the parallel one ran serially)."""
+    for parallel, serial in (
+        (_pair_numba.solve_pairs, _pair_numba.solve_pairs_serial),
+        (_validate._triangle_codes_nb, _validate._triangle_codes_serial),
+    ):
+        assert parallel._cache._impl._filename_base != serial._cache._impl._filename_base
+
+
+_FORK_SCRIPT = """
+import multiprocessing as mp, sys
+import numba, torch
+numba.set_num_threads(2)
+torch.set_num_threads(2)
+from cfd_torch import pair_potential_derivatives
+from cfd_torch.contact._pair_numba import PARALLEL_MIN_PAIRS
+
+def solve():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(PARALLEL_MIN_PAIRS, 3, 3, generator=g, dtype=torch.float64)
+    d = pair_potential_derivatives(a, a + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))
+    return (torch.rand(1000, 1000, generator=g, dtype=torch.float64).exp().sum() + d.value.sum()).item()
+
+def child(q):
+    q.put(solve())
+
+if __name__ == "__main__":
+    expected = solve()  # numba's pool and torch's OpenMP threads started here
+    q = mp.get_context("fork").Queue()
+    p = mp.get_context("fork").Process(target=child, args=(q,))
+    p.start()
+    p.join(40)
+    if p.exitcode is None:
+        p.kill()
+        sys.exit("the forked child hung")
+    assert p.exitcode == 0, p.exitcode
+    assert q.get(timeout=5) == expected
+    print("ok")
+"""
+
+
+def test_forked_child_computes(tmp_path):
+    """A child forked after the library's parallel kernels ran: libgomp's pool is inherited without its threads
+    (torch's next threaded op waited forever, numba's OpenMP layer terminated the child at its next parallel
+    kernel); the child now runs on one thread with the serial kernels, with the parent's results."""
+    script = tmp_path / "fork_child.py"
+    script.write_text(_FORK_SCRIPT)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr
