@@ -17,7 +17,6 @@ import numba
 import numpy as np
 
 from .._geometry import tri_tri_closest_nb
-from .._threads import serial_twin
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 
@@ -539,253 +538,265 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
             and its derivatives formed (arbitrary where infeasible).
     """
     K = X.shape[0]
-    half_delta = 0.5 * delta
     nchunks = min(K, 256)
     for c in numba.prange(nchunks):
-        g, g2 = np.empty(4), np.empty(4)
-        sc, sc2 = np.empty(9), np.empty(9)
-        H, H2 = np.empty((4, 4)), np.empty((4, 4))
-        p2 = np.empty(4)
-        s2 = np.empty(6)
-        L = np.empty((4, 4))
-        Li = np.empty(4)
-        step = np.empty(4)
-        p = np.empty(4)
-        s = np.empty(6)
-        q = np.empty(6)
-        WT = np.empty((4, 18))
-        m = np.empty(4)
-        Xc = np.empty((6, 3))  # the pair in its frame at C[k] (exact)
-        Q = np.empty((4, 4))
-        B = np.empty((6, 4))
-        Hq2 = np.empty((4, 4))
-        # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
-        Xk = np.empty((6, 3))
-        lo = c * K // nchunks
-        hi = (c + 1) * K // nchunks
-        for k in range(lo, hi):
-            _frame(X[k], C[k], Xc)
-            warm_k = has0.shape[0] > 0 and has0[k] != 0
+        _solve_range(c * K // nchunks, (c + 1) * K // nchunks, X, C, mu, delta, lam, tol, max_iter, want_grad,
+                     want_hess, P, val, grad, hess, status, resid, lowrank, WTo, So, P0, has0, O)  # fmt: skip
+
+
+@numba.njit(**_JIT)
+def solve_pairs_serial(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
+                       lowrank, WTo, So, P0, has0, O):  # fmt: skip
+    """:func:`solve_pairs` on the calling thread (the same results)."""
+    _solve_range(0, X.shape[0], X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status,
+                 resid, lowrank, WTo, So, P0, has0, O)  # fmt: skip
+
+
+@numba.njit(**_JIT)
+def _solve_range(lo, hi, X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
+                 lowrank, WTo, So, P0, has0, O):  # fmt: skip
+    """The pairs lo..hi-1 of :func:`solve_pairs` (its arguments), one after the other: the whole solve, compiled
+    once for the parallel kernel and its serial twin (a prange body this size took numba minutes to compile)."""
+    half_delta = 0.5 * delta
+    g, g2 = np.empty(4), np.empty(4)
+    sc, sc2 = np.empty(9), np.empty(9)
+    H, H2 = np.empty((4, 4)), np.empty((4, 4))
+    p2 = np.empty(4)
+    s2 = np.empty(6)
+    L = np.empty((4, 4))
+    Li = np.empty(4)
+    step = np.empty(4)
+    p = np.empty(4)
+    s = np.empty(6)
+    q = np.empty(6)
+    WT = np.empty((4, 18))
+    m = np.empty(4)
+    Xc = np.empty((6, 3))  # the pair in its frame at C[k] (exact)
+    Q = np.empty((4, 4))
+    B = np.empty((6, 4))
+    Hq2 = np.empty((4, 4))
+    # ... and in the contact frame at C[k] + O[k] (_contact_frame), where it is solved
+    Xk = np.empty((6, 3))
+    for k in range(lo, hi):
+        _frame(X[k], C[k], Xc)
+        warm_k = has0.shape[0] > 0 and has0[k] != 0
+        e = math.inf
+        e_res = 0.0
+        st = NOT_CONVERGED
+        # a warm start (if strictly feasible) with at most _WARM_ITER iterations, else (or if that does not
+        # converge) the cold start
+        for attempt in range(2 if warm_k else 1):
+            cold = attempt == 1 or not warm_k
             e = math.inf
             e_res = 0.0
-            st = NOT_CONVERGED
-            # a warm start (if strictly feasible) with at most _WARM_ITER iterations, else (or if that does not
-            # converge) the cold start
-            for attempt in range(2 if warm_k else 1):
-                cold = attempt == 1 or not warm_k
-                e = math.inf
-                e_res = 0.0
-                if not cold:
-                    for i in range(4):
-                        p[i] = P0[k, i]
-                    p[3] += P0[k, 0] * C[k, 0] + P0[k, 1] * C[k, 1] + P0[k, 2] * C[k, 2]
+            if not cold:
+                for i in range(4):
+                    p[i] = P0[k, i]
+                p[3] += P0[k, 0] * C[k, 0] + P0[k, 1] * C[k, 1] + P0[k, 2] * C[k, 2]
+                _contact_frame(Xc, p, half_delta, O[k], Xk)
+                e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
+                if e == math.inf:
+                    continue
+            else:
+                # ---- strictly feasible start from the exact closest points (SPEC section 2)
+                dist = math.sqrt(tri_tri_closest_nb(Xc[0:3], Xc[3:6], q))
+                if _clear_of_margin(dist, delta, Xc):
+                    alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
+                    d = 0.0
+                    for i in range(3):
+                        ni = alpha * (q[i] - q[3 + i])
+                        p[i] = ni
+                        d -= ni * 0.5 * (q[i] + q[3 + i])
+                    p[3] = d
                     _contact_frame(Xc, p, half_delta, O[k], Xk)
                     e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
-                    if e == math.inf:
-                        continue
-                else:
-                    # ---- strictly feasible start from the exact closest points (SPEC section 2)
-                    dist = math.sqrt(tri_tri_closest_nb(Xc[0:3], Xc[3:6], q))
-                    if _clear_of_margin(dist, delta, Xc):
-                        alpha = (half_delta + 1.0) / (0.5 * dist + 1.0) / dist
-                        d = 0.0
-                        for i in range(3):
-                            ni = alpha * (q[i] - q[3 + i])
-                            p[i] = ni
-                            d -= ni * 0.5 * (q[i] + q[3 + i])
-                        p[3] = d
+                    if e == math.inf and _sat_start(Xc, delta, p) > delta:
                         _contact_frame(Xc, p, half_delta, O[k], Xk)
                         e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
-                        if e == math.inf and _sat_start(Xc, delta, p) > delta:
-                            _contact_frame(Xc, p, half_delta, O[k], Xk)
-                            e, e_res = _eval(Xk, p, half_delta, lam, g, H, sc, s)
-                    if e == math.inf:
-                        break
-                cap = max_iter if cold else min(max_iter, _WARM_ITER)
-                # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
-                #   rel <= tol                    relative gradient (each component against its scale sc[4:]);
-                #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
-                #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
-                #                                 nothing representable is left (stiff near-margin pairs).
-                damp = 0.0
-                st = NOT_CONVERGED
-                for _it in range(cap + 1):
-                    if (
-                        abs(g[0]) <= tol * sc[4]
-                        and abs(g[1]) <= tol * sc[5]
-                        and abs(g[2]) <= tol * sc[6]
-                        and abs(g[3]) <= tol * sc[7]
-                    ):
-                        st = CONVERGED
-                        break
-                    if _it == cap:
-                        break
-                    accepted = False
-                    done = False
-                    for _try in range(60):
-                        if _cholesky4(H, L, Li, damp):
-                            for i in range(4):
-                                m[i] = -g[i]
-                            _chol_solve4(L, Li, m, step)
-                            dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
-                            if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
-                                for i in range(4):  # m = L^-1 (eps sc_plain): the sums' own rounding
-                                    acc = _GRAD_EPS * sc[4 + i]
-                                    for t in range(i):
-                                        acc -= L[i, t] * m[t]
-                                    m[i] = acc * Li[i]
-                                # + the gaps' rounding (sc[8], see _eval)
-                                noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3] + sc[8]
-                                if dec2 <= tol * tol * e or dec2 <= noise2:
-                                    done = True
-                                    break
-                            for i in range(4):
-                                p2[i] = p[i] + step[i]
-                            e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
-                            # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
-                            # keeps E within that resolution (the quadratic endgame of Newton).
-                            if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
-                                accepted = True
-                                break
-                        damp = 1e-4 if damp == 0.0 else damp * 10.0
-                    if done:
-                        st = CONVERGED
-                        break
-                    if not accepted:
-                        if _rel_grad(g, sc) <= _STALL_TOL:  # no representable decrease is left
-                            st = CONVERGED
-                        break
-                    # the trial's E, derivatives and gaps become current
-                    p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
-                    e, e_res = e_new, e_res_new
-                    damp = 0.0 if damp <= 1e-3 else damp * 0.1
-                if st == CONVERGED and _cholesky4(H, L, Li, 0.0):
-                    # the Newton step from the converged plane is taken too (if E stays within its resolution):
-                    # the tests above bound E's error, and this makes the plane's, which the derivatives depend on,
-                    # quadratically small (a nearly flat E leaves the plane loose at the tests' tolerance)
-                    for i in range(4):
-                        m[i] = -g[i]
-                    _chol_solve4(L, Li, m, step)
-                    for i in range(4):
-                        p2[i] = p[i] + step[i]
-                    e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
-                    if e_new <= e + e_res:
-                        for i in range(4):
-                            p[i], g[i], sc[i], sc[4 + i] = p2[i], g2[i], sc2[i], sc2[4 + i]
-                            for j in range(4):
-                                H[i, j] = H2[i, j]
-                        for i in range(6):
-                            s[i] = s2[i]
-                        e, e_res = e_new, e_res_new
-                if st == NOT_CONVERGED and not cold:
-                    continue  # the warm start's iterations are spent: solve again from the cold start
-                if st == NOT_CONVERGED and _rel_grad(g, sc) <= _STALL_TOL:
-                    # at the iteration cap: in the endgame, steps that change E by less than its rounding are accepted,
-                    # and a badly conditioned pair can keep taking them without its gradient reaching tol; below
-                    # _STALL_TOL it is as converged as a stalled pair
+                if e == math.inf:
+                    break
+            cap = max_iter if cold else min(max_iter, _WARM_ITER)
+            # ---- damped Newton (Levenberg-Marquardt on the diagonal). Converged when any of:
+            #   rel <= tol                    relative gradient (each component against its scale sc[4:]);
+            #   dec2 <= tol^2 E               Newton decrement g^T H^-1 g ~ 2 (E - E*), undamped;
+            #   dec2 <= noise2                the decrement the gradient's own rounding noise eps*sc would give:
+            #                                 nothing representable is left (stiff near-margin pairs).
+            damp = 0.0
+            st = NOT_CONVERGED
+            for _it in range(cap + 1):
+                if (
+                    abs(g[0]) <= tol * sc[4]
+                    and abs(g[1]) <= tol * sc[5]
+                    and abs(g[2]) <= tol * sc[6]
+                    and abs(g[3]) <= tol * sc[7]
+                ):
                     st = CONVERGED
-                break
-            if e == math.inf:
-                status[k] = INFEASIBLE
-                val[k] = math.inf
-                resid[k] = 0.0
+                    break
+                if _it == cap:
+                    break
+                accepted = False
+                done = False
+                for _try in range(60):
+                    if _cholesky4(H, L, Li, damp):
+                        for i in range(4):
+                            m[i] = -g[i]
+                        _chol_solve4(L, Li, m, step)
+                        dec2 = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2] + g[3] * step[3])
+                        if damp == 0.0 and dec2 <= 1e-4 * e:  # (the noise floor is far below 1e-4 E)
+                            for i in range(4):  # m = L^-1 (eps sc_plain): the sums' own rounding
+                                acc = _GRAD_EPS * sc[4 + i]
+                                for t in range(i):
+                                    acc -= L[i, t] * m[t]
+                                m[i] = acc * Li[i]
+                            # + the gaps' rounding (sc[8], see _eval)
+                            noise2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3] + sc[8]
+                            if dec2 <= tol * tol * e or dec2 <= noise2:
+                                done = True
+                                break
+                        for i in range(4):
+                            p2[i] = p[i] + step[i]
+                        e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
+                        # Accept a decrease; or, when the predicted decrease is below E's resolution, a step that
+                        # keeps E within that resolution (the quadratic endgame of Newton).
+                        if e_new <= e or (dec2 <= e_res and e_new <= e + e_res):
+                            accepted = True
+                            break
+                    damp = 1e-4 if damp == 0.0 else damp * 10.0
+                if done:
+                    st = CONVERGED
+                    break
+                if not accepted:
+                    if _rel_grad(g, sc) <= _STALL_TOL:  # no representable decrease is left
+                        st = CONVERGED
+                    break
+                # the trial's E, derivatives and gaps become current
+                p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                e, e_res = e_new, e_res_new
+                damp = 0.0 if damp <= 1e-3 else damp * 0.1
+            if st == CONVERGED and _cholesky4(H, L, Li, 0.0):
+                # the Newton step from the converged plane is taken too (if E stays within its resolution):
+                # the tests above bound E's error, and this makes the plane's, which the derivatives depend on,
+                # quadratically small (a nearly flat E leaves the plane loose at the tests' tolerance)
                 for i in range(4):
-                    P[k, i] = 0.0
-                if want_grad:
-                    for i in range(18):
-                        grad[k, i] = 0.0
-                if want_hess and lowrank:
+                    m[i] = -g[i]
+                _chol_solve4(L, Li, m, step)
+                for i in range(4):
+                    p2[i] = p[i] + step[i]
+                e_new, e_res_new = _eval(Xk, p2, half_delta, lam, g2, H2, sc2, s2)
+                if e_new <= e + e_res:
                     for i in range(4):
-                        for j in range(18):
-                            WTo[k, i, j] = 0.0
+                        p[i], g[i], sc[i], sc[4 + i] = p2[i], g2[i], sc2[i], sc2[4 + i]
+                        for j in range(4):
+                            H[i, j] = H2[i, j]
                     for i in range(6):
-                        So[k, i] = math.inf
-                elif want_hess:
-                    for i in range(18):
-                        for j in range(18):
-                            hess[k, i, j] = 0.0
-                continue
-            if st == CONVERGED and _conditioning(Xk, p, s) > _REFINE_KAPPA and _ill_conditioned(H, L, Li):
-                e, e_res = _refine(Xk, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, Q, B, Hq2, L,
-                                   Li, m, step)  # fmt: skip
-            status[k] = st
-            resid[k] = _rel_grad(g, sc)
-            val[k] = mu * e
+                        s[i] = s2[i]
+                    e, e_res = e_new, e_res_new
+            if st == NOT_CONVERGED and not cold:
+                continue  # the warm start's iterations are spent: solve again from the cold start
+            if st == NOT_CONVERGED and _rel_grad(g, sc) <= _STALL_TOL:
+                # at the iteration cap: in the endgame, steps that change E by less than its rounding are accepted,
+                # and a badly conditioned pair can keep taking them without its gradient reaching tol; below
+                # _STALL_TOL it is as converged as a stalled pair
+                st = CONVERGED
+            break
+        if e == math.inf:
+            status[k] = INFEASIBLE
+            val[k] = math.inf
+            resid[k] = 0.0
             for i in range(4):
-                P[k, i] = p[i]
-            if not (want_grad or want_hess):
-                continue
-            n = (p[0], p[1], p[2])
+                P[k, i] = 0.0
             if want_grad:
-                # dP/dx_k = -mu sg_k n / s_k^2 (envelope theorem)
-                for kk in range(6):
-                    sg = 1.0 if kk < 3 else -1.0
-                    w1 = mu * sg / (s[kk] * s[kk])
+                for i in range(18):
+                    grad[k, i] = 0.0
+            if want_hess and lowrank:
+                for i in range(4):
+                    for j in range(18):
+                        WTo[k, i, j] = 0.0
+                for i in range(6):
+                    So[k, i] = math.inf
+            elif want_hess:
+                for i in range(18):
+                    for j in range(18):
+                        hess[k, i, j] = 0.0
+            continue
+        if st == CONVERGED and _conditioning(Xk, p, s) > _REFINE_KAPPA and _ill_conditioned(H, L, Li):
+            e, e_res = _refine(Xk, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, Q, B, Hq2, L,
+                               Li, m, step)  # fmt: skip
+        status[k] = st
+        resid[k] = _rel_grad(g, sc)
+        val[k] = mu * e
+        for i in range(4):
+            P[k, i] = p[i]
+        if not (want_grad or want_hess):
+            continue
+        n = (p[0], p[1], p[2])
+        if want_grad:
+            # dP/dx_k = -mu sg_k n / s_k^2 (envelope theorem)
+            for kk in range(6):
+                sg = 1.0 if kk < 3 else -1.0
+                w1 = mu * sg / (s[kk] * s[kk])
+                for j in range(3):
+                    grad[k, 3 * kk + j] = -w1 * n[j]
+        if want_hess:
+            # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
+            # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
+            rot = _ill_conditioned(H, L, Li)
+            if rot:  # ill-conditioned: E_pp and E_px in E_pp's eigenbasis (_rotated_epp)
+                _rotated_epp(Xk, s, p, lam, H, Q, B, H2)
+                shift = 0.0
+                while not _cholesky4(H2, L, Li, shift) and shift < 1.0:
+                    shift = 16 * 2.220446049250313e-16 if shift == 0.0 else shift * 16.0
+            il0, il1, il2, il3 = Li[0], Li[1], Li[2], Li[3]
+            for kk in range(6):
+                sg = 1.0 if kk < 3 else -1.0
+                inv = 1.0 / s[kk]
+                w1 = inv * inv
+                w2 = 2.0 * w1 * inv
+                xa, xb, xc = Xk[kk, 0], Xk[kk, 1], Xk[kk, 2]
+                for j in range(3):
+                    row = 3 * kk + j
+                    # E_xp row: -sg e_j^T [I|0] / s^2 + 2 n_j [x^T | 1] / s^3
+                    nw = n[j] * w2
+                    m0, m1, m2, m3 = nw * xa, nw * xb, nw * xc, nw
+                    if rot:  # Q^T (2 n_j [x; 1] / s^3 - sg e_j / s^2), from B = Q^T [x; 1]
+                        m0 = nw * B[kk, 0] - sg * w1 * Q[j, 0]
+                        m1 = nw * B[kk, 1] - sg * w1 * Q[j, 1]
+                        m2 = nw * B[kk, 2] - sg * w1 * Q[j, 2]
+                        m3 = nw * B[kk, 3] - sg * w1 * Q[j, 3]
+                    elif j == 0:
+                        m0 -= sg * w1
+                    elif j == 1:
+                        m1 -= sg * w1
+                    else:
+                        m2 -= sg * w1
+                    # forward substitution, stored transposed: WT[:, row] = L^-1 m
+                    t0 = m0 * il0
+                    t1 = (m1 - L[1, 0] * t0) * il1
+                    t2 = (m2 - L[2, 0] * t0 - L[2, 1] * t1) * il2
+                    t3 = (m3 - L[3, 0] * t0 - L[3, 1] * t1 - L[3, 2] * t2) * il3
+                    WT[0, row], WT[1, row], WT[2, row], WT[3, row] = t0, t1, t2, t3
+            if lowrank:
+                for i in range(4):
+                    for j in range(18):
+                        WTo[k, i, j] = WT[i, j]
+                for i in range(6):
+                    So[k, i] = s[i]
+                continue
+            # rows written in order (contiguous, vectorisable): hess = mu (E_xx - W W^T)
+            hk = hess[k]
+            # (products before scaling by -mu keep the result exactly symmetric)
+            for a_ in range(18):
+                wa0, wa1, wa2, wa3 = WT[0, a_], WT[1, a_], WT[2, a_], WT[3, a_]
+                for b_ in range(18):
+                    hk[a_, b_] = -mu * (wa0 * WT[0, b_] + wa1 * WT[1, b_] + wa2 * WT[2, b_] + wa3 * WT[3, b_])
+            for kk in range(6):
+                c = 2.0 * mu / (s[kk] * s[kk] * s[kk])
+                for i in range(3):
                     for j in range(3):
-                        grad[k, 3 * kk + j] = -w1 * n[j]
-            if want_hess:
-                # hess_x P = mu (E_xx - E_xp E_pp^-1 E_px): with E_pp = L L^T and W = E_xp L^-T,
-                # the Schur complement is E_xx - W W^T. E_xx is block diagonal 2 n n^T / s^3.
-                rot = _ill_conditioned(H, L, Li)
-                if rot:  # ill-conditioned: E_pp and E_px in E_pp's eigenbasis (_rotated_epp)
-                    _rotated_epp(Xk, s, p, lam, H, Q, B, H2)
-                    shift = 0.0
-                    while not _cholesky4(H2, L, Li, shift) and shift < 1.0:
-                        shift = 16 * 2.220446049250313e-16 if shift == 0.0 else shift * 16.0
-                il0, il1, il2, il3 = Li[0], Li[1], Li[2], Li[3]
-                for kk in range(6):
-                    sg = 1.0 if kk < 3 else -1.0
-                    inv = 1.0 / s[kk]
-                    w1 = inv * inv
-                    w2 = 2.0 * w1 * inv
-                    xa, xb, xc = Xk[kk, 0], Xk[kk, 1], Xk[kk, 2]
-                    for j in range(3):
-                        row = 3 * kk + j
-                        # E_xp row: -sg e_j^T [I|0] / s^2 + 2 n_j [x^T | 1] / s^3
-                        nw = n[j] * w2
-                        m0, m1, m2, m3 = nw * xa, nw * xb, nw * xc, nw
-                        if rot:  # Q^T (2 n_j [x; 1] / s^3 - sg e_j / s^2), from B = Q^T [x; 1]
-                            m0 = nw * B[kk, 0] - sg * w1 * Q[j, 0]
-                            m1 = nw * B[kk, 1] - sg * w1 * Q[j, 1]
-                            m2 = nw * B[kk, 2] - sg * w1 * Q[j, 2]
-                            m3 = nw * B[kk, 3] - sg * w1 * Q[j, 3]
-                        elif j == 0:
-                            m0 -= sg * w1
-                        elif j == 1:
-                            m1 -= sg * w1
-                        else:
-                            m2 -= sg * w1
-                        # forward substitution, stored transposed: WT[:, row] = L^-1 m
-                        t0 = m0 * il0
-                        t1 = (m1 - L[1, 0] * t0) * il1
-                        t2 = (m2 - L[2, 0] * t0 - L[2, 1] * t1) * il2
-                        t3 = (m3 - L[3, 0] * t0 - L[3, 1] * t1 - L[3, 2] * t2) * il3
-                        WT[0, row], WT[1, row], WT[2, row], WT[3, row] = t0, t1, t2, t3
-                if lowrank:
-                    for i in range(4):
-                        for j in range(18):
-                            WTo[k, i, j] = WT[i, j]
-                    for i in range(6):
-                        So[k, i] = s[i]
-                    continue
-                # rows written in order (contiguous, vectorisable): hess = mu (E_xx - W W^T)
-                hk = hess[k]
-                # (products before scaling by -mu keep the result exactly symmetric)
-                for a_ in range(18):
-                    wa0, wa1, wa2, wa3 = WT[0, a_], WT[1, a_], WT[2, a_], WT[3, a_]
-                    for b_ in range(18):
-                        hk[a_, b_] = -mu * (
-                            wa0 * WT[0, b_] + wa1 * WT[1, b_] + wa2 * WT[2, b_] + wa3 * WT[3, b_]
-                        )
-                for kk in range(6):
-                    c = 2.0 * mu / (s[kk] * s[kk] * s[kk])
-                    for i in range(3):
-                        for j in range(3):
-                            hk[3 * kk + i, 3 * kk + j] += c * (n[i] * n[j])
+                        hk[3 * kk + i, 3 * kk + j] += c * (n[i] * n[j])
 
 
 # Numba's worker threads compete with torch's for the cores and cost up to milliseconds to wake: small batches run
 # serially, larger ones in parallel. 2,000: a step of a ball on a 12-triangle box (3,583 leaf pairs per evaluation,
 # torch serial inside the step) took a median 20-24 ms with the parallel kernel against 26 ms serial (2 cores).
 PARALLEL_MIN_PAIRS = 2000
-solve_pairs_serial = serial_twin(solve_pairs, **_JIT)  # (its own cache entry: see serial_twin)
