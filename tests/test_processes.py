@@ -15,9 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_serial_twins_have_their_own_cache_entries():
-    """numba names a cache entry by module, qualified name and line, not by ``parallel``: a serial twin compiled
-    from the parallel kernel's own function shared its entry, and whichever compiled first in a cold cache ran for
-    both (found by a threads audit: the serial pair solve started numba's pool, or the parallel one ran serially)."""
+    """numba names a cache entry by module, qualified name and line, not by ``parallel``: a serial kernel compiled
+    from the parallel kernel's own function would share its entry, and whichever compiled first in a cold cache
+    would run for both (the serial path starting numba's pool, or the parallel path running on one thread)."""
     for parallel, serial in (
         (_pair_numba.solve_pairs, _pair_numba.solve_pairs_serial),
         (_validate._triangle_codes_nb, _validate._triangle_codes_serial),
