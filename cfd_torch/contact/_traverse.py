@@ -31,6 +31,7 @@ Coordinates of a body pair's derivatives: [t_a, omega_a, t_b, omega_b]."""
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
@@ -56,20 +57,25 @@ class Forest(NamedTuple):
 
 _FOREST_CACHE: OrderedDict = OrderedDict()
 _FOREST_CACHE_SIZE = 8
+_FOREST_LOCK = threading.Lock()
 _QUERY_SLACK = 1e-9  # the CPU collision query's margin is the potential's times 1 + this
 
 
 def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
     """:func:`build_forest`, cached for the last few hierarchy tuples (the function API's repeated calls)."""
     key = (tuple(id(b) for b in bshes), dtype, device)
-    hit = _FOREST_CACHE.get(key)
-    if hit is not None and all(x is y for x, y in zip(hit[0], bshes, strict=True)):
-        _FOREST_CACHE.move_to_end(key)
-        return hit[1]
+    with (
+        _FOREST_LOCK
+    ):  # (threads stepping scenes at once: an entry evicted between a hit and its move_to_end)
+        hit = _FOREST_CACHE.get(key)
+        if hit is not None and all(x is y for x, y in zip(hit[0], bshes, strict=True)):
+            _FOREST_CACHE.move_to_end(key)
+            return hit[1]
     f = build_forest(bshes, dtype, device)
-    _FOREST_CACHE[key] = (bshes, f)
-    if len(_FOREST_CACHE) > _FOREST_CACHE_SIZE:
-        _FOREST_CACHE.popitem(last=False)
+    with _FOREST_LOCK:
+        _FOREST_CACHE[key] = (bshes, f)
+        if len(_FOREST_CACHE) > _FOREST_CACHE_SIZE:
+            _FOREST_CACHE.popitem(last=False)
     return f
 
 
