@@ -64,9 +64,8 @@ _QUERY_SLACK = 1e-9  # the CPU collision query's margin is the potential's times
 def forest_of(bshes: tuple[BSH, ...], dtype: torch.dtype, device: torch.device) -> Forest:
     """:func:`build_forest`, cached for the last few hierarchy tuples (the function API's repeated calls)."""
     key = (tuple(id(b) for b in bshes), dtype, device)
-    with (
-        _FOREST_LOCK
-    ):  # (threads stepping scenes at once: an entry evicted between a hit and its move_to_end)
+    # under the lock: threads stepping scenes at once could evict an entry between a hit and its move_to_end
+    with _FOREST_LOCK:
         hit = _FOREST_CACHE.get(key)
         if hit is not None and all(x is y for x, y in zip(hit[0], bshes, strict=True)):
             _FOREST_CACHE.move_to_end(key)

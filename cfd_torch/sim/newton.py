@@ -329,12 +329,12 @@ def newton(
         gp = torch.where(over[:, None], gp * (max_move / torch.where(over, reach, 1.0))[:, None], gp)
         reach = torch.where(over, torch.full_like(reach, max_move), reach)
         slope = (g[gs] * gp).sum(1)
+        scale_i = cur.scale[idx]
         if freeze:
             others = act_i[gs] & ~gm  # (G, M) the bodies of the other islands of each island's scene
             L0, scale0, every0 = _restricted(cur, sg, gm, pair_moving, others)
             cross0 = every0 - L0  # its pairs with the other islands
-        scale_i = cur.scale[idx]
-        if not freeze:
+        else:
             L0, scale0 = L, scale_i
         noise = 1e-12 * scale0  # rounding level of L: the full step must not be rejected for noise
         G = gs.numel()
