@@ -47,6 +47,35 @@ def narrowed(x: torch.Tensor, dtype: torch.dtype, what: str, inputs: str) -> tor
     return y
 
 
+class _Widen(torch.autograd.Function):
+    """x cast to float64, whose backward casts the gradient back to x's dtype through :func:`narrowed` (a gradient
+    that overflows it raises instead of reading as inf; under create_graph the Hessian-vector products come back
+    through the same backward, so they are checked too)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(x: torch.Tensor, what: str, inputs: str) -> torch.Tensor:
+        return x.to(torch.float64)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        x, ctx.what, ctx.inputs = inputs
+        ctx.dtype = x.dtype
+
+    @staticmethod
+    def backward(ctx, g):
+        return narrowed(g, ctx.dtype, f"{ctx.what}'s gradient", ctx.inputs), None, None
+
+
+def widened(x: torch.Tensor, what: str, inputs: str) -> torch.Tensor:
+    """``x`` in float64 for a solve; where it is narrower, derivatives flowing back to it are cast back to its
+    dtype by :func:`narrowed` (``what`` names the function, ``inputs`` the arguments, as there)."""
+    if x.dtype == torch.float64:
+        return x
+    return _Widen.apply(x, what, inputs)
+
+
 # why a pose's translation is limited (the messages of the pose checks)
 FAR = (
     "the limit pair_potential puts on coordinates of this dtype (float64: from about 1e154 m the spheres' squared "

@@ -104,6 +104,10 @@ class BilliardsCore(TaskCore):
             raise ValueError(
                 f"pocket must be an index of POCKETS (0..{len(POCKETS) - 1}) or None, got {pocket!r}"
             )
+        if not (_is_int(subdivisions) and 0 <= subdivisions <= 6):
+            raise ValueError(
+                f"subdivisions must be an int in 0..6 (an icosphere of 20 * 4**subdivisions faces), got {subdivisions!r}"
+            )
         check_unused_by_potential(potential, "eps", eps, 0.01)
         check_unused_by_potential(potential, "dhat", dhat, 1e-3)
         check_task_arguments(

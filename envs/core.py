@@ -87,9 +87,10 @@ def check_task_arguments(*, action_cost: float, **positive: float) -> None:
 
 
 def check_unused_by_potential(potential: str, name: str, value: float, default: float) -> None:
-    """A task setting the chosen contact potential does not read keeps its default (it would be silently ignored):
-    ``eps`` (this library's blend width, its ``pair_eps``) with a baseline, ``dhat`` (the baselines' reach) with
-    "cfd"."""
+    """A task's contact setting ``eps`` (this library's blend width, its ``pair_eps``) or ``dhat`` (the baselines'
+    reach): a finite number > 0, and its default where the chosen contact potential does not read it (it would be
+    silently ignored): ``eps`` with a baseline, ``dhat`` with "cfd"."""
+    check_positive(value, name)
     for_cfd = name == "eps"
     if value != default and (potential == "cfd") != for_cfd:
         reads = "potential='cfd'" if for_cfd else "the baselines (potential 'ipc' or 'sdrs')"
@@ -416,6 +417,9 @@ class TaskCore(abc.ABC):
                     f"{name} is {x.dtype} on {x.device} but this core is {self.dtype} on {self.device} "
                     "(make_core(..., dtype=, device=)); make the state with core.reset"
                 )
+        N = self.scene.num_bodies
+        if state.q.dim() != 3 or state.q.shape[1:] != (N, 6):
+            raise ValueError(f"state.q must be a (B, {N}, 6) tensor, got shape {tuple(state.q.shape)}")
         B = state.batch_size
         if state.q_prev.shape != state.q.shape:
             raise ValueError(

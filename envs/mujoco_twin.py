@@ -87,6 +87,10 @@ class MujocoTwin:
         spec.option.gravity = list(scene.gravity)
         # several contact points per pair of convex meshes (one, by default, lets a box on a floor rock and sink)
         spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_MULTICCD
+        # Coulomb's isotropic cone, as the scene's friction (MuJoCo's default pyramid bounds |f_x| + |f_y| in the
+        # contact's own axes: a box sliding at 45 degrees to them met 0.74 of its friction, at 22.5 degrees a force
+        # 7 degrees off its velocity); the Ant's MJCF leaves the cone at that default too
+        spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
         # the articulation's state rows [first, first + L)
         self._art = arts[0] if arts else None
         first = scene.articulation_rows[0] if arts else 0
@@ -287,8 +291,15 @@ class MujocoTwin:
                 self.model.body_pos[self._body_id[i], 2] = float(state.q[0, i, 2])
         # no mj_forward: it would overwrite the warm start of the constraint solver that the next mj_step reads
         mujoco.mj_setState(self.model, self.data, physics.astype(np.float64), spec)
-        gap = float((self._poses(state.q.detach().double()) - state.q.detach().double()).abs().max())
-        if gap > 1e-9:
+        q = state.q.detach().double()
+        gap = float((self._poses(q) - q).abs().max())
+        # (a float32 state holds MuJoCo's poses rounded to float32)
+        tol = (
+            1e-9
+            if state.q.dtype == torch.float64
+            else 2 * torch.finfo(state.q.dtype).eps * max(1.0, float(q.abs().max()))
+        )
+        if gap > tol:
             raise ValueError(f"physics does not hold state's poses (they differ by {gap:.3g})")
 
     def _steps(self, state: EnvState, a: torch.Tensor, physics: np.ndarray | None):

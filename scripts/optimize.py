@@ -41,7 +41,9 @@ steps per task step),
 its loss's gradient by central differences in every action parameter (2 K A + 1 rollouts for K knots and A action
 dimensions), with the step ``--fd-step``, or, by default, the step chosen at the start by a sweep over
 ``FD_STEPS``: the one whose unit gradient, stepped by ``--lr``, lowers the loss most (recorded in the log's summary
-with every step's gradient norm and loss; the sweep's rollouts are counted). Under ``--mpc`` it plans and executes
+with every step's gradient norm and loss; the sweep's rollouts are counted). Differences that do not shrink with
+the step (round-off: at most 10x smaller at the smallest step than at the largest, 10,000x larger) are no gradient:
+the sweep records ``round_off`` and the gradient is zero. Under ``--mpc`` it plans and executes
 in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the executed actions
 (``MujocoTwin.step``), and the first action runs there. Every log row counts
 the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
@@ -296,6 +298,20 @@ class _TwinState:
     physics: np.ndarray | None
 
 
+def _round_off(grads: dict[float, torch.Tensor]) -> bool:
+    """Whether a step-size sweep's central differences (``grads``: step -> gradient) are round-off, not a
+    derivative: over steps spanning at least 1,000x, the largest loss difference at the smallest step is at least a
+    tenth of that at the largest. A derivative's differences shrink with the step (a jump within the larger steps'
+    reach only makes theirs larger); MuJoCo's rounding, carried through its one solve of every contact to a body
+    the actions never reach (AntPush's box), gives differences of one size at every step."""
+    lo, hi = min(grads), max(grads)
+    if hi < 1e3 * lo:
+        return False
+    diff_lo = 2 * lo * float(grads[lo].abs().max())
+    diff_hi = 2 * hi * float(grads[hi].abs().max())
+    return diff_lo > 0 and diff_lo >= 0.1 * diff_hi
+
+
 def _mujoco_fd(twin, config: dict, actions):
     """evaluate_from for ``mujoco-fd`` (module docstring); the chosen step and the sweep go to ``config["fd"]``."""
     sweep = config.setdefault("fd", {})
@@ -331,8 +347,10 @@ def _mujoco_fd(twin, config: dict, actions):
                     rows.append({"step": h, "grad_norm": norm, "loss_after_lr_step": after})
                     n += 2 * th.numel() + (1 if norm > 0 else 0)
                 best = min(rows, key=lambda r: (r["loss_after_lr_step"], -r["step"]))
-                sweep.update({"step": best["step"], "sweep": rows})
-                g = grads[best["step"]]
+                noise = _round_off(grads)
+                sweep.update({"step": best["step"], "sweep": rows, "round_off": noise})
+                # differences of round-off are no gradient: zero (the run stops there, as on a flat loss)
+                g = torch.zeros_like(th) if noise else grads[best["step"]]
             else:
                 g = fd_gradient(state, th, sweep["step"])
                 n += 2 * th.numel()
@@ -658,7 +676,11 @@ def run_experiment(config: dict) -> dict:
         frames_q = torch.stack(qs)
     fd = cfg.pop("fd", None)
     if fd is not None:
-        summary["fd_step"], summary["fd_sweep"] = fd["step"], fd["sweep"]
+        summary["fd_step"], summary["fd_sweep"], summary["fd_round_off"] = (
+            fd["step"],
+            fd["sweep"],
+            fd["round_off"],
+        )
     result = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in cfg.items()},
               "commit": git_revision(), "summary": summary, "log": log}  # fmt: skip
     if out_dir is not None:

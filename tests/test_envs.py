@@ -498,6 +498,11 @@ def test_task_arguments_actions_and_states_are_checked():
         ("cfd_torch/Billiards-v0", {"pocket_radius": -0.08}, "pocket_radius"),
         ("cfd_torch/Sort-v0", {"action_cost": float("nan")}, "action_cost"),
         ("cfd_torch/AntPush-v0", {"success_radius": 0.0}, "success_radius"),
+        ("cfd_torch/Billiards-v0", {"subdivisions": -3}, "subdivisions"),
+        ("cfd_torch/Billiards-v0", {"subdivisions": 1.7}, "subdivisions"),
+        ("cfd_torch/Billiards-v0", {"eps": -1.0}, "eps"),
+        ("cfd_torch/Gather-v0", {"eps": 0.0}, "eps"),
+        ("cfd_torch/Billiards-v0", {"potential": "ipc", "dhat": float("nan")}, "dhat"),
     ]:
         with pytest.raises(ValueError, match=f"{name} must be"):
             make_core(env_id, **kwargs)
@@ -547,6 +552,16 @@ def test_task_arguments_actions_and_states_are_checked():
             r"state.t must be an integer tensor of shape \(2,\)",
         ),
         ({"task": {"target": s32.task["target"] * float("nan")}}, ValueError, r"\['target'\] contains NaN"),
+        (
+            {"q": s32.q[0], "q_prev": s32.q_prev[0]},
+            ValueError,
+            r"state.q must be a \(B, 3, 6\) tensor, got shape \(3, 6\)",
+        ),
+        (
+            {"q": s32.q[:, :2], "q_prev": s32.q_prev[:, :2]},
+            ValueError,
+            r"state.q must be a \(B, 3, 6\) tensor",
+        ),
     ):
         with pytest.raises(err, match=match):
             core32.step(dataclasses.replace(s32, **change), torch.zeros(2, 2))

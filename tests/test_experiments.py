@@ -15,7 +15,7 @@ import torch
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
-    from optimize import DEFAULTS, FD_STEPS, MODELS, OPTIMISERS, Optimiser, run_experiment
+    from optimize import DEFAULTS, FD_STEPS, MODELS, OPTIMISERS, Optimiser, _round_off, run_experiment
     from plot_results import _curves, mixed_settings, table
 finally:
     sys.path.pop(0)
@@ -124,11 +124,61 @@ def test_mujoco_twin_of_a_float32_core_hands_back_states_the_core_steps_on():
 
     core = make_core("cfd_torch/Push-v0", dtype=torch.float32)
     twin = MujocoTwin(core)
-    nxt, _, _, _ = twin.step(core.reset(0, 1), torch.full((2,), 0.5))
+    nxt, physics, _, _ = twin.step(core.reset(0, 1), torch.full((2,), 0.5))
     assert nxt.q.dtype == nxt.q_prev.dtype == torch.float32
     assert core.step(nxt, torch.zeros(1, 2)).state.q.dtype == torch.float32
+    # and the twin steps on from it and MuJoCo's state (the float32 poses are MuJoCo's rounded)
+    again, _, _, _ = twin.step(nxt, torch.full((2,), 0.5), physics)
+    assert again.q.dtype == torch.float32 and float((again.q - nxt.q).abs().max()) > 0
     with pytest.raises(TypeError, match="actions must be a torch tensor, got ndarray"):
         twin.rollout(core.reset(0, 1), np.zeros((2, 2)))
+
+
+def test_mujoco_twin_friction_is_coulombs_isotropic_cone():
+    """Push's box sliding on the floor with the pole far away, in the twin: it decelerates by mu g (within 5 %,
+    MuJoCo's soft contact) with the friction force opposite its velocity, whatever the direction (MuJoCo's default
+    pyramidal cone gave 0.74 mu g at 45 degrees to its axes and a force 7 degrees off the velocity at 22.5)."""
+    import torch
+
+    from cfd_torch.envs import make_core
+    from cfd_torch.envs.core import EnvState
+    from cfd_torch.envs.mujoco_twin import MujocoTwin
+
+    core = make_core("cfd_torch/Push-v0")
+    twin = MujocoTwin(core)
+    dt, mu_g = core.scene.dt, core.scene.friction.coefficient * 9.81
+    s0 = core.reset(0, 1)
+    for phi in (0.0, math.pi / 8, math.pi / 4):
+        q, q_prev = s0.q.clone(), s0.q_prev.clone()
+        q[0, 1, :2] = q_prev[0, 1, :2] = torch.tensor([-3.0, 3.0])  # the pole parked 4 m away
+        v = torch.tensor([math.cos(phi), math.sin(phi)], dtype=torch.float64)
+        q_prev[0, 0, :2] = q[0, 0, :2] - v * dt  # 1 m/s
+        st, physics, xy = EnvState(q, q_prev, s0.t, s0.task), None, []
+        for _ in range(13):
+            st, physics, _, _ = twin.step(st, torch.zeros(2, dtype=torch.float64), physics)
+            xy.append(st.q[0, 0, :2])
+        vel = torch.diff(torch.stack(xy), dim=0) / dt
+        decel = (vel[11] - vel[3]) / (8 * dt)  # (after the box settles on the floor)
+        assert float(decel.norm()) == pytest.approx(mu_g, rel=0.05)
+        assert float(-(decel @ v) / decel.norm()) > math.cos(math.radians(1.0))
+
+
+def test_finite_differences_of_round_off_are_told_from_a_derivative():
+    """The step-size sweep's test: differences of one size at every step (AntPush's box moved by MuJoCo's rounding,
+    loss differences about 2e-7 from h = 0.1 to 1e-5) are round-off; differences that shrink with the step, with or
+    without a jump within reach of the larger steps, are a derivative; all-zero differences are neither."""
+    g = torch.tensor([0.3, -1.0, 0.02], dtype=torch.float64)
+
+    def sweep(diff):  # step -> the gradient whose central differences are diff(h)
+        return {h: diff(h) / (2 * h) for h in FD_STEPS}
+
+    assert _round_off(sweep(lambda h: 2e-7 * torch.tensor([1.0, -0.6, 0.3], dtype=torch.float64)))
+    assert _round_off({1e-1: g * 0.0, 1e-5: g * 1e3})  # differences only at the small step
+    assert not _round_off(sweep(lambda h: 2 * h * g))
+    assert not _round_off(sweep(lambda h: 2 * h * g + (0.5 if h >= 1e-2 else 0.0)))  # a jump 1 cm away
+    assert not _round_off(sweep(lambda h: 2 * h * g + 1e-12))  # a derivative over rounding
+    assert not _round_off(sweep(lambda h: 0 * g))
+    assert not _round_off({1e-2: g, 1e-3: g * 10})  # too narrow a sweep to tell
 
 
 def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):

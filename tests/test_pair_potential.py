@@ -485,7 +485,7 @@ def test_warm_started_solve_finds_the_same_optimum():
 
     a, b, _ = random_separated_pairs(200, gap=(2e-3, 0.5), seed=11)
     kw = {"mu": 1e-8, "margin": MARGIN, "tol": 1e-12, "max_iter": 100}
-    X, _ = _prepare(a, b, **kw)
+    X, _ = _prepare(a, b, **kw, name="pair_potential")
     solve = dict(kw)
     sol = _solve(X, want_grad=True, want_hess=False, backend="numba", **solve)
     v0, P0, g0 = sol.value, sol.world_plane(), sol.grad

@@ -194,6 +194,33 @@ def test_newton_converges_per_scene_and_says_why_it_stops():
     assert res.reason[1] in (Stop.MAX_ITER, Stop.LINE_SEARCH_FAILED)
 
 
+def test_a_loose_newton_tol_still_takes_the_converged_step(bodies):
+    """A converged step longer than the solver takes unchecked (newton_tol loose against the contact margin) goes
+    through the line search: a cube pushed by a force too weak to move it by newton_tol in one step moves as it
+    does at the default tolerance, and a falling one falls (both stood still before)."""
+    cube, ground = bodies[0], bodies[1]
+    q = torch.tensor([[0.0, 0.0, 0.4, 0, 0, 0], [0.0] * 6], dtype=F64)
+    force = torch.zeros(2, 3, dtype=F64)
+    force[0, 0] = 0.5 * float(cube.mass)  # 0.5 m/s^2: 5e-5 m in the first step of dt = 0.01
+    ends = {}
+    for tol in (1e-9, 1e-4, 1e-3):
+        scene = Scene([cube, ground], newton_tol=tol, gravity=(0.0, 0.0, 0.0))
+        ends[tol] = rollout(scene, scene.initial_state(q), [Action(force=force)] * 10).q[-1, 0]
+    assert float(ends[1e-9][0]) == pytest.approx(
+        0.5 * 1e-4 * 55, rel=1e-3
+    )  # backward Euler: a dt^2 sum(1..10)
+    for tol in (1e-4, 1e-3):
+        torch.testing.assert_close(ends[tol], ends[1e-9], rtol=0, atol=1e-8)
+    z = [
+        rollout(Scene([cube, ground], newton_tol=tol), State(q, q.clone()), 10).q[-1, 0, 2]
+        for tol in (1e-9, 1e-3)
+    ]
+    assert float(z[0]) == pytest.approx(
+        0.4 - G * 1e-4 * 55, abs=1e-6
+    )  # (the ground's far field holds it by 4e-7 m)
+    assert float(z[1]) == pytest.approx(float(z[0]), abs=1e-8)
+
+
 def test_newton_line_search_failure_is_reported():
     """Every trial along the direction is infeasible (+inf): the line search fails, and says so."""
     A = torch.eye(6, dtype=F64)[None]

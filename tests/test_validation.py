@@ -481,8 +481,9 @@ def test_recentre_rotation_checks_its_poses():
 
     out = recentre_rotation(torch.tensor([1.0, 2.0, 3.0, 4.0, 0.0, 0.0], dtype=F64))
     torch.testing.assert_close(out, torch.tensor([1.0, 2.0, 3.0, 4.0 - 2 * math.pi, 0.0, 0.0], dtype=F64))
-    for bad in (torch.tensor([0, 0, 0, 4.0]), torch.zeros(2, 7), torch.zeros(3, 6, dtype=torch.long)):
-        with _says("q must be a float tensor of poses (..., 6)"):
+    bad_ones = (torch.tensor([0, 0, 0, 4.0]), torch.zeros(2, 7), torch.zeros(3, 6, dtype=torch.long))
+    for bad in (*bad_ones, torch.zeros(6, dtype=torch.float16)):
+        with _says("q must be a float32 or float64 tensor of poses (..., 6)"):
             recentre_rotation(bad)
     with _says("q contains NaN or inf"):
         recentre_rotation(torch.full((6,), float("nan")))
@@ -893,6 +894,103 @@ def test_float32_results_that_overflow_are_refused_and_thin_triangles_accepted()
     ):
         pair_potential(A.float(), A.float() + far)
     assert float(pair_potential(A, A + far.double(), mu=1.0)) > 0  # float64 takes it
+
+
+def test_float32_gradients_that_overflow_are_refused():
+    """A float32 value that fits with a gradient that does not: autograd (and torch.func.grad) raise naming the
+    function and its inputs instead of returning inf, for each differentiable potential; float64 gives the finite
+    gradient, and a float32 gradient that fits comes back in float32."""
+    from cfd_torch import contact_potential, mesh_potential, pair_potential
+
+    A = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F32)
+    B = A + torch.tensor([0.0, 0, 0.00101])
+    a64 = A.double().requires_grad_()
+    (g64,) = torch.autograd.grad(pair_potential(a64, B.double(), mu=1e30), a64)
+    assert float(g64.abs().max()) > 3.5e38 and bool(torch.isfinite(g64).all())  # float64 holds it
+    a = A.clone().requires_grad_()
+    value = pair_potential(a, B, mu=1e30)
+    assert value.dtype == F32 and math.isfinite(float(value))
+    with _says("pair_potential's gradient overflows torch.float32"):
+        torch.autograd.grad(value, a)
+    with _says("pair_potential's gradient overflows torch.float32"):
+        torch.func.grad(lambda x: pair_potential(x, B, mu=1e30))(A)
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    qa = torch.zeros(6, dtype=F32, requires_grad=True)
+    qb = torch.tensor([1.003, 0, 0, 0, 0, 0], dtype=F32)
+    value = mesh_potential(ball, qa, ball, qb, mu=1e33)
+    assert math.isfinite(float(value))
+    with _says("mesh_potential's gradient overflows torch.float32"):
+        torch.autograd.grad(value, qa)
+    P = torch.stack([qa.detach(), qb]).requires_grad_()
+    value = contact_potential([ball, ball], P, mu=1e33, grad=False).value
+    with _says(
+        "contact_potential's gradient overflows torch.float32 (5.02e+40 > 3.4e+38; the solve runs in "
+        "float64): pass poses as float64"
+    ):
+        torch.autograd.grad(value, P)
+    (g,) = torch.autograd.grad(contact_potential([ball, ball], P).value, P)  # the default stiffness: it fits
+    assert g.dtype == F32 and float(g.abs().max()) > 0 and bool(torch.isfinite(g).all())
+    from cfd_torch import pair_forces
+
+    ground = trimesh.creation.box((1.0, 1.0, 0.05))
+    ground.apply_translation([0.0, 0.0, -0.025])
+    bodies = [rigid_body(trimesh.creation.box((0.2, 0.2, 0.2))), rigid_body(ground, kind="static")]
+    q = torch.tensor([[0.0, 0.0, 0.1015, 0, 0, 0], [0.0] * 6], dtype=F64)
+    assert bool(torch.isfinite(pair_forces(Scene(bodies, mu=1e33, refine_obstacles=None), q)).all())
+    with _says("pair_forces' F overflows torch.float32"):
+        pair_forces(Scene(bodies, mu=1e33, refine_obstacles=None), q.float())
+
+
+def test_a_stiffness_that_overflows_float64_is_named_not_read_as_penetration():
+    """mu so large that a feasible pair's value overflows float64: +inf would read as 'within the margin' (no force,
+    an infeasible step); it raises naming mu on both backends, and a large mu that fits is solved."""
+    from cfd_torch import pair_potential
+
+    A = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F64)
+    B = A + torch.tensor([0.0, 0, 0.5], dtype=F64)  # 0.5 m apart: far outside the margin
+    for backend in ("numba", "torch"):
+        assert math.isfinite(float(pair_potential(A, B, mu=1e300, backend=backend)))
+        with _says("mu = 1e+308 makes the potential of 1 feasible pairs overflow float64"):
+            pair_potential(A, B, mu=1e308, backend=backend)
+
+
+def test_bsh_vertices_and_small_arguments_are_checked_by_name():
+    """Complex, boolean, ragged or meta vertices; a non-tensor pose array, an exclude generator, a scene that is
+    not one, a density of a static body, a non-bool hessian flag and a zero dt are named, not silently used."""
+    from cfd_torch import contact_potential, pair_forces, pair_potential_derivatives
+
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    V, F = np.asarray(box.vertices), np.asarray(box.faces)
+    with _says("vertices must be an array of real numbers, got dtype complex128", TypeError):
+        BSH.build(V + 5j, F)
+    with _says("vertices must be an array of real numbers, got dtype bool", TypeError):
+        BSH.build(V > 0, F)
+    with _says("vertices must be a (V, 3) array of real numbers"):
+        BSH.build([[0.0, 0.0, 0.0], [1.0, 0.0], [0.0, 1.0, 0.0]], [[0, 1, 2]])
+    with _says("vertices is on the 'meta' device"):
+        BSH.build(torch.zeros(8, 3, device=META), F)
+    bsh = BSH.build(V, F)
+    with _says("poses must be a (N, 6) torch.Tensor, got ndarray", TypeError):
+        contact_potential([bsh, bsh], np.zeros((2, 6)))
+    poses = torch.tensor([[0.0] * 6, [3.0, 0, 0, 0, 0, 0]], dtype=F64)
+    assert float(contact_potential([bsh, bsh], poses).value) > 0
+    skipped = contact_potential(
+        [bsh, bsh], poses, exclude=((0, 1) for _ in range(1))
+    )  # any iterable of pairs
+    assert float(skipped.value) == 0.0 and skipped.stats["body_pairs"] == 0
+    ground = rigid_body(box, kind="static")
+    with _says("density must be a finite positive number, got -1.0"):
+        rigid_body(box, kind="static", density=-1.0)
+    with _says("scene must be a cfd_torch.Scene, got NoneType", TypeError):
+        pair_forces(None, poses)
+    with _says("bodies must be a sequence of RigidBody, got int", TypeError):
+        Scene(5)
+    with _says("bodies must be a sequence of RigidBody, got RigidBody", TypeError):
+        Scene(ground)
+    with _says("hessian must be a bool, got 'no'", TypeError):
+        pair_potential_derivatives(torch.eye(3, dtype=F64), torch.eye(3, dtype=F64) + 2, hessian="no")
+    with _says("dt must be a finite positive number"):
+        State(poses, poses.clone()).velocity(0.0)
 
 
 def test_rotation_vectors_beyond_a_million_radians_are_refused():

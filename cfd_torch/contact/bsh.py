@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, is_real
+from .._validate import check_mesh, check_not_meta, is_real
 
 __all__ = ["BSH"]
 
@@ -85,11 +85,17 @@ class BSH:
                 "a mesh's vertices (only to body poses)",
                 stacklevel=2,
             )
+        for x, name in ((vertices, "vertices"), (faces, "faces")):
+            if isinstance(x, torch.Tensor):
+                check_not_meta(x, name)
         # copies: the hierarchy must not change when the caller later writes into its arrays
-        V = np.array(
-            vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices,
-            dtype=np.float64,
-        )
+        try:
+            V = np.array(vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices)
+        except ValueError as err:  # ragged rows
+            raise ValueError(f"vertices must be a (V, 3) array of real numbers: {err}") from None
+        if V.dtype.kind not in "iuf":
+            raise TypeError(f"vertices must be an array of real numbers, got dtype {V.dtype}")
+        V = V.astype(np.float64)
         Fc = np.array(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces)
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 3:
             raise ValueError(f"vertices must have shape (V, 3) with V >= 3, got {V.shape}")

@@ -38,6 +38,7 @@ from .._validate import (
     check_tolerance,
     max_coord,
     narrowed,
+    widened,
 )
 from ..config import DEFAULT_CONTACT, SPLIT_RULES
 from ._traverse import forest_of, traverse
@@ -213,8 +214,8 @@ def mesh_potential(
     refuse_vmap("mesh_potential", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
     _check_params(mu, margin, eps, split, tol, max_iter)
-    qa = pose_a.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
-    qb = pose_b.to(torch.float64).expand(*batch, 6).reshape(-1, 6)
+    qa = widened(pose_a, "mesh_potential", "pose_a and pose_b").expand(*batch, 6).reshape(-1, 6)
+    qb = widened(pose_b, "mesh_potential", "pose_a and pose_b").expand(*batch, 6).reshape(-1, 6)
     params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
 
     def evaluate(q: torch.Tensor, order: int):

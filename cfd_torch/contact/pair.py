@@ -37,7 +37,7 @@ from .._autograd import (
 )
 from .._geometry import frame_origin
 from .._threads import parallel_kernels, start_numba_pool
-from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed
+from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed, widened
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
@@ -122,6 +122,17 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         )
 
 
+def _raise_overflow(feasible: torch.Tensor, finite: torch.Tensor, mu: float) -> None:
+    """A ValueError naming ``mu`` where a feasible pair's value overflowed float64 (+inf would read as within the
+    margin)."""
+    over = feasible & ~finite
+    if bool(over.any()):
+        raise ValueError(
+            f"mu = {mu:g} makes the potential of {int(over.sum())} feasible pairs overflow float64 (first at "
+            f"flattened pair index {int(torch.nonzero(over)[0])}): use a smaller stiffness"
+        )
+
+
 class _Solved(NamedTuple):
     """The solve of K pairs: value (K,), optimal planes (K, 4) in the frame centred at ``centre`` (K, 3) (near the
     pair, see ``_geometry.frame_origin``), the contact frames' origins ``offset`` (K, 3) relative to ``centre``
@@ -162,7 +173,7 @@ def _solve(
     if lowrank and not _use_numba(X, backend):
         raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
     if _use_numba(X, backend):
-        from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
+        from ._pair_numba import CONVERGED, PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
 
         if K < PARALLEL_MIN_PAIRS or not parallel_kernels():
             solve_pairs = solve_pairs_serial  # noqa: F811
@@ -197,6 +208,7 @@ def _solve(
             hess = (WT, gaps)
         finite = torch.isfinite(val)
         if not bool(finite.all()):
+            _raise_overflow(status == CONVERGED, finite, mu)
             O = torch.where(finite[:, None], O, torch.zeros_like(O))
         return _Solved(
             val, to_world(P, O), C, O, P, (grad if want_grad else None), (hess if want_hess else None)
@@ -220,7 +232,9 @@ def _solve(
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
             hess = torch.where(feasible[:, None, None], hess, zero)
-    return _Solved(mu * E, to_world(P, O), C, O, P, grad, hess)
+    val = mu * E
+    _raise_overflow(feasible, torch.isfinite(val), mu)
+    return _Solved(val, to_world(P, O), C, O, P, grad, hess)
 
 
 def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -350,7 +364,7 @@ class _PairPotentialFn(torch.autograd.Function):
         raise forward_mode_error("pair_potential")
 
 
-def _prepare(tri_a, tri_b, mu, margin, tol, max_iter):
+def _prepare(tri_a, tri_b, mu, margin, tol, max_iter, name):
     check_triangles(tri_a, "tri_a")
     check_triangles(tri_b, "tri_b")
     if tri_a.dtype != tri_b.dtype:
@@ -368,8 +382,8 @@ def _prepare(tri_a, tri_b, mu, margin, tol, max_iter):
             f"tri_a batch shape {tuple(tri_a.shape[:-2])} and tri_b batch shape {tuple(tri_b.shape[:-2])} "
             "do not broadcast"
         ) from err
-    a = tri_a.to(torch.float64).expand(*batch, 3, 3)
-    b = tri_b.to(torch.float64).expand(*batch, 3, 3)
+    a = widened(tri_a, name, "tri_a and tri_b").expand(*batch, 3, 3)
+    b = widened(tri_b, name, "tri_a and tri_b").expand(*batch, 3, 3)
     X = torch.cat([a, b], -2).reshape(-1, 6, 3)
     return X, batch
 
@@ -406,7 +420,7 @@ def pair_potential(
         PairSolveError: the inner solve did not converge for some pair.
     """
     refuse_vmap("pair_potential", tri_a, tri_b)
-    X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
+    X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter, "pair_potential")
     val = _PairPotentialFn.apply(X, float(mu), float(margin), float(tol), int(max_iter), backend)[0]
     return narrowed(val.reshape(batch), tri_a.dtype, "pair_potential's value", "tri_a and tri_b")
 
@@ -435,7 +449,9 @@ def pair_potential_derivatives(
         :func:`pair_potential` under autograd for derivatives of these).
     """
     refuse_vmap("pair_potential_derivatives", tri_a, tri_b)
-    X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter)
+    if not isinstance(hessian, bool):
+        raise TypeError(f"hessian must be a bool, got {hessian!r}")
+    X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter, "pair_potential_derivatives")
     with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
         sol = _solve(
             plain(X), mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter), want_grad=True,

@@ -25,7 +25,7 @@ from .._autograd import (
     values_only,
     vmap_error,
 )
-from .._validate import FAR, FLOATS, check_not_meta, is_int, max_coord, narrowed
+from .._validate import FAR, FLOATS, check_not_meta, is_int, max_coord, narrowed, widened
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -94,6 +94,11 @@ def body_pairs(n: int, static: torch.Tensor, exclude: Sequence[tuple[int, int]] 
     keep = ~(static[i] & static[j])
     if exclude is None:
         exclude = ()
+    if not isinstance(exclude, (Sequence, np.ndarray, torch.Tensor)):
+        try:
+            exclude = list(exclude)  # another iterable of pairs (a generator, a set)
+        except TypeError:
+            raise ValueError(f"exclude must hold pairs (i, j) of int body indices, got {exclude!r}") from None
     if isinstance(exclude, torch.Tensor):
         if exclude.dim() != 2 or exclude.shape[1] != 2:
             raise ValueError(
@@ -146,7 +151,9 @@ def contact_potential(
         ContactPotential(value, grad, hessian, stats); value +inf when some pair of bodies is within the margin
         (or intersecting), and then zero derivatives (not those of the other pairs: check ``isinf(value)``).
     """
-    if not isinstance(poses, torch.Tensor) or poses.dim() != 2 or poses.shape[1] != 6:
+    if not isinstance(poses, torch.Tensor):
+        raise TypeError(f"poses must be a (N, 6) torch.Tensor, got {type(poses).__name__}")
+    if poses.dim() != 2 or poses.shape[1] != 6:
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
     refuse_vmap("contact_potential", poses)
     check_not_meta(poses, "poses")
@@ -180,7 +187,7 @@ def contact_potential(
     if grad is None:
         grad = poses.requires_grad and torch.is_grad_enabled()
     order = 2 if hessian else (1 if grad else 0)
-    q64 = poses.to(torch.float64)
+    q64 = widened(poses, "contact_potential", "poses")
     dev = poses.device
 
     # Everything but the autograd attachment runs on plain tensors: the traversal's kernels need storage, and the

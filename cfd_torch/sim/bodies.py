@@ -127,12 +127,12 @@ def rigid_body(
     if Fc.shape[0] == 0:
         raise ValueError("mesh has no faces")
     check_mesh(V, Fc, "mesh.vertices", "mesh.faces")
+    if not (is_real(density) and 0 < density < float("inf")):
+        raise ValueError(f"density must be a finite positive number, got {density!r}")
     if kind != "dynamic":
         bsh = BSH.from_trimesh(mesh, max_edge=max_edge)
         z = torch.zeros(3, 3, dtype=torch.float64)
         return RigidBody(bsh, kind, 0.0, z, torch.zeros(3, dtype=torch.float64))
-    if not (is_real(density) and 0 < density < float("inf")):
-        raise ValueError(f"density must be a finite positive number, got {density!r}")
     if not mesh.is_watertight or not mesh.is_winding_consistent:
         hint = ""
         if closed_surface(V, Fc):  # closed once coincident vertices are welded: a triangle soup

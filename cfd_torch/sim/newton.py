@@ -11,8 +11,8 @@ Step: one iteration moves no vertex more than ``max_move``; then a backtracking 
 trial is accepted only if its energy is finite, decreases enough (up to the energy's rounding scale) and the move
 to it passes ``move_ok`` (no tunnelling). Converged when the undamped Newton step is at most ``tol`` in every
 coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's); that
-last step is then taken too (unchecked, when it moves no vertex more than ``final_move``), so a force too weak to
-move a body by ``tol`` in one step still moves it: near the solution Newton's step is the remaining correction,
+last step is then taken too (unchecked when it moves no vertex more than ``final_move``, else through the line
+search as one more iteration), so a force too weak to move a body by ``tol`` in one step still moves it: near the solution Newton's step is the remaining correction,
 however small, and dropping it would stop every body whose acceleration times dt^2 is below ``tol``.
 
 Scenes that converged or failed stop costing: each evaluation covers only the scenes still iterating. Within a
@@ -190,8 +190,9 @@ def newton(
         block: (Q,) the moving body (0..M-1) each coordinate belongs to; with ``pair_bodies`` (P, 2), each
             interacting pair's two bodies (moving-body index, -1 for a body that does not move), converged bodies
             are frozen (module docstring). None: every body iterates until the scene converges.
-        final_move: the converged step (at most ``tol`` per coordinate) is taken when it moves no vertex more than
-            this [m] (its path is not checked: keep it far below the contact margin); 0 never takes it.
+        final_move: the converged step (at most ``tol`` per coordinate) is taken unchecked when it moves no vertex
+            more than this [m] (keep it far below the contact margin), and through the line search when it moves
+            some vertex further; 0 never takes it.
 
     Returns ``at``, the evaluation before that final step: its derivatives differ from those at ``q`` by the
     step's O(tol) change.
@@ -271,14 +272,19 @@ def newton(
         whole_i = whole[idx]
         done = small & whole_i
         if bool(done.any()):
-            dn = idx[done]
-            reason[dn] = int(Stop.CONVERGED)
-            active[dn] = False
             if final_move > 0:
-                q_fin = q[dn] + p[done]
+                dpos = torch.nonzero(done)[:, 0]
+                dn = idx[dpos]
+                q_fin = q[dn] + p[dpos]
                 take = displacement(q[dn], q_fin, dn) <= final_move
                 q[dn[take]] = q_fin[take]
                 stepped[dn[take]] = True
+                # a converged step that moves some vertex further (a tol loose against the contact margin) is
+                # taken by the line search below, like any other step: dropping it would stop slow bodies
+                small[dpos[~take]] = False
+                done[dpos[~take]] = False
+            reason[idx[done]] = int(Stop.CONVERGED)
+            active[idx[done]] = False
         check = small & ~whole_i  # the bodies iterating converged: evaluate the whole scene
         if bool(check.any()):
             sc = idx[check]

@@ -180,6 +180,8 @@ class Scene:
         planar: bool = False,
         **shorthand: float | int | str,
     ) -> None:
+        if isinstance(bodies, RigidBody) or not isinstance(bodies, Iterable):
+            raise TypeError(f"bodies must be a sequence of RigidBody, got {type(bodies).__name__}")
         bodies = tuple(bodies)
         self._given_bodies = bodies  # as given (before obstacle refinement): what ``replace`` rebuilds from
         arts = tuple(articulations)

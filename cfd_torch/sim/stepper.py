@@ -21,7 +21,7 @@ import torch
 
 from .._autograd import outside_transforms, plain, refuse_derivative, refuse_transforms
 from .._geometry import frame_origin
-from .._validate import is_int
+from .._validate import FLOATS, is_int, narrowed
 from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear, first_row
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
@@ -61,9 +61,9 @@ def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
         TypeError, ValueError: q is not a float tensor (..., 6) of finite values."""
     if not isinstance(q, torch.Tensor):
         raise TypeError(f"q must be a torch.Tensor, got {type(q).__name__}")
-    if q.dim() == 0 or q.shape[-1] != 6 or not q.is_floating_point():
+    if q.dim() == 0 or q.shape[-1] != 6 or q.dtype not in FLOATS:
         raise ValueError(
-            f"q must be a float tensor of poses (..., 6), got {q.dtype} of shape {tuple(q.shape)}"
+            f"q must be a float32 or float64 tensor of poses (..., 6), got {q.dtype} of shape {tuple(q.shape)}"
         )
     with outside_transforms():  # (values read from the plain tensor: the check runs under torch.func.vmap)
         if not bool(torch.isfinite(plain(q)).all()):
@@ -497,6 +497,8 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
         "through it (contact forces are not differentiated); call it on plain tensors (q.detach())",
         q,
     )
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
     check_state_tensor(q, "q", scene.num_bodies)
     poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
     B, N = poses.shape[:2]
@@ -517,7 +519,7 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
         s, i, j = pairs.unbind(1)
         F[s, i, j] = -g[:, 6:]
         F[s, j, i] = -g[:, :6]
-    F = F.to(q.dtype)
+    F = narrowed(F, q.dtype, "pair_forces' F", "q")
     F = F if q.dim() == 3 else F[0]
     if q.requires_grad and torch.is_grad_enabled():
         F = refuse_derivative(F, q, _NO_GRADIENT.format(name="pair_forces"))

@@ -9,6 +9,8 @@ from typing import NamedTuple
 
 import torch
 
+from .._validate import check_positive
+
 __all__ = ["State", "Trajectory", "Action", "Params", "StepInfo", "StepError"]
 
 
@@ -24,6 +26,7 @@ class State(NamedTuple):
 
     def velocity(self, dt: float) -> torch.Tensor:
         """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt."""
+        check_positive(dt, "dt")
         return (self.q - self.q_prev) / dt
 
 
