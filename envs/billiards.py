@@ -106,7 +106,8 @@ class BilliardsCore(TaskCore):
             )
         if not (_is_int(subdivisions) and 0 <= subdivisions <= 6):
             raise ValueError(
-                f"subdivisions must be an int in 0..6 (an icosphere of 20 * 4**subdivisions faces), got {subdivisions!r}"
+                f"subdivisions must be an int in 0..6 (an icosphere of 20 * 4**subdivisions faces), "
+                f"got {subdivisions!r}"
             )
         check_unused_by_potential(potential, "eps", eps, 0.01)
         check_unused_by_potential(potential, "dhat", dhat, 1e-3)

@@ -12,8 +12,9 @@ trial is accepted only if its energy is finite, decreases enough (up to the ener
 to it passes ``move_ok`` (no tunnelling). Converged when the undamped Newton step is at most ``tol`` in every
 coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's); that
 last step is then taken too (unchecked when it moves no vertex more than ``final_move``, else through the line
-search as one more iteration), so a force too weak to move a body by ``tol`` in one step still moves it: near the solution Newton's step is the remaining correction,
-however small, and dropping it would stop every body whose acceleration times dt^2 is below ``tol``.
+search as one more iteration), so a force too weak to move a body by ``tol`` in one step still moves it: near the
+solution Newton's step is the remaining correction, however small, and dropping it would stop every body whose
+acceleration times dt^2 is below ``tol``.
 
 Scenes that converged or failed stop costing: each evaluation covers only the scenes still iterating. Within a
 scene, bodies stop costing too (with ``pair_bodies``): a body whose Newton step is within ``tol`` while every
