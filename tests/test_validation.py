@@ -1007,6 +1007,37 @@ def test_rotation_vectors_beyond_a_million_radians_are_refused():
         step(scene, State(q.expand(2, -1, -1), torch.stack([q, far])))
 
 
+def test_a_tumbling_body_whose_rotation_vector_is_on_a_far_branch_steps_as_re_centred():
+    """A rotation vector |omega| = 2 pi k + a (the rotation of |omega| = a) is a valid state: a tumbling box steps
+    from it as from the re-centred state, in as many Newton iterations, to the same rotation and the same gradient
+    (on the far branch a turn is a coordinate change |omega| / a times larger: 200 iterations did not converge)."""
+    from cfd_torch import recentre_rotation
+    from cfd_torch.rotation import rotation_matrix
+
+    scene = Scene([rigid_body(trimesh.creation.box((0.1, 0.2, 0.3)))], gravity=(0.0, 0.0, 0.0))
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=F64)
+    w = 1e-3 * axis / axis.norm()
+    w_prev = w - scene.dt * torch.tensor([2.0, -1.0, 3.0], dtype=F64)
+
+    def far(v, k):
+        return torch.cat([torch.zeros(3, dtype=F64), v * (1 + 2 * math.pi * k / v.norm())])[None]
+
+    q, q_prev = far(w, 100), far(w_prev, 100)
+    assert float(q[0, 3:].norm()) > 600
+    force = torch.zeros(1, 3, dtype=F64, requires_grad=True)
+    ends, grads, iters = [], [], []
+    for state in (State(q, q_prev), State(recentre_rotation(q), recentre_rotation(q_prev))):
+        nxt, info = step(scene, state, Action(force=force, torque=force * 0.1), return_info=True)
+        (g,) = torch.autograd.grad(rotation_matrix(nxt.q[:, 3:]).sum(), force)
+        ends.append(rotation_matrix(nxt.q[:, 3:].detach()))
+        grads.append(g)
+        iters.append(int(info.newton_iters))
+    assert float(grads[1].abs().max()) > 0
+    assert iters[0] == iters[1] <= 3
+    torch.testing.assert_close(ends[0], ends[1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-9, atol=0)
+
+
 def test_float32_step_that_rounds_into_the_margin_raises():
     """A heavy box resting on a floor 2 km up: the float32 spacing there (2.4e-4 m) exceeds the solution's gap
     beyond the margin, so rounding the float64 solution to the float32 state puts the box within the margin. The

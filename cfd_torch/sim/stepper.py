@@ -99,6 +99,13 @@ def _solve(
     f64 = torch.float64
     S = params.second_moment.to(f64)
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
+    # dynamic bodies' rotation vectors re-centred (|omega| <= pi, the same rotations), q_prev's on the same branch:
+    # Newton's unknowns are the rotation vectors, and on a far branch (|omega| = 2 pi k + a) a turn of the body is a
+    # change of the coordinates |omega| / a times larger, whose convergence to newton_tol float64 cannot resolve
+    dyn = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
+    dyn[scene.dynamic] = True
+    q_t = torch.where(dyn, _recentre(q_t), q_t)
+    q_p = torch.where(dyn, _unwrap_previous(q_p, q_t), q_p)
     # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
@@ -252,6 +259,7 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
 
 
 # the longest rotation vector a state may hold [rad]: its float64 spacing, 1.2e-10 rad, under a step's newton_tol
+# (the step solves from the re-centred rotation, the same one to that spacing)
 _MAX_ROTATION = 1e6
 
 
