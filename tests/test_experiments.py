@@ -164,21 +164,23 @@ def test_mujoco_twin_friction_is_coulombs_isotropic_cone():
 
 
 def test_finite_differences_of_round_off_are_told_from_a_derivative():
-    """The step-size sweep's test: differences of one size at every step (AntPush's box moved by MuJoCo's rounding,
-    loss differences about 2e-7 from h = 0.1 to 1e-5) are round-off; differences that shrink with the step, with or
-    without a jump within reach of the larger steps, are a derivative; all-zero differences are neither."""
+    """The step-size sweep's test: differences of one size at every step, or at the larger steps and none below
+    (AntPush's box moved by MuJoCo's one solve of every contact: 1e-6 of a loss of 60 at steps 0.1 to 1e-3), are
+    round-off; differences that shrink with the step, a jump within reach of the larger steps (above 1e-6 of the
+    loss), all-zero differences and a sweep too narrow to tell are not."""
     g = torch.tensor([0.3, -1.0, 0.02], dtype=torch.float64)
 
     def sweep(diff):  # step -> the gradient whose central differences are diff(h)
         return {h: diff(h) / (2 * h) for h in FD_STEPS}
 
-    assert _round_off(sweep(lambda h: 2e-7 * torch.tensor([1.0, -0.6, 0.3], dtype=torch.float64)))
-    assert _round_off({1e-1: g * 0.0, 1e-5: g * 1e3})  # differences only at the small step
-    assert not _round_off(sweep(lambda h: 2 * h * g))
-    assert not _round_off(sweep(lambda h: 2 * h * g + (0.5 if h >= 1e-2 else 0.0)))  # a jump 1 cm away
-    assert not _round_off(sweep(lambda h: 2 * h * g + 1e-12))  # a derivative over rounding
-    assert not _round_off(sweep(lambda h: 0 * g))
-    assert not _round_off({1e-2: g, 1e-3: g * 10})  # too narrow a sweep to tell
+    assert _round_off(sweep(lambda h: 2e-7 * torch.tensor([1.0, -0.6, 0.3], dtype=torch.float64)), 60.0)
+    assert _round_off(sweep(lambda h: (1e-6 if h >= 1e-3 else 0.0) * g), 60.0)
+    assert not _round_off(sweep(lambda h: 2 * h * g), 60.0)
+    assert not _round_off(sweep(lambda h: 2 * h * g + 1e-12), 60.0)  # a derivative over rounding
+    assert not _round_off(sweep(lambda h: (0.5 if h >= 1e-3 else 0.0) * g), 60.0)  # a contact event's jump
+    assert not _round_off(sweep(lambda h: (1e-6 if h >= 1e-1 else 0.0) * g), 60.0)  # one step: cannot tell
+    assert not _round_off(sweep(lambda h: 0 * g), 60.0)
+    assert not _round_off({1e-2: g * 1e-9, 1e-3: g * 1e-8}, 60.0)  # too narrow a sweep to tell
 
 
 def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):
