@@ -23,8 +23,10 @@ masses, friction, gravity and action semantics, with only the contact model (and
   pushers' PD law) goes to ``data.xfrc_applied``, its actuator controls (``Action.ctrl``) to ``data.ctrl``;
 - the score: the core's ``reward_terms`` on the MuJoCo poses after each step.
 
-    twin = MujocoTwin(make_core("cfd_torch/Push-v0"))
+    core = make_core("cfd_torch/Push-v0")
+    twin = MujocoTwin(core)
     state = core.reset(seed=0, batch_size=1)
+    actions = torch.zeros(T, core.action_dim, dtype=torch.float64)  # (T, A) or (T, 1, A), in [-1, 1]
     distances, alive = twin.rollout(state, actions)  # (T,) the task's distance after each step [m], (T,) alive
     nxt, physics, distance, done = twin.step(state, actions[0])  # one step; MuJoCo's exact state after it
     distances, _ = twin.rollout(nxt, actions[1:], physics)       # continues from that state bit for bit

@@ -4,8 +4,9 @@ One ``MjSpec`` holds a mocap body per rigid body, each carrying its mesh as a vi
 poses to ``data.mocap_pos``/``mocap_quat``, runs ``mj_kinematics`` and rasterises the scene off-screen.
 
 MuJoCo fixes its OpenGL backend when it is first imported; ``cfd_torch/__init__.py``, which runs before this
-module, sets ``MUJOCO_GL=egl`` when it is unset and there is no X display. A process that imports mujoco (or
-pytorch_kinematics, or gymnasium's MuJoCo environments) before cfd_torch must set it itself.
+module, sets ``MUJOCO_GL=egl`` when it is unset, there is no X display, an EGL library is found and mujoco is not
+imported yet. A process that imports mujoco (or pytorch_kinematics, or gymnasium's MuJoCo environments) before
+cfd_torch must set it itself.
 
 MuJoCo re-centres every mesh at its centroid and aligns it with its principal axes when it compiles the model,
 and compensates by setting the geom's ``pos``/``quat`` to that frame; the geoms here carry no pose of their own,
