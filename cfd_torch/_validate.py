@@ -64,8 +64,13 @@ class _Widen(torch.autograd.Function):
         ctx.dtype = x.dtype
 
     @staticmethod
-    def backward(ctx, g):
+    def backward(ctx, g: torch.Tensor) -> tuple[torch.Tensor, None, None]:
         return narrowed(g, ctx.dtype, f"{ctx.what}'s gradient", ctx.inputs), None, None
+
+    @staticmethod
+    def jvp(ctx, x_t: torch.Tensor, *_) -> torch.Tensor:
+        # (the tangent passes on widened, to the potential's own Function, which refuses forward mode by name)
+        return x_t.to(torch.float64)
 
 
 def widened(x: torch.Tensor, what: str, inputs: str) -> torch.Tensor:
@@ -227,6 +232,21 @@ def is_int(value: object) -> bool:
 def check_positive(value: float, name: str) -> None:
     if not (is_real(value) and 0 < value < float("inf")):
         raise ValueError(f"{name} must be a finite positive number (int or float), got {value!r}")
+
+
+# the largest contact stiffness mu [-]: a leaf pair's E stays below about 1e17 at feasible gaps and a body pair's sum
+# of terms far below 1e58, so mu E never overflows float64 (an overflowed +inf would read as penetration)
+MAX_STIFFNESS = 1e250
+
+
+def check_stiffness(value: float, name: str) -> None:
+    """A contact stiffness mu: finite, positive and at most :data:`MAX_STIFFNESS`."""
+    check_positive(value, name)
+    if value > MAX_STIFFNESS:
+        raise ValueError(
+            f"{name} must be at most {MAX_STIFFNESS:g} (beyond, the potential's terms can overflow float64 and read "
+            f"as penetration), got {value!r}"
+        )
 
 
 def check_tolerance(value: float, name: str) -> None:

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Literal
 
-from ._validate import check_count, is_real
+from ._validate import check_count, check_stiffness, is_real
 
 __all__ = ["ContactConfig", "FrictionConfig", "SolverConfig", "SPLIT_RULES", "POTENTIALS", "DEFAULT_CONTACT"]
 
@@ -95,6 +95,7 @@ class ContactConfig:
             raise ValueError(f"ContactConfig.backend must be 'auto' or 'torch', got {self.backend!r}")
         for name in ("stiffness", "margin", "eps", "pair_tol"):
             _positive("ContactConfig", name, getattr(self, name))
+        check_stiffness(self.stiffness, "ContactConfig.stiffness")
         if not self.pair_tol < 1:
             raise ValueError(
                 f"ContactConfig.pair_tol must be below 1 (a relative tolerance), got {self.pair_tol!r}"

@@ -10,7 +10,7 @@ Three faces of one task core (the physics is the same):
     envs = gym.make_vec("cfd_torch/Push-v0", 8)                      # native vector env, NEXT_STEP autoreset
     core = make_core("cfd_torch/Push-v0")                            # pure torch, differentiable
     state = core.reset(seed=0, batch_size=4)
-    actions = torch.zeros(T, 4, 2, dtype=torch.float64, requires_grad=True)
+    actions = torch.zeros(100, 4, 2, dtype=torch.float64, requires_grad=True)  # (T, B, A)
     out = rollout(core, state, actions)                              # differentiable in the actions
     (-(out.rewards * out.alive).sum()).backward()
 

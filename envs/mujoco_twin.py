@@ -14,9 +14,9 @@ masses, friction, gravity and action semantics, with only the contact model (and
   servos), geoms (MuJoCo's own capsules, not the simulator's meshes of them), contact filters, margins, friction
   and integrator (Gymnasium's Ant: RK4); the MJCF's worldbody geoms (the Ant's floor plane) are switched off, the
   scene's own static bodies take their place; the robot's state goes over as its base pose and joint angles;
-- Coulomb friction ``scene.friction.coefficient`` on every geom (torsional and rolling friction off; ``condim`` 1,
-  frictionless, when the coefficient is 0), the scene's gravity, MuJoCo's default soft contacts, several contact
-  points per pair of meshes (``multiccd``);
+- Coulomb friction ``scene.friction.coefficient`` on every geom, in MuJoCo's elliptic (isotropic) cone (torsional
+  and rolling friction off; ``condim`` 1, frictionless, when the coefficient is 0), the scene's gravity, MuJoCo's
+  default soft contacts, several contact points per pair of meshes (``multiccd``);
 - the time step: each task step is ``substeps`` MuJoCo steps of dt / substeps (semi-implicit Euler unless the
   robot's MJCF says otherwise), during which the task's action holds: the core's own ``_action`` (forces and
   torques at the centres of mass, computed from the poses at the start of the step and one step earlier, e.g. the
@@ -26,7 +26,7 @@ masses, friction, gravity and action semantics, with only the contact model (and
     core = make_core("cfd_torch/Push-v0")
     twin = MujocoTwin(core)
     state = core.reset(seed=0, batch_size=1)
-    actions = torch.zeros(T, core.action_dim, dtype=torch.float64)  # (T, A) or (T, 1, A), in [-1, 1]
+    actions = torch.zeros(50, core.action_dim, dtype=torch.float64)  # (T, A) or (T, 1, A), in [-1, 1]
     distances, alive = twin.rollout(state, actions)  # (T,) the task's distance after each step [m], (T,) alive
     nxt, physics, distance, done = twin.step(state, actions[0])  # one step; MuJoCo's exact state after it
     distances, _ = twin.rollout(nxt, actions[1:], physics)       # continues from that state bit for bit

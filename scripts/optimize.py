@@ -43,8 +43,9 @@ dimensions), with the step ``--fd-step``, or, by default, the step chosen at the
 ``FD_STEPS``: the one whose unit gradient, stepped by ``--lr``, lowers the loss most (recorded in the log's summary
 with every step's gradient norm and loss; the sweep's rollouts are counted). Differences that do not shrink with
 the step and stay below 1e-6 of the loss (MuJoCo's rounding and solver tolerance, ``_round_off``) are no
-gradient: the sweep records ``round_off`` and the gradient is zero. Under ``--mpc`` it plans and executes
-in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the executed actions
+gradient: the sweep records ``round_off`` and the gradient is zero; after such a sweep every evaluation (MPC's
+later control steps) takes its differences over the sweep's steps and is tested the same way. Under ``--mpc`` it
+plans and executes in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the executed actions
 (``MujocoTwin.step``), and the first action runs there. Every log row counts
 the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
 
@@ -353,6 +354,12 @@ def _mujoco_fd(twin, config: dict, actions):
                 sweep.update({"step": best["step"], "sweep": rows, "round_off": noise})
                 # differences of round-off are no gradient: zero (the run stops there, as on a flat loss)
                 g = torch.zeros_like(th) if noise else grads[best["step"]]
+            elif sweep["round_off"]:
+                # the sweep's differences were round-off: every later evaluation (MPC's later control steps start
+                # elsewhere) is tested the same way, over the sweep's steps
+                grads = {h: fd_gradient(state, th, h) for h in FD_STEPS}
+                n += len(FD_STEPS) * 2 * th.numel()
+                g = torch.zeros_like(th) if _round_off(grads, loss) else grads[sweep["step"]]
             else:
                 g = fd_gradient(state, th, sweep["step"])
                 n += 2 * th.numel()

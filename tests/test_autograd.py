@@ -346,19 +346,26 @@ def test_kernels_and_caches_see_plain_tensors_under_func_grad(monkeypatch):
 def test_forward_mode_is_refused_with_a_clear_message():
     a, b = _pairs()
     pa, pb = _near_poses()
-    cases = {
-        "pair_potential": (lambda x: pair_potential(x, b, mu=1.0).sum(), a),
-        "mesh_potential": (lambda x: mesh_potential(_ico(), x, _box(), pb, mu=1.0), pa),
-        "contact_potential": (
-            lambda p: contact_potential([_ico(), _box()], p, mu=1.0).value,
-            torch.stack([pa, pb]),
-        ),
-    }
-    for name, (f, x) in cases.items():
-        with pytest.raises(NotImplementedError, match=f"{name} does not support forward-mode AD"):
-            torch.func.jvp(f, (x,), (torch.ones_like(x),))
-        with pytest.raises(NotImplementedError, match=f"{name} does not support forward-mode AD"):
-            torch.func.hessian(f)(x)
+    for dt in (
+        torch.float64,
+        torch.float32,
+    ):  # (float32 inputs are widened first: the refusal must pass that cast)
+        cases = {
+            "pair_potential": (lambda x, dt=dt: pair_potential(x, b.to(dt), mu=1.0).sum(), a.to(dt)),
+            "mesh_potential": (
+                lambda x, dt=dt: mesh_potential(_ico(), x, _box(), pb.to(dt), mu=1.0),
+                pa.to(dt),
+            ),
+            "contact_potential": (
+                lambda p: contact_potential([_ico(), _box()], p, mu=1.0).value,
+                torch.stack([pa, pb]).to(dt),
+            ),
+        }
+        for name, (f, x) in cases.items():
+            with pytest.raises(NotImplementedError, match=f"{name} does not support forward-mode AD"):
+                torch.func.jvp(f, (x,), (torch.ones_like(x),))
+            with pytest.raises(NotImplementedError, match=f"{name} does not support forward-mode AD"):
+                torch.func.hessian(f)(x)
 
 
 def test_vmap_is_refused_with_a_clear_message():

@@ -504,7 +504,7 @@ def test_task_arguments_actions_and_states_are_checked():
         ("cfd_torch/Gather-v0", {"eps": 0.0}, "eps"),
         ("cfd_torch/Billiards-v0", {"potential": "ipc", "dhat": float("nan")}, "dhat"),
     ]:
-        with pytest.raises(ValueError, match=f"{name} must be"):
+        with pytest.raises(ValueError, match=f"^{name} must be"):  # (named as the task's argument)
             make_core(env_id, **kwargs)
     # a setting the chosen potential does not read (it was silently ignored)
     with pytest.raises(

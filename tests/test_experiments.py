@@ -15,7 +15,16 @@ import torch
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 try:
-    from optimize import DEFAULTS, FD_STEPS, MODELS, OPTIMISERS, Optimiser, _round_off, run_experiment
+    from optimize import (
+        DEFAULTS,
+        FD_STEPS,
+        MODELS,
+        OPTIMISERS,
+        Optimiser,
+        _mujoco_fd,
+        _round_off,
+        run_experiment,
+    )
     from plot_results import _curves, mixed_settings, table
 finally:
     sys.path.pop(0)
@@ -181,6 +190,36 @@ def test_finite_differences_of_round_off_are_told_from_a_derivative():
     assert not _round_off(sweep(lambda h: (1e-6 if h >= 1e-1 else 0.0) * g), 60.0)  # one step: cannot tell
     assert not _round_off(sweep(lambda h: 0 * g), 60.0)
     assert not _round_off({1e-2: g * 1e-9, 1e-3: g * 1e-8}, 60.0)  # too narrow a sweep to tell
+
+
+def test_mujoco_fd_zeroes_round_off_at_every_evaluation_and_keeps_a_derivative():
+    """mujoco-fd's evaluations through a stand-in twin: a loss of 60 that changes by up to 1e-6 whatever the step
+    (round-off) gives a zero gradient at the sweep and at each later evaluation (as MPC's control steps make them:
+    one evaluate_from per state, one shared record), each later one over the sweep's steps; a smooth loss keeps its
+    derivative and one step's differences."""
+
+    class Twin:
+        def __init__(self, noisy: bool) -> None:
+            self.noisy = noisy
+
+        def rollout(self, env, actions, physics=None):
+            s = float(actions.sum())
+            extra = 1e-6 * math.sin(1e7 * s) if self.noisy else 0.01 * s
+            return torch.full((4,), 15.0 + extra / 4, dtype=torch.float64), torch.ones(4)
+
+    for noisy in (True, False):
+        config = {"loss": "sum", "fd_step": None, "lr": 0.5}
+        evaluate_from = _mujoco_fd(Twin(noisy), config, lambda th: th)
+        for t in range(3):
+            th = torch.full((3,), 0.01 * t, dtype=torch.float64)
+            _, _, g, _, _, rollouts, _ = evaluate_from(None)(th)
+            assert config["fd"]["round_off"] == noisy
+            if noisy:
+                # (at the sweep each step's lr trial too)
+                assert float(g.abs().max()) == 0.0 and rollouts == 1 + len(FD_STEPS) * (7 if t == 0 else 6)
+            else:
+                torch.testing.assert_close(g, torch.full((3,), 0.01, dtype=torch.float64), rtol=1e-6, atol=0)
+                assert rollouts == (1 + len(FD_STEPS) * 7 if t == 0 else 7)
 
 
 def test_mujoco_fd_under_mpc_plans_and_executes_in_mujoco(tmp_path):

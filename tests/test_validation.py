@@ -909,7 +909,7 @@ def test_float32_gradients_that_overflow_are_refused():
     assert float(g64.abs().max()) > 3.5e38 and bool(torch.isfinite(g64).all())  # float64 holds it
     a = A.clone().requires_grad_()
     value = pair_potential(a, B, mu=1e30)
-    assert value.dtype == F32 and math.isfinite(float(value))
+    assert value.dtype == F32 and math.isfinite(float(value.detach()))
     with _says("pair_potential's gradient overflows torch.float32"):
         torch.autograd.grad(value, a)
     with _says("pair_potential's gradient overflows torch.float32"):
@@ -918,7 +918,7 @@ def test_float32_gradients_that_overflow_are_refused():
     qa = torch.zeros(6, dtype=F32, requires_grad=True)
     qb = torch.tensor([1.003, 0, 0, 0, 0, 0], dtype=F32)
     value = mesh_potential(ball, qa, ball, qb, mu=1e33)
-    assert math.isfinite(float(value))
+    assert math.isfinite(float(value.detach()))
     with _says("mesh_potential's gradient overflows torch.float32"):
         torch.autograd.grad(value, qa)
     P = torch.stack([qa.detach(), qb]).requires_grad_()
@@ -930,6 +930,15 @@ def test_float32_gradients_that_overflow_are_refused():
         torch.autograd.grad(value, P)
     (g,) = torch.autograd.grad(contact_potential([ball, ball], P).value, P)  # the default stiffness: it fits
     assert g.dtype == F32 and float(g.abs().max()) > 0 and bool(torch.isfinite(g).all())
+    P64 = P.detach().double().requires_grad_()
+    (g64,) = torch.autograd.grad(contact_potential([ball, ball], P64).value, P64)
+    torch.testing.assert_close(g, g64.float(), rtol=1e-5, atol=0)  # the float64 gradient, rounded
+    # a gradient that fits with a Hessian that does not: the Hessian-vector products come back through the same cast
+    a = A.clone().requires_grad_()
+    (g,) = torch.autograd.grad(pair_potential(a, B, mu=1e24), a, create_graph=True)
+    assert bool(torch.isfinite(g).all()) and float(g.abs().max()) > 1e33
+    with _says("pair_potential's gradient overflows torch.float32"):
+        torch.autograd.grad(g.sum(), a)
     from cfd_torch import pair_forces
 
     ground = trimesh.creation.box((1.0, 1.0, 0.05))
@@ -941,17 +950,30 @@ def test_float32_gradients_that_overflow_are_refused():
         pair_forces(Scene(bodies, mu=1e33, refine_obstacles=None), q.float())
 
 
-def test_a_stiffness_that_overflows_float64_is_named_not_read_as_penetration():
-    """mu so large that a feasible pair's value overflows float64: +inf would read as 'within the margin' (no force,
-    an infeasible step); it raises naming mu on both backends, and a large mu that fits is solved."""
-    from cfd_torch import pair_potential
+def test_a_stiffness_that_could_overflow_float64_is_refused_by_name():
+    """mu beyond 1e250, where the potential's terms can overflow float64 (+inf would read as 'within the margin':
+    no force, an infeasible step; mu = 1e308 did so for triangles 0.5 m apart, and for balls 1.5 m apart through the
+    central terms), is refused naming it wherever a stiffness is taken; 1e250 is solved."""
+    from cfd_torch import ContactConfig, contact_potential, mesh_potential, pair_potential
+    from cfd_torch.contact.central import central_potential
 
     A = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F64)
     B = A + torch.tensor([0.0, 0, 0.5], dtype=F64)  # 0.5 m apart: far outside the margin
     for backend in ("numba", "torch"):
-        assert math.isfinite(float(pair_potential(A, B, mu=1e300, backend=backend)))
-        with _says("mu = 1e+308 makes the potential of 1 feasible pairs overflow float64"):
+        assert math.isfinite(float(pair_potential(A, B, mu=1e250, backend=backend)))
+        with _says("mu must be at most 1e+250"):
             pair_potential(A, B, mu=1e308, backend=backend)
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    poses = torch.tensor([[0.0] * 6, [1.5, 0, 0, 0, 0, 0]], dtype=F64)
+    assert math.isfinite(float(contact_potential([ball, ball], poses, mu=1e250).value))
+    with _says("mu must be at most 1e+250"):
+        contact_potential([ball, ball], poses, mu=1e308)
+    with _says("mu must be at most 1e+250"):
+        mesh_potential(ball, poses[0], ball, poses[1], mu=1e251)
+    with _says("mu must be at most 1e+250"):
+        central_potential(torch.ones(1, dtype=F64), mu=1e308)
+    with _says("ContactConfig.stiffness must be at most 1e+250"):
+        ContactConfig(stiffness=1e300)
 
 
 def test_bsh_vertices_and_small_arguments_are_checked_by_name():

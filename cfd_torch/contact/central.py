@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 
 from .._autograd import outside_transforms, plain
-from .._validate import check_finite_tensor, check_positive, is_real
+from .._validate import check_finite_tensor, check_positive, check_stiffness, is_real
 from ..config import DEFAULT_CONTACT
 
 __all__ = ["central_potential", "smoothstep", "blend_weight", "band_width", "BAND_MARGINS"]
@@ -49,7 +49,7 @@ def central_potential(r: torch.Tensor, *, mu: float = DEFAULT_CONTACT.stiffness)
             number.
     """
     check_finite_tensor(r, "r", allow_inf=True)
-    check_positive(mu, "mu")
+    check_stiffness(mu, "mu")
     _check_distance(r)
     return 12.0 * mu * (1.0 + torch.rsqrt(r)) ** 2
 

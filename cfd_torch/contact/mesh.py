@@ -35,6 +35,7 @@ from .._validate import (
     check_count,
     check_not_meta,
     check_positive,
+    check_stiffness,
     check_tolerance,
     max_coord,
     narrowed,
@@ -91,7 +92,8 @@ def _check_pose(pose: object, name: str) -> None:
 
 
 def _check_params(mu, margin, eps, split, tol, max_iter):
-    for v, n in ((mu, "mu"), (margin, "margin"), (eps, "eps")):
+    check_stiffness(mu, "mu")
+    for v, n in ((margin, "margin"), (eps, "eps")):
         check_positive(v, n)
     check_tolerance(tol, "tol")
     check_count(max_iter, "max_iter")

@@ -37,7 +37,15 @@ from .._autograd import (
 )
 from .._geometry import frame_origin
 from .._threads import parallel_kernels, start_numba_pool
-from .._validate import check_count, check_positive, check_tolerance, check_triangles, narrowed, widened
+from .._validate import (
+    check_count,
+    check_positive,
+    check_stiffness,
+    check_tolerance,
+    check_triangles,
+    narrowed,
+    widened,
+)
 from ..config import DEFAULT_CONTACT
 from . import _pair_torch
 
@@ -122,17 +130,6 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         )
 
 
-def _raise_overflow(feasible: torch.Tensor, finite: torch.Tensor, mu: float) -> None:
-    """A ValueError naming ``mu`` where a feasible pair's value overflowed float64 (+inf would read as within the
-    margin)."""
-    over = feasible & ~finite
-    if bool(over.any()):
-        raise ValueError(
-            f"mu = {mu:g} makes the potential of {int(over.sum())} feasible pairs overflow float64 (first at "
-            f"flattened pair index {int(torch.nonzero(over)[0])}): use a smaller stiffness"
-        )
-
-
 class _Solved(NamedTuple):
     """The solve of K pairs: value (K,), optimal planes (K, 4) in the frame centred at ``centre`` (K, 3) (near the
     pair, see ``_geometry.frame_origin``), the contact frames' origins ``offset`` (K, 3) relative to ``centre``
@@ -173,7 +170,7 @@ def _solve(
     if lowrank and not _use_numba(X, backend):
         raise ValueError("lowrank Hessian factors need the numba backend (CPU float64)")
     if _use_numba(X, backend):
-        from ._pair_numba import CONVERGED, PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
+        from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
 
         if K < PARALLEL_MIN_PAIRS or not parallel_kernels():
             solve_pairs = solve_pairs_serial  # noqa: F811
@@ -208,7 +205,6 @@ def _solve(
             hess = (WT, gaps)
         finite = torch.isfinite(val)
         if not bool(finite.all()):
-            _raise_overflow(status == CONVERGED, finite, mu)
             O = torch.where(finite[:, None], O, torch.zeros_like(O))
         return _Solved(
             val, to_world(P, O), C, O, P, (grad if want_grad else None), (hess if want_hess else None)
@@ -232,9 +228,7 @@ def _solve(
         if want_hess:
             hess = _pair_torch.pair_hessian_torch(Xs, Ps, mu, 0.5 * margin, LAMBDA)
             hess = torch.where(feasible[:, None, None], hess, zero)
-    val = mu * E
-    _raise_overflow(feasible, torch.isfinite(val), mu)
-    return _Solved(val, to_world(P, O), C, O, P, grad, hess)
+    return _Solved(mu * E, to_world(P, O), C, O, P, grad, hess)
 
 
 def _safe_rows(X: torch.Tensor, P: torch.Tensor, feasible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -371,7 +365,7 @@ def _prepare(tri_a, tri_b, mu, margin, tol, max_iter, name):
         raise ValueError(f"tri_a and tri_b must share a dtype, got {tri_a.dtype} and {tri_b.dtype}")
     if tri_a.device != tri_b.device:
         raise ValueError(f"tri_a and tri_b must be on one device, got {tri_a.device} and {tri_b.device}")
-    check_positive(mu, "mu")
+    check_stiffness(mu, "mu")
     check_positive(margin, "margin")
     check_tolerance(tol, "tol")
     check_count(max_iter, "max_iter")

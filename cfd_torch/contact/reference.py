@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_positive
+from .._validate import check_positive, check_stiffness
 from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from .bsh import BSH
@@ -52,7 +52,7 @@ def _check_args(bsh_a, pose_a, bsh_b, pose_b, mu, margin, eps, split) -> None:
             raise ValueError(f"{name} must be float64, got {pose.dtype}")
         if not bool(torch.isfinite(pose).all()):
             raise ValueError(f"{name} contains NaN or inf")
-    check_positive(mu, "mu")
+    check_stiffness(mu, "mu")
     check_positive(margin, "margin")
     check_positive(eps, "eps")
     if split not in _SPLITS:

@@ -272,6 +272,7 @@ def newton(
         last_step[idx] = p_max
         whole_i = whole[idx]
         done = small & whole_i
+        long_step = torch.zeros_like(small)  # converged steps that go through the line search
         if bool(done.any()):
             if final_move > 0:
                 dpos = torch.nonzero(done)[:, 0]
@@ -281,9 +282,11 @@ def newton(
                 q[dn[take]] = q_fin[take]
                 stepped[dn[take]] = True
                 # a converged step that moves some vertex further (a tol loose against the contact margin) is
-                # taken by the line search below, like any other step: dropping it would stop slow bodies
+                # taken by the line search below, like any other step (dropping it would stop slow bodies); taken
+                # whole, the scene has converged there
                 small[dpos[~take]] = False
                 done[dpos[~take]] = False
+                long_step[dpos[~take]] = True
             reason[idx[done]] = int(Stop.CONVERGED)
             active[idx[done]] = False
         check = small & ~whole_i  # the bodies iterating converged: evaluate the whole scene
@@ -316,7 +319,7 @@ def newton(
                 L = L.clone()
                 L[k] = value
         if bool(small.any()):
-            idx, L, g, p = idx[keep], L[keep], g[keep], p[keep]
+            idx, L, g, p, long_step = idx[keep], L[keep], g[keep], p[keep], long_step[keep]
             if idx.numel() == 0:
                 continue
         # line search groups: the islands of coupled bodies of each scene (each scene whole without freezing)
@@ -459,6 +462,11 @@ def newton(
             active[idx[failed]] = False
         if bool(first_try.any()):
             _assign(cur, idx[first_try], _rows(full, first_try))
+            ended = (
+                first_try & long_step
+            )  # the converged step taken whole: cur is the evaluation at the solution
+            reason[idx[ended]] = int(Stop.CONVERGED)
+            active[idx[ended]] = False
         later = later & ~failed
         if bool(later.any()):
             ev = _call(energy, q[idx[later]], idx[later], 2, act[idx[later]] if freeze else None)

@@ -31,8 +31,8 @@ __all__ = ["solve_step", "start"]
 
 Work = tuple[int, int, int]  # energy evaluations, node pairs, leaf pairs
 
-# Newton's converged step (at most newton_tol per coordinate) is taken when it moves no vertex more than this
-# fraction of the contact margin: far from where the barrier could be crossed unchecked
+# Newton's converged step (at most newton_tol per coordinate) is taken unchecked when it moves no vertex more than
+# this fraction of the contact margin (far from where the barrier could be crossed), else through the line search
 _FINAL_MOVE = 1e-2
 
 

@@ -58,7 +58,7 @@ def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
     at most pi pass through unchanged.
 
     Raises:
-        TypeError, ValueError: q is not a float tensor (..., 6) of finite values."""
+        TypeError, ValueError: q is not a float32 or float64 tensor (..., 6) of finite values."""
     if not isinstance(q, torch.Tensor):
         raise TypeError(f"q must be a torch.Tensor, got {type(q).__name__}")
     if q.dim() == 0 or q.shape[-1] != 6 or q.dtype not in FLOATS:
@@ -499,7 +499,9 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     backward through F raises (a constant would drop its part of a loss's gradient silently).
 
     Raises:
-        ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force)."""
+        TypeError: scene is not a Scene.
+        ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force); q is
+            float32 and a force overflows it (pass q as float64)."""
     refuse_transforms(
         "cfd_torch.pair_forces: torch.func transforms (grad, jacrev, vmap, jvp) and forward-mode AD do not pass "
         "through it (contact forces are not differentiated); call it on plain tensors (q.detach())",

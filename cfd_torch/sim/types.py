@@ -25,7 +25,10 @@ class State(NamedTuple):
     q_prev: torch.Tensor
 
     def velocity(self, dt: float) -> torch.Tensor:
-        """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt."""
+        """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt.
+
+        Raises:
+            ValueError: dt is not a finite positive number."""
         check_positive(dt, "dt")
         return (self.q - self.q_prev) / dt
 
