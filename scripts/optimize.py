@@ -45,9 +45,9 @@ with every step's gradient norm and loss; the sweep's rollouts are counted). Dif
 the step and stay below 1e-6 of the loss (MuJoCo's rounding and solver tolerance, ``_round_off``) are no
 gradient: the sweep records ``round_off`` and the gradient is zero; after such a sweep every evaluation (MPC's
 later control steps) takes its differences over the sweep's steps and is tested the same way. Under ``--mpc`` it
-plans and executes in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the executed actions
-(``MujocoTwin.step``), and the first action runs there. Every log row counts
-the rollouts spent (``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
+plans and executes in MuJoCo: each control step's finite differences start from MuJoCo's exact state after the
+executed actions (``MujocoTwin.step``), and the first action runs there. Every log row counts the rollouts spent
+(``rollouts``: forward rollouts; ``backward``: rollouts differentiated).
 
 Open loop (default): ``--iters`` iterations on ``--horizon`` actions. MPC: at each of ``--steps`` control steps,
 ``--iters`` iterations on the window of the next ``--horizon`` actions from the current state, then the first
