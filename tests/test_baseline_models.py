@@ -3,6 +3,8 @@ in the stepper (a resting box, a collision, friction, rollout gradients)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -172,6 +174,30 @@ def test_ipc_box_rests_holds_and_slides():
         for _ in range(50):
             s = step(scene, s, push)
         assert lo <= float(s.q[0, 0] - rest.q[0, 0]) < hi, force
+
+
+def test_ipc_keeps_a_minimum_separation_so_a_start_within_rounding_of_contact_is_not_taken():
+    """A ball thrown at a wall at round-number positions: a step's constant-velocity start landed one ulp short of
+    the wall, where IPC's distances are rounding and its Newton steps below the coordinates' spacing (200 iterations,
+    StepError); with the minimum separation (1e-6 dhat) that start is infeasible, and the ball bounces back as it
+    does with SDRS and from a start 0.1 mm further back. Just beyond the separation the barrier is finite."""
+    wall = trimesh.creation.box((0.2, 2.0, 2.0))
+    wall.apply_translation((0.3, 0.0, 0.0))
+    ball = rigid_body(trimesh.creation.icosphere(2, 0.05), density=500.0)
+    scene = Scene([ball, rigid_body(wall, kind="static")], gravity=(0.0, 0.0, 0.0), potential="ipc")
+    vel = torch.zeros(2, 6, dtype=F64)
+    vel[0, 0] = 1.0
+    traj = rollout(scene, scene.initial_state(torch.zeros(2, 6, dtype=F64), vel), 25)
+    assert (
+        float(traj.q[-1, 0, 0] - traj.q[-2, 0, 0]) < -0.1 * scene.dt
+    )  # bounced: moving back at over 0.1 m/s
+    assert float(traj.q[:, 0, 0].max()) < 0.15  # never touched the wall (its face at x = 0.2)
+    model, pair = scene.contact_model, torch.tensor([[0, 0, 1]])
+    for gap, infeasible in ((0.5e-6 * 0.01, True), (2e-6 * 0.01, False)):
+        q = torch.zeros(1, 2, 6, dtype=F64)
+        q[0, 0, 0] = 0.15 - gap
+        assert bool(model.infeasible(q, pair)[0]) == infeasible
+        assert math.isinf(float(model.evaluate(q, pair, 0).value[0])) == infeasible
 
 
 def test_ipc_collision_and_rollout_gradient():
@@ -385,7 +411,10 @@ def test_settings_a_potential_does_not_read_are_refused_and_penetration_names_it
         ours.replace(potential="ipc", mu=1e-7)
     q = torch.tensor([[0.0, 0.0, 0.0995, 0.0, 0.0, 0.0], [0.0] * 6], dtype=F64)  # 0.5 mm into the floor
     for potential, match in (
-        ("ipc", "bodies penetrate \\(touching or intersecting\\)"),
+        (
+            "ipc",
+            "bodies penetrate \\(within the contact margin 1e-08\\)",
+        ),  # (its minimum separation, 1e-6 dhat)
         ("sdrs", "bodies penetrate \\(within the contact margin 0.001\\)"),
         ("cfd", "bodies penetrate \\(within the contact margin 0.001\\)"),
     ):

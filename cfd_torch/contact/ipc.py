@@ -18,7 +18,10 @@ edges within dhat of the other body's box, then every vertex-face and edge-edge 
 Derivatives: the barrier of each primitive pair as a function of its four world points (the distance formula of its
 closest-feature type, fixed per evaluation as in ipc-toolkit) by ``torch.func``, chained to the two bodies' poses
 x = R(omega) X + t with the rotation's closed-form first and second derivatives. A body pair is infeasible (+inf)
-when two of its triangles touch or intersect (the collision query of the hierarchy, at zero margin).
+when two of its triangles come within 1e-6 dhat of each other or intersect (the collision query of the hierarchy at
+that margin: ipc-toolkit's barrier is finite at any positive distance, but within rounding of contact the distances
+are noise; ipc-toolkit's continuous collision detection can keep primitives ``min_distance`` apart the same way;
+the barrier itself is unchanged).
 
 Lagged friction uses one contact per primitive pair: the closest points on the two bodies (material points),
 the normal along the line between them, and the barrier's normal force kappa m |b'(d^2)| 2 d.
@@ -237,6 +240,10 @@ class _Collisions(NamedTuple):
     d2: torch.Tensor
 
 
+# the separation below which IpcContact calls a body pair infeasible, as a fraction of dhat
+_MIN_SEPARATION = 1e-6
+
+
 class IpcContact:
     """IPC's log barrier between N bodies (a :class:`cfd_torch.contact.ContactModel`; see the module docstring).
 
@@ -260,11 +267,13 @@ class IpcContact:
         self.num_bodies = len(bshes)
         self.bshes = tuple(bshes)  # one per body, in the scene's order
         self._meshes = Meshes.build(bshes)
-        #: the gap below which the potential is +inf: IPC's barrier is finite at any positive distance
-        self.margin = 0.0
+        #: the gap below which the potential is +inf: IPC's barrier is finite at any positive distance, but within
+        #: rounding of contact its distances are noise and its Newton steps fall below the coordinates' spacing (a
+        #: ball thrown at a wall whose start landed one ulp short of it never moved again): a minimum separation
+        self.margin = _MIN_SEPARATION * self.dhat
         self._query = CollisionQuery(bshes, self.margin)
 
-    # -- the collision query: triangles touching or intersecting
+    # -- the collision query: triangles within the minimum separation or intersecting
     def infeasible(
         self, poses: torch.Tensor, pairs: torch.Tensor, scale: torch.Tensor | None = None
     ) -> torch.Tensor:

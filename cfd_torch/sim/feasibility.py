@@ -70,8 +70,8 @@ def feasible(scene, poses: torch.Tensor) -> torch.Tensor:
 
 def infeasible_reason(scene) -> str:
     """Where the scene's contact potential is +inf, for messages, from its model's ``margin``: "within the contact
-    margin 0.001" (this library's potential, SDRS), "touching or intersecting" (a margin of 0: IPC's barrier), or,
-    for a model without one, where that model's potential is +inf."""
+    margin 0.001" (this library's potential, SDRS; IPC's minimum separation), "touching or intersecting" (a margin of
+    0), or, for a model without one, where that model's potential is +inf."""
     margin = getattr(scene.contact_model, "margin", None)
     if margin is None:
         return "where the contact model's potential is +inf"
