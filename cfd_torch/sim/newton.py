@@ -462,9 +462,8 @@ def newton(
             active[idx[failed]] = False
         if bool(first_try.any()):
             _assign(cur, idx[first_try], _rows(full, first_try))
-            ended = (
-                first_try & long_step
-            )  # the converged step taken whole: cur is the evaluation at the solution
+            # the converged step taken whole: cur is the evaluation at the solution
+            ended = first_try & long_step
             reason[idx[ended]] = int(Stop.CONVERGED)
             active[idx[ended]] = False
         later = later & ~failed
