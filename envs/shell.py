@@ -199,8 +199,10 @@ class CoreVectorEnv(VectorEnv):
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.metadata = {**type(self).metadata, "render_fps": _fps(self.core)}
-        self._rngs = [seeding.np_random()[0] for _ in range(num_envs)]
-        self._seeds = [-1] * num_envs
+        # (each generator seeded from entropy, its seed kept: np_random_seed as gymnasium's Env reports it)
+        self._rngs, self._seeds = (
+            list(x) for x in zip(*(seeding.np_random() for _ in range(num_envs)), strict=True)
+        )
         self.states: list[EnvState | None] = [None] * num_envs
         self._obs = np.zeros((num_envs, self.core.obs_dim), dtype=np.float64)
         self._autoreset = np.zeros(num_envs, dtype=np.bool_)
@@ -215,7 +217,7 @@ class CoreVectorEnv(VectorEnv):
 
     @property
     def np_random_seed(self) -> tuple[int, ...]:
-        """The seed each environment's generator was last seeded with (-1: seeded from entropy), as
+        """The seed each environment's generator was last seeded with (from entropy until a seeded reset), as
         SyncVectorEnv's."""
         return tuple(self._seeds)
 
