@@ -453,7 +453,9 @@ def test_native_vector_env_step_is_all_or_nothing_and_seeds_like_sync(monkeypatc
     vec = gym.make_vec("cfd_torch/Push-v0", 3, vectorization_mode="vector_entry_point").unwrapped
     sync = gym.make_vec("cfd_torch/Push-v0", 3, vectorization_mode="sync")
     # before a seeded reset: the entropy seeds the generators were built from (as sync's; -1 was reported)
-    assert all(isinstance(s, int) and s >= 0 for s in vec.np_random_seed) and len(set(vec.np_random_seed)) == 3
+    assert (
+        all(isinstance(s, int) and s >= 0 for s in vec.np_random_seed) and len(set(vec.np_random_seed)) == 3
+    )
     obs, _ = vec.reset(seed=np.int64(3))
     obs_sync, _ = sync.reset(seed=3)
     np.testing.assert_array_equal(obs, obs_sync)
