@@ -341,28 +341,27 @@ def _mujoco_fd(twin, config: dict, actions):
             loss, d, alive = loss_at(state, th)
             t1 = time.perf_counter()
             n = 1  # rollouts: this loss, the gradient's, and (at the first evaluation) the step-size sweep's
-            if "step" not in sweep:  # the step-size sweep, once, at the first evaluation
-                rows, grads = [], {}
-                for h in FD_STEPS if config["fd_step"] is None else (float(config["fd_step"]),):
-                    grads[h] = g = fd_gradient(state, th, h)
-                    norm = float(g.norm())
-                    after = loss_at(state, th - config["lr"] * g / norm)[0] if norm > 0 else loss
-                    rows.append({"step": h, "grad_norm": norm, "loss_after_lr_step": after})
-                    n += 2 * th.numel() + (1 if norm > 0 else 0)
-                best = min(rows, key=lambda r: (r["loss_after_lr_step"], -r["step"]))
-                noise = _round_off(grads, loss)
-                sweep.update({"step": best["step"], "sweep": rows, "round_off": noise})
-                # differences of round-off are no gradient: zero (the run stops there, as on a flat loss)
-                g = torch.zeros_like(th) if noise else grads[best["step"]]
-            elif sweep["round_off"]:
-                # the sweep's differences were round-off: every later evaluation (MPC's later control steps start
-                # elsewhere) is tested the same way, over the sweep's steps
-                grads = {h: fd_gradient(state, th, h) for h in FD_STEPS}
-                n += len(FD_STEPS) * 2 * th.numel()
-                g = torch.zeros_like(th) if _round_off(grads, loss) else grads[sweep["step"]]
-            else:
+            if "step" in sweep and not sweep["round_off"]:
                 g = fd_gradient(state, th, sweep["step"])
                 n += 2 * th.numel()
+            else:
+                # the step-size sweep's differences: at the first evaluation, and at every later one (MPC's later
+                # control steps start elsewhere) after a sweep whose differences were round-off
+                steps = FD_STEPS if config["fd_step"] is None else (float(config["fd_step"]),)
+                grads = {h: fd_gradient(state, th, h) for h in steps}
+                n += len(steps) * 2 * th.numel()
+                noise = _round_off(grads, loss)
+                if "step" not in sweep:  # the step chosen once: the one whose unit step lowers the loss most
+                    rows = []
+                    for h, g in grads.items():
+                        norm = float(g.norm())
+                        after = loss_at(state, th - config["lr"] * g / norm)[0] if norm > 0 else loss
+                        rows.append({"step": h, "grad_norm": norm, "loss_after_lr_step": after})
+                        n += 1 if norm > 0 else 0
+                    best = min(rows, key=lambda r: (r["loss_after_lr_step"], -r["step"]))
+                    sweep.update({"step": best["step"], "sweep": rows, "round_off": noise})
+                # differences of round-off are no gradient: zero (the run stops there, as on a flat loss)
+                g = torch.zeros_like(th) if noise else grads[sweep["step"]]
             out = _TwinRollout(d, alive)
             return loss, out, g, t1 - t0, time.perf_counter() - t1, n, 0
 

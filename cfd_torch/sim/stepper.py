@@ -99,13 +99,13 @@ def _solve(
     f64 = torch.float64
     S = params.second_moment.to(f64)
     q_t, q_p = state.q.to(f64), state.q_prev.to(f64)
-    # dynamic bodies' rotation vectors re-centred (|omega| <= pi, the same rotations), q_prev's on the same branch:
-    # Newton's unknowns are the rotation vectors, and on a far branch (|omega| = 2 pi k + a) a turn of the body is a
-    # change of the coordinates |omega| / a times larger, whose convergence to newton_tol float64 cannot resolve
-    dyn = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
-    dyn[scene.dynamic] = True
-    q_t = torch.where(dyn, _recentre(q_t), q_t)
-    q_p = torch.where(dyn, _unwrap_previous(q_p, q_t), q_p)
+    solved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)  # the rows the step solves
+    solved[scene.kinematics.bodies] = True
+    # their rotation vectors re-centred (|omega| <= pi, the same rotations), q_prev's on the same branch: Newton's
+    # unknowns are the rotation vectors, and on a far branch (|omega| = 2 pi k + a) a turn of the body is a change of
+    # the coordinates |omega| / a times larger, whose convergence to newton_tol float64 cannot resolve
+    q_t = torch.where(solved, _recentre(q_t), q_t)
+    q_p = torch.where(solved, _unwrap_previous(q_p, q_t), q_p)
     # The step is solved in a frame near its moving bodies (every translation shifted by c, exactly: see
     # _geometry.frame_origin), so that the incremental potential, whose terms are differences of positions, keeps
     # its digits far from the world origin; every term is translation-invariant, and the shift back is exact too.
@@ -135,13 +135,10 @@ def _solve(
         0.5 * (S + S.transpose(-1, -2)), params.friction.to(f64), ctrl.to(f64), params.kp.to(f64),
         params.kv.to(f64),
     )  # fmt: skip
-    moved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
-    moved[scene.kinematics.bodies] = True
+    moved = solved.clone()
     moved[scene.kinematic] = True
     q_next = scene.kinematics.poses(q, _shift(held, -c))
     q_next = _shift(torch.where(moved, _recentre(q_next), q_next), c)
-    solved = torch.zeros(scene.num_bodies, 1, dtype=torch.bool, device=q_t.device)
-    solved[scene.kinematics.bodies] = True
     q_next = torch.where(solved, q_next, torch.where(moved, _recentre(held), held))
     ones = torch.ones_like(iters)
     # a differentiated step: a loss through the forces raises instead of dropping their part
