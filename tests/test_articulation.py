@@ -1386,6 +1386,56 @@ def test_three_hinges_at_one_anchor_read_back_on_the_branch_that_fits():
     assert torch.allclose(limited.coords(limited.poses(th)[None])[0], th, atol=1e-12)
 
 
+def test_three_hinges_and_three_slides_read_back_within_every_range():
+    """Three hinges with anchors and three limited slides on one link: link poses do not tell two configurations
+    apart, and the one read back is the one with every joint within its range (the slides' ranges included: the
+    hinges' alone used to decide, and the slide x came back at 0.1075, outside its +-0.05, the valid state then
+    refused as beyond a limit)."""
+    from cfd_torch.sim.articulation import ArticulatedKinematics
+
+    xml = """<mujoco><compiler autolimits="true"/><worldbody><body name="root"><geom type="box" size=".1 .1 .1"/>
+      <body name="l" pos="0 0 -.3">
+        <joint name="hx" axis="1 0 0" pos="0 0 .05"/><joint name="hy" axis="0 1 0" pos=".05 0 0"/>
+        <joint name="hz" axis="0 0 1" pos="0 .05 0"/><joint name="sx" type="slide" axis="1 0 0" range="-.05 .05"/>
+        <joint name="sy" type="slide" axis="0 1 0" range="-.05 .05"/>
+        <joint name="sz" type="slide" axis="0 0 1" range="-.05 .05"/>
+        <geom type="sphere" size=".05"/></body></body></worldbody></mujoco>"""
+    art = articulation(xml)
+    for x in ([2.0, 1.0, 2.0, 0.01, 0.02, -0.01], [-0.5, 2.2, 0.3, -0.04, 0.0, 0.03]):
+        q = torch.tensor(x, dtype=F64)
+        rows = art.poses(q)
+        assert torch.allclose(
+            art.coords(rows), q, rtol=0.0, atol=1e-12
+        )  # unbatched rows, as poses gives them
+        kin = ArticulatedKinematics(torch.zeros(0, dtype=torch.long), [art], [0], art.num_links)
+        kin.check_within_limits(rows[None], "state.q")
+
+
+def test_moving_rows_and_coords_check_their_inputs():
+    """Articulation.moving_rows and .coords, the public faces of the forward kinematics and its inverse, refuse
+    coordinates or rows of the wrong size (the numba kernel has no bounds checks: 6 of the Ant's 14 coordinates
+    read past the array's end) and NaN."""
+    from cfd_torch.sim.mjcf import gymnasium_ant_xml
+
+    ant = articulation(gymnasium_ant_xml())
+    for width in (6, 8, 15):
+        with pytest.raises(ValueError, match=r"coords must be a float tensor of shape \(A, 14\)"):
+            ant.moving_rows(torch.zeros(1, width, dtype=F64), None)
+    with pytest.raises(ValueError, match="coords contains NaN"):
+        ant.moving_rows(torch.full((1, 14), math.nan, dtype=F64), None)
+    rows = ant.poses(torch.zeros(8, dtype=F64), torch.zeros(6, dtype=F64))  # (9, 6)
+    assert ant.coords(rows).shape == (14,) and ant.coords(rows[None]).shape == (1, 14)
+    with pytest.raises(ValueError, match=r"rows must be a float tensor of shape \(\[A,\] 9, 6\)"):
+        ant.coords(rows[None, :8])
+    with pytest.raises(ValueError, match="rows contains NaN"):
+        ant.coords(torch.full((1, 9, 6), math.nan, dtype=F64))
+    with pytest.raises(ValueError, match=r"near must be a torch.float64 tensor of shape \(\[A,\] 14\)"):
+        ant.coords(rows[None], near=torch.zeros(1, 8, dtype=F64))
+    arm = articulation(_arm_xml())  # a joint-less fixed root: its pose is needed
+    with pytest.raises(ValueError, match=r"root must be a torch.float64 tensor of shape \(2, 6\)"):
+        arm.moving_rows(torch.zeros(2, arm.num_coords, dtype=F64), None)
+
+
 def test_three_hinges_turning_past_the_middle_quarter_turn_step_on_one_branch():
     """The ring turning under gravity from b = 1.7 rad (past the middle hinge's quarter turn) with its outer hinges
     limited to +-60 degrees: the start was refused (read as a = 0.2 - pi, outside its range); now 60 steps run,

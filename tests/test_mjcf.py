@@ -473,6 +473,59 @@ def test_refusals() -> None:
         load_mjcf(two_roots)
 
 
+def test_visual_only_mesh_geoms_are_left_out_with_a_warning() -> None:
+    """The common robot-file pattern: mesh geoms that never collide (contype = conaffinity = 0) in bodies whose
+    mass comes from <inertial>; MuJoCo's masses are the same with or without them, and so are ours."""
+    xml = """<mujoco><asset><mesh name="shell" vertex="0 0 0 .1 0 0 0 .1 0 0 0 .1"/></asset>
+     <default><default class="visual"><geom type="mesh" contype="0" conaffinity="0" group="2"/></default></default>
+     <worldbody><body name="base"><inertial pos="0 0 0" mass="2" diaginertia=".01 .01 .01"/>
+      <geom type="box" size=".1 .1 .1"/>{v}
+      <body name="arm" pos="0 0 .1"><joint name="j" axis="0 1 0"/>
+       <inertial pos="0 0 .1" mass="1" diaginertia=".002 .002 .001"/>
+       <geom type="capsule" fromto="0 0 0 0 0 .2" size=".02"/>{v}</body></body></worldbody></mujoco>"""
+    plain = load_mjcf(xml.format(v=""))
+    with pytest.warns(UserWarning, match=r"geoms \['base/#1', 'arm/#1'\] are left out"):
+        model = load_mjcf(xml.format(v='<geom class="visual" mesh="shell"/>'))
+    for a, b in zip(model.links, plain.links, strict=True):
+        assert a.mass == b.mass and len(a.geoms) == len(b.geoms) == 1
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    # a mesh geom MuJoCo collides is still refused
+    with pytest.raises(ValueError, match="has unsupported type mesh"):
+        load_mjcf(xml.format(v='<geom type="mesh" mesh="shell"/>'))
+
+
+def test_source_must_be_text_or_a_path() -> None:
+    one = _one_body('<geom size="0.1"/>')
+    for bad in (0, one.encode()):  # an int would be read as a file descriptor (0: stdin)
+        with pytest.raises(TypeError, match="source must be MJCF text or a path"):
+            load_mjcf(bad)
+    assert [link.name for link in load_mjcf("\ufeff" + one).links] == [
+        "a"
+    ]  # a byte-order mark before the text
+
+
+def test_chain_of_a_nested_root_and_its_joint_limits() -> None:
+    """The pytorch-kinematics chain of a root hung in a joint-less parent: its frames are MuJoCo's world frames
+    (the parent's transform composed), and unlimited joints have infinite limits (pk copies the unused range)."""
+    xml = """<mujoco><worldbody><body name="table" pos="0 0 0.8" euler="0 0 90">
+      <body name="root" pos="0.1 0.2 0.05"><geom type="box" size=".1 .1 .05"/>
+        <body name="link" pos="0 0 0.1"><joint name="h" axis="0 1 0"/>
+          <geom type="capsule" fromto="0 0 0 .3 0 0" size=".02"/>
+          <body name="slider" pos=".3 0 0"><joint name="s" type="slide" axis="1 0 0" range="-0.1 0.2"/>
+            <geom type="sphere" size=".03"/></body></body></body></body></worldbody></mujoco>"""
+    model = load_mjcf(xml, root="root")
+    m = mujoco.MjModel.from_xml_string(model.xml)
+    d = mujoco.MjData(m)
+    d.qpos[:] = [0.4, 0.05]
+    mujoco.mj_kinematics(m, d)
+    frames = model.chain.forward_kinematics(torch.tensor([0.4, 0.05], dtype=torch.float64))
+    for name in ("root", "link", "slider"):
+        T = frames[name].get_matrix()[0].numpy()
+        np.testing.assert_allclose(T[:3, 3], d.xpos[m.body(name).id], rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(T[:3, :3], d.xmat[m.body(name).id].reshape(3, 3), rtol=0, atol=1e-12)
+    assert model.chain.get_joint_limits() == ([-math.inf, -0.1], [math.inf, 0.2])
+
+
 def test_options_and_attributes_the_step_does_not_model_are_refused_or_warned() -> None:
     """What the file would change but the step ignores: flags that switch modelled physics off are refused, the
     file's gravity and per-geom friction are warned of (the Scene's apply), damping or armature on the free base

@@ -326,17 +326,32 @@ class Articulation:
                 rows = torch.cat([b[:, None], rows[:, 1:]], 1)
         return rows[0] if single else rows
 
-    def moving_rows(self, coords: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+    def moving_rows(self, coords: torch.Tensor, root: torch.Tensor | None) -> torch.Tensor:
         """(A, L - first_moving, 6) the state rows of the links that move, for coordinates (A, Qa) (the base pose
-        if floating, then the joints), a joint-less fixed root at ``root`` (A, 6) (ignored otherwise).
-        Differentiable in both."""
-        return _fk_rows(self, coords, None if self.floating else root)[:, self.first_moving :]
+        if floating, then the joints), a joint-less fixed root at ``root`` (A, 6) (ignored otherwise: may be
+        None). Differentiable in both."""
+        _check_float(coords, "coords", (None, self.num_coords), f"(A, {self.num_coords})")
+        if not self.floating and not self.root_moves:
+            _check_float(root, "root", (coords.shape[0], 6), f"({coords.shape[0]}, 6)", coords.dtype)
+        return _moving_rows(self, coords, root)
 
     def coords(self, rows: torch.Tensor, near: torch.Tensor | None = None) -> torch.Tensor:
-        """(A, Qa) the coordinates (base pose if floating, then the joints) of the link rows (A, L, 6): the
-        inverse of the forward kinematics; where several coordinates give the same rows (three hinges at one
-        anchor), the one nearest ``near`` (A, Qa) if given."""
-        return _joint_values(self, rows, near)
+        """([A,] Qa) the coordinates (base pose if floating, then the joints) of the link rows ([A,] L, 6), as
+        :meth:`poses` gives them: the inverse of the forward kinematics; where several coordinates give the same
+        rows (three hinges at one anchor), the one nearest ``near`` ([A,] Qa) if given, else the one with every
+        joint within its range. Rows that no coordinates give (a link moved off its joint) are read as the
+        nearest fit: :meth:`ArticulatedKinematics.check_rows` tells."""
+        L, Q = self.num_links, self.num_coords
+        single = isinstance(rows, torch.Tensor) and rows.dim() == 2
+        _check_float(rows[None] if single else rows, "rows", (None, L, 6), f"([A,] {L}, 6)")
+        r = rows[None] if single else rows
+        if near is not None:
+            _check_float(
+                near[None] if single else near, "near", (r.shape[0], Q), f"([A,] {Q}) like rows", r.dtype
+            )
+            near = near[None] if single else near
+        out = _joint_values(self, r, near)
+        return out[0] if single else out
 
 
 def articulation(
@@ -600,6 +615,27 @@ def _chain_numba(
     return [torch.from_numpy(x) for x in out[: 4 if order < 2 else 6]]
 
 
+def _check_float(x, name: str, shape: tuple, want: str, dtype: torch.dtype | None = None) -> None:
+    """Raise ValueError naming ``name`` unless x is a finite float tensor (of ``dtype`` if given) whose shape
+    matches ``shape`` (None: any size), described as ``want``."""
+    if (
+        not isinstance(x, torch.Tensor)
+        or not x.is_floating_point()
+        or (dtype is not None and x.dtype != dtype)
+        or x.dim() != len(shape)
+        or any(n is not None and m != n for m, n in zip(x.shape, shape, strict=True))
+    ):
+        got = (x.dtype, tuple(x.shape)) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{name} must be a {dtype or 'float'} tensor of shape {want}, got {got}")
+    if not bool(torch.isfinite(x.detach()).all()):
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def _moving_rows(art: Articulation, coords: torch.Tensor, root: torch.Tensor | None) -> torch.Tensor:
+    """:meth:`Articulation.moving_rows` without its checks (the step's own calls)."""
+    return _fk_rows(art, coords, None if art.floating else root)[:, art.first_moving :]
+
+
 def _fk_frames(art: Articulation, q: torch.Tensor, root: torch.Tensor | None):
     """Link frames (R (A, L, 3, 3), p (A, L, 3)) for coordinates q (A, Qa) (base pose first if floating) and, for a
     fixed base with a joint-less root, the root link frame's pose root (A, 6) (a root with joints hangs from the
@@ -847,9 +883,15 @@ def _joint_values(art: Articulation, rows: torch.Tensor, near: torch.Tensor | No
             if near is not None:  # the one nearer the given values
                 d_1, d_2 = (_wrap(h + ref[hj] - near[:, hj]).abs().sum(-1) for h in (h_1, h_2))
                 prefer = d_2 < d_1
-            else:  # the one with all three hinges within their ranges, else the one nearer ref
-                w_1, w_2 = (centre[hj] + _wrap(h + ref[hj] - centre[hj]) for h in (h_1, h_2))
-                in_1, in_2 = (((w >= lower[hj]) & (w <= upper[hj])).all(-1) for w in (w_1, w_2))
+            else:  # the one with every joint of the link (hinges and slides) within range, else the one nearer ref
+                is_h = torch.as_tensor(art.hinge, device=dev)[joints]  # (n, k)
+                w_1, w_2 = (
+                    torch.where(
+                        is_h, centre[joints] + _wrap(v + ref[joints] - centre[joints]), v + ref[joints]
+                    )
+                    for v in (vals, other)
+                )
+                in_1, in_2 = (((w >= lower[joints]) & (w <= upper[joints])).all(-1) for w in (w_1, w_2))
                 d_1, d_2 = (_wrap(h).abs().sum(-1) for h in (h_1, h_2))
                 prefer = torch.where(in_1 != in_2, in_2, d_2 < d_1)
             tol = 1e-9 * (1.0 + target.norm(dim=-1) + anchor[joints].norm(dim=-1).amax(-1))
@@ -982,7 +1024,7 @@ class ArticulatedKinematics:
         out[:, self.free.to(q.device)] = q[:, : 6 * len(self.free)].reshape(A, -1, 6)
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
             lo = art.first_moving
-            out[:, r + lo : r + art.num_links] = art.moving_rows(q[:, sl], fixed[:, r])
+            out[:, r + lo : r + art.num_links] = _moving_rows(art, q[:, sl], fixed[:, r])
         return out
 
     def coords(self, poses: torch.Tensor, near: torch.Tensor | None = None) -> torch.Tensor:
@@ -990,7 +1032,9 @@ class ArticulatedKinematics:
         near where link poses do not tell joint values apart (:meth:`Articulation.coords`)."""
         parts = [poses[:, self.free.to(poses.device)].reshape(poses.shape[0], -1)]
         for art, r, sl in zip(self.arts, self.first, self.coord_slices, strict=True):
-            parts.append(art.coords(poses[:, r : r + art.num_links], None if near is None else near[:, sl]))
+            parts.append(
+                _joint_values(art, poses[:, r : r + art.num_links], None if near is None else near[:, sl])
+            )
         return torch.cat(parts, 1)
 
     def check_rows(self, poses: torch.Tensor, q: torch.Tensor, name: str, eps: float) -> None:
@@ -1148,13 +1192,13 @@ class ArticulatedKinematics:
             t_free.append(2.0 * q_t[:, rows, :3] - q_p[:, rows, :3])
             if art.floating:  # the base where the root link's free prediction puts it
                 qa = torch.cat([th_hat.new_zeros(A, 6), th_hat[:, sl.start + 6 : sl.stop]], 1)
-                rel = art.moving_rows(qa, fixed[:, r])  # the links in the base's frame
+                rel = _moving_rows(art, qa, fixed[:, r])  # the links in the base's frame
                 Rb = rotation[:, slot]
                 pb = t_free[-1][:, 0] - (Rb @ torch.as_tensor(art.com[0], dtype=q_t.dtype, device=dev))
                 R_hat = Rb[:, None] @ rotation_matrix(rel[..., 3:].reshape(-1, 3)).reshape(A, -1, 3, 3)
                 t_hat = pb[:, None] + (Rb[:, None] @ rel[..., :3, None])[..., 0]
             else:
-                rel = art.moving_rows(th_hat[:, sl], fixed[:, r])
+                rel = _moving_rows(art, th_hat[:, sl], fixed[:, r])
                 R_hat = rotation_matrix(rel[..., 3:].reshape(-1, 3)).reshape(A, -1, 3, 3)
                 t_hat = rel[..., :3]
             hat_rows.append((t_hat, R_hat))

@@ -20,7 +20,8 @@ Mass properties are analytic (density x volume of the ideal shape, not of the tr
 MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding; MuJoCo's principal
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
-naming the element: mesh/plane/hfield/sdf geoms in a link, shell inertia, ball joints, free joints below the root,
+naming the element: mesh/plane/hfield/sdf geoms in a link that MuJoCo collides or counts the mass of (visual
+ones are left out, with a warning), shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos (those acting only outside the root's
 subtree are left out; actuator plugins and actuators in a group ``<option actuatorgroupdisable>`` disables are
 refused), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
@@ -306,12 +307,16 @@ def load_mjcf(
         raise ValueError(f"cylinder_sections must be an int >= 3, got {cylinder_sections!r}")
     # the model file's folder: asset files (meshes) and <include>d files are read from it, as MuJoCo does
     base = None
-    if isinstance(source, os.PathLike) or not str(source).lstrip().startswith("<"):
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(
+            f"source must be MJCF text or a path to an MJCF file (str or os.PathLike), got {type(source).__name__}"
+        )
+    if isinstance(source, os.PathLike) or not source.lstrip("\ufeff \t\r\n").startswith("<"):
         with open(source) as f:
             xml = f.read()
         base = os.path.dirname(os.path.abspath(source))
     else:
-        xml = str(source)
+        xml = source.lstrip("\ufeff")
     xml, tree = _prepared_xml(xml, base)
     spec = _spec(xml, base)
     unnamed = _unnamed_bodies(spec.worldbody)
@@ -381,6 +386,7 @@ def load_mjcf(
     frictions: set[float] = set()  # of the geoms in collision meshes
     # the geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
     visual_only: list[str] = []
+    left_out: list[str] = []  # the visual-only geoms of types the step has no mesh for
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
@@ -402,6 +408,12 @@ def load_mjcf(
             for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
                 # MuJoCo infers masses from the geoms in inertiagrouprange only.
                 counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
+                if int(m.geom_type[g]) not in _GEOM_KINDS and not (
+                    counts or m.geom_contype[g] or m.geom_conaffinity[g]
+                ):  # a visual mesh (or plane, ...): no mass, no contact, nothing the step needs
+                    name = geom_source[m.geom(g).name][0]
+                    left_out.append(name or f"{m.body(b).name}/#{g - m.body_geomadr[b]}")
+                    continue
                 geom = _geom_spec(
                     m,
                     g,
@@ -443,6 +455,13 @@ def load_mjcf(
             )
         )
 
+    if left_out:
+        warnings.warn(
+            f"geoms {left_out[:8]}{' ...' if len(left_out) > 8 else ''} are left out: of a type without a mesh "
+            "here (mesh, plane, hfield, sdf), with contype = conaffinity = 0 and no mass counted (visual only)",
+            UserWarning,
+            stacklevel=3,
+        )
     if visual_only:
         warnings.warn(
             f"geoms {visual_only[:8]}{' ...' if len(visual_only) > 8 else ''} have contype = conaffinity = 0 "
@@ -1030,7 +1049,11 @@ def _build_chain(xml: str, root: str, assets: dict[str, bytes] | None = None) ->
         frame = chain.find_frame(name)
         b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
         if b >= 0:
-            frame.link.offset = Transform3d(rot=m.body_quat[b], pos=m.body_pos[b], dtype=f64)
+            if name == root:  # in the world frame: its joint-less ancestors' transforms composed
+                _, pos, quat = _root_pose(m, b)
+            else:
+                pos, quat = m.body_pos[b], m.body_quat[b]
+            frame.link.offset = Transform3d(rot=quat, pos=pos, dtype=f64)
             if frame.joint.joint_type != "fixed":
                 j = int(m.body_jntadr[b])
                 frame.joint.offset = Transform3d(pos=m.jnt_pos[j], dtype=f64)
@@ -1038,6 +1061,11 @@ def _build_chain(xml: str, root: str, assets: dict[str, bytes] | None = None) ->
         elif (site := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, name)) >= 0:
             frame.link.offset = Transform3d(rot=m.site_quat[site], pos=m.site_pos[site], dtype=f64)
         frame.joint.axis = frame.joint.axis.to(f64)
+        j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, frame.joint.name or "")
+        if (
+            frame.joint.joint_type != "fixed" and j >= 0
+        ):  # pk copies the range of unlimited joints too: (0, 0)
+            frame.joint.limits = tuple(float(x) for x in m.jnt_range[j]) if m.jnt_limited[j] else None
     return pk.Chain(chain.find_frame(root), dtype=f64)
 
 
