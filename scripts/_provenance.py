@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 from pathlib import Path
@@ -35,3 +36,18 @@ def git_revision() -> str | None:
         return rev.stdout.strip() + ("+dirty" if dirty.strip() else "")
     except (OSError, subprocess.CalledProcessError):
         return fallback
+
+
+def git_commit(rev: str) -> str:
+    """An argparse ``type=`` for a revision to compare with (``--baseline REV``): ``rev`` as given, once it names a
+    commit of this checkout, else an ``argparse.ArgumentTypeError`` (before a run it would otherwise end)."""
+    try:
+        found = subprocess.run(
+            ["git", "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}"], capture_output=True, text=True,
+            cwd=_ROOT,
+        )  # fmt: skip
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"cannot run git to find {rev!r}: {e}") from None
+    if found.returncode != 0 or rev.startswith("-"):
+        raise argparse.ArgumentTypeError(f"{rev!r} is not a commit of the checkout at {_ROOT}")
+    return rev

@@ -24,6 +24,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from _provenance import git_commit
 from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,7 +86,9 @@ def run(path: Path, steps: int, warm: int, potential: str) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--baseline", required=True, help="git revision to compare with (e.g. e5289f1)")
+    ap.add_argument(
+        "--baseline", type=git_commit, required=True, help="git revision to compare with (e.g. e5289f1)"
+    )
     ap.add_argument("--runs", type=int, default=3, help="runs per revision (alternating)")
     ap.add_argument("--steps", type=int, default=40, help="timed steps per scene and run")
     ap.add_argument("--warm", type=int, default=10, help="untimed steps first")

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import sys
 import time
 import warnings
@@ -45,7 +46,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _cli import positive_float  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_commit, git_revision  # noqa: E402
 
 F64 = torch.float64
 
@@ -191,8 +192,8 @@ def write(out: dict, path: Path) -> None:
     revs = list(out["revisions"].items())
     lines = [
         f"Joint-angle (and base-rotation) error after {out['duration']} s against MuJoCo's RK4 at "
-        f"{out['ref_dt']} s, no gravity ([rad]; `python scripts/articulated_accuracy.py`, this revision "
-        f"{out['git']}).",
+        f"{out['ref_dt']} s, no gravity ([rad]; `{out.get('command', 'python scripts/articulated_accuracy.py')}`, "
+        f"this revision {out['git']}).",
         "",
         "| case | dt | " + " | ".join(f"error {label} ({rev})" for label, rev in revs) + " | wall s (this) |",
         "|---|---:|" + "---:|" * len(revs) + "---:|",
@@ -233,7 +234,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--duration", type=positive_float, default=None, help="[s] (default 1; quick 0.2)")
     ap.add_argument("--ref-dt", type=positive_float, default=2.5e-4, help="MuJoCo RK4's step [s]")
     ap.add_argument(
-        "--baseline", metavar="REV", default=None, help="also run the package at git revision REV"
+        "--baseline",
+        type=git_commit,
+        metavar="REV",
+        default=None,
+        help="also run the package at git revision REV",
     )
     ap.add_argument("--quick", action="store_true", help="a smoke run: 0.2 s, dt 0.02 and 0.01")
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)  # a --baseline subprocess
@@ -262,6 +267,7 @@ def main() -> None:
     rev = git_revision()
     out = {
         "git": rev, "cases": args.cases, "dts": args.dts, "duration": args.duration, "ref_dt": args.ref_dt,
+        "command": shlex.join(["python", "scripts/articulated_accuracy.py", *sys.argv[1:]]),
         "revisions": {"this": rev},
         "reference": {name: reference(name, args.duration, args.ref_dt) for name in args.cases},
     }  # fmt: skip

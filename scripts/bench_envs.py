@@ -87,7 +87,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = [bench(t, args.steps, args.num_envs, args.action_scale) for t in tqdm(args.tasks, desc="tasks")]
     meta = {"commit": git_revision(), "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(), "steps": args.steps, "rows": rows}  # fmt: skip
+            "threads": torch.get_num_threads(), "steps": args.steps, "num_envs": args.num_envs,
+            "action_scale": args.action_scale, "tasks": args.tasks, "rows": rows}  # fmt: skip
     (args.out / "bench_envs.json").write_text(json.dumps(meta, indent=1))
     lines = [
         "| task | core step ms | env step ms | shell overhead | env steps/s | vector env (n) steps/s | Newton it |",

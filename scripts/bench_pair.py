@@ -22,8 +22,10 @@ import statistics
 import time
 from pathlib import Path
 
+import numba
 import torch
 from _cli import positive_int
+from _provenance import git_revision
 from tqdm import tqdm
 
 from cfd_torch import pair_potential, pair_potential_derivatives
@@ -109,23 +111,35 @@ def main() -> None:
             )
 
     meta = {
+        "commit": git_revision(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
+        "numba_threads": numba.get_num_threads(),
         "machine": platform.processor() or platform.machine(),
         "backend": args.backend,
         "device": args.device,
+        "sizes": args.sizes,
+        "dtypes": args.dtypes,
         "repeats": args.repeats,
     }
     (args.out / "bench_pair.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     modes = list(_modes(a, b, args.backend))
-    print(f"\npairs/s (median of {args.repeats}), backend={args.backend}, device={args.device}")
+    lines = [
+        f"pairs/s (median of {args.repeats}), backend={args.backend}, device={args.device}, "
+        f"commit {meta['commit']}, {meta['threads']} torch / {meta['numba_threads']} numba threads",
+        "",
+    ]
     header = f"| {'K':>9} | {'dtype':7} | " + " | ".join(f"{m:>20}" for m in modes) + " |"
-    print(header)
-    print("|" + "-" * (len(header) - 2) + "|")
+    lines += [header, "|" + "|".join("-" * len(c) for c in header.split("|")[1:-1]) + "|"]
     for k, dt in jobs:
         cells = [next(r for r in rows if r["K"] == k and r["dtype"] == dt and r["mode"] == m) for m in modes]
-        print(f"| {k:>9} | {dt:7} | " + " | ".join(f"{c['pairs_per_s']:>20,.0f}" for c in cells) + " |")
-    print(f"wrote {args.out / 'bench_pair.json'}")
+        lines.append(
+            f"| {k:>9} | {dt:7} | " + " | ".join(f"{c['pairs_per_s']:>20,.0f}" for c in cells) + " |"
+        )
+    table = "\n".join(lines) + "\n"
+    (args.out / "bench_pair.md").write_text(table)
+    print("\n" + table)
+    print(f"wrote {args.out / 'bench_pair.json'} and {args.out / 'bench_pair.md'}")
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from _cli import folder_problem, nonnegative_float, positive_int  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_commit, git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -174,7 +174,9 @@ def main() -> None:
     ap.add_argument("--runs", type=positive_int, default=3, help="timed rollouts per horizon (median)")
     ap.add_argument("--action-scale", type=nonnegative_float, default=0.0,
                     help="uniform random actions in [-s, s] (seeded); 0: zero actions, the trivial start")  # fmt: skip
-    ap.add_argument("--baseline", metavar="REV", default=None, help="git revision to time side by side")
+    ap.add_argument(
+        "--baseline", type=git_commit, metavar="REV", default=None, help="git revision to time side by side"
+    )
     ap.add_argument("--out", type=Path, default=Path("results/bench_rollout"))
     args = ap.parse_args()
     problem = folder_problem(args.out)

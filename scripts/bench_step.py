@@ -114,7 +114,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import int_range, nonnegative_float, nonnegative_int, positive_float, positive_int  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_commit, git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -218,6 +218,12 @@ def boxes(args) -> Case:
     return Case(f"boxes{args.num_boxes}", scene, state, args.warmup_boxes, args.steps_boxes, meta)
 
 
+def _default_margin() -> float:
+    """The scenes' contact margin (Scene's default; 1 mm in revisions before ContactConfig)."""
+    config = getattr(cfd_torch, "ContactConfig", None)
+    return config().margin if config is not None else 1e-3
+
+
 def cubes(args) -> Case:
     """``--num-cubes`` cubes of ``--cube-size`` (12 triangles each) dropped onto a 12-triangle box floor (top face
     at z = 0; at least 1 x 1 x 0.1), sliding: random positions within ``--cube-spread``, yaw, drop heights and
@@ -225,6 +231,13 @@ def cubes(args) -> Case:
     a, n, friction, spread = args.cube_size, args.num_cubes, 0.5, args.cube_spread
     if a <= 0 or spread < 0:
         raise SettingsError(f"argument --cube-size/--cube-spread: must be > 0 and >= 0, got {a} and {spread}")
+    lo, hi = args.cube_drop
+    margin = _default_margin()
+    if not margin < lo <= hi:
+        raise SettingsError(
+            f"argument --cube-drop: LO must exceed the contact margin {margin:g} m (a cube within it starts in "
+            f"contact) and be <= HI, got {lo:g} {hi:g}"
+        )
     rng = np.random.default_rng(0)
     half_diag = a * math.sqrt(2) / 2  # the cube's footprint lies within this radius whatever its yaw
     min_dist = 2 * half_diag + 5e-3  # centres in [-spread, spread]^2, footprints 5 mm apart
@@ -275,6 +288,12 @@ def push(args) -> Case:
         rigid_body(pole, kind="kinematic"),
         rigid_body(box),
     ]
+    margin = _default_margin()
+    if args.push_gap <= margin:
+        raise SettingsError(
+            f"argument --push-gap: must exceed the contact margin {margin:g} m (the pole would start in contact "
+            f"with the box), got {args.push_gap:g}"
+        )
     box_x = 0.0
     pole_x = box_x - side / 2 - args.push_gap - 0.05  # the pole's +x face push_gap behind the box's -x face
     poses = torch.tensor(
@@ -897,7 +916,7 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
         help="cubes: random drop heights of the lowest face above the floor [m] (default 0.005 0.02)",
     )  # fmt: skip
     ap.add_argument(
-        "--push-speed", type=nonnegative_float, default=0.3, help="push: the pole's speed along +x [m/s]"
+        "--push-speed", type=positive_float, default=0.3, help="push: the pole's speed along +x [m/s]"
     )
     ap.add_argument(
         "--push-gap",
@@ -924,7 +943,7 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
         help="run only these case names (e.g. ball_box_mu0 boxes4) of the selected --cases",
     )  # fmt: skip
     ap.add_argument(
-        "--baseline", metavar="REV", default=None,
+        "--baseline", type=git_commit, metavar="REV", default=None,
         help="also time git revision REV of the package, case by case in a subprocess (e.g. e5289f1)",
     )  # fmt: skip
     ap.add_argument("--profile", action="store_true", help="cProfile + torch.profiler tables per case")

@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"argument --strengths: must satisfy 0 <= LO <= HI <= 1, got {args.strengths[:2]}")
     for name in ("angles", "strengths"):
         n = getattr(args, name)[2]
-        if not (1 <= n < math.inf and n == int(n)):
-            ap.error(f"argument --{name}: the count N must be a whole number >= 1, got {n:g}")
+        if not (2 <= n < math.inf and n == int(n)):  # the heat map needs two values per axis
+            ap.error(f"argument --{name}: the count N must be a whole number >= 2, got {n:g}")
     args.out.mkdir(parents=True, exist_ok=True)
     core = make_core("cfd_torch/Billiards-v0", **TASK_KWARGS["Billiards"])
     s0 = core.reset(args.seed, 1)

@@ -28,6 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import positive_float, positive_int  # noqa: E402
+from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch import Scene, rigid_body, rollout  # noqa: E402
@@ -94,6 +95,7 @@ def main() -> None:
 
     final = history[-1]
     result = {
+        "commit": git_revision(),
         "settings": vars(args) | {"out": str(args.out), "radius": radius, "faces": int(len(mesh.faces))},
         "pocket": pocket.tolist(),
         "initial_loss": history[0]["loss"],

@@ -22,6 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from _cli import positive_float  # noqa: E402
+from _provenance import git_revision  # noqa: E402
 
 from cfd_torch import central_potential, pair_potential  # noqa: E402
 from cfd_torch.baselines import ipc_pair_barrier, sdrs_pair_potential  # noqa: E402
@@ -71,6 +72,17 @@ def main() -> None:
     args = ap.parse_args()
     if args.points < 2:
         ap.error(f"argument --points: must be an integer >= 2, got {args.points}")
+    if args.margin >= 1e3:
+        ap.error(
+            f"argument --margin: must be < 1e3 m (the gaps run from 1.5 x margin to 1e4 m), got {args.margin:g}"
+        )
+    if (
+        args.dhat <= 1.5 * args.margin
+    ):  # the peers are scaled to our force at the smallest gap: theirs must act there
+        ap.error(
+            f"argument --dhat: must exceed 1.5 x --margin = {1.5 * args.margin:g} m (the smallest gap, where the "
+            f"local barriers are scaled to our force), got {args.dhat:g}"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
 
     gaps = torch.logspace(math.log10(args.margin * 1.5), 4, args.points, dtype=torch.float64)
@@ -115,6 +127,7 @@ def main() -> None:
     fig.savefig(args.out / "pair_demo.png", dpi=120)
 
     record = {
+        "commit": git_revision(),
         "mu": args.mu,
         "margin": args.margin,
         "dhat": args.dhat,

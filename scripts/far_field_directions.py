@@ -42,7 +42,6 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the reset whose box and target are used")
     ap.add_argument("--out", type=Path, default=Path("results/far_field_directions"), help="output folder")
     args = ap.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
 
     core = make_core("cfd_torch/Push-v0", dt=args.dt)
     s0 = core.reset(args.seed, 1)
@@ -62,7 +61,10 @@ def main() -> None:
 
     a = torch.zeros(B, core.action_dim, dtype=torch.float64, requires_grad=True)
     t0 = time.perf_counter()
-    out = rollout(core, state, a[None].expand(args.horizon, -1, -1))
+    try:
+        out = rollout(core, state, a[None].expand(args.horizon, -1, -1))
+    except ValueError as err:  # a radius that puts the pole into the box
+        ap.error(f"argument --radii: {err}")
     final = -out.info["reward_distance"][-1]  # (B,) final distances
     (g,) = torch.autograd.grad(final.sum(), a)
     seconds = time.perf_counter() - t0
@@ -77,6 +79,7 @@ def main() -> None:
             "direction_target_frame": [float(d @ u), float(d[1] * u[0] - d[0] * u[1])],
             "final_distance_minus_start": float(final[b].detach() - (target - box).norm()),
         })  # fmt: skip
+    args.out.mkdir(parents=True, exist_ok=True)
     meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
             "commit": git_revision(), "seconds": seconds, "rows": rows}  # fmt: skip
     (args.out / "directions.json").write_text(json.dumps(meta, indent=1))
@@ -97,10 +100,15 @@ def main() -> None:
         x, y = row["radius"] * math.cos(phi), row["radius"] * math.sin(phi)
         dx, dy = row["direction_target_frame"]
         ax.arrow(x, y, 0.08 * dx, 0.08 * dy, head_width=0.02, color="k")
+    lim = max(args.radii) + 0.3
     ax.annotate(
-        "to target", xy=(0.85, 0.0), xytext=(0.55, 0.0), arrowprops={"arrowstyle": "->", "color": "g"}
+        "to target",
+        xy=(0.95 * lim, 0.9 * lim),
+        xytext=(0.55 * lim, 0.9 * lim),
+        arrowprops={"arrowstyle": "->", "color": "g"},
     )
-    ax.set(xlim=(-0.9, 0.9), ylim=(-0.9, 0.9), aspect="equal",
+    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xlabel="along box -> target [m]",
+           ylabel="across [m]",
            title=f"Push: far-field descent direction of the pole\n(seed {args.seed}, {args.horizon} steps of "
                  f"{args.dt} s)")  # fmt: skip
     fig.tight_layout()

@@ -602,8 +602,9 @@ def run_experiment(config: dict) -> dict:
             rec = record(
                 cur, ran, iter=it, step=opt.step_size, theta_abs_max=float(opt.theta.detach().abs().max())
             )
-            if best is None or rec["loss"] < best[0]:
-                best = (rec["loss"], None if cur[1].q is None else cur[1].q.detach()[:, 0])
+            if best is None or rec["loss"] < best[0]:  # its poses up to the first terminal step (the GIF's)
+                alive = int(cur[1].alive[:, 0].sum())
+                best = (rec["loss"], None if cur[1].q is None else cur[1].q.detach()[: alive + 1, 0])
             log.append(rec)
             if out_dir is not None:  # an interrupted run keeps the iterations it finished
                 with open(out_dir / "progress.jsonl", "a" if it else "w") as f:
@@ -707,7 +708,8 @@ def _plot(result: dict, path: Path) -> None:
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
     x = "step" if cfg["mpc"] else "iter"
     ax[0].plot([r[x] for r in log], [r["loss"] for r in log])
-    ax[0].set(xlabel=x, ylabel="loss (-return)" + (" of the window" if cfg["mpc"] else ""),
+    what = {"sum": "distance summed over the steps", "final": "final distance", "closest": "closest distance"}
+    ax[0].set(xlabel=x, ylabel=f"loss: {what[cfg['loss']]} [m]" + (" of the window" if cfg["mpc"] else ""),
               title=f"{cfg['task']} ({cfg['model']}): {'MPC ' if cfg['mpc'] else ''}{cfg['optimizer']} "
               f"lr {cfg['lr']}")  # fmt: skip
     key = "executed_distance" if cfg["mpc"] else "final_distance"

@@ -99,7 +99,6 @@ import argparse
 import json
 import math
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -118,6 +117,7 @@ from _cli import (  # noqa: E402
     positive_float,
     positive_int,
 )
+from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -434,7 +434,8 @@ def run(args, mu: float) -> dict:
         "reason": reason,
         "measured_at_rest": bool(stable),
         "measured_at_t": (steps if stable else best[2]) * dt,
-        "measured_state_largest_speed": hist[-1][1] if stable and hist else best[0],
+        # None (JSON null) where no step ran to be measured
+        "measured_state_largest_speed": hist[-1][1] if stable and hist else _finite_or_none(best[0]),
         **m,
         "steps": steps,
         "sim_time_s": steps * dt,
@@ -443,7 +444,7 @@ def run(args, mu: float) -> dict:
         "sim_wall_s": sim_s,
         "solver": stats,
         "largest_tilt_rad": max((h[2] for h in hist), default=0.0),
-        "smallest_support_margin_m": min((h[3] for h in hist), default=math.inf),
+        "smallest_support_margin_m": min((h[3] for h in hist), default=None),
         "history_t_speed_reltilt_supportmargin": hist,
         "initial_gaps_bottom_to_top": [
             float(poses0[i, 2] - poses0[i - 1, 2])
@@ -504,6 +505,10 @@ def plot(results: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
 
 
 # ------------------------------------------------------------------------------------------------ stability margin
@@ -673,14 +678,17 @@ def write_margin(args, rows: list[dict], t0: float) -> str:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     path = args.out / f"stability_margin_n{args.boards}.json"
     rows = list(rows)
-    if path.exists():  # keep the other mus of an earlier run with the same settings
+    commit = git_revision()
+    if path.exists():  # keep the other mus of an earlier run with the same settings at the same commit
         old = json.loads(path.read_text())
         same = ("mu", "out", "threads")
-        if {k: v for k, v in old["settings"].items() if k not in same} == {
-            k: v for k, v in settings.items() if k not in same
-        }:
+        if old.get("cfd_torch_commit") == commit and {
+            k: v for k, v in old["settings"].items() if k not in same
+        } == {k: v for k, v in settings.items() if k not in same}:
             done = {r["mu"] for r in rows}
             rows += [r for r in old["results"] if r["mu"] not in done]
+        else:
+            tqdm.write(f"{path}: replaced (its settings or commit, {old.get('cfd_torch_commit')}, differ)")
     rows.sort(key=lambda r: -r["mu"])
     settings["mu"] = [r["mu"] for r in rows]
     out = {
@@ -700,8 +708,9 @@ def write_margin(args, rows: list[dict], t0: float) -> str:
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
         },
+        "cfd_torch_commit": commit,
     }
-    path.write_text(json.dumps(out, indent=1))
+    path.write_text(json.dumps(out, indent=1, allow_nan=False))
     sets = [json.loads(f.read_text()) for f in args.out.glob("stability_margin_n*.json")]
     sets.sort(key=lambda d: d["settings"]["boards"])
     md = margin_md(sets)
@@ -742,13 +751,6 @@ def main() -> None:
             f"mu={mu:.0e}: stable={r['stable']} ({r['reason']}), margin {r['margin']:.3e} m, force error "
             f"{r['force_error']:.3e} N, {r['steps']} steps, {r['wall_s']:.0f} s"
         )
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "cfd_torch"], capture_output=True, text=True
-        ).stdout.strip()
-    except OSError:
-        commit, dirty = "", ""
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     out = {
         "settings": settings,
@@ -770,11 +772,10 @@ def main() -> None:
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
         },
-        "cfd_torch_commit": commit,
-        "cfd_torch_uncommitted_changes": dirty,
+        "cfd_torch_commit": git_revision(),
         "cfd_torch_file": cfd_torch.__file__,
     }
-    (args.out / "stacked_books.json").write_text(json.dumps(out, indent=1))
+    (args.out / "stacked_books.json").write_text(json.dumps(out, indent=1, allow_nan=False))
     md = table_md(results, args) + f"\nTotal wall time {out['total_wall_s']:.0f} s.\n"
     (args.out / "stacked_books.md").write_text(md)
     plot(results, args.out / "stacked_books.png")

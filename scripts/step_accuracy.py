@@ -457,17 +457,26 @@ def main() -> None:
         )
         if not ok
     ]
+    sweeps = QUICK_SWEEPS if args.quick else SWEEPS
+    b_dur = (0.06 if args.quick else 0.4) if args.billiards_duration is None else args.billiards_duration
+    s_dur = (0.06 if args.quick else 0.5) if args.stack_duration is None else args.stack_duration
+    longest = max(sweeps["dt"])
+    for flag, dur, scene in (
+        ("--billiards-duration", b_dur, "billiards"),
+        ("--stack-duration", s_dur, "stack"),
+    ):
+        if scene in args.scenes and dur < longest:  # every swept dt takes one step at least
+            bad.append(f"{flag} must be at least the largest swept dt, {longest:g} s, got {dur:g}")
     if bad:
         ap.error("; ".join(bad))
     path = args.out / "step_accuracy.json"
+    if args.replot and not path.is_file():
+        ap.error(f"argument --replot: {path} does not exist")
     if args.replot:
         out = json.loads(path.read_text())
     else:
         args.out.mkdir(parents=True, exist_ok=True)
-        sweeps = QUICK_SWEEPS if args.quick else SWEEPS
         rows = 2 if args.rack_rows is None else args.rack_rows
-        b_dur = (0.06 if args.quick else 0.4) if args.billiards_duration is None else args.billiards_duration
-        s_dur = (0.06 if args.quick else 0.5) if args.stack_duration is None else args.stack_duration
         out = {
             "meta": {
                 "git": git_revision(), "torch": torch.__version__, "python": platform.python_version(),

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 import trimesh
+from _cli import positive_float
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -136,7 +137,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("results/stress_step"))
     ap.add_argument("--seeds", type=int, nargs=2, default=(0, 30), metavar=("FIRST", "END"))
-    ap.add_argument("--duration", type=float, default=1.0, help="simulated time per scene [s]")
+    ap.add_argument("--duration", type=positive_float, default=1.0, help="simulated time per scene [s]")
     args = ap.parse_args()
     if not args.duration > 0:
         ap.error(f"--duration must be > 0, got {args.duration}")

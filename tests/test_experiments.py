@@ -30,6 +30,35 @@ finally:
     sys.path.pop(0)
 
 
+def test_the_gif_of_an_open_loop_run_ends_at_its_terminal_step(tmp_path, monkeypatch):
+    """A Billiards episode that terminates at its first step (the pocket's radius takes in the object ball where it
+    starts): best.gif shows the start and that step only, as the episode does (it showed all 10 steps of the
+    horizon, the balls moving on after the end)."""
+    import optimize
+
+    from cfd_torch.envs import make_core, rollout
+
+    task_args = {"pocket_radius": 0.8, "pocket": 2, "target_ball": 0}
+    core = make_core("cfd_torch/Billiards-v0", **task_args)
+    with torch.no_grad():
+        ran = rollout(core, core.reset(0, 1), torch.zeros(10, 1, core.action_dim, dtype=torch.float64))
+    alive = int(ran.alive[:, 0].sum())
+    assert alive < 10  # the episode ends within the horizon
+    drawn = []
+    monkeypatch.setattr(optimize, "write_gif", lambda frames, path, fps: drawn.append(len(frames)))
+    run_experiment(
+        {
+            "task": "Billiards",
+            "iters": 1,
+            "horizon": 10,
+            "loss": "final",
+            "task_args": task_args,
+            "out": tmp_path,
+        }
+    )
+    assert drawn == [alive + 1]
+
+
 @pytest.mark.parametrize("model", MODELS)
 def test_two_iterations_per_model(model, tmp_path):
     """Two ngd iterations on 3 actions from Push's trivial start: three evaluations logged, each one rollout and

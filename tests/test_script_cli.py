@@ -114,6 +114,17 @@ REFUSED = [
     ("bench_rollout", ["--action-scale", "-0.5"], "--action-scale"),
     ("bench_rollout", ["--tasks", "Pool"], "--tasks"),
     ("sweep", ["--seeds", "0", str(2**64)], "--seeds"),  # the second seed: only the first was checked
+    # each of these raised a traceback after measuring (the first) or building the output folder (the others)
+    ("bench_step", ["--quick", "--cases", "boxes", "--baseline", "no-such-rev"], "--baseline"),
+    ("bench_step", ["--quick", "--cases", "push", "--push-speed", "0"], "--push-speed"),  # ZeroDivisionError
+    ("bench_step", ["--quick", "--cases", "push", "--push-gap", "0.0005"], "--push-gap"),  # within the margin
+    ("bench_step", ["--quick", "--cases", "cubes", "--cube-drop", "0.0002", "0.0005"], "--cube-drop"),
+    ("articulated_accuracy", ["--quick", "--cases", "bar", "--baseline", "no-such-rev"], "--baseline"),
+    ("demo_pair", ["--dhat", "0.001"], "--dhat"),  # no local-barrier force at the smallest gap to scale by
+    ("far_field_directions", ["--radii", "0.1", "--angles", "2", "--horizon", "1"], "--radii"),  # in the box
+    ("billiards_landscape", ["--angles", "-15", "20", "1"], "--angles"),  # a blank heat map
+    ("stress_step", ["--duration", "inf"], "--duration"),
+    ("step_accuracy", ["--replot"], "--replot"),  # no JSON in --out
 ]
 
 
@@ -171,3 +182,31 @@ def test_an_experiment_script_refuses_an_out_that_is_a_file(
     assert (
         f"error: argument --out: {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
     )
+
+
+def _strict_json(path: Path) -> dict:
+    """The JSON file at ``path``, refusing NaN and +-Infinity (not JSON: most parsers other than Python's fail)."""
+    import json
+
+    def refuse(token: str):
+        raise AssertionError(f"{path}: {token} is not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def test_stacked_books_records_its_checkout_and_writes_strict_json(scripts_path, monkeypatch, tmp_path):
+    """Run from another folder with its first step failing: the JSON names the scripts' checkout's commit (it ran
+    git in the working directory: another repository's commit, or none) and writes null, not Infinity, for the
+    measures no step gave."""
+    import stacked_books
+    from _provenance import git_revision
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["--quick", "--mu", "1e-8", "--max-newton-iter", "1", "--substeps", "0", "--t-max", "0.5", "--t-min",
+            "0", "--rest-time", "0.2", "--out", str(tmp_path / "out")]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["stacked_books.py", *argv])
+    stacked_books.main()
+    out = _strict_json(tmp_path / "out" / "stacked_books.json")
+    assert out["cfd_torch_commit"] == git_revision() is not None
+    (row,) = out["results"]
+    assert not row["stable"] and row["smallest_support_margin_m"] is None
