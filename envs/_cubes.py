@@ -172,7 +172,7 @@ class CubesCore(TaskCore):
     def render_camera(self, aspect: float = 1.0) -> dict:
         # the cubes' and the pusher's starts and the task's goal regions
         start = (0.0, 0.0, self.spread + self.cube_size)
-        return camera_over([start, *self._goal_discs()], azimuth=270.0, elevation=-60.0, aspect=aspect)
+        return camera_over([start, *self._goal_discs()], azimuth=90.0, elevation=-60.0, aspect=aspect)
 
     def _goal_discs(self) -> list[tuple[float, float, float]]:
         """Floor discs (x, y, radius) [m] that hold every goal region the task can draw."""

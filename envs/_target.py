@@ -28,7 +28,13 @@ class BoxToTargetCore(TaskCore):
         return self.box_distance(state) < self.success_radius
 
     def render_markers(self):
-        return [(*disc(self.success_radius), (0.2, 0.75, 0.3, 0.6))]  # the target's success disc
+        # the target's success disc, on a fainter halo some pixels wide in any image (the disc alone is a few
+        # pixels in a small image of a wide view: 4 at 64 x 64 in Push's default one, none with distance=8)
+        halo = max(3.0 * self.success_radius, 0.05 * self.render_camera()["distance"])
+        return [
+            (*disc(halo, 5e-4), (0.2, 0.75, 0.3, 0.3)),
+            (*disc(self.success_radius), (0.2, 0.75, 0.3, 0.6)),
+        ]
 
     def marker_poses(self, task: dict[str, torch.Tensor]) -> torch.Tensor:
-        return marker_rows(task["target"])
+        return marker_rows(task["target"]).repeat(2, 1)  # the halo and the disc

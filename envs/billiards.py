@@ -199,7 +199,7 @@ class BilliardsCore(TaskCore):
         portrait image) a view derived from the discs (:func:`~cfd_torch.envs.core.camera_over`)."""
         drawn = range(4) if self.pocket is None else (self.pocket,)
         if max(drawn) < 4 and self.pocket_radius <= _POCKET_RADIUS and aspect >= 1.0:
-            return {"lookat": (0.0, 0.2, 0.0), "distance": 2.3, "azimuth": 90.0, "elevation": -70.0}
+            return {"lookat": (0.0, 0.05, 0.0), "distance": 2.5, "azimuth": 90.0, "elevation": -70.0}
         r = self.ball_radius
         discs = [(float(x), float(y), r) for x, y in self.rack]
         discs.append((0.0, -0.5, math.hypot(0.1, 0.1) + r))  # the cue ball's start region

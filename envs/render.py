@@ -65,6 +65,25 @@ def _close_open_renderers() -> None:
         renderer.close()
 
 
+# A process forked from one that has made an EGL context hangs in its own first EGL call (MuJoCo's, through
+# libEGL's state copied mid-use): such a child refuses to make a renderer instead (gymnasium's AsyncVectorEnv forks
+# its workers by default on Linux before Python 3.14).
+_made_egl_context = False
+_forked_after_egl_context = False
+
+
+def _after_fork_in_child() -> None:
+    global _forked_after_egl_context
+    _forked_after_egl_context = _forked_after_egl_context or _made_egl_context
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def _egl_backend() -> bool:
+    return "egl" in str(getattr(mujoco.gl_context.GLContext, "__module__", "")).lower()
+
+
 def _numpy(x: npt.ArrayLike | torch.Tensor, name: str, dtype: npt.DTypeLike) -> np.ndarray:
     """``x`` as an array of ``dtype``: real numbers only (:func:`.core.real_array`), and whole numbers for an
     integer ``dtype``."""
@@ -247,6 +266,13 @@ class MeshRenderer:
         self._framed = False
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+        if _forked_after_egl_context and _egl_backend():
+            raise RuntimeError(
+                "this process was forked from one that had made an EGL context (it rendered), and its first EGL "
+                "call would hang: start it with the 'spawn' or 'forkserver' start method instead, e.g. "
+                "gym.make_vec(..., vectorization_mode='async', vector_kwargs={'context': 'spawn'}) or "
+                "multiprocessing.get_context('spawn')"
+            )
         try:
             renderer = mujoco.Renderer(self._model, height, width)
         except mujoco.FatalError as e:
@@ -260,6 +286,8 @@ class MeshRenderer:
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._renderer = renderer
+        global _made_egl_context
+        _made_egl_context = _made_egl_context or _egl_backend()
         _OPEN.add(self)
         global _atexit_registered
         if not _atexit_registered:

@@ -11,6 +11,7 @@ the three give identical starts.
 from __future__ import annotations
 
 import copy
+import threading
 from typing import Any
 
 import gymnasium as gym
@@ -54,27 +55,46 @@ def _spaces(core: TaskCore) -> tuple[gym.spaces.Box, gym.spaces.Box]:
     return act, obs
 
 
+def _warn_no_render_mode(spec) -> None:
+    """Gymnasium's warning for render() on an environment made without a render mode (its own environments')."""
+    gym.logger.warn(
+        "You are calling render method without specifying any render mode. You can specify the render_mode at "
+        f'initialization, e.g. gym.make("{spec.id if spec is not None else "cfd_torch/<Task>-v0"}", '
+        'render_mode="rgb_array")'
+    )
+
+
 class _Frames:
-    """The renderer of a core, made on the first frame."""
+    """The renderer of a core, made on the first frame, on the thread that renders (an OpenGL context is current on
+    the thread that made it)."""
 
     def __init__(self, core: TaskCore, width: int, height: int) -> None:
         self.core, self.width, self.height = core, width, height
         self.renderer = None
+        self.thread: int | None = None
 
     def frame(self, state: EnvState) -> np.ndarray:
         """The frame of the first environment of ``state``."""
         if self.renderer is None:
             self.renderer = self.core.renderer(self.width, self.height)
+            self.thread = threading.get_ident()
+        elif threading.get_ident() != self.thread:
+            raise RuntimeError(
+                "render() called on another thread than the one that first rendered this environment: its OpenGL "
+                "context is current on that thread only (EGL refuses another, EGL_BAD_ACCESS); render from that "
+                "thread, or close() the environment there first (the next render() makes a new renderer)"
+            )
         return self.core.draw(self.renderer, state.q[0], task_at(state, 0))
 
     def close(self) -> None:
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
+            self.thread = None
 
     def __getstate__(self) -> dict:
         """Pickled and copied without the renderer (an OpenGL context): the copy makes its own on its first frame."""
-        return {**self.__dict__, "renderer": None}
+        return {**self.__dict__, "renderer": None, "thread": None}
 
 
 class CoreEnv(gym.Env):
@@ -133,6 +153,8 @@ class CoreEnv(gym.Env):
         return obs, float(out.reward[0]), bool(out.terminated[0]), False, info
 
     def render(self):
+        if self.render_mode is None:
+            _warn_no_render_mode(self.spec)
         if self.render_mode != "rgb_array" or self.state is None:
             return None
         return self._frames.frame(self.state)
@@ -308,6 +330,8 @@ class CoreVectorEnv(VectorEnv):
         return self._obs.copy(), rewards, terminated, truncated, infos
 
     def render(self):
+        if self.render_mode is None:
+            _warn_no_render_mode(self.spec)
         if self.render_mode != "rgb_array" or any(s is None for s in self.states):
             return None
         return tuple(self._frames.frame(s) for s in self.states)

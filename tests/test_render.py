@@ -366,3 +366,104 @@ def test_write_gif_keeps_the_last_frame(tmp_path):
             gif.seek(k)
             shown.append(int(np.asarray(gif.convert("RGB"))[0, 0, 0]))
     assert shown == [0, 60, 120, 150]
+
+
+def _make_renderer_in_child(queue) -> None:
+    box = trimesh.creation.box()
+    try:
+        MeshRenderer([(box.vertices, box.faces)], width=32, height=32).close()
+        queue.put("made")
+    except RuntimeError as err:
+        queue.put(str(err))
+
+
+def test_a_process_forked_after_an_egl_context_refuses_to_render():
+    """A child forked from a process that made an EGL context hangs in its first EGL call (gymnasium's
+    AsyncVectorEnv forks its workers by default): it refuses to make a renderer instead, naming the fix."""
+    import multiprocessing
+
+    from cfd_torch.envs import render
+
+    box = trimesh.creation.box()
+    MeshRenderer([(box.vertices, box.faces)], width=32, height=32).close()  # this process has made a context
+    if not render._egl_backend():
+        pytest.skip("the OpenGL backend is not EGL")
+    queue = multiprocessing.get_context("fork").Queue()
+    child = multiprocessing.get_context("fork").Process(target=_make_renderer_in_child, args=(queue,))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked child hung making a renderer")
+    message = queue.get(timeout=5)
+    assert "forked from one that had made an EGL context" in message and "{'context': 'spawn'}" in message
+
+
+@pytest.mark.parametrize("task", ["Billiards", "Push", "Sort", "Gather", "AntPush"])
+def test_every_task_is_drawn_with_x_to_the_right_and_y_away(task):
+    """The same view of the world in every task: +x to the right, +y up the image (away from the viewer), so that
+    an action along +x moves a pusher right in every task's frames (Sort and Gather were drawn turned 180 deg)."""
+    from cfd_torch.envs import make_core
+
+    core = make_core(f"cfd_torch/{task}-v0")
+    r = core.renderer(200, 200)
+    try:
+        lookat = np.asarray(r.camera.lookat)
+        u0, v0 = _project(r.camera, lookat, 200, 200)
+        ux, vx = _project(r.camera, lookat + [0.2, 0.0, 0.0], 200, 200)
+        uy, vy = _project(r.camera, lookat + [0.0, 0.2, 0.0], 200, 200)
+        assert ux - u0 > 5 and abs(vx - v0) < 1  # right, level
+        assert v0 - vy > 2 and abs(uy - u0) < 1  # up the image
+    finally:
+        r.close()
+
+
+def test_render_without_a_render_mode_warns_and_from_another_thread_is_refused():
+    """Gymnasium's conventions: render() on an environment made without a render mode warns and returns None;
+    an environment's renderer draws on the thread that made it, and another thread gets a clear error (EGL's own
+    is EGL_BAD_ACCESS from eglMakeCurrent)."""
+    import threading
+
+    import gymnasium as gym
+
+    env = gym.make("cfd_torch/Push-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.warns(UserWarning, match="without specifying any render mode"):
+        assert env.render() is None
+    env = gym.make("cfd_torch/Push-v0", render_mode="rgb_array", width=48, height=48).unwrapped
+    env.reset(seed=0)
+    assert env.render().shape == (48, 48, 3)
+    errors: list[BaseException] = []
+
+    def other() -> None:
+        try:
+            env.render()
+        except RuntimeError as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    thread.join()
+    assert len(errors) == 1 and "another thread than the one that first rendered" in str(errors[0])
+    env.close()
+
+
+@pytest.mark.parametrize("task", ["Push", "AntPush"])
+def test_the_target_is_visible_in_a_small_image(task):
+    """The goal of Push and AntPush shows in the small images pixel-observation agents use (64 x 64), in the default
+    view and in a wider one (``distance=8``): the success disc alone covered 4 pixels and 0."""
+    from cfd_torch.envs import make_core
+
+    def green(img: np.ndarray) -> int:
+        i = img.astype(np.int32)
+        return int(((i[..., 1] > i[..., 0] + 30) & (i[..., 1] > i[..., 2] + 30)).sum())
+
+    for kwargs in ({}, {"distance": 8.0}):
+        core = make_core(f"cfd_torch/{task}-v0", **kwargs)
+        state = core.reset(0, 1)
+        r = core.renderer(64, 64)
+        try:
+            img = core.draw(r, state.q[0], {k: v[0] for k, v in state.task.items()})
+        finally:
+            r.close()
+        assert green(img) >= 15, (kwargs, green(img))  # observed 21-23
