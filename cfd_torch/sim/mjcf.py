@@ -1061,10 +1061,9 @@ def _build_chain(xml: str, root: str, assets: dict[str, bytes] | None = None) ->
         elif (site := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, name)) >= 0:
             frame.link.offset = Transform3d(rot=m.site_quat[site], pos=m.site_pos[site], dtype=f64)
         frame.joint.axis = frame.joint.axis.to(f64)
+        # pk copies the range of unlimited joints too, (0, 0): theirs are none
         j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, frame.joint.name or "")
-        if (
-            frame.joint.joint_type != "fixed" and j >= 0
-        ):  # pk copies the range of unlimited joints too: (0, 0)
+        if frame.joint.joint_type != "fixed" and j >= 0:
             frame.joint.limits = tuple(float(x) for x in m.jnt_range[j]) if m.jnt_limited[j] else None
     return pk.Chain(chain.find_frame(root), dtype=f64)
 
