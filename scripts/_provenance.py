@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -51,3 +52,8 @@ def git_commit(rev: str) -> str:
     if found.returncode != 0 or rev.startswith("-"):
         raise argparse.ArgumentTypeError(f"{rev!r} is not a commit of the checkout at {_ROOT}")
     return rev
+
+
+def json_args(args: argparse.Namespace) -> dict:
+    """A script's parsed options as JSON values (lists and numbers as such; paths and other objects as text)."""
+    return json.loads(json.dumps(vars(args), default=str))

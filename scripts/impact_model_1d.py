@@ -50,7 +50,7 @@ from _cli import (
     positive_float,
     positive_int,
 )
-from _provenance import git_revision
+from _provenance import git_revision, json_args
 from tqdm import tqdm
 
 from cfd_torch import ContactConfig, mesh_potential_derivatives, rigid_body
@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> dict:
     for r in rows:
         r["cost_vs_plain"] = r["newton_iters_per_run"] / plain["newton_iters_per_run"] if plain else None
     result = {
-        "revision": git_revision(), "args": {k: str(v) for k, v in vars(args).items()},
+        "revision": git_revision(), "args": json_args(args),
         "reduced_mass": mr, "amplification": amplification, "wall_s": time.time() - t0,
         "schemes": rows, "resolved": resolved,
     }  # fmt: skip

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 import trimesh
 from _cli import apply_preset, folder_problem, positive_float, positive_int
-from _provenance import git_revision
+from _provenance import git_revision, json_args
 from tqdm import tqdm
 
 from cfd_torch import ContactConfig, Scene, State, StepError, rigid_body, rollout
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> dict:
             "spin_max": max(r["spin"] for r in rs),
         })  # fmt: skip
     result = {
-        "revision": git_revision(), "args": {k: str(v) for k, v in vars(args).items()},
+        "revision": git_revision(), "args": json_args(args),
         "wall_s": time.time() - t0, "summary": rows, "runs": runs,
     }  # fmt: skip
     (args.out / "impact_phase.json").write_text(json.dumps(result, indent=1))

@@ -69,7 +69,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_revision, json_args  # noqa: E402
 from bench_step import billiards, boxes, parse_args  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -480,7 +480,7 @@ def main() -> None:
         out = {
             "meta": {
                 "git": git_revision(), "torch": torch.__version__, "python": platform.python_version(),
-                "cpus": os.cpu_count(), "quick": args.quick, "args": {k: str(v) for k, v in vars(args).items()},
+                "cpus": os.cpu_count(), "quick": args.quick, "args": json_args(args),
                 "defaults": DEFAULTS, "reference_tolerances": TIGHT, "sweeps": sweeps,
                 "ref_dt": min(sweeps["dt"]) / args.ref_dt_factor, "loadavg_start": os.getloadavg(),
                 "timed": "StepInfo.seconds (forward solve) of every step under torch.no_grad(); medians per run",
