@@ -6,7 +6,9 @@ for every model: the mean over seeds and its spread (min to max), a dot at each 
 ``--best``, open-loop runs' best loss so far instead of each iterate's. The table gives per task and model: the loss
 decrease 1 - best / initial loss (open loop: the best iterate's loss, the optimiser's answer; MPC: the executed
 trajectory's; mean and range over seeds), the best final distance to the goal, iterations, rollouts
-(forward; ``gb``'s sampled ones included) and wall time per run, and the seeds.
+(forward; ``gb``'s sampled ones included) and wall time per run, the seeds and the commits the runs were made at.
+A run that ended sooner than the others of its model (an MPC episode the task ended) holds its last loss and wall
+time in the mean curve.
 
 Writes ``<out>/<task>.png`` per task and ``<out>/results.md`` (printed too); several sweep folders are merged (a
 cell, task x model x seed, found in two of them is refused: the means would count it twice; so are runs of one task
@@ -55,6 +57,22 @@ def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.n
     return x, np.array([r["wall_s"] for r in log]), loss
 
 
+def _held(values: np.ndarray, n: int) -> np.ndarray:
+    """``values`` carried to length ``n`` by repeating the last."""
+    return np.concatenate([values, np.full(n - len(values), values[-1])])
+
+
+def _together(
+    curves: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The runs' curves (:func:`_curves`) on one axis: x, the mean wall time and the losses (runs, x). A run that
+    ended sooner (an MPC episode ended by the task: often the successful one) holds its last loss and wall time to
+    the longest run's end, as a stopped open-loop run does."""
+    n = max(len(c[0]) for c in curves)
+    x = next(c[0] for c in curves if len(c[0]) == n)
+    return x, np.mean([_held(c[1], n) for c in curves], 0), np.array([_held(c[2], n) for c in curves])
+
+
 def _ratio(run: dict) -> float:
     s = run["summary"]
     if run["config"]["mpc"]:
@@ -92,8 +110,8 @@ def table(runs: list[dict]) -> str:
         groups[(r["config"]["task"], r["config"]["model"])].append(r)
     lines = [
         "| task | model | loss decrease 1 - best / initial: mean (min .. max) | best final distance [m] (mean) | "
-        "iterations | rollouts per run | wall s per run | seeds |",
-        "|---|---|---|---|---:|---:|---:|---|",
+        "iterations | rollouts per run | wall s per run | seeds | commits |",
+        "|---|---|---|---|---:|---:|---:|---|---|",
     ]
     for (task, model), rs in sorted(groups.items()):
         drop = 1.0 - np.array([_ratio(r) for r in rs])
@@ -114,7 +132,8 @@ def table(runs: list[dict]) -> str:
             f"| {task} | {model} | {drop.mean():.3g} ({drop.min():.3g} .. {drop.max():.3g}) | {dist:.4g} | "
             f"{its} | {np.mean([r['summary']['rollouts'] for r in rs]):.0f} | "
             f"{np.mean([r['summary']['wall_s'] for r in rs]):.0f} | "
-            f"{' '.join(str(r['config']['seed']) for r in sorted(rs, key=lambda r: r['config']['seed']))} |"
+            f"{' '.join(str(r['config']['seed']) for r in sorted(rs, key=lambda r: r['config']['seed']))} | "
+            f"{' '.join(sorted({str(r.get('commit')) for r in rs}))} |"
         )
     return "\n".join(lines)
 
@@ -127,11 +146,7 @@ def plot(runs: list[dict], out: Path, best: bool = False) -> list[Path]:
     for task, models in sorted(by_task.items()):
         fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
         for model, rs in sorted(models.items()):
-            curves = [_curves(r, best) for r in rs]
-            n = min(len(c[0]) for c in curves)
-            x = curves[0][0][:n]
-            wall = np.mean([c[1][:n] for c in curves], 0)
-            L = np.array([c[2][:n] for c in curves])
+            x, wall, L = _together([_curves(r, best) for r in rs])
             for axis, xs in ((ax[0], x), (ax[1], wall)):
                 (line,) = axis.plot(xs, L.mean(0), label=f"{model} ({len(rs)} seeds)")
                 axis.fill_between(xs, L.min(0), L.max(0), color=line.get_color(), alpha=0.2)

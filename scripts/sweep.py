@@ -8,10 +8,14 @@ then given no resources: Ray refuses num_cpus against an existing cluster), else
 ``--workers`` CPUs; each run is a ``@ray.remote(num_cpus=1)`` task. Each run writes its own folder
 ``<out>/<task>/<model>/seed<k>/`` (log.json, loss.png, best.gif with ``--gif``) on the machine that ran it; the
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
-as runs finish (through a temporary file), so an interrupted sweep keeps what it finished (``--resume`` skips the
-cells already in it, and refuses a cell there that ran with other settings); a run that raises is reported and
-kept in ``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on (and exits
-with status 1 at the end). Every cell's settings are checked before any run starts. On Ray,
+as runs finish (through a temporary file), with each invocation's commit, host, workers and command line, so an
+interrupted sweep keeps what it finished: Ctrl-C or SIGTERM ends the running runs and exits (status 130), and
+``--resume`` then skips the cells already in sweep.json and refuses a cell whose settings differ from those of its
+task and model's earlier runs (one row of the table, one curve: their mean would mix two experiments), telling of
+runs made at another commit; an existing sweep.json is kept unless ``--resume`` or ``--overwrite`` is given, and one
+sweep at a time writes to a folder (a lock). A run that raises is reported and kept, with its traceback, in
+``<out>/failed.json`` (this sweep's failures; removed when none failed), and the sweep goes on (and exits with status
+1 at the end). Every cell's settings are checked before any run starts. On Ray,
 the scripts folder travels with the job (``runtime_env`` working_dir), so cluster nodes need cfd_torch installed
 but not this checkout.
 ``scripts/plot_results.py`` turns sweep.json into plots and the results table.
@@ -24,10 +28,15 @@ but not this checkout.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import json
 import multiprocessing
 import os
+import platform
+import signal
 import sys
+import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -61,20 +70,35 @@ def configs(args: argparse.Namespace) -> list[dict]:
     ]
 
 
+def _interrupted(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in the chain of ``e`` (numba re-raises one inside its kernels as a
+    SystemError "returned a result with an exception set")."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def run_one(config: dict) -> dict:
-    """run_experiment(config), or, if it raises, {"config", "error"}: one failed cell does not stop the sweep."""
+    """run_experiment(config), or, if it raises, {"config", "error", "traceback"}: one failed cell does not stop the
+    sweep (an interrupt, Ctrl-C, does)."""
     try:
         return run_experiment(config)
     except Exception as e:  # noqa: BLE001 (a failed run is a result of the sweep)
-        return {"config": config, "error": f"{type(e).__name__}: {e}"}
+        if _interrupted(e):
+            raise KeyboardInterrupt from e
+        return {"config": config, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
 
 
 def _key(config: dict) -> tuple:
     return config["task"], config["model"], config["seed"]
 
 
-# what a run writes where and how fast, not what it computes: free to differ on --resume
-_NOT_SETTINGS = ("out", "threads", "gif")
+# the cell, and what a run writes where and how fast, not what it computes: free to differ on --resume
+_NOT_SETTINGS = ("seed", "out", "threads", "gif")
 
 
 def _settings_differ(old: dict, new: dict) -> list[str]:
@@ -95,9 +119,34 @@ def _write(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
-def _spawn_pool(workers: int) -> ProcessPoolExecutor:
-    # spawn, not fork: a forked child of a process whose torch / numba thread pools have started can hang
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+def _ignore_interrupts() -> None:
+    """A pool worker's initializer: Ctrl-C (SIGINT to the terminal's process group) is the sweep's to handle; a
+    worker that took it would report its run as failed and start the next."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _spawn_pool(workers: int):
+    """A process pool (spawn, not fork: a forked child of a process whose torch / numba thread pools have started
+    can hang) that, left by an exception (an interrupt), cancels the runs not started and ends the running ones
+    instead of waiting for them all."""
+    pool = ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_ignore_interrupts
+    )
+    try:
+        yield pool
+    except BaseException:
+        processes = pool._processes or {}  # the pool's own dict (shutdown drops the pool's reference to it)
+        pool.shutdown(wait=False, cancel_futures=True)
+        ended: set[int] = set()
+        while live := [p for pid, p in list(processes.items()) if pid not in ended]:
+            for proc in live:  # (no public way to end running tasks; the pool may start one meanwhile)
+                proc.terminate()
+                proc.join(10)
+                ended.add(proc.pid)
+        pool.shutdown(wait=True)  # its manager thread, once it has seen its workers end
+        raise
+    pool.shutdown(wait=True)
 
 
 def _run_alone(config: dict) -> dict:
@@ -155,12 +204,16 @@ def _run_ray(todo: list[dict], workers: int):
     for c in todo:
         config_of[remote.remote(c)] = c
     pending = list(config_of)
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        try:
-            yield ray.get(done[0])
-        except ray.exceptions.RayError as e:  # its worker died (run_one catches what the run raises)
-            yield {"config": config_of[done[0]], "error": f"{type(e).__name__}: {e}"}
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            try:
+                yield ray.get(done[0])
+            except ray.exceptions.RayError as e:  # its worker died (run_one catches what the run raises)
+                yield {"config": config_of[done[0]], "error": f"{type(e).__name__}: {e}"}
+    finally:  # an interrupted sweep: its runs still on the cluster end with it
+        for ref in pending:
+            ray.cancel(ref, force=True)
 
 
 def main() -> None:
@@ -174,7 +227,10 @@ def main() -> None:
         "--workers", type=int, default=cpus, help="parallel runs (default: the CPUs this process may use)"
     )
     ap.add_argument("--ray", action="store_true", help="run on Ray (RAY_ADDRESS or a local instance)")
-    ap.add_argument("--resume", action="store_true", help="skip the runs already in <out>/sweep.json")
+    ap.add_argument(
+        "--resume", action="store_true", help="skip the runs already in <out>/sweep.json, add the rest"
+    )
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing <out>/sweep.json")
     add_arguments(ap)
     ap.set_defaults(threads=1, gif=False)
     ap.add_argument("--gif", dest="gif", action="store_true", help="write each run's best.gif")
@@ -213,39 +269,76 @@ def main() -> None:
             _check_settings({**DEFAULTS, **c})
         except ValueError as err:
             ap.error(f"{c['task']} {c['model']}: {err}")
-    args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "sweep.json"
-    runs = json.loads(path.read_text())["runs"] if args.resume and path.exists() else []
+    if args.resume and args.overwrite:
+        ap.error("--resume and --overwrite: give one")
+    if path.exists() and not (args.resume or args.overwrite):
+        ap.error(f"--out: {path} exists: --resume adds to it, --overwrite replaces it")
+    args.out.mkdir(parents=True, exist_ok=True)
+    lock = open(args.out / ".sweep.lock", "w")  # noqa: SIM115 (held until the process ends)
+    try:  # released by the system when this process ends, however it ends
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        ap.error(f"--out: another sweep is writing to {args.out}")
+    old = json.loads(path.read_text()) if args.resume and path.exists() else {}
+    runs, sweeps = old.get("runs", []), old.get("sweeps", [])
+    # --resume continues the same experiment: each task and model's runs (one row of the table, one curve of the
+    # plot) share their settings; a new cell is checked against every earlier run of its task and model
     earlier = {_key(r["config"]): r["config"] for r in runs}
-    for (
-        c
-    ) in grid:  # --resume continues the same experiment: a finished cell run with other settings is an error
-        if _key(c) in earlier and (diff := _settings_differ(earlier[_key(c)], c)):
-            old = DEFAULTS | earlier[_key(c)]
-            raise SystemExit(
-                f"--resume: {path} holds {c['task']} {c['model']} seed {c['seed']} run with other settings ("
-                + ", ".join(f"{k}: {old.get(k)!r} there, {c[k]!r} now" for k in diff)
-                + "); resume with the same settings or write to another --out"
-            )
+    for c in grid:
+        for e in (e for e in earlier.values() if e["task"] == c["task"] and e["model"] == c["model"]):
+            if diff := _settings_differ(e, c):
+                then = DEFAULTS | e
+                raise SystemExit(
+                    f"--resume: {path} holds {c['task']} {c['model']} seed {e['seed']} run with other settings than "
+                    f"seed {c['seed']} now ("
+                    + ", ".join(f"{k}: {then.get(k)!r} there, {c[k]!r} now" for k in diff)
+                    + "); resume with the same settings or write to another --out"
+                )
+    commit = git_revision()
+    others = sorted({str(r.get("commit")) for r in runs} - {str(commit)})
+    if others:
+        print(
+            f"--resume: {path} holds runs of commit {', '.join(others)}; this sweep runs {commit} "
+            "(each run's log keeps its commit)",
+            file=sys.stderr,
+        )
+    sweeps.append(
+        {
+            "commit": commit,
+            "host": platform.node(),
+            "workers": args.workers,
+            "ray": args.ray,
+            "argv": sys.argv[1:],
+        }
+    )
     todo = [c for c in grid if _key(c) not in earlier]
     results = (_run_ray if args.ray else _run_local)(todo, args.workers)
     failed = []
-    for r in tqdm(results, total=len(todo), desc="sweep"):
-        c = r["config"]
-        if "error" in r:
-            failed.append(r)
-            tqdm.write(f"{c['task']} {c['model']} seed {c['seed']}: FAILED {r['error']}")
-            _write(args.out / "failed.json", failed)
-            continue
-        runs.append(r)
-        _write(path, {"runs": runs})
-        s = r["summary"]
-        end = s.get("loss_end", s.get("loss_executed"))
-        start = s.get("loss_start", s.get("loss_zero_actions"))
-        tqdm.write(
-            f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
-        )
-    _write(path, {"runs": runs})  # (also when every run failed: the file says so)
+    # SIGTERM (kill, timeout) ends the sweep as Ctrl-C does: the pool's running runs end with it
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        for r in tqdm(results, total=len(todo), desc="sweep"):
+            c = r["config"]
+            if "error" in r:
+                failed.append(r)
+                tqdm.write(f"{c['task']} {c['model']} seed {c['seed']}: FAILED {r['error']}")
+                _write(args.out / "failed.json", failed)
+                continue
+            runs.append(r)
+            _write(path, {"runs": runs, "sweeps": sweeps})
+            s = r["summary"]
+            end = s.get("loss_end", s.get("loss_executed"))
+            start = s.get("loss_start", s.get("loss_zero_actions"))
+            tqdm.write(
+                f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
+            )
+    except KeyboardInterrupt:
+        results.close()  # ends the pool's runs (a run in this process has ended already)
+        _write(path, {"runs": runs, "sweeps": sweeps})
+        print(f"interrupted: {len(runs)} runs in {path}; --resume runs the rest", file=sys.stderr)
+        sys.exit(130)
+    _write(path, {"runs": runs, "sweeps": sweeps})  # (also when every run failed: the file says so)
     if not failed:  # failed.json lists this sweep's failures only: none now
         (args.out / "failed.json").unlink(missing_ok=True)
     print(

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -70,34 +71,56 @@ def main() -> None:
             ap.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if not args.lr > 0:
         ap.error(f"--lr must be > 0, got {args.lr}")
+    for name in ("tasks", "seeds"):  # a cell twice would run and be tabulated twice
+        values = getattr(args, name)
+        if len(set(values)) != len(values):
+            ap.error(
+                f"argument --{name}: lists {sorted({v for v in values if values.count(v) > 1})} more than once"
+            )
     # numba first: starting its pool resets the OpenMP thread count torch shares
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     cells = [(t, s) for t in args.tasks for s in args.seeds]
-    runs = [run(t, s, args.horizon, args.iters, args.lr) for t, s in tqdm(cells, desc="runs")]
     meta = {
         "commit": git_revision(),
         "horizon": args.horizon,
         "iters": args.iters,
         "lr": args.lr,
-        "runs": runs,
+        "threads": args.threads,
     }
-    (args.out / "trivial_start_runs.json").write_text(json.dumps(meta, indent=1))
+    runs: list[dict] = []
+    failed: list[dict] = []
+    for t, s in tqdm(cells, desc="runs"):
+        try:
+            runs.append(run(t, s, args.horizon, args.iters, args.lr))
+        except Exception as e:  # noqa: BLE001 (one failed run does not lose the others)
+            failed.append({"task": t, "seed": s, "error": f"{type(e).__name__}: {e}"})
+            tqdm.write(f"{t} seed {s}: FAILED {failed[-1]['error']}")
+        write(args.out, {**meta, "runs": runs, "failed": failed})  # after every run: an interrupt keeps them
+    print(write(args.out, {**meta, "runs": runs, "failed": failed}))
+    print("wrote", args.out / "trivial_start_runs.json", args.out / "table.md")
+    if failed:
+        sys.exit(1)
+
+
+def write(out: Path, meta: dict) -> str:
+    """Write ``trivial_start_runs.json`` and ``table.md`` under ``out``; returns the table."""
+    (out / "trivial_start_runs.json").write_text(json.dumps(meta, indent=1))
     lines = [
         "| task | seed | loss start | loss best | decrease 1 - best / start | s per iteration (median) |",
         "|---|---:|---:|---:|---:|---:|",
     ]
-    for r in runs:
+    for r in meta["runs"]:
         sec = statistics.median(r["seconds"])
         lines.append(
             f"| {r['task']} | {r['seed']} | {r['losses'][0]:.10g} | {min(r['losses']):.10g} | {r['decrease']:.2g} "
             f"| {sec:.1f} |"
         )
+    lines += [f"| {f['task']} | {f['seed']} | failed: {f['error']} | | | |" for f in meta["failed"]]
     table = "\n".join(lines)
-    (args.out / "table.md").write_text(table + "\n")
-    print(table)
-    print("wrote", args.out / "trivial_start_runs.json", args.out / "table.md")
+    (out / "table.md").write_text(table + "\n")
+    return table
 
 
 if __name__ == "__main__":

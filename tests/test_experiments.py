@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -25,7 +26,7 @@ try:
         _round_off,
         run_experiment,
     )
-    from plot_results import _curves, mixed_settings, table
+    from plot_results import _curves, _together, mixed_settings, table
 finally:
     sys.path.pop(0)
 
@@ -376,11 +377,31 @@ def test_sweep_and_plot_results(tmp_path):
         check=True, capture_output=True,
     )  # fmt: skip
     assert (tmp_path / "b" / "Push.png").stat().st_size > 0
-    # --resume continues the same experiment only: other settings for a finished cell are refused
-    again = subprocess.run(
-        [*cmd[:-2], "--resume", "--iters", "2", "--out", str(tmp_path)], capture_output=True, text=True
+    # --resume continues the same experiment only: other settings for a finished cell are refused, and for a new
+    # seed of a task and model that has runs (plot_results.py refused the folder after); an existing sweep.json is
+    # kept unless --resume or --overwrite says what to do with it (it was replaced silently)
+    for seed in ("3", "4"):
+        message = f"seed 3 run with other settings than seed {seed} now (iters: 1 there, 2 now)"
+        again = subprocess.run(
+            [*cmd[:-2], "--resume", "--iters", "2", "--seeds", seed, "--out", str(tmp_path)],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        assert again.returncode != 0 and message in again.stderr, again.stderr
+    anew = subprocess.run(cmd, capture_output=True, text=True)
+    assert (
+        anew.returncode == 2
+        and "sweep.json exists: --resume adds to it, --overwrite replaces it" in anew.stderr
     )
-    assert again.returncode != 0 and "run with other settings (iters: 1 there, 2 now)" in again.stderr
+    assert len(json.loads((tmp_path / "sweep.json").read_text())["runs"]) == 2
+    # a new seed with the same settings is added, and each invocation is recorded
+    subprocess.run(
+        [*cmd[:-2], "--resume", "--models", "cfd", "--seeds", "4", "--out", str(tmp_path)], check=True
+    )
+    resumed = json.loads((tmp_path / "sweep.json").read_text())
+    assert sorted((r["config"]["model"], r["config"]["seed"]) for r in resumed["runs"]) == [
+        ("cfd", 3), ("cfd", 4), ("gb", 3)
+    ]  # fmt: skip
+    assert [s["workers"] for s in resumed["sweeps"]] == [1, 1] and "--resume" in resumed["sweeps"][1]["argv"]
     # a cell in two of the folders given to plot_results.py is refused (it would count twice)
     twice = subprocess.run(
         [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), str(tmp_path), "--out", str(tmp_path / "p")],
@@ -808,6 +829,55 @@ def test_sweep_pool_records_a_run_whose_process_died(monkeypatch, tmp_path):
     assert [r["config"]["seed"] for r in results if "error" in r] == [1]
 
 
+def test_an_interrupted_sweep_ends_its_runs(monkeypatch, tmp_path):
+    """Ctrl-C: the pool's workers leave SIGINT to the sweep (a worker that took it reported its run failed and
+    started the next), and the sweep interrupted ends the running runs instead of waiting for every pending one
+    (the grid ran on for minutes after Ctrl-C, its runs unrecorded). Stand-in runs, no simulation."""
+    import multiprocessing
+    import time
+
+    (tmp_path / "standin.py").write_text(
+        "import os, signal, time\n"
+        "def run(c):\n"
+        "    if c['seed'] == 0:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)  # the terminal's Ctrl-C reaches the workers too\n"
+        "        time.sleep(0.2)\n"
+        "        return {'config': c}\n"
+        "    time.sleep(120)\n"
+    )
+    sweep = _sweep_module()
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import standin
+
+    monkeypatch.setattr(sweep, "run_one", standin.run)
+    before = set(multiprocessing.active_children())  # (another test's, in this process)
+    results = sweep._run_local([{"task": "Push", "model": "cfd", "seed": s} for s in range(4)], 2)
+    assert next(results) == {"config": {"task": "Push", "model": "cfd", "seed": 0}}  # it ignored the SIGINT
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        results.throw(KeyboardInterrupt)  # where the sweep's Ctrl-C lands: waiting for the next result
+    assert time.perf_counter() - t0 < 30 and set(multiprocessing.active_children()) <= before
+
+
+def test_an_interrupt_inside_a_run_is_not_a_failed_run(monkeypatch):
+    """numba re-raises a KeyboardInterrupt inside its kernels as a SystemError: the serial sweep recorded the run as
+    failed and went on to the next. A real failure is kept with its traceback."""
+    sweep = _sweep_module()
+
+    def interrupted(config):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from e
+
+    monkeypatch.setattr(sweep, "run_experiment", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sweep.run_one({"seed": 0})
+    monkeypatch.setattr(sweep, "run_experiment", lambda config: 1 / 0)
+    failed = sweep.run_one({"seed": 0})
+    assert failed["error"] == "ZeroDivisionError: division by zero" and "1 / 0" in failed["traceback"]
+
+
 def test_sweep_workers_default_to_the_usable_cpus(monkeypatch, tmp_path):
     """--workers defaults to the CPUs this process may run on (taskset, cpusets), not the machine's count."""
     import os
@@ -839,3 +909,14 @@ def test_plot_results_takes_missing_settings_as_defaults():
     assert "different loss" in mixed_settings(
         [{"config": old}, {"config": {**DEFAULTS, "seed": 1, "loss": "final"}}]
     )
+
+
+def test_plot_results_holds_a_run_that_ended_sooner():
+    """An MPC run ended by its task (often the successful seed) cut every seed's mean curve to its length, and the
+    model's total-cost dot sat at its wall time; it now holds its last loss and wall time to the longest run's end."""
+    short = (np.arange(2.0), np.array([0.1, 0.2]), np.array([1.0, 0.5]))
+    long = (np.arange(4.0), np.array([0.1, 0.3, 0.5, 0.9]), np.array([1.0, 0.9, 0.8, 0.7]))
+    x, wall, L = _together([short, long])
+    assert x.tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert L.tolist() == [[1.0, 0.5, 0.5, 0.5], [1.0, 0.9, 0.8, 0.7]]
+    assert wall.tolist() == pytest.approx([0.1, 0.25, 0.35, 0.55])

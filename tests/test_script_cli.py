@@ -125,6 +125,7 @@ REFUSED = [
     ("billiards_landscape", ["--angles", "-15", "20", "1"], "--angles"),  # a blank heat map
     ("stress_step", ["--duration", "inf"], "--duration"),
     ("step_accuracy", ["--replot"], "--replot"),  # no JSON in --out
+    ("trivial_start_runs", ["--tasks", "Push", "Push"], "--tasks"),  # ran and tabulated twice
 ]
 
 
