@@ -79,3 +79,15 @@ def folder_problem(path: Path) -> str | None:
         if p.exists():
             return None if p.is_dir() else f"{path}: {p} is a file; give a folder"
     return None
+
+
+def interrupted(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in the chain of ``e`` (numba re-raises one inside its kernels as a
+    SystemError "returned a result with an exception set"): a script that keeps going past a failed run stops."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False

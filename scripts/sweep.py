@@ -44,7 +44,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _cli import folder_problem  # noqa: E402
+from _cli import folder_problem, interrupted  # noqa: E402
 from _provenance import REVISION_ENV, git_revision  # noqa: E402
 from optimize import (  # noqa: E402
     DEFAULTS,
@@ -70,25 +70,13 @@ def configs(args: argparse.Namespace) -> list[dict]:
     ]
 
 
-def _interrupted(e: BaseException) -> bool:
-    """Whether a KeyboardInterrupt is in the chain of ``e`` (numba re-raises one inside its kernels as a
-    SystemError "returned a result with an exception set")."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return True
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return False
-
-
 def run_one(config: dict) -> dict:
     """run_experiment(config), or, if it raises, {"config", "error", "traceback"}: one failed cell does not stop the
     sweep (an interrupt, Ctrl-C, does)."""
     try:
         return run_experiment(config)
     except Exception as e:  # noqa: BLE001 (a failed run is a result of the sweep)
-        if _interrupted(e):
+        if interrupted(e):
             raise KeyboardInterrupt from e
         return {"config": config, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
 
@@ -137,6 +125,7 @@ def _spawn_pool(workers: int):
         yield pool
     except BaseException:
         processes = pool._processes or {}  # the pool's own dict (shutdown drops the pool's reference to it)
+        manager = pool._executor_manager_thread
         pool.shutdown(wait=False, cancel_futures=True)
         ended: set[int] = set()
         while live := [p for pid, p in list(processes.items()) if pid not in ended]:
@@ -144,7 +133,8 @@ def _spawn_pool(workers: int):
                 proc.terminate()
                 proc.join(10)
                 ended.add(proc.pid)
-        pool.shutdown(wait=True)  # its manager thread, once it has seen its workers end
+        if manager is not None:  # it ends once it has seen its workers end
+            manager.join(10)
         raise
     pool.shutdown(wait=True)
 
@@ -296,7 +286,7 @@ def main() -> None:
                     + "); resume with the same settings or write to another --out"
                 )
     commit = git_revision()
-    others = sorted({str(r.get("commit")) for r in runs} - {str(commit)})
+    others = sorted({str(r.get("commit") or "unrecorded") for r in runs} - {str(commit)})
     if others:
         print(
             f"--resume: {path} holds runs of commit {', '.join(others)}; this sweep runs {commit} "
@@ -333,11 +323,11 @@ def main() -> None:
             tqdm.write(
                 f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
             )
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemExit) as e:  # (Ray's driver turns SIGTERM into SystemExit)
         results.close()  # ends the pool's runs (a run in this process has ended already)
         _write(path, {"runs": runs, "sweeps": sweeps})
         print(f"interrupted: {len(runs)} runs in {path}; --resume runs the rest", file=sys.stderr)
-        sys.exit(130)
+        sys.exit(130 if isinstance(e, KeyboardInterrupt) else e.code)
     _write(path, {"runs": runs, "sweeps": sweeps})  # (also when every run failed: the file says so)
     if not failed:  # failed.json lists this sweep's failures only: none now
         (args.out / "failed.json").unlink(missing_ok=True)

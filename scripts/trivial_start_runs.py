@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numba
 import torch
+from _cli import interrupted
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -95,6 +96,8 @@ def main() -> None:
         try:
             runs.append(run(t, s, args.horizon, args.iters, args.lr))
         except Exception as e:  # noqa: BLE001 (one failed run does not lose the others)
+            if interrupted(e):
+                raise KeyboardInterrupt from e
             failed.append({"task": t, "seed": s, "error": f"{type(e).__name__}: {e}"})
             tqdm.write(f"{t} seed {s}: FAILED {failed[-1]['error']}")
         write(args.out, {**meta, "runs": runs, "failed": failed})  # after every run: an interrupt keeps them

@@ -1431,6 +1431,8 @@ def test_moving_rows_and_coords_check_their_inputs():
         ant.coords(torch.full((1, 9, 6), math.nan, dtype=F64))
     with pytest.raises(ValueError, match=r"near must be a torch.float64 tensor of shape \(\[A,\] 14\)"):
         ant.coords(rows[None], near=torch.zeros(1, 8, dtype=F64))
+    with pytest.raises(ValueError, match=r"near must be a torch.float64 tensor"):
+        ant.coords(rows, near=[0.0] * 14)
     arm = articulation(_arm_xml())  # a joint-less fixed root: its pose is needed
     with pytest.raises(ValueError, match=r"root must be a torch.float64 tensor of shape \(2, 6\)"):
         arm.moving_rows(torch.zeros(2, arm.num_coords, dtype=F64), None)

@@ -489,9 +489,16 @@ def test_visual_only_mesh_geoms_are_left_out_with_a_warning() -> None:
     for a, b in zip(model.links, plain.links, strict=True):
         assert a.mass == b.mass and len(a.geoms) == len(b.geoms) == 1
         np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
-    # a mesh geom MuJoCo collides is still refused
+    # in a body without <inertial> (its geoms' masses count), a visual mesh of no mass is left out too
+    bare = xml.replace('<inertial pos="0 0 0" mass="2" diaginertia=".01 .01 .01"/>', "")
+    for zero in ('mass="0"', 'density="0"'):
+        with pytest.warns(UserWarning, match=r"geoms \['base/#1', 'arm/#1'\] are left out"):
+            load_mjcf(bare.format(v=f'<geom class="visual" mesh="shell" {zero}/>'))
+    # a mesh geom MuJoCo collides, or whose mass counts, is still refused
     with pytest.raises(ValueError, match="has unsupported type mesh"):
         load_mjcf(xml.format(v='<geom type="mesh" mesh="shell"/>'))
+    with pytest.raises(ValueError, match="has unsupported type mesh .left out only when visual"):
+        load_mjcf(bare.format(v='<geom class="visual" mesh="shell"/>'))
 
 
 def test_source_must_be_text_or_a_path() -> None:

@@ -93,8 +93,8 @@ class Articulation:
     Joint values are recovered from the link poses of a state (the state rows are the links' poses): a hinge's in
     the turn centred on its range (so the whole range is inside it; a range of a whole turn or more is dropped, with
     a warning), or on its ref without one; for a link with three hinges at one anchor, whose two solutions give the
-    same pose, the one with all three within their ranges, else the one nearer ref (the step reads the state a step
-    earlier on the branch of the state now). Hinge axes that cannot be told apart
+    same pose, the one with every joint of the link (hinges and slides) within its range, else the one nearer ref
+    (the step reads the state a step earlier on the branch of the state now). Hinge axes that cannot be told apart
     (consecutive parallel hinges of one link) and more than three hinges or slides on a link are refused.
     """
 
@@ -346,10 +346,8 @@ class Articulation:
         _check_float(rows[None] if single else rows, "rows", (None, L, 6), f"([A,] {L}, 6)")
         r = rows[None] if single else rows
         if near is not None:
-            _check_float(
-                near[None] if single else near, "near", (r.shape[0], Q), f"([A,] {Q}) like rows", r.dtype
-            )
-            near = near[None] if single else near
+            near = near[None] if single and isinstance(near, torch.Tensor) else near
+            _check_float(near, "near", (r.shape[0], Q), f"([A,] {Q}) like rows", r.dtype)
         out = _joint_values(self, r, near)
         return out[0] if single else out
 
@@ -824,8 +822,9 @@ def _joint_values(art: Articulation, rows: torch.Tensor, near: torch.Tensor | No
     joints before i), solved in least squares. Of a three-hinge link's two solutions (t1, t2, t3) and (t1 + pi,
     pi - t2, t3 + pi) (for orthogonal axes), the one whose translation fits (where the anchors tell them apart),
     else, with ``near`` (A, Qa) given, the one nearer those coordinates (the state a step earlier read near the
-    state now: a joint turning through the middle hinge's pi / 2 keeps one branch), else the one with all three
-    hinges within their ranges, else the one nearer ref (the sum of the three angles' distances)."""
+    state now: a joint turning through the middle hinge's pi / 2 keeps one branch), else the one with every joint of
+    the link (hinges and slides) within its range, else the one nearer ref (the sum of the three angles'
+    distances)."""
     dt, dev = rows.dtype, rows.device
     as_t = lambda x: torch.as_tensor(x, dtype=dt, device=dev)  # noqa: E731
     mv = lambda M, x: (M @ x[..., None])[..., 0]  # noqa: E731

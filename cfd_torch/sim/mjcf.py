@@ -408,8 +408,10 @@ def load_mjcf(
             for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
                 # MuJoCo infers masses from the geoms in inertiagrouprange only.
                 counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
+                _, density, explicit_mass, _ = geom_source[m.geom(g).name]
+                massless = explicit_mass == 0 or (math.isnan(explicit_mass) and density == 0)
                 if int(m.geom_type[g]) not in _GEOM_KINDS and not (
-                    counts or m.geom_contype[g] or m.geom_conaffinity[g]
+                    (counts and not massless) or m.geom_contype[g] or m.geom_conaffinity[g]
                 ):  # a visual mesh (or plane, ...): no mass, no contact, nothing the step needs
                     name = geom_source[m.geom(g).name][0]
                     left_out.append(name or f"{m.body(b).name}/#{g - m.body_geomadr[b]}")
@@ -853,7 +855,8 @@ def _geom_spec(
     if kind is None:
         type_name = mujoco.mjtGeom(int(m.geom_type[g])).name.removeprefix("mjGEOM_").lower()
         raise ValueError(
-            f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}' has unsupported type {type_name}"
+            f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}' has unsupported type {type_name} (left out "
+            "only when visual: contype = conaffinity = 0 and no mass counted)"
         )
     size = m.geom_size[g].copy()
     volume = _volume(kind, size)
