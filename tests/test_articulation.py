@@ -1688,3 +1688,29 @@ def test_servo_gains_are_checked_on_servos_only():
     assert torch.equal(odd.q, ref.q)
     with pytest.raises(ValueError, match=r"params\.kv must be >= 0 \(a servo gain\) \(first at actuator 1\)"):
         step(scene, state, action, p._replace(kv=torch.tensor([0.0, -1.0], dtype=F64)))
+
+
+def test_model_base_places_the_robot_where_mujoco_does():
+    """``poses(joints)`` stands a fixed base's root at the origin (documented); ``Articulation.model_base`` is the
+    MJCF's pose of it, so ``poses(joints, art.model_base)`` gives MuJoCo's centres of mass and inertia frames (an
+    arm declared at z = 1 and posed with the default started inside its floor)."""
+    import mujoco
+
+    from cfd_torch.rotation import rotation_matrix
+
+    xml = """<mujoco><worldbody><body name="base" pos="0.2 -0.1 1" euler="0 0 30"><geom type="sphere" size="0.05"/>
+      <body name="arm"><joint name="j" type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.03"/></body></body></worldbody></mujoco>"""
+    art = articulation(xml)
+    assert torch.allclose(
+        art.model_base, torch.tensor([0.2, -0.1, 1.0, 0.0, 0.0, math.radians(30)], dtype=F64)
+    )
+    rows = art.poses(torch.tensor([0.4], dtype=F64), art.model_base)
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    d.qpos[:] = [0.4]
+    mujoco.mj_kinematics(m, d)
+    np.testing.assert_allclose(rows[:, :3].numpy(), d.xipos[1:], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        rotation_matrix(rows[:, 3:]).numpy(), d.ximat[1:].reshape(-1, 3, 3), atol=1e-12
+    )

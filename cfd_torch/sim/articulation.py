@@ -48,7 +48,7 @@ import torch
 from ..contact.bsh import BSH
 from ..rotation import rotation_derivatives, rotation_matrix, rotation_vector
 from .bodies import RigidBody
-from .mjcf import load_mjcf, quat_to_matrix
+from .mjcf import load_mjcf, matrix_to_quat, quat_to_matrix
 
 __all__ = ["Articulation", "articulation", "ArticulatedKinematics"]
 
@@ -269,10 +269,20 @@ class Articulation:
         self._levels, self._level_back = _levels(self)  # the frame tree by depth, for the forward kinematics
         self._fk_table = _fk_table(self)  # the same flattened, for the numba kernel of the link rows
 
+    @property
+    def model_base(self) -> torch.Tensor:
+        """(6,) float64, the pose of the root link's frame that the MJCF gives (translation, rotation vector): pass
+        it as ``poses(joints, base)`` to place the robot where MuJoCo would (``poses``' default is the origin)."""
+        quat = torch.as_tensor(matrix_to_quat(self.offset_R[0]), dtype=torch.float64)
+        return torch.cat(
+            [torch.as_tensor(self.offset_p[0], dtype=torch.float64), rotation_vector(quat[None])[0]]
+        )
+
     def poses(self, joints: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """([B,] L, 6) state rows of the links (centre-of-mass poses) for joint values ([B,] J) and the base pose
         ([B,] 6) of the root link's frame (translation, rotation vector; a fixed base: where its root stands,
-        default the origin). A fixed base whose root has joints hangs from its ``mount``: ``base`` must be None."""
+        default the origin, not the MJCF's pose: that is :attr:`model_base`). A fixed base whose root has joints
+        hangs from its ``mount``: ``base`` must be None."""
         if (
             not isinstance(joints, torch.Tensor)
             or not joints.is_floating_point()

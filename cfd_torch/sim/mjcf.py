@@ -444,7 +444,7 @@ def load_mjcf(
                 name=m.body(group[0]).name,
                 parent=link_parent[k],
                 pos=pose[:3, 3].copy(),
-                quat=_matrix_to_quat(pose[:3, :3]),
+                quat=matrix_to_quat(pose[:3, :3]),
                 joints=tuple(joints[i] for i in link_joint[k]),
                 mesh=trimesh.util.concatenate([g.mesh for g in colliding or geoms])
                 if geoms
@@ -799,7 +799,7 @@ def _root_pose(m: mujoco.MjModel, root_id: int) -> tuple[bool, np.ndarray, np.nd
             )
         T = _transform(m.body_pos[b], m.body_quat[b]) @ T
         b = int(m.body_parentid[b])
-    return bool(free), T[:3, 3].copy(), _matrix_to_quat(T[:3, :3])
+    return bool(free), T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
 
 
 def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
@@ -870,7 +870,7 @@ def _geom_spec(
         kind=kind,
         size=size,
         pos=T[:3, 3].copy(),
-        quat=_matrix_to_quat(T[:3, :3]),
+        quat=matrix_to_quat(T[:3, :3]),
         mass=float(mass) if counts else 0.0,
         contype=int(m.geom_contype[g]),
         conaffinity=int(m.geom_conaffinity[g]),
@@ -1085,7 +1085,7 @@ def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
     return out.reshape(3, 3)
 
 
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix."""
     q = np.empty(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).reshape(9))
