@@ -167,7 +167,8 @@ class SolverConfig:
         newton_tol: converged when the undamped Newton step is at most this in every coordinate [m, rad] at a
             positive definite Hessian; that last step is taken too, so forces too weak to move a body by this
             much per step still move it (a step's error is about the square of this step, not this).
-        max_newton_iter: Newton iterations before the step raises :class:`cfd_torch.StepError`.
+        max_newton_iter: Newton iterations of one solve before the step raises :class:`cfd_torch.StepError` (a
+            step pushing bodies out of a kinematic body's way runs a solve per stage, each with this cap).
         ccd_spacing: [m] no tunnelling: a move of the iterate is accepted only if its straight path stays feasible
             at points at most this far apart (largest vertex displacement), and one Newton iteration moves no
             vertex more than 20 times this.

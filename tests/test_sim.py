@@ -327,8 +327,12 @@ def test_step_error_names_the_reason(bodies):
     cube, ground, _, _ = bodies
     scene = Scene((cube, ground), max_newton_iter=1)
     state = scene.initial_state(torch.tensor([_pose(0.0, 0.0, 0.2), _pose()], dtype=F64))
-    with pytest.raises(StepError, match="did not converge in 1 Newton iterations"):
+    with pytest.raises(StepError, match="did not converge in 1 Newton iterations") as err:
         step(scene, state)
+    # every setting that can cause it is named with its value (a tiny ccd_spacing caps each iteration's move)
+    assert "newton_tol=" in str(err.value) and "ccd_spacing=0.01 " in str(err.value)
+    with pytest.raises(TypeError, match="return_info must be a bool, got str"):
+        step(scene, state, return_info="no")
 
 
 def test_substeps_retry_a_failed_step(bodies):
@@ -457,6 +461,11 @@ def test_replace_rebuilds_from_the_bodies_as_given_and_keeps_the_other_settings(
     torch.testing.assert_close(f, pair_forces(direct, q), rtol=0.0, atol=0.0)
     assert s.replace(friction=0.3).friction == FrictionConfig(0.3, eps_v=1e-6, active=1e-3)
     assert s.replace(dt=0.005).friction == s.friction
+    # through a chain of replace() calls too: a change that keeps the refinement passed the refined meshes on as
+    # the ones given, and the next change refined them again (1672 faces) or kept them (IPC on the cfd mesh)
+    chained = s.replace(dt=0.005).replace(potential="ipc")
+    assert chained.bodies[1].bsh.num_faces == 12 and chained.dt == 0.005
+    assert s.replace(friction=0.3).replace(refine_obstacles=None).bodies[1].bsh.num_faces == 12
 
 
 def test_configs_hold_the_defaults_and_check_their_fields(bodies):

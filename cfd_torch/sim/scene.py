@@ -432,7 +432,11 @@ class Scene:
         refining = {"contact", "potential", "refine_obstacles", "contact_model", "exclude", "articulations"}
         if refining.isdisjoint(changes):
             n = len(self.bodies) - sum(a.num_links for a in self.articulations)
-            return Scene(self.bodies[:n], **kw)
+            out = Scene(self.bodies[:n], **kw)
+            object.__setattr__(
+                out, "_given_bodies", self._given_bodies
+            )  # what a later replace() refines from
+            return out
         return Scene(self._given_bodies, **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:

@@ -188,9 +188,15 @@ def _continuation(prob: StepProblem, q: torch.Tensor, where: str = "") -> tuple[
             res, w = _newton(sub, q1, None, tol)
             work = _add(work, w)
             if int(res.reason[0]) != Stop.CONVERGED:
+                why = Stop(int(res.reason[0]))
                 raise StepError(
                     f"pushing bodies out of a kinematic body's way{where}: the solve at {frac:.3g} of the kinematic "
-                    f"motion stopped: {Stop(int(res.reason[0])).name}"
+                    f"motion stopped: {why.name}"
+                    + (
+                        f" (max_newton_iter={scene.solver.max_newton_iter} iterations per solve)"
+                        if why == Stop.MAX_ITER
+                        else ""
+                    )
                 )
             rate = (res.q - q) / (frac - done)
             q = res.q
@@ -353,7 +359,8 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
         raise StepError(
             f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {gmax:.3e}, last line search step "
             f"{float(res.alpha[b]):.1e}; try a smaller dt (a heavy or fast body), a contact margin and stiffness "
-            "suited to the bodies' scale, or a larger max_newton_iter"
+            f"suited to the bodies' scale, a larger max_newton_iter, or, if ccd_spacing={s.ccd_spacing:g} is small "
+            "against the bodies' motion, a larger one (an iteration moves a vertex at most 20 x ccd_spacing)"
         )
     q_t = _coords(prob)[0]
     ok = reachable(prob, q_t, res.q)

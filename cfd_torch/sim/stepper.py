@@ -358,6 +358,8 @@ def step(
         raise TypeError(f"params must be a cfd_torch.Params or None, got {type(params).__name__}")
     if not isinstance(state, State):
         raise TypeError(f"state must be a cfd_torch.State, got {type(state).__name__}")
+    if not isinstance(return_info, bool):  # ("no" would return the info)
+        raise TypeError(f"return_info must be a bool, got {type(return_info).__name__}")
     # the step's Function is an old-style autograd Function around numba kernels, which the transforms cannot pass,
     # without a forward-mode rule
     refuse_transforms(

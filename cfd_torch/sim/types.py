@@ -111,7 +111,9 @@ class StepInfo(NamedTuple):
 
     Attributes:
         newton_iters: ([B]) Newton iterations of each scene's solve (after a sub-step retry, this and the other
-            work counts are the sub-steps' that succeeded; ``seconds`` includes the failed attempts).
+            work counts are the sub-steps' that succeeded; ``seconds`` includes the failed attempts). A step
+            whose kinematic bodies' targets overlap dynamic bodies first pushes them out of the way in stages, one
+            Newton solve each: those iterations are not counted here, their evaluations are in ``contact_evals``.
         contact_evals: evaluations of the incremental potential, each one contact-model call over the scenes still
             iterating (line-search trials included).
         node_pairs: hierarchy node pairs visited over those evaluations.
