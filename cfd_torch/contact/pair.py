@@ -126,7 +126,7 @@ def _raise_unconverged(status: torch.Tensor, resid: torch.Tensor, max_iter: int,
         raise PairSolveError(
             f"pair potential: the plane solve did not converge for {int(bad.sum())} of {feasible} feasible "
             f"pairs (worst relative gradient {worst:.3e} > tol {tol:.1e} after max_iter={max_iter}; first at "
-            f"flattened pair index {idx})"
+            f"flattened pair index {idx}; a Scene's are pair_tol and pair_max_iter)"
         )
 
 
