@@ -53,7 +53,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import nonnegative_int, positive_float, positive_int  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_revision, json_args  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -625,7 +625,7 @@ def main() -> None:
             "machine": platform.processor() or platform.machine(), "git": git_revision(), "repeats": args.repeats,
             "quick": args.quick, "mu": args.mu, "margin": args.margin, "eps": args.eps, "split": "both",
             "loadavg_start": os.getloadavg(),
-            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+            "args": json_args(args),
         },
         "timed": TIMED,
     }  # fmt: skip

@@ -114,7 +114,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import int_range, nonnegative_float, nonnegative_int, positive_float, positive_int  # noqa: E402
-from _provenance import git_commit, git_revision  # noqa: E402
+from _provenance import git_commit, git_revision, json_args  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import cfd_torch  # noqa: E402
@@ -604,7 +604,7 @@ class Baseline:
         )  # fmt: skip
 
     def run(self, case_name: str, args) -> dict:
-        return self.run_spec({"args": _jsonable(vars(args)), "case": case_name}, case_name)
+        return self.run_spec({"args": json_args(args), "case": case_name}, case_name)
 
     def run_spec(self, spec: dict, name: str) -> dict:
         """Run the worker on ``spec`` (a JSON-able dict, to which the result file's path is added as "result") and
@@ -671,10 +671,6 @@ def compare(head: dict, base: dict) -> dict:
         "q_end_max_abs_diff": float((qa - qb).abs().max()),
         "grad_norm_max_rel_diff": float(((ga - gb).abs() / gb.abs().clamp_min(1e-300)).max()),
     }
-
-
-def _jsonable(d: dict) -> dict:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
 
 
 # ------------------------------------------------------------------------------------------------ output
@@ -1020,7 +1016,7 @@ def main() -> None:
             "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
             "git": git_revision(), "cfd_torch_sources_sha256": _source_hash(), "quick": args.quick,
-            "args": _jsonable(vars(args)),
+            "args": json_args(args),
             "loadavg_start": os.getloadavg(),
             "target_s": TARGET_S, "cpp_double_step_s": CPP_DOUBLE_S, "cpp_double_backward_s": CPP_DOUBLE_BACKWARD_S,
         },

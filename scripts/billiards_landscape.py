@@ -31,7 +31,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _cli import positive_int  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_revision, json_args  # noqa: E402
 from optimize import TASK_KWARGS, task_loss  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     start = float(task_loss(zero.info["reward_distance"], zero.alive, "final")[0])
     L = np.array(losses).reshape(len(angles), len(strengths))
     result = {
-        "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "config": json_args(args),
         "commit": git_revision(), "seconds": time.perf_counter() - t0, "aim_rad": aim, "target": target,
         "pocket": s0.task["pocket"][0].tolist(), "pocket_radius": core.pocket_radius, "start_loss": start,
         "angles_deg": angles.tolist(), "strengths": strengths.tolist(), "loss": L.tolist(),

@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from _cli import positive_float, positive_int  # noqa: E402
-from _provenance import git_revision  # noqa: E402
+from _provenance import git_revision, json_args  # noqa: E402
 
 from cfd_torch.envs import make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import EnvState  # noqa: E402
@@ -80,7 +80,7 @@ def main() -> None:
             "final_distance_minus_start": float(final[b].detach() - (target - box).norm()),
         })  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    meta = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+    meta = {"args": json_args(args),
             "commit": git_revision(), "seconds": seconds, "rows": rows}  # fmt: skip
     (args.out / "directions.json").write_text(json.dumps(meta, indent=1))
 

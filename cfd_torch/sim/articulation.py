@@ -283,51 +283,20 @@ class Articulation:
         ([B,] 6) of the root link's frame (translation, rotation vector; a fixed base: where its root stands,
         default the origin, not the MJCF's pose: that is :attr:`model_base`). A fixed base whose root has joints
         hangs from its ``mount``: ``base`` must be None."""
-        if (
-            not isinstance(joints, torch.Tensor)
-            or not joints.is_floating_point()
-            or joints.dim() not in (1, 2)
-        ):
-            got = (
-                (joints.dtype, tuple(joints.shape))
-                if isinstance(joints, torch.Tensor)
-                else type(joints).__name__
-            )
-            raise ValueError(f"joints must be a float tensor of shape ([B,] {self.num_joints}), got {got}")
-        single = joints.dim() == 1
+        single = isinstance(joints, torch.Tensor) and joints.dim() == 1
         th = joints[None] if single else joints
-        if th.shape[-1] != self.num_joints:
-            raise ValueError(
-                f"joints must hold {self.num_joints} values per robot, got shape {tuple(joints.shape)}"
-            )
-        if not bool(torch.isfinite(th.detach()).all()):
-            raise ValueError("joints contains NaN or inf")
+        _check_float(th, "joints", (None, self.num_joints), f"([B,] {self.num_joints})")
         if base is not None:
-            if (
-                not isinstance(base, torch.Tensor)
-                or base.dtype != th.dtype
-                or base.shape[-1:] != (6,)
-                or base.dim() > 2
-            ):
-                got = (
-                    (base.dtype, tuple(base.shape)) if isinstance(base, torch.Tensor) else type(base).__name__
-                )
-                raise ValueError(
-                    f"base must be a {th.dtype} tensor of shape ([B,] 6) (translation, rotation vector), got {got}"
-                )
-            if base.dim() == 2 and base.shape[0] not in (1, th.shape[0]):
-                raise ValueError(f"base has {base.shape[0]} rows for {th.shape[0]} sets of joints")
-            if not bool(torch.isfinite(base.detach()).all()):
-                raise ValueError("base contains NaN or inf")
+            b = base[None] if isinstance(base, torch.Tensor) and base.dim() == 1 else base
+            _check_float(b, "base", (None, 6), "([B,] 6) (translation, rotation vector)", th.dtype)
+            if b.shape[0] not in (1, th.shape[0]):
+                raise ValueError(f"base has {b.shape[0]} rows for {th.shape[0]} sets of joints")
         if self.root_moves and base is not None:
             raise ValueError(
                 f"base: {self.name!r} is mounted where its root's joints hang from (articulation(..., mount=)); "
                 "pass base=None"
             )
-        if base is None:
-            base = th.new_zeros(th.shape[0], 6)
-        b = base[None] if base.dim() == 1 else base
-        b = b.expand(th.shape[0], 6)
+        b = (th.new_zeros(th.shape[0], 6) if base is None else b).expand(th.shape[0], 6)
         if self.floating:
             rows = _fk_rows(self, torch.cat([b, th], 1), None)
         else:

@@ -408,12 +408,11 @@ def load_mjcf(
             for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
                 # MuJoCo infers masses from the geoms in inertiagrouprange only.
                 counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
-                _, density, explicit_mass, _ = geom_source[m.geom(g).name]
+                name, density, explicit_mass, _ = geom_source[m.geom(g).name]
                 massless = explicit_mass == 0 or (math.isnan(explicit_mass) and density == 0)
                 if int(m.geom_type[g]) not in _GEOM_KINDS and not (
                     (counts and not massless) or m.geom_contype[g] or m.geom_conaffinity[g]
                 ):  # a visual mesh (or plane, ...): no mass, no contact, nothing the step needs
-                    name = geom_source[m.geom(g).name][0]
                     left_out.append(name or f"{m.body(b).name}/#{g - m.body_geomadr[b]}")
                     continue
                 geom = _geom_spec(
