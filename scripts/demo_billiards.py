@@ -6,9 +6,15 @@ nothing touches. The loss is the squared distance of the object ball, after T st
 angle behind it. With a local barrier (IPC, SDRS, MuJoCo, ...) the gradient of that loss with respect to the cue
 velocity is exactly zero at the start, and gradient descent never moves. Our potential's gradient never vanishes:
 it is tiny (the balls are 1 m apart) but points the right way, Adam normalises its scale, the cue ball starts to
-roll toward the object ball, the two collide, and the optimisation then aims the shot at the pocket.
+roll toward the object ball, the two collide, and the optimisation then aims the shot at the pocket. At the
+default step (0.05 s: the aimed cue ball moves more than its diameter per step) the loss is not smooth in the
+velocity near the optimum: a step is a local minimum of its incremental potential (README, "A step is a local
+minimum"), and two shots 2e-4 m/s apart can end in different ones (loss 7e-4 against 6e-2 in iterations 58 and 59 of
+a run); the JSON and the GIF give the best iterate beside the last.
 
-Writes ``<out>/billiards_demo.png`` (loss, gradient norm, trajectories) and ``<out>/billiards_demo.json``.
+Writes ``<out>/billiards_demo.png`` (loss, gradient norm, trajectories), ``<out>/billiards_demo.json`` and
+``<out>/billiards_demo.gif`` (the best iterate's shot seen from above, the pocket a black disc; ``--no-gif`` skips
+it: it needs MuJoCo's headless EGL renderer).
 
     python scripts/demo_billiards.py --out results/demo
 """
@@ -32,6 +38,7 @@ from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch import Scene, rigid_body, rollout  # noqa: E402
+from cfd_torch.envs.core import camera_over, disc  # noqa: E402
 
 
 def simulate(scene: Scene, q0: torch.Tensor, v_cue: torch.Tensor, steps: int) -> torch.Tensor:
@@ -39,6 +46,28 @@ def simulate(scene: Scene, q0: torch.Tensor, v_cue: torch.Tensor, steps: int) ->
     the plane (differentiable in ``v_cue``)."""
     v = torch.stack([torch.cat([v_cue, v_cue.new_zeros(4)]), v_cue.new_zeros(6)])  # (N, 6)
     return rollout(scene, scene.initial_state(q0, v), steps).q
+
+
+def write_shot_gif(
+    mesh: trimesh.Trimesh, q: torch.Tensor, pocket: torch.Tensor, radius: float, path: Path, fps: float
+) -> None:
+    """A GIF of the poses ``q`` (T + 1, 2, 6) of the two balls seen from above (+x right, +y up), the pocket a black
+    disc 1.5 times the balls' radius on the drawn table under them."""
+    from cfd_torch.envs.render import MeshRenderer, write_gif
+
+    colours = [(0.95, 0.95, 0.92, 1.0), (0.95, 0.75, 0.1, 1.0), (0.0, 0.0, 0.0, 1.0)]
+    pocket_mesh = disc(1.5 * radius, 1e-3)
+    meshes = [(mesh.vertices, mesh.faces)] * 2 + [pocket_mesh]
+    q = q.cpu()
+    pocket_pose = torch.tensor([[*pocket.tolist(), -radius, 0.0, 0.0, 0.0]], dtype=q.dtype)
+    centres = torch.cat([q[:, :, :2].reshape(-1, 2), pocket[None]]).tolist()
+    camera = camera_over([(x, y, radius) for x, y in centres], azimuth=90.0, elevation=-90.0)
+    r = MeshRenderer(meshes, colours, width=400, height=400, camera=camera, floor=-radius)
+    try:
+        frames = [r.render(torch.cat([qt, pocket_pose])) for qt in q]
+    finally:
+        r.close()
+    write_gif(frames, path, fps=fps)
 
 
 def main() -> None:
@@ -51,6 +80,7 @@ def main() -> None:
     ap.add_argument("--dt", type=positive_float, default=0.05, help="time step [s]")
     ap.add_argument("--lr", type=positive_float, default=0.3, help="Adam learning rate [m/s]")
     ap.add_argument("--mu", type=positive_float, default=1e-8, help="the contact potential's mu")
+    ap.add_argument("--no-gif", dest="gif", action="store_false", help="skip billiards_demo.gif")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -66,7 +96,8 @@ def main() -> None:
     opt = torch.optim.Adam([v], lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=args.iters)
     history = []
-    first_traj = last_traj = None
+    first_traj = last_traj = best_q = None
+    best = -1
     t0 = time.perf_counter()
     for it in (bar := tqdm(range(args.iters), desc="billiards")):
         traj = simulate(scene, q0, v, args.steps)
@@ -88,6 +119,8 @@ def main() -> None:
         if it == 0:
             first_traj = xy
         last_traj = xy
+        if best < 0 or history[-1]["loss"] < history[best]["loss"]:
+            best, best_q = it, traj.detach()
         bar.set_postfix(loss=f"{float(loss.detach()):.4f}", grad=f"{gnorm:.1e}")
         opt.step()
         sched.step()
@@ -102,6 +135,9 @@ def main() -> None:
         "initial_grad_norm": history[0]["grad_norm"],
         "final_loss": final["loss"],
         "final_v": final["v"],
+        "best_iter": best,
+        "best_loss": history[best]["loss"],
+        "best_v": history[best]["v"],
         "wall_s": wall,
         "history": history,
     }
@@ -125,13 +161,19 @@ def main() -> None:
     ax[2].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(args.out / "billiards_demo.png", dpi=120)
+    plt.close(fig)
+    if args.gif and bool(torch.isfinite(best_q).all()):
+        write_shot_gif(mesh, best_q, pocket, radius, args.out / "billiards_demo.gif", fps=1.0 / args.dt)
 
     print(
         f"initial: v = (0, 0), loss {history[0]['loss']:.4f}, |grad| {history[0]['grad_norm']:.3e} (non-zero)"
     )
     print(f"final:   v = ({final['v'][0]:.3f}, {final['v'][1]:.3f}) m/s, loss {final['loss']:.2e}")
+    b = history[best]
+    print(f"best:    v = ({b['v'][0]:.3f}, {b['v'][1]:.3f}) m/s, loss {b['loss']:.2e} (iteration {best})")
     print(
         f"{args.iters} iterations x {args.steps} steps in {wall:.1f} s; wrote {args.out}/billiards_demo.png/.json"
+        + ("/.gif" if args.gif else "")
     )
     if not math.isfinite(final["loss"]):
         raise SystemExit("non-finite loss")

@@ -85,7 +85,8 @@ stable run; a later run with the same settings and other mus adds to it), and ``
 Outputs under ``--out`` (default results/stacked_books): ``stacked_books.json`` (settings, definitions, and per mu:
 stable and why, margin, force error, steps, wall time, solver statistics, per-interface data, the speed / tilt /
 support-margin history), ``stacked_books.md`` (our figures beside the paper's) and ``stacked_books.png`` (margin and
-force error vs mu, log-log, ours and the paper's).
+force error vs mu, log-log, ours and the paper's), and per mu ``stacked_books_mu<mu>.gif`` (the run seen from the
+side, one frame per step; ``--no-gif`` skips them: they need MuJoCo's headless EGL renderer).
 
     python scripts/stacked_books.py                                             # full run
     python scripts/stacked_books.py --quick --out results/stacked_books_quick   # 5 boards (~30 s)
@@ -190,6 +191,7 @@ def parse_args() -> argparse.Namespace:
         "(SolverConfig.substeps; 0 or 1: no retry)",
     )  # fmt: skip
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--no-gif", dest="gif", action="store_false", help="skip the per-mu GIFs")
     p.add_argument(
         "--bisect-retract", action="store_true",
         help="per mu, bisect the smallest --retract at which the stack is stable (the stability margin); "
@@ -377,7 +379,9 @@ def board_radius(args) -> float:
     return 0.5 * math.sqrt(args.length**2 + args.width**2 + args.thickness**2)
 
 
-def run(args, mu: float) -> dict:
+def run(args, mu: float) -> tuple[dict, torch.Tensor]:
+    """One settle-and-watch run at ``mu``: its record (JSON-ready) and the poses (steps + 1, n + 1, 6) of every step
+    from the start."""
     t0 = time.perf_counter()
     scene, poses0, board, weight = build(args, mu)
     setup_s = time.perf_counter() - t0
@@ -390,6 +394,7 @@ def run(args, mu: float) -> dict:
     best = (math.inf, poses0.clone(), 0)  # quietest state: (largest vertex speed, poses, step)
     stats = {"newton_iters": 0, "contact_evals": 0, "leaf_pairs": 0, "substepped": 0}
     hist = []
+    poses = [poses0]
     steps = 0
     bar = tqdm(range(max_steps), desc=f"mu={mu:.0e}", leave=False)
     t1 = time.perf_counter()
@@ -400,6 +405,7 @@ def run(args, mu: float) -> dict:
             stable, reason = False, f"StepError at t = {(s + 1) * dt:.2f} s: {e}"
             break
         steps = s + 1
+        poses.append(state.q.detach())
         stats["newton_iters"] += int(info.newton_iters)
         stats["contact_evals"] += info.contact_evals
         stats["leaf_pairs"] += info.leaf_pairs
@@ -428,7 +434,7 @@ def run(args, mu: float) -> dict:
     sim_s = time.perf_counter() - t1
     at = state.q.detach() if stable else best[1]
     m = measure(scene, at, weight, args)
-    return {
+    record = {
         "mu": mu,
         "stable": bool(stable),
         "reason": reason,
@@ -453,6 +459,7 @@ def run(args, mu: float) -> dict:
         ],
         "board_mass_kg": board.mass,
     }
+    return record, torch.stack(poses)
 
 
 # ------------------------------------------------------------------------------------------------ outputs
@@ -480,6 +487,25 @@ def table_md(results: list[dict], args) -> str:
         )
     lines += ["", "Reasons: " + "; ".join(f"mu={r['mu']:.0e}: {r['reason']}" for r in results), ""]
     return "\n".join(lines)
+
+
+def write_stack_gif(args, mu: float, poses: torch.Tensor, path: Path) -> None:
+    """A GIF of a run's poses (T, n + 1, 6), seen from the side (+x, the overhang, to the right; +z up), one frame
+    per step played in real time; the table grey, the boards in alternating colours."""
+    from cfd_torch.envs.render import MeshRenderer, write_gif
+
+    board = trimesh.creation.box((args.length, args.width, args.thickness))
+    table = trimesh.creation.box((args.length, args.width, args.table_thickness))
+    meshes = [(table.vertices, table.faces)] + [(board.vertices, board.faces)] * args.boards
+    colours = [(0.5, 0.5, 0.5, 1.0)] + [
+        (0.75, 0.45, 0.2, 1.0) if i % 2 else (0.3, 0.5, 0.75, 1.0) for i in range(args.boards)
+    ]
+    r = MeshRenderer(meshes, colours, width=640, height=320, camera={"azimuth": 90.0, "elevation": -10.0})
+    try:
+        frames = [r.render(q) for q in poses.cpu()]
+    finally:
+        r.close()
+    write_gif(frames, path, fps=1.0 / args.dt)
 
 
 def plot(results: list[dict], path: Path) -> None:
@@ -539,7 +565,7 @@ def bisect_retract(args, mu: float) -> dict:
     runs: dict[float, dict] = {}
 
     def stable_at(r: float) -> bool:
-        res = run(argparse.Namespace(**{**vars(args), "retract": r}), mu)
+        res, _ = run(argparse.Namespace(**{**vars(args), "retract": r}), mu)
         runs[r] = res
         probes.append(probe_summary(r, res, args.length))
         tqdm.write(
@@ -745,8 +771,10 @@ def main() -> None:
     t0 = time.perf_counter()
     results = []
     for mu in tqdm(args.mu, desc="mu"):
-        r = run(args, mu)
+        r, poses = run(args, mu)
         results.append(r)
+        if args.gif:
+            write_stack_gif(args, mu, poses, args.out / f"stacked_books_mu{mu:.0e}.gif")
         tqdm.write(
             f"mu={mu:.0e}: stable={r['stable']} ({r['reason']}), margin {r['margin']:.3e} m, force error "
             f"{r['force_error']:.3e} N, {r['steps']} steps, {r['wall_s']:.0f} s"

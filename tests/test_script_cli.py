@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -211,3 +212,62 @@ def test_stacked_books_records_its_checkout_and_writes_strict_json(scripts_path,
     assert out["cfd_torch_commit"] == git_revision() is not None
     (row,) = out["results"]
     assert not row["stable"] and row["smallest_support_margin_m"] is None
+
+
+def _gif_frames(path: Path) -> tuple[int, tuple[int, int]]:
+    from PIL import Image
+
+    with Image.open(path) as gif:
+        return gif.n_frames, gif.size
+
+
+def test_stacked_books_writes_a_gif_of_each_run_unless_told_not_to(scripts_path, monkeypatch, tmp_path):
+    """Motion is shown, not only tabled: one GIF per mu, one frame per step from the start (``run`` returns the
+    poses of every step), and ``--no-gif`` writes none."""
+    import argparse
+
+    import stacked_books
+
+    argv = [
+        "--quick",
+        "--boards",
+        "2",
+        "--mu",
+        "1e-8",
+        "--t-max",
+        "0.3",
+        "--t-min",
+        "0.3",
+        "--rest-time",
+        "0.1",
+    ]
+    monkeypatch.setattr(sys, "argv", ["stacked_books.py", *argv, "--out", str(tmp_path / "a")])
+    args = stacked_books.parse_args()
+    record, poses = stacked_books.run(argparse.Namespace(**vars(args)), 1e-8)
+    assert record["steps"] == 3 and poses.shape == (4, 3, 6)
+    _, poses0, _, _ = stacked_books.build(args, 1e-8)
+    assert torch.equal(poses[0], poses0) and not torch.equal(poses[-1], poses0)  # the boards moved
+    stacked_books.main()
+    frames, size = _gif_frames(tmp_path / "a" / "stacked_books_mu1e-08.gif")
+    assert 2 <= frames <= 4 and size == (640, 320)  # identical consecutive frames merge
+    monkeypatch.setattr(sys, "argv", ["stacked_books.py", *argv, "--out", str(tmp_path / "b"), "--no-gif"])
+    stacked_books.main()
+    assert (tmp_path / "b" / "stacked_books.json").exists() and not list((tmp_path / "b").glob("*.gif"))
+
+
+def test_demo_billiards_shows_its_best_shot(scripts_path, monkeypatch, tmp_path, capsys):
+    """The JSON names the best iterate beside the last, and the GIF shows the best one (one frame per step)."""
+    import json
+
+    import demo_billiards
+
+    argv = ["--iters", "3", "--steps", "4", "--lr", "2.0", "--out", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", ["demo_billiards.py", *argv])
+    demo_billiards.main()
+    out = json.loads((tmp_path / "billiards_demo.json").read_text())
+    losses = [h["loss"] for h in out["history"]]
+    assert out["best_loss"] == min(losses) and out["best_v"] == out["history"][out["best_iter"]]["v"]
+    assert out["best_iter"] > 0 and out["best_v"] != [0.0, 0.0]  # the cue ball moved toward the pocket
+    frames, size = _gif_frames(tmp_path / "billiards_demo.gif")
+    assert 2 <= frames <= 5 and size == (400, 400)
+    assert f"loss {out['best_loss']:.2e} (iteration {out['best_iter']})" in capsys.readouterr().out
