@@ -88,6 +88,21 @@ FAR = (
 )
 
 
+# the longest rotation vector a pose may hold [rad]: its float64 spacing there, 1.2e-10 rad, is about a step's
+# newton_tol (a step solves from the re-centred rotation, the same one to that spacing)
+MAX_ROTATION = 1e6
+# why (the messages of the pose checks)
+LONG_ROTATION = (
+    "its float64 spacing there (1.2e-10 rad) is too coarse to say which rotation it is; wrap it to the same "
+    "rotation (cfd_torch.recentre_rotation)"
+)
+
+
+def long_rotations(pose: torch.Tensor) -> torch.Tensor:
+    """(...,) mask of the poses (..., 6) whose rotation vector is longer than :data:`MAX_ROTATION`."""
+    return plain(pose).detach()[..., 3:].norm(dim=-1) > MAX_ROTATION
+
+
 def max_coord(dtype: torch.dtype) -> float:
     """The largest coordinate magnitude [m] the contact functions take in ``dtype``."""
     return _MAX_COORD_FLOAT32 if dtype == torch.float32 else _MAX_COORD

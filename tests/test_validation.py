@@ -193,7 +193,7 @@ def test_contact_potential_names_the_bad_body_and_refuses_an_empty_scene():
 
     bsh = BSH.from_trimesh(trimesh.creation.box((0.1, 0.1, 0.1)))
     poses = torch.tensor([[0.0] * 6, [0.3, 0, 0, 0, 0, 0], [0.6, 0, 0, 0, 0, 0]], dtype=F64)
-    with _raises(r"bshes\[1\] must be a cfd_torch.BSH, got str"):
+    with _raises(r"bshes\[1\] must be a cfd_torch.BSH, got str", TypeError):  # as mesh_potential's bsh_a
         contact_potential([bsh, "box", bsh], poses)
     with _raises("bshes must be a sequence of N = 3 BSH objects"):
         contact_potential([bsh, bsh], poses)
@@ -1029,6 +1029,33 @@ def test_rotation_vectors_beyond_a_million_radians_are_refused():
         step(scene, State(q.expand(2, -1, -1), torch.stack([q, far])))
 
 
+def test_every_entry_taking_poses_refuses_rotation_vectors_beyond_a_million_radians():
+    """As the step does (the contact functions took |omega| = 1e15 rad silently, where float64 cannot say which
+    rotation it is); 1e4 rad is a rotation like any other."""
+    from cfd_torch import contact_potential, mesh_potential, mesh_potential_derivatives, pair_forces
+
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1), density=500.0)
+    scene = Scene([ball, ball], dt=0.01, gravity=(0, 0, 0))
+    near = torch.tensor([[0.0, 0, 0, 1e4, 0, 0], [0.5, 0, 0, 0, 0, 0]], dtype=F64)
+    far = near.clone()
+    far[1, 5] = 1e15
+    bsh = ball.bsh
+    assert torch.isfinite(mesh_potential(bsh, near[0], bsh, near[1]))
+    why = (
+        "rad (first at {}): its float64 spacing there (1.2e-10 rad) is too coarse to say which rotation it is"
+    )
+    with _says(f"pose_b has a rotation vector longer than 1e+06 {why.format('batch index ()')}"):
+        mesh_potential(bsh, near[0], bsh, far[1])
+    with _says(f"pose_a has a rotation vector longer than 1e+06 {why.format('batch index (1,)')}"):
+        mesh_potential_derivatives(bsh, far, bsh, near[1])
+    with _says(f"poses has a rotation vector longer than 1e+06 {why.format('body 1')}"):
+        contact_potential([bsh, bsh], far)
+    with _says(f"q has a rotation vector longer than 1e+06 {why.format('scene 1, body 1')}"):
+        pair_forces(scene, torch.stack([near, far]))
+    with _says(f"poses has a rotation vector longer than 1e+06 {why.format('body 1')}"):
+        scene.initial_state(far)
+
+
 def test_a_tumbling_body_whose_rotation_vector_is_on_a_far_branch_steps_as_re_centred():
     """A rotation vector |omega| = 2 pi k + a (the rotation of |omega| = a) is a valid state: a tumbling box steps
     from it as from the re-centred state, in as many Newton iterations, to the same rotation and the same gradient
@@ -1129,3 +1156,31 @@ def test_a_scene_is_read_only_once_built_and_its_settings_are_checked_up_front()
         Scene([box, ground], substeps=2**20)
     with _says("exclude must be a sequence of body pairs (i, j), got None", TypeError):
         Scene([box, ground], exclude=None)
+
+
+def test_bsh_build_takes_bfloat16_vertices_and_names_bfloat16_faces():
+    """bfloat16, which NumPy lacks, failed inside .numpy() with a TypeError naming no argument: its vertices are
+    widened exactly (the hierarchy equals that of the same values in float64), its faces refused by name."""
+    box = trimesh.creation.box((1.0, 2.0, 3.0))
+    V = torch.tensor(box.vertices, dtype=torch.bfloat16)
+    F = torch.tensor(box.faces)
+    b16, b64 = BSH.build(V, F), BSH.build(V.double(), F)
+    assert torch.equal(b16.vertices, b64.vertices) and torch.equal(b16.faces, b64.faces)
+    with _says("faces must hold integer vertex indices, got dtype torch.bfloat16"):
+        BSH.build(V.double(), F.to(torch.bfloat16))
+
+
+def test_contact_potential_stats_hold_every_key_when_no_pair_is_traversed():
+    """A single body or static bodies only: the counts are zeros (stats held only "body_pairs")."""
+    from cfd_torch import contact_potential
+
+    bsh = BSH.from_trimesh(trimesh.creation.box((1.0, 1.0, 1.0)))
+    poses = torch.tensor([[0.0] * 6, [3.0, 0, 0, 0, 0, 0]], dtype=F64)
+    keys = {"body_pairs", "node_pairs", "leaf_pairs", "levels"}
+    for res in (
+        contact_potential([bsh], poses[:1]),
+        contact_potential([bsh, bsh], poses, static=[True, True]),
+    ):
+        assert set(res.stats) == keys and all(res.stats[k] == 0 for k in keys) and float(res.value) == 0.0
+    moving = contact_potential([bsh, bsh], poses)
+    assert set(moving.stats) == keys and moving.stats["body_pairs"] == 1 and moving.stats["node_pairs"] > 0

@@ -25,6 +25,14 @@ from .._validate import check_mesh, check_not_meta, is_real
 __all__ = ["BSH"]
 
 
+def _numpy(x):
+    """A tensor as a NumPy array (bfloat16, which NumPy lacks, widened exactly to float64); anything else as it is."""
+    if not isinstance(x, torch.Tensor):
+        return x
+    x = x.detach().cpu()
+    return (x.double() if x.dtype == torch.bfloat16 else x).numpy()
+
+
 @dataclass(frozen=True, eq=False)
 class BSH:
     """A body's sphere hierarchy. All tensors are float64 / int64 on the CPU, in the body frame.
@@ -90,19 +98,20 @@ class BSH:
                 check_not_meta(x, name)
         # copies: the hierarchy must not change when the caller later writes into its arrays
         try:
-            V = np.array(vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices)
+            V = np.array(_numpy(vertices))
         except ValueError as err:  # ragged rows
             raise ValueError(f"vertices must be a (V, 3) array of real numbers: {err}") from None
         if V.dtype.kind not in "iuf":
             raise TypeError(f"vertices must be an array of real numbers, got dtype {V.dtype}")
         V = V.astype(np.float64)
-        Fc = np.array(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces)
+        Fc = np.array(_numpy(faces))
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 3:
             raise ValueError(f"vertices must have shape (V, 3) with V >= 3, got {V.shape}")
         if Fc.ndim != 2 or Fc.shape[1] != 3 or Fc.shape[0] < 1:
             raise ValueError(f"faces must have shape (F, 3) with F >= 1, got {Fc.shape}")
         if not np.issubdtype(Fc.dtype, np.integer):
-            raise ValueError(f"faces must hold integer vertex indices, got dtype {Fc.dtype}")
+            given = faces.dtype if isinstance(faces, torch.Tensor) else Fc.dtype
+            raise ValueError(f"faces must hold integer vertex indices, got dtype {given}")
         Fc = Fc.astype(np.int64)
         check_mesh(V, Fc, "vertices", "faces")
         if max_edge is not None:

@@ -32,11 +32,14 @@ from .._autograd import VALUES_ONLY, ClosedFormPotential, outside_transforms, pl
 from .._validate import (
     FAR,
     FLOATS,
+    LONG_ROTATION,
+    MAX_ROTATION,
     check_count,
     check_not_meta,
     check_positive,
     check_stiffness,
     check_tolerance,
+    long_rotations,
     max_coord,
     narrowed,
     widened,
@@ -88,6 +91,13 @@ def _check_pose(pose: object, name: str) -> None:
             idx = tuple(int(i) for i in torch.nonzero(far)[0]) if far.dim() else ()
             raise ValueError(
                 f"{name} has a translation beyond {limit:g} m (first at batch index {idx}): {FAR}"
+            )
+        turns = long_rotations(pose)
+        if bool(turns.any()):
+            idx = tuple(int(i) for i in torch.nonzero(turns)[0]) if turns.dim() else ()
+            raise ValueError(
+                f"{name} has a rotation vector longer than {MAX_ROTATION:g} rad (first at batch index {idx}): "
+                f"{LONG_ROTATION}"
             )
 
 

@@ -25,7 +25,18 @@ from .._autograd import (
     values_only,
     vmap_error,
 )
-from .._validate import FAR, FLOATS, check_not_meta, is_int, max_coord, narrowed, widened
+from .._validate import (
+    FAR,
+    FLOATS,
+    LONG_ROTATION,
+    MAX_ROTATION,
+    check_not_meta,
+    is_int,
+    long_rotations,
+    max_coord,
+    narrowed,
+    widened,
+)
 from ..config import DEFAULT_CONTACT
 from ._traverse import forest_of, traverse
 from .bsh import BSH
@@ -170,7 +181,7 @@ def contact_potential(
         )
     for i, b in enumerate(bshes):
         if not isinstance(b, BSH):
-            raise ValueError(f"bshes[{i}] must be a cfd_torch.BSH, got {type(b).__name__}")
+            raise TypeError(f"bshes[{i}] must be a cfd_torch.BSH, got {type(b).__name__}")
     if poses.dtype not in FLOATS:
         raise ValueError(f"poses must be float32 or float64, got {poses.dtype}")
     with outside_transforms():
@@ -182,6 +193,12 @@ def contact_potential(
         if bool(far.any()):
             raise ValueError(
                 f"poses has a translation beyond {limit:g} m (first at body {int(torch.nonzero(far)[0])}): {FAR}"
+            )
+        turns = long_rotations(poses)
+        if bool(turns.any()):
+            raise ValueError(
+                f"poses has a rotation vector longer than {MAX_ROTATION:g} rad (first at body "
+                f"{int(torch.nonzero(turns)[0])}): {LONG_ROTATION}"
             )
     _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:
@@ -220,7 +237,8 @@ def contact_potential(
         )
         moving = (~static_t).to(dtype=torch.float64, device=dev)[:, None]
     params = {"mu": mu, "margin": margin, "eps": eps, "split": split, "tol": tol, "max_iter": max_iter}
-    stats: dict = {"body_pairs": int(len(pairs))}
+    # (every key present when no pair is traversed: zeros)
+    stats: dict = {"body_pairs": int(len(pairs)), "node_pairs": 0, "leaf_pairs": 0, "levels": 0}
 
     def evaluate(q: torch.Tensor, order_: int):
         """q (1, 6N) plain -> value (1,), grad (1, 6N), hess (1, 6N, 6N): the derivatives over all poses, static

@@ -20,7 +20,7 @@ from ..contact.ipc import IpcContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
 from ..contact.sdrs import SdrsContact
-from ._checks import check_state_tensor
+from ._checks import check_rotations, check_state_tensor
 from .articulation import ArticulatedKinematics, Articulation
 from .bodies import RigidBody, refine_obstacles
 from .kinematics import FreeBodies
@@ -460,6 +460,7 @@ class Scene:
         rate of change, q_prev = poses - dt velocities), which equals the angular velocity only where the rotation
         vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis)."""
         check_state_tensor(poses, "poses", self.num_bodies)
+        check_rotations(poses, "poses")
         if velocities is None:
             return State(poses, poses.clone())
         check_state_tensor(velocities, "velocities", self.num_bodies, like=poses, like_name="poses")

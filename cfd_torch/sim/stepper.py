@@ -22,7 +22,13 @@ import torch
 from .._autograd import outside_transforms, plain, refuse_derivative, refuse_transforms
 from .._geometry import frame_origin
 from .._validate import FLOATS, is_int, narrowed
-from ._checks import check_ctrl, check_params, check_state_tensor, check_targets_clear, first_row
+from ._checks import (
+    check_ctrl,
+    check_params,
+    check_rotations,
+    check_state_tensor,
+    check_targets_clear,
+)
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
 from .feasibility import infeasible_pairs, infeasible_reason
@@ -255,11 +261,6 @@ def _advance(scene: Scene, state: State, force, torque, target, ctrl, params: Pa
             k *= 2
 
 
-# the longest rotation vector a state may hold [rad]: its float64 spacing, 1.2e-10 rad, under a step's newton_tol
-# (the step solves from the re-centred rotation, the same one to that spacing)
-_MAX_ROTATION = 1e6
-
-
 def _check_start(scene: Scene, state: State) -> None:
     """The scene and the start state a step or a rollout begins from (a clear error naming the argument)."""
     if not isinstance(scene, Scene):
@@ -276,15 +277,8 @@ def _check_start(scene: Scene, state: State) -> None:
     B = state.q.shape[0] if state.q.dim() == 3 else 1
     if B == 0:
         raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
-    for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
-        with outside_transforms():
-            turns = plain(x).detach()[..., 3:].norm(dim=-1) > _MAX_ROTATION
-        if bool(turns.any()):
-            raise ValueError(
-                f"{name} has a rotation vector longer than {_MAX_ROTATION:g} rad (first at {first_row(turns)}): its "
-                "float64 spacing there is too coarse for a step's rotation; wrap it to the same rotation "
-                "(cfd_torch.recentre_rotation)"
-            )
+    check_rotations(state.q, "state.q")
+    check_rotations(state.q_prev, "state.q_prev")
     if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
         dyn = scene.dynamic.to(state.q.device)
         for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
@@ -509,6 +503,7 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
     check_state_tensor(q, "q", scene.num_bodies)
+    check_rotations(q, "q")
     poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
     B, N = poses.shape[:2]
     pairs = scene_pairs(scene, B).to(poses.device)
