@@ -76,18 +76,20 @@ class CubesCore(TaskCore):
         self._scatter(torch.Generator().manual_seed(0), num_cubes + 1, _CLEARANCE)
 
     def _scatter(self, gen: torch.Generator, n: int, clearance: float) -> torch.Tensor:
-        """(n, 2) centres uniform in [-spread, spread]^2 whose footprints (circles of the cube's half diagonal)
-        are ``clearance`` apart: rejection sampling, one draw at a time, started afresh when a centre finds no room
-        in _SCATTER_TRIES draws (the centres placed so far can leave none), a ValueError after _SCATTER_RESTARTS
-        fresh starts."""
-        r = self.cube_size / math.sqrt(2) + clearance / 2
+        """(n, 2) centres uniform in [-spread, spread]^2 whose footprints are ``clearance`` apart: circles of the
+        cube's half diagonal, the last one the pusher's (its own half diagonal). Rejection sampling, one draw at a
+        time, started afresh when a centre finds no room in _SCATTER_TRIES draws (the centres placed so far can
+        leave none), a ValueError after _SCATTER_RESTARTS fresh starts."""
+        cube = math.hypot(self.cube_size, self.cube_size) / 2
+        radii = [cube + clearance / 2] * (n - 1) + [math.hypot(*self.pusher.size[:2]) / 2 + clearance / 2]
         best = 0
         for _ in range(_SCATTER_RESTARTS):
             pts: list[torch.Tensor] = []
             misses = 0
             while len(pts) < n and misses < _SCATTER_TRIES:
                 p = self.spread * (2 * torch.rand(2, generator=gen, dtype=torch.float64) - 1)
-                if all(float((p - o).norm()) > 2 * r for o in pts):
+                r = radii[len(pts)]
+                if all(float((p - o).norm()) > r + radii[k] for k, o in enumerate(pts)):
                     pts.append(p)
                     misses = 0
                 else:

@@ -155,6 +155,14 @@ class BilliardsCore(TaskCore):
         f = torch.cat([self.max_force * action, action.new_zeros(B, 1)], 1)  # (B, 3) on the cue ball
         return Action(force=torch.cat([action.new_zeros(B, 15, 3), f[:, None, :]], 1))
 
+    def check_task(self, task: dict[str, torch.Tensor]) -> None:
+        bad = (task["target"] < 0) | (task["target"] > 14)
+        if bool(bad.any()):
+            raise ValueError(
+                f"state.task['target'] must be a rack ball's index in 0..14, got {task['target'][bad][0].item()} "
+                f"(environment {int(torch.nonzero(bad)[0])})"
+            )
+
     def object_ball(self, state: EnvState) -> torch.Tensor:
         """(B, 2) xy of each environment's object ball."""
         B = state.batch_size

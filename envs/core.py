@@ -16,6 +16,7 @@ state's tensors and to the physical parameters (``core.step(state, action, param
 from __future__ import annotations
 
 import abc
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -184,7 +185,22 @@ def marker_rows(xy: torch.Tensor, z: float = 0.0) -> torch.Tensor:
 
 
 def stack_states(states: list[EnvState]) -> EnvState:
-    """The environments of several states (each (B_k, ...)) as one state, concatenated along the batch."""
+    """The environments of several states (each (B_k, ...)) as one state, concatenated along the batch.
+
+    Raises:
+        TypeError: an entry is not an EnvState.
+        ValueError: no states, or states with different task variables."""
+    states = list(states)
+    if not states:
+        raise ValueError("states must hold at least one EnvState")
+    for i, st in enumerate(states):
+        if not isinstance(st, EnvState):
+            raise TypeError(f"states[{i}] must be an EnvState, got {type(st).__name__}")
+        if set(st.task) != set(states[0].task):
+            raise ValueError(
+                f"states[{i}] has the task variables {sorted(st.task)}, states[0] {sorted(states[0].task)}: "
+                "states of one task only"
+            )
     return pytree.tree_map(lambda *xs: torch.cat(xs), *states)
 
 
@@ -425,17 +441,43 @@ class TaskCore(abc.ABC):
             raise ValueError(
                 f"state.q_prev has shape {tuple(state.q_prev.shape)}, state.q {tuple(state.q.shape)}"
             )
-        if state.t.shape != (B,) or state.t.is_floating_point():
+        if state.t.shape != (B,) or state.t.dtype != torch.int64:
             raise ValueError(
-                f"state.t must be an integer tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"
+                f"state.t must be an int64 tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"
+            )
+        fields = self._task_fields
+        if set(state.task) != set(fields):
+            raise ValueError(
+                f"state.task must hold this task's variables {sorted(fields)}, got {sorted(state.task)}; make the "
+                "state with core.reset"
             )
         for k, v in state.task.items():
+            shape, is_float = fields[k]
             if v.dim() == 0 or v.shape[0] != B:
                 raise ValueError(
                     f"state.task[{k!r}] must have the batch size {B} first, got shape {tuple(v.shape)}"
                 )
-            if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            if tuple(v.shape[1:]) != shape:
+                raise ValueError(f"state.task[{k!r}] must have shape {(B, *shape)}, got {tuple(v.shape)}")
+            if is_float != v.is_floating_point() or not (is_float or v.dtype == torch.int64):
+                raise TypeError(
+                    f"state.task[{k!r}] must be {'a float' if is_float else 'an int64'} tensor, got {v.dtype}"
+                )
+            if is_float and not bool(torch.isfinite(v).all()):
                 raise ValueError(f"state.task[{k!r}] contains NaN or inf")
+        self.check_task(state.task)
+
+    @functools.cached_property
+    def _task_fields(self) -> dict[str, tuple[tuple[int, ...], bool]]:
+        """Each task variable's shape without the batch and whether it is floating point (else int64), as a drawn
+        start has them."""
+        task = self._initial(torch.Generator().manual_seed(0))[2]
+        return {k: (tuple(v.shape), v.is_floating_point()) for k, v in task.items()}
+
+    def check_task(self, task: dict[str, torch.Tensor]) -> None:
+        """A ValueError naming the variable where a (B, ...) task variable holds a value the task cannot draw
+        (an index out of range, an unknown class); their shapes and dtypes are checked before. None by default."""
+        return None
 
     def check_action(self, action: torch.Tensor, batch_size: int) -> torch.Tensor:
         """``action`` as a (B, A) tensor of the core's dtype and device; a clear TypeError (not real numbers) or

@@ -62,6 +62,13 @@ class SortCore(CubesCore):
         centres = torch.tensor([[-self.region_offset, 0.0], [self.region_offset, 0.0]], dtype=torch.float64)
         return {"classes": classes, "centres": centres}
 
+    def check_task(self, task: dict[str, torch.Tensor]) -> None:
+        bad = ((task["classes"] != 0) & (task["classes"] != 1)).any(1)
+        if bool(bad.any()):
+            raise ValueError(
+                f"state.task['classes'] must hold classes 0 and 1 only (environment {int(torch.nonzero(bad)[0])})"
+            )
+
     def outside(self, state: EnvState) -> torch.Tensor:
         """(B, n) how far each cube's centre is outside its class's region [m]."""
         centre = torch.gather(state.task["centres"], 1, state.task["classes"][:, :, None].expand(-1, -1, 2))

@@ -16,7 +16,7 @@ from gymnasium.utils.env_checker import check_env
 
 import cfd_torch.envs as envs
 from cfd_torch.envs import EnvState, make_core, rollout
-from cfd_torch.envs.core import task_at
+from cfd_torch.envs.core import stack_states, task_at
 
 F64 = torch.float64
 AVAILABLE = ["cfd_torch/Billiards-v0", "cfd_torch/Push-v0", "cfd_torch/Sort-v0", "cfd_torch/Gather-v0"]
@@ -553,7 +553,7 @@ def test_task_arguments_actions_and_states_are_checked():
         (
             {"t": torch.zeros(3, dtype=torch.long)},
             ValueError,
-            r"state.t must be an integer tensor of shape \(2,\)",
+            r"state.t must be an int64 tensor of shape \(2,\)",
         ),
         ({"task": {"target": s32.task["target"] * float("nan")}}, ValueError, r"\['target'\] contains NaN"),
         (
@@ -719,6 +719,78 @@ def test_cube_layouts_that_cannot_be_scattered_are_refused_at_construction():
             make_core("cfd_torch/Sort-v0", **{name: 0.0})
     obs, _ = gym.make("cfd_torch/Gather-v0", spread=0.5).reset(seed=3)  # tight, but it fits
     assert obs.shape == (46,)
+
+
+@pytest.mark.parametrize("task", ["cfd_torch/Sort-v0", "cfd_torch/Gather-v0"])
+def test_the_pusher_starts_clear_of_cubes_smaller_than_itself(task):
+    """The scatter kept every footprint the cube's half diagonal apart, the pusher's too: with cubes smaller than
+    the 0.1 m pusher it could start inside one (Gather, cube_size 0.02, spread 0.3, seed 435: a step then refused
+    the penetrating start). Each footprint now has its own radius, 5 cm apart; the default layout is unchanged."""
+    from cfd_torch import step
+
+    core = make_core(task, cube_size=0.02, spread=0.3)
+    n = core.num_cubes
+    s = core.reset(0, 600)
+    half = math.hypot(*core.pusher.size[:2]) / 2
+    gaps = (s.q[:, :n, :2] - s.q[:, n : n + 1, :2]).norm(dim=-1) - half - math.hypot(0.02, 0.02) / 2
+    assert float(gaps.min()) > 0.05
+    s435 = core.reset(435)
+    step(core.scene, core.scene.initial_state(s435.q[0]))  # the start is feasible
+    ref = make_core(task)  # the default sizes: the draws of every earlier release
+    q = ref.reset(7).q[0, : ref.num_cubes + 1, :2]
+    d = (q[:, None] - q[None]).norm(dim=-1) + torch.eye(ref.num_cubes + 1, dtype=F64)
+    assert float(d.min()) > 2 * 0.1 / math.sqrt(2) + 0.05
+
+
+def test_task_variables_are_checked_against_the_task():
+    """The keys, shapes and dtypes of ``state.task`` are those a start of the task has, and index-like variables
+    are in range: Billiards' target -1 meant ball 14 silently (20: an IndexError; a float: an indexing error), a
+    missing key a bare KeyError, a wrong trailing shape a broadcast error, a bool ``t`` was counted on."""
+    bil = make_core("cfd_torch/Billiards-v0")
+    s = bil.reset(0, 2)
+    a = torch.zeros(2, 2, dtype=F64)
+    for task, err, match in (
+        ({**s.task, "target": torch.tensor([3, -1])}, ValueError, r"\['target'\] must be a rack ball's index in "
+         r"0\.\.14, got -1 \(environment 1\)"),
+        ({**s.task, "target": torch.tensor([20, 3])}, ValueError, r"index in 0\.\.14, got 20 \(environment 0\)"),
+        ({**s.task, "target": s.task["target"].double()}, TypeError, r"\['target'\] must be an int64 tensor"),
+        ({**s.task, "target": s.task["target"].int()}, TypeError, r"\['target'\] must be an int64 tensor, got "
+         "torch.int32"),
+        ({"pocket": s.task["pocket"]}, ValueError, r"state.task must hold this task's variables \['pocket', "
+         r"'target'\], got \['pocket'\]"),
+        ({**s.task, "extra": s.task["pocket"]}, ValueError, "this task's variables"),
+        ({**s.task, "pocket": s.task["pocket"][:, :1]}, ValueError, r"\['pocket'\] must have shape \(2, 2\), got "
+         r"\(2, 1\)"),
+        ({**s.task, "pocket": s.task["pocket"].long()}, TypeError, r"\['pocket'\] must be a float tensor"),
+    ):  # fmt: skip
+        with pytest.raises(err, match=match):
+            bil.step(EnvState(s.q, s.q_prev, s.t, task), a)
+    with pytest.raises(ValueError, match="state.t must be an int64 tensor of shape"):
+        bil.step(EnvState(s.q, s.q_prev, s.t.bool(), s.task), a)
+    srt = make_core("cfd_torch/Sort-v0", num_cubes=2)
+    s = srt.reset(0, 2)
+    classes = s.task["classes"].clone()
+    classes[1, 0] = 2
+    with pytest.raises(ValueError, match=r"\['classes'\] must hold classes 0 and 1 only \(environment 1\)"):
+        srt.step(EnvState(s.q, s.q_prev, s.t, {**s.task, "classes": classes}), a)
+    srt.step(s, a)  # a drawn start passes
+
+
+def test_stack_states_concatenates_environments_and_names_what_cannot_be():
+    """Stacking single environments gives the batch reset draws; no states, a non-state or states of two tasks
+    are named (they failed inside torch's pytree: 'tree_map() missing ...', 'Node arity mismatch')."""
+    core = make_core("cfd_torch/Billiards-v0")
+    both = stack_states([core.reset(4), core.reset(5)])
+    ref = core.reset(4, 2)
+    assert torch.equal(both.q, ref.q) and torch.equal(both.t, ref.t)
+    assert all(torch.equal(both.task[k], ref.task[k]) for k in ref.task)
+    with pytest.raises(ValueError, match="states must hold at least one EnvState"):
+        stack_states([])
+    with pytest.raises(TypeError, match="states\\[1\\] must be an EnvState, got Tensor"):
+        stack_states([core.reset(4), core.reset(5).q])
+    push = make_core("cfd_torch/Push-v0").reset(0)
+    with pytest.raises(ValueError, match=r"states\[1\] has the task variables \['target'\], states\[0\] "):
+        stack_states([core.reset(4), push])
 
 
 def test_positions_and_velocities_are_unbounded_in_the_observation_space():
