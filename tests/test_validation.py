@@ -1184,3 +1184,46 @@ def test_contact_potential_stats_hold_every_key_when_no_pair_is_traversed():
         assert set(res.stats) == keys and all(res.stats[k] == 0 for k in keys) and float(res.value) == 0.0
     moving = contact_potential([bsh, bsh], poses)
     assert set(moving.stats) == keys and moving.stats["body_pairs"] == 1 and moving.stats["node_pairs"] > 0
+
+
+def test_a_thin_plate_turned_off_the_axes_is_a_body_and_a_needle_too_thin_for_its_inertia_is_named():
+    """The volume integrals' rounding made a rotated 1 um plate's smallest second moment negative (-4e-16 against
+    8e-17 kg m^2) and RigidBody refused it as not positive semi-definite, naming a field the user never passed; it
+    is clipped to zero within 1e-9 of the largest. A needle whose axial inertia is below that rounding is refused
+    by name."""
+    R = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])
+    plate = trimesh.creation.box((1.0, 1.0, 1e-6))
+    plate.apply_transform(R)
+    body = rigid_body(plate, density=1000.0)
+    exact = torch.tensor(R[:3, :3] @ np.diag([1e-3 / 12, 1e-3 / 12, 1e-3 * 1e-12 / 12]) @ R[:3, :3].T)
+    assert float(torch.linalg.eigvalsh(body.second_moment)[0]) >= -1e-15 * float(exact.abs().max())
+    assert float((body.second_moment - exact).abs().max()) < 1e-10 * float(exact.abs().max())
+    needle = trimesh.creation.box((1.0, 1e-6, 1e-6))
+    needle.apply_transform(R)
+    with _says("mesh of a dynamic body is too thin for its mass properties: its smallest moment of inertia"):
+        rigid_body(needle, density=1000.0)
+    assert rigid_body(needle, kind="static").kind == "static"
+
+
+@pytest.mark.parametrize("kind", ["dynamic", "static"])
+def test_vertices_no_face_uses_are_left_out_of_a_body(kind):
+    """A stray vertex 100 m away (a mesh loaded with process=False) set the scene's extent to 100 m and the mass
+    properties' bounding box (a dropped box took 309 Newton iterations instead of 179); it is dropped."""
+    box = trimesh.creation.box((0.2, 0.2, 0.2))
+    stray = trimesh.Trimesh(np.vstack([box.vertices, [[100.0, 0.0, 0.0]]]), box.faces, process=False)
+    a, b = rigid_body(box, kind=kind, density=500.0), rigid_body(stray, kind=kind, density=500.0)
+    assert len(b.bsh.vertices) == 8 and torch.equal(a.bsh.vertices, b.bsh.vertices)
+    assert a.mass == b.mass and torch.equal(a.second_moment, b.second_moment) and torch.equal(a.com, b.com)
+    other = rigid_body(
+        trimesh.creation.box((2.0, 2.0, 0.2)), kind="static" if kind == "dynamic" else "dynamic"
+    )
+    assert torch.equal(Scene([a, other]).extent, Scene([b, other]).extent)
+
+
+def test_an_inside_out_mesh_is_refused_with_the_fix():
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.invert()
+    with _says("must enclose a positive volume (outward normals), got -1.0; its faces are wound inward: "):
+        rigid_body(box)
+    box.invert()
+    assert rigid_body(box).mass == 1000.0

@@ -113,8 +113,9 @@ def rigid_body(
         TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
         ValueError: unknown kind, non-positive density, a mesh with NaN/inf vertices or degenerate (zero-area)
             faces, a ``max_edge`` that would split it into more than 2,000,000 triangles, or a dynamic mesh that
-            is not a watertight closed volume, that intersects itself, or whose shells would miscount its solid
-            (one facing outward inside another, one facing inward inside none).
+            is not a watertight closed volume, that intersects itself, whose shells would miscount its solid
+            (one facing outward inside another, one facing inward inside none), or so thin (a needle of aspect
+            1e5) that a moment of inertia is lost in the rounding of its mass properties.
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -127,6 +128,12 @@ def rigid_body(
     if Fc.shape[0] == 0:
         raise ValueError("mesh has no faces")
     check_mesh(V, Fc, "mesh.vertices", "mesh.faces")
+    used = np.zeros(len(V), dtype=bool)
+    used[Fc.ravel()] = True
+    if not used.all():  # vertices no face uses would count in the body's extent and bounding box
+        mesh = trimesh.Trimesh(V, Fc, process=False)
+        mesh.remove_unreferenced_vertices()
+        V, Fc = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
     if not (is_real(density) and 0 < density < float("inf")):
         raise ValueError(f"density must be a finite positive number, got {density!r}")
     if kind != "dynamic":
@@ -144,6 +151,7 @@ def rigid_body(
     if not volume > 0:
         raise ValueError(
             f"mesh of a dynamic body must enclose a positive volume (outward normals), got {volume}"
+            + ("; its faces are wound inward: mesh.invert() turns them out" if volume < 0 else "")
         )
     hit = self_intersection(V, Fc)
     if hit is not None:
@@ -177,6 +185,18 @@ def rigid_body(
     com_local = np.asarray(m.center_mass, dtype=np.float64)
     inertia = np.asarray(m.moment_inertia, dtype=np.float64)  # about the COM, mesh axes
     S = 0.5 * np.trace(inertia) * np.eye(3) - inertia
+    # a thin body's smallest moment can come out of the volume integrals below zero by their rounding (a 1 m x 1 m x
+    # 1 um plate turned off the axes: -4e-16 kg m^2, the true one 8e-17): clipped to zero within 1e-9 of the largest
+    lam, vec = np.linalg.eigh(0.5 * (S + S.T))
+    if -1e-9 * np.abs(S).max() <= lam[0] < 0:
+        S = (vec * np.maximum(lam, 0.0)) @ vec.T
+    if not physical_second_moment(torch.from_numpy(S)):
+        inertia_min = float(np.linalg.eigvalsh(np.trace(S) * np.eye(3) - S)[0])
+        raise ValueError(
+            f"mesh of a dynamic body is too thin for its mass properties: its smallest moment of inertia "
+            f"({inertia_min:.3g} kg m^2) is lost in the rounding of the volume integrals (the largest second "
+            f"moment is {np.abs(S).max():.3g} kg m^2); thicken it, or make it a static or kinematic body"
+        )
     bsh = BSH.build(
         np.asarray(m.vertices, dtype=np.float64) - com_local, np.asarray(m.faces), max_edge=max_edge
     )
