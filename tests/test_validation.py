@@ -168,6 +168,10 @@ def test_mesh_potential_poses_must_share_a_dtype_and_device():
     pose = torch.tensor([0.3, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64)
     with _raises("pose_a and pose_b must share a dtype"):
         mesh_potential(bsh, torch.zeros(6, dtype=F32), bsh, pose)
+    with _raises("pose_a must be float32 or float64, got torch.int64"):  # (was: "must share a dtype")
+        mesh_potential(bsh, torch.zeros(6, dtype=torch.long), bsh, pose)
+    with _raises("pose_b must be float32 or float64, got torch.float16"):
+        mesh_potential(bsh, pose, bsh, pose.half())
     with _raises("pose_a and pose_b must be on one device"):
         mesh_potential(bsh, torch.zeros(6, dtype=F64, device=META), bsh, pose)
 

@@ -117,6 +117,9 @@ def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
         raise TypeError(
             f"{bad} must be a cfd_torch.BSH, got {type(bsh_a if bad == 'bsh_a' else bsh_b).__name__}"
         )
+    for pose, name in ((pose_a, "pose_a"), (pose_b, "pose_b")):  # (each its own dtype before the pair's)
+        if isinstance(pose, torch.Tensor) and pose.dtype not in FLOATS:
+            raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
     if isinstance(pose_a, torch.Tensor) and isinstance(pose_b, torch.Tensor):
         if pose_a.dtype != pose_b.dtype:
             raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
