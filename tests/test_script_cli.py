@@ -127,6 +127,8 @@ REFUSED = [
     ("stress_step", ["--duration", "inf"], "--duration"),
     ("step_accuracy", ["--replot"], "--replot"),  # no JSON in --out
     ("trivial_start_runs", ["--tasks", "Push", "Push"], "--tasks"),  # ran and tabulated twice
+    ("rolling_ball", ["--dt", "0.01", "0"], "--dt"),
+    ("rolling_ball", ["--subdivisions", "7"], "--subdivisions"),
 ]
 
 
@@ -167,7 +169,7 @@ def test_plot_results_refuses_an_out_that_is_a_file(scripts_path, monkeypatch, c
     assert f"error: --out {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("script", ["stacked_books", "impact_phase", "impact_model_1d"])
+@pytest.mark.parametrize("script", ["stacked_books", "impact_phase", "impact_model_1d", "rolling_ball"])
 def test_an_experiment_script_refuses_an_out_that_is_a_file(
     scripts_path, monkeypatch, capsys, tmp_path, script
 ):
@@ -271,3 +273,24 @@ def test_demo_billiards_shows_its_best_shot(scripts_path, monkeypatch, tmp_path,
     frames, size = _gif_frames(tmp_path / "billiards_demo.gif")
     assert 2 <= frames <= 5 and size == (400, 400)
     assert f"loss {out['best_loss']:.2e} (iteration {out['best_iter']})" in capsys.readouterr().out
+
+
+def test_rolling_ball_starts_rolling_without_slipping_and_keeps_its_books(scripts_path):
+    """The run's first record is the roll it set: speed v0 along x, spin v0 / (the centre's height) about y, and
+    the energy is the sum of its parts."""
+    import rolling_ball
+
+    args = rolling_ball.parse_args(["--quick", "--duration", "0.05"])
+    run = rolling_ball.roll(2, 0.01, args)
+    h = run["history_t_energy_trans_rot_vx_spinr"]
+    assert len(h) == 6 and run["faces"] == 320
+    t, energy, trans, rot, vx, spin_r = h[0]
+    assert (
+        abs(vx - 2.0) < 1e-9 and abs(spin_r - 2.0) < 1e-5
+    )  # (the settled rotation vector is not quite zero)
+    import trimesh
+
+    mass = 1000.0 * trimesh.creation.icosphere(subdivisions=2, radius=0.1).volume
+    assert abs(trans - 0.5 * mass * 4.0) < 1e-8 * trans
+    assert 0.3 < rot / trans < 0.45  # 2/5 (r / h)^2 for a solid ball: its spin set from the rolling radius
+    assert energy > trans + rot and run["newton_iters"] > 0
