@@ -134,13 +134,17 @@ def with_potential(config: ContactConfig, potential: str) -> ContactConfig:
 DEFAULT_CONTACT = ContactConfig()  # the contact functions' keyword defaults read this (no literal elsewhere)
 
 
+# the smallest friction slip scale [m/s]: (eps_v dt)^2 underflows float64 from about 1e-160 m/s at dt = 0.01
+_MIN_EPS_V = 1e-30
+
+
 @dataclass(frozen=True)
 class FrictionConfig:
     """Lagged, smoothed Coulomb friction (SPEC section 5).
 
     Attributes:
         coefficient: Coulomb's coefficient mu_f; 0 turns friction off (no lagged data, no cost).
-        eps_v: slip velocity below which friction is in its smoothed static regime [m/s].
+        eps_v: slip velocity below which friction is in its smoothed static regime [m/s], at least 1e-30.
         active: friction acts on the leaf pairs whose lagged normal force is at least this fraction of the largest
             in their body pair (0: on all of them); the others carry almost none of the load and only cost time.
     """
@@ -154,6 +158,12 @@ class FrictionConfig:
         if not (is_real(c) and 0 <= c < math.inf):
             raise ValueError(f"FrictionConfig.coefficient must be a finite number >= 0, got {_got(c)}")
         _positive("FrictionConfig", "eps_v", self.eps_v)
+        if self.eps_v < _MIN_EPS_V:
+            raise ValueError(
+                f"FrictionConfig.eps_v must be at least {_MIN_EPS_V:g} m/s, got {self.eps_v!r}: the friction law "
+                "works with (eps_v dt)^2, which nears float64's underflow below it (the step failed with a "
+                "non-finite energy)"
+            )
         a = self.active
         if not (is_real(a) and 0 <= a < 1):
             raise ValueError(f"FrictionConfig.active must be a number in [0, 1), got {a!r}")

@@ -1231,3 +1231,17 @@ def test_an_inside_out_mesh_is_refused_with_the_fix():
         rigid_body(box)
     box.invert()
     assert rigid_body(box).mass == 1000.0
+
+
+def test_a_friction_slip_scale_that_underflows_is_refused_by_name():
+    """friction_eps_v = 1e-160 (or 1e-300) failed in the step as a non-finite energy naming neither it nor
+    friction: (eps_v dt)^2 underflows; 1e-30 steps."""
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=500.0)
+    floor = rigid_body(trimesh.creation.box((2.0, 2.0, 0.2)), kind="static")
+    for tiny in (1e-160, 1e-300):
+        with _says(f"FrictionConfig.eps_v must be at least 1e-30 m/s, got {tiny!r}: the friction law works"):
+            Scene([box, floor], friction=0.5, friction_eps_v=tiny)
+    scene = Scene([box, floor], friction=0.5, friction_eps_v=1e-30)
+    q = torch.tensor([[0, 0, 0.1015, 0, 0, 0], [0, 0, -0.1, 0, 0, 0]], dtype=F64)
+    v = torch.tensor([[1.0, 0, 0, 0, 0, 0], [0.0] * 6], dtype=F64)
+    assert float(step(scene, scene.initial_state(q, v)).q[0, 0]) > 0.0
