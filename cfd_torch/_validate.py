@@ -93,8 +93,8 @@ FAR = (
 MAX_ROTATION = 1e6
 # why (the messages of the pose checks)
 LONG_ROTATION = (
-    "its float64 spacing there (1.2e-10 rad) is too coarse to say which rotation it is; wrap it to the same "
-    "rotation (cfd_torch.recentre_rotation)"
+    "beyond 1e6 rad the float64 spacing of a rotation vector exceeds 1.2e-10 rad (about a step's newton_tol), too "
+    "coarse to say which rotation it is; wrap it to the same rotation (cfd_torch.recentre_rotation)"
 )
 
 

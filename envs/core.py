@@ -189,10 +189,22 @@ def stack_states(states: list[EnvState]) -> EnvState:
 
     Raises:
         TypeError: an entry is not an EnvState.
-        ValueError: no states, or states with different task variables."""
+        ValueError: no states, or states whose fields differ in their shapes after the batch or their dtypes
+            (states of another task, or of another core's size or dtype)."""
     states = list(states)
     if not states:
         raise ValueError("states must hold at least one EnvState")
+
+    def kind(st: EnvState) -> dict:
+        """What must agree between the states: each field's shape after the batch and its dtype."""
+        fields = {
+            "q": st.q,
+            "q_prev": st.q_prev,
+            "t": st.t,
+            **{f"task[{k!r}]": v for k, v in st.task.items()},
+        }
+        return {k: (tuple(v.shape[1:]), v.dtype) for k, v in fields.items()}
+
     for i, st in enumerate(states):
         if not isinstance(st, EnvState):
             raise TypeError(f"states[{i}] must be an EnvState, got {type(st).__name__}")
@@ -201,6 +213,14 @@ def stack_states(states: list[EnvState]) -> EnvState:
                 f"states[{i}] has the task variables {sorted(st.task)}, states[0] {sorted(states[0].task)}: "
                 "states of one task only"
             )
+        first, this = kind(states[0]), kind(st)
+        for k in first:
+            if this[k] != first[k]:
+                raise ValueError(
+                    f"states[{i}].{k} is {this[k][1]} of shape (B, {', '.join(map(str, this[k][0]))}), "
+                    f"states[0].{k} {first[k][1]} of shape (B, {', '.join(map(str, first[k][0]))}): states of "
+                    "one task and one core only"
+                )
     return pytree.tree_map(lambda *xs: torch.cat(xs), *states)
 
 
@@ -402,7 +422,10 @@ class TaskCore(abc.ABC):
             params: the simulator's differentiable physical parameters (``core.scene.params()``), or None.
 
         Raises:
-            ValueError: an action of the wrong shape or with NaN/inf.
+            TypeError: a state or action that :meth:`check_state` / :meth:`check_action` refuse by type (another
+                dtype or device, a task variable of the wrong kind).
+            ValueError: a state field of the wrong shape or with NaN/inf, a task variable out of its range, an
+                action of the wrong shape or with NaN/inf.
             cfd_torch.StepError: the simulator's solve did not converge.
         """
         self.check_state(state)
@@ -419,7 +442,9 @@ class TaskCore(abc.ABC):
 
     def check_state(self, state: EnvState) -> None:
         """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
-        and device whose every field has the batch size of ``state.q`` (its float task variables finite)."""
+        and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6), ``t`` (B,)
+        int64, and the task variables a start of this task has (the same keys, shapes after the batch, float or
+        int64), the float ones finite and each within its range (:meth:`check_task`)."""
         if not isinstance(state, EnvState):
             raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
         fields = {"state.q": state.q, "state.q_prev": state.q_prev, "state.t": state.t}

@@ -119,7 +119,8 @@ def main() -> None:
         if it == 0:
             first_traj = xy
         last_traj = xy
-        if best < 0 or history[-1]["loss"] < history[best]["loss"]:
+        cur = history[-1]["loss"]  # (a NaN loss is never the best; a finite one replaces a NaN best)
+        if best < 0 or (cur == cur and not history[best]["loss"] <= cur):
             best, best_q = it, traj.detach()
         bar.set_postfix(loss=f"{float(loss.detach()):.4f}", grad=f"{gnorm:.1e}")
         opt.step()
@@ -162,7 +163,8 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(args.out / "billiards_demo.png", dpi=120)
     plt.close(fig)
-    if args.gif and bool(torch.isfinite(best_q).all()):
+    gif = args.gif and bool(torch.isfinite(best_q).all())
+    if gif:
         write_shot_gif(mesh, best_q, pocket, radius, args.out / "billiards_demo.gif", fps=1.0 / args.dt)
 
     print(
@@ -173,7 +175,7 @@ def main() -> None:
     print(f"best:    v = ({b['v'][0]:.3f}, {b['v'][1]:.3f}) m/s, loss {b['loss']:.2e} (iteration {best})")
     print(
         f"{args.iters} iterations x {args.steps} steps in {wall:.1f} s; wrote {args.out}/billiards_demo.png/.json"
-        + ("/.gif" if args.gif else "")
+        + ("/.gif" if gif else "")
     )
     if not math.isfinite(final["loss"]):
         raise SystemExit("non-finite loss")

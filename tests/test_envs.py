@@ -721,6 +721,13 @@ def test_cube_layouts_that_cannot_be_scattered_are_refused_at_construction():
     assert obs.shape == (46,)
 
 
+# the pusher's start at seed 7 with the default sizes, as the scatter drew it before each footprint had its own
+# radius (session 52; Sort and Gather share the draw)
+PUSHER_START_SEED7 = dict.fromkeys(
+    ("cfd_torch/Sort-v0", "cfd_torch/Gather-v0"), [0.23014904117458101, 0.34810130978117243]
+)
+
+
 @pytest.mark.parametrize("task", ["cfd_torch/Sort-v0", "cfd_torch/Gather-v0"])
 def test_the_pusher_starts_clear_of_cubes_smaller_than_itself(task):
     """The scatter kept every footprint the cube's half diagonal apart, the pusher's too: with cubes smaller than
@@ -736,10 +743,13 @@ def test_the_pusher_starts_clear_of_cubes_smaller_than_itself(task):
     assert float(gaps.min()) > 0.05
     s435 = core.reset(435)
     step(core.scene, core.scene.initial_state(s435.q[0]))  # the start is feasible
-    ref = make_core(task)  # the default sizes: the draws of every earlier release
+    ref = make_core(
+        task
+    )  # the default sizes: the draws of every earlier release (the pusher's start, seed 7)
     q = ref.reset(7).q[0, : ref.num_cubes + 1, :2]
     d = (q[:, None] - q[None]).norm(dim=-1) + torch.eye(ref.num_cubes + 1, dtype=F64)
     assert float(d.min()) > 2 * 0.1 / math.sqrt(2) + 0.05
+    assert q[-1].tolist() == PUSHER_START_SEED7[task]
 
 
 def test_task_variables_are_checked_against_the_task():
@@ -791,6 +801,18 @@ def test_stack_states_concatenates_environments_and_names_what_cannot_be():
     push = make_core("cfd_torch/Push-v0").reset(0)
     with pytest.raises(ValueError, match=r"states\[1\] has the task variables \['target'\], states\[0\] "):
         stack_states([core.reset(4), push])
+    # the same task variables: another task (AntPush), another core's size or dtype (they failed in torch.cat, or
+    # promoted float32 silently)
+    for other, what in (
+        (make_core("cfd_torch/AntPush-v0").reset(0), r"states\[1\].q is torch.float64 of shape \(B, 11, 6\), "
+         r"states\[0\].q torch.float64 of shape \(B, 3, 6\)"),
+        (make_core("cfd_torch/Push-v0", dtype=torch.float32).reset(0), r"states\[1\].q is torch.float32"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=what):
+            stack_states([push, other])
+    sort2, sort3 = (make_core("cfd_torch/Sort-v0", num_cubes=n).reset(0) for n in (2, 3))
+    with pytest.raises(ValueError, match=r"states\[1\].q is torch.float64 of shape \(B, 5, 6\)"):
+        stack_states([sort2, sort3])
 
 
 def test_positions_and_velocities_are_unbounded_in_the_observation_space():

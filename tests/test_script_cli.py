@@ -293,4 +293,5 @@ def test_rolling_ball_starts_rolling_without_slipping_and_keeps_its_books(script
     mass = 1000.0 * trimesh.creation.icosphere(subdivisions=2, radius=0.1).volume
     assert abs(trans - 0.5 * mass * 4.0) < 1e-8 * trans
     assert 0.3 < rot / trans < 0.45  # 2/5 (r / h)^2 for a solid ball: its spin set from the rolling radius
-    assert energy > trans + rot and run["newton_iters"] > 0
+    potential = mass * rolling_ball.GRAVITY * run["rolling_radius_m"]  # (the settled centre's height)
+    assert abs(energy - (trans + rot + potential)) < 1e-12 * energy and run["newton_iters"] > 0

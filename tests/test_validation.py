@@ -1045,9 +1045,7 @@ def test_every_entry_taking_poses_refuses_rotation_vectors_beyond_a_million_radi
     far[1, 5] = 1e15
     bsh = ball.bsh
     assert torch.isfinite(mesh_potential(bsh, near[0], bsh, near[1]))
-    why = (
-        "rad (first at {}): its float64 spacing there (1.2e-10 rad) is too coarse to say which rotation it is"
-    )
+    why = "rad (first at {}): beyond 1e6 rad the float64 spacing of a rotation vector exceeds 1.2e-10 rad"
     with _says(f"pose_b has a rotation vector longer than 1e+06 {why.format('batch index ()')}"):
         mesh_potential(bsh, near[0], bsh, far[1])
     with _says(f"pose_a has a rotation vector longer than 1e+06 {why.format('batch index (1,)')}"):

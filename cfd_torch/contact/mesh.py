@@ -70,16 +70,22 @@ class MeshDerivatives(NamedTuple):
 
 
 # ---------------------------------------------------------------------------------------------- public API
-def _check_pose(pose: object, name: str) -> None:
+def _check_pose_kind(pose: object, name: str) -> None:
+    """A pose must be a (..., 6) float32 or float64 tensor."""
     if not isinstance(pose, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
-    check_not_meta(pose, name)
     if pose.dim() < 1 or pose.shape[-1] != 6:
         raise ValueError(
             f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
         )
     if pose.dtype not in FLOATS:
         raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
+
+
+def _check_pose_values(pose: torch.Tensor, name: str) -> None:
+    """A pose's values: on a device that has them, finite, translations within the dtype's limit, rotation vectors
+    no longer than MAX_ROTATION."""
+    check_not_meta(pose, name)
     with outside_transforms():
         bad = ~torch.isfinite(plain(pose)).all(-1)
         if bool(bad.any()):
@@ -117,18 +123,14 @@ def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
         raise TypeError(
             f"{bad} must be a cfd_torch.BSH, got {type(bsh_a if bad == 'bsh_a' else bsh_b).__name__}"
         )
-    for pose, name in ((pose_a, "pose_a"), (pose_b, "pose_b")):  # (each its own dtype before the pair's)
-        if isinstance(pose, torch.Tensor) and pose.dtype not in FLOATS:
-            raise ValueError(f"{name} must be float32 or float64, got {pose.dtype}")
-    if isinstance(pose_a, torch.Tensor) and isinstance(pose_b, torch.Tensor):
-        if pose_a.dtype != pose_b.dtype:
-            raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
-        if pose_a.device != pose_b.device:
-            raise ValueError(
-                f"pose_a and pose_b must be on one device, got {pose_a.device} and {pose_b.device}"
-            )
-    _check_pose(pose_a, "pose_a")
-    _check_pose(pose_b, "pose_b")
+    _check_pose_kind(pose_a, "pose_a")
+    _check_pose_kind(pose_b, "pose_b")
+    if pose_a.dtype != pose_b.dtype:
+        raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
+    if pose_a.device != pose_b.device:
+        raise ValueError(f"pose_a and pose_b must be on one device, got {pose_a.device} and {pose_b.device}")
+    _check_pose_values(pose_a, "pose_a")
+    _check_pose_values(pose_b, "pose_b")
     try:
         batch = torch.broadcast_shapes(pose_a.shape[:-1], pose_b.shape[:-1])
     except RuntimeError as err:

@@ -13,7 +13,14 @@ from .._validate import FLOATS, LONG_ROTATION, MAX_ROTATION, long_rotations
 from .feasibility import contained, infeasible_reason
 from .types import Params
 
-__all__ = ["check_state_tensor", "check_params", "check_targets_clear", "first_row"]
+__all__ = [
+    "check_ctrl",
+    "check_params",
+    "check_rotations",
+    "check_state_tensor",
+    "check_targets_clear",
+    "first_row",
+]
 
 
 def check_state_tensor(

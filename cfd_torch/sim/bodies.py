@@ -104,7 +104,9 @@ def rigid_body(
 
     Args:
         mesh: closed triangle mesh (watertight, consistently wound; a shell facing inward is a cavity inside an
-            outward one) for dynamic bodies; any mesh otherwise.
+            outward one) for dynamic bodies; any mesh otherwise. Vertices no face uses are left out, and a
+            smallest second moment below zero within the rounding of the mass properties (a thin plate turned
+            off the axes) is taken as zero.
         kind: "dynamic", "static" or "kinematic".
         density: [kg/m^3], dynamic bodies only; mass = density * volume.
         max_edge: refine triangles longer than this when building the contact hierarchy (see :class:`BSH`).

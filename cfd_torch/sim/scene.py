@@ -458,7 +458,12 @@ class Scene:
 
         The velocities are rates of the pose coordinates: the translation's (m/s), and the rotation vector's (its
         rate of change, q_prev = poses - dt velocities), which equals the angular velocity only where the rotation
-        vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis)."""
+        vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis).
+
+        Raises:
+            TypeError: poses or velocities is not a tensor.
+            ValueError: poses or velocities of the wrong shape, dtype or device, with NaN/inf, a rotation vector
+                longer than 1e6 rad, or (a planar scene) velocities out of its plane."""
         check_state_tensor(poses, "poses", self.num_bodies)
         check_rotations(poses, "poses")
         if velocities is None:

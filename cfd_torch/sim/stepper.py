@@ -492,9 +492,10 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     backward through F raises (a constant would drop its part of a loss's gradient silently).
 
     Raises:
-        TypeError: scene is not a Scene.
-        ValueError: some pair penetrates or is within the contact margin (its potential is +inf: no force); q is
-            float32 and a force overflows it (pass q as float64)."""
+        TypeError: scene is not a Scene, or q not a tensor.
+        ValueError: q of the wrong shape or dtype, with NaN/inf or a rotation vector longer than 1e6 rad; some pair
+            penetrates or is within the contact margin (its potential is +inf: no force); q is float32 and a force
+            overflows it (pass q as float64)."""
     refuse_transforms(
         "cfd_torch.pair_forces: torch.func transforms (grad, jacrev, vmap, jvp) and forward-mode AD do not pass "
         "through it (contact forces are not differentiated); call it on plain tensors (q.detach())",
