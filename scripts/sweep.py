@@ -5,7 +5,9 @@ the contact model and the seed change. Runs go to a local process pool by defaul
 ``--threads`` torch threads, default 1, so the pool does not oversubscribe the cores), or to Ray with ``--ray``
 (``pip install '.[ray]'``): ``ray.init()`` attaches to the cluster named by ``RAY_ADDRESS`` when it is set (and is
 then given no resources: Ray refuses num_cpus against an existing cluster), else starts a local instance with
-``--workers`` CPUs; each run is a ``@ray.remote(num_cpus=1)`` task. Each run writes its own folder
+``--workers`` CPUs (``address="local"``: never a cluster ``ray start`` left running); each run is a
+``@ray.remote(num_cpus=1)`` task, retried once if its worker dies (as the local pool reruns the runs of a broken
+pool alone). Each run writes its own folder
 ``<out>/<task>/<model>/seed<k>/`` (log.json, loss.png, best.gif with ``--gif``) on the machine that ran it; the
 results also come back to this process, which writes ``<out>/sweep.json`` (every run's config, summary and log)
 as runs finish (through a temporary file), with each invocation's commit, host, workers and command line, so an
@@ -176,14 +178,27 @@ def _run_ray(todo: list[dict], workers: int):
     # outside any git checkout, so the runs' logs take this checkout's commit from the environment
     commit = git_revision()
     env = {REVISION_ENV: commit} if commit else {}
-    ray.init(
-        **({} if os.environ.get("RAY_ADDRESS") else {"num_cpus": workers}),
-        include_dashboard=False,
-        runtime_env={"working_dir": str(Path(__file__).resolve().parent), "env_vars": env},
-    )
+    # RAY_ADDRESS names a cluster to attach to (Ray refuses num_cpus against one); without it a new local
+    # instance (address "local": ray.init() alone attaches to a cluster `ray start` left running)
+    where = {} if os.environ.get("RAY_ADDRESS") else {"address": "local", "num_cpus": workers}
+    interrupted = []
+    handler = signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))
+    try:  # a Ctrl-C while Ray starts its processes was lost, or left some running: it ends the sweep after
+        ray.init(
+            **where,
+            include_dashboard=False,
+            runtime_env={"working_dir": str(Path(__file__).resolve().parent), "env_vars": env},
+        )
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        # Ray's driver turns SIGTERM into SystemExit (and its core worker aborted on it): as Ctrl-C again
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    if interrupted:
+        raise KeyboardInterrupt
     script_dir = "."  # the job's working_dir: this scripts folder
 
-    @ray.remote(num_cpus=1)
+    # a run whose worker died is retried once, as the local pool retries the runs of a broken pool alone
+    @ray.remote(num_cpus=1, max_retries=1)
     def remote(config: dict) -> dict:
         sys.path.insert(0, script_dir)
         from sweep import run_one
@@ -323,11 +338,11 @@ def main() -> None:
             tqdm.write(
                 f"{c['task']} {c['model']} seed {c['seed']}: loss {start:.6g} -> {end:.6g}, {s['wall_s']:.0f} s"
             )
-    except (KeyboardInterrupt, SystemExit) as e:  # (Ray's driver turns SIGTERM into SystemExit)
+    except KeyboardInterrupt:
         results.close()  # ends the pool's runs (a run in this process has ended already)
         _write(path, {"runs": runs, "sweeps": sweeps})
         print(f"interrupted: {len(runs)} runs in {path}; --resume runs the rest", file=sys.stderr)
-        sys.exit(130 if isinstance(e, KeyboardInterrupt) else e.code)
+        sys.exit(130)
     _write(path, {"runs": runs, "sweeps": sweeps})  # (also when every run failed: the file says so)
     if not failed:  # failed.json lists this sweep's failures only: none now
         (args.out / "failed.json").unlink(missing_ok=True)
