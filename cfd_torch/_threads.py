@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 import types
 
 import numba
@@ -28,8 +29,19 @@ os.register_at_fork(after_in_child=_after_fork_in_child)
 
 def parallel_kernels() -> bool:
     """Whether numba's parallel kernels (and the traversal's threads) may run here: not in a fork() child (start
-    worker processes with multiprocessing's "spawn" or "forkserver" context to keep them)."""
-    return not _FORKED
+    worker processes with multiprocessing's "spawn" or "forkserver" context to keep them), and under numba's
+    workqueue threading layer only on the main thread (that layer is not thread-safe: two threads in parallel
+    kernels at once abort the process, "Concurrent access has been detected"; other threads run the serial twins)."""
+    if _FORKED:
+        return False
+    return threading.current_thread() is threading.main_thread() or not _workqueue_layer()
+
+
+@functools.cache
+def _workqueue_layer() -> bool:
+    """Whether numba's thread pool runs on its workqueue layer (its fallback without OpenMP or TBB)."""
+    start_numba_pool()  # (the layer is chosen when the pool starts)
+    return numba.threading_layer() == "workqueue"
 
 
 def serial_twin(kernel, **jit):

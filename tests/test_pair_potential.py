@@ -501,3 +501,27 @@ def test_warm_started_solve_finds_the_same_optimum():
         torch.testing.assert_close(v, v0, rtol=1e-13, atol=0)
         torch.testing.assert_close(P, P0, rtol=1e-8, atol=1e-10)
         torch.testing.assert_close(g, g0, rtol=1e-8, atol=1e-8 * float(g0.abs().max()))
+
+
+def test_large_hessians_live_in_recycled_buffers_that_are_reused_only_once_free():
+    """Large (K, 18, 18) Hessians are backed by a pool of two huge-page buffers, reused once no tensor refers to
+    them: a held Hessian, a view of it or a tensor set on its storage is never overwritten by later large calls,
+    and a freed buffer is reused (the 'free' reference count is measured at import, not assumed to be 3)."""
+    from cfd_torch.contact import pair as pair_mod
+
+    ta, tb, _ = random_separated_pairs(13_000, seed=1)
+    ta2, tb2, _ = random_separated_pairs(13_000, seed=2)
+    d = pair_potential_derivatives(ta, tb)
+    assert d.hessian.numel() * 8 >= pair_mod._HUGEPAGE_MIN_BYTES  # (the recycled path)
+    ref = d.hessian.clone()
+    assert bool((ref != 0).any())
+    view = d.hessian[5:7]
+    on_storage = torch.empty(0, dtype=F64).set_(d.hessian.untyped_storage(), 0, ref.shape)
+    del d
+    for _ in range(3):  # more large calls than the pool has buffers
+        other = pair_potential_derivatives(ta2, tb2)
+    assert torch.equal(view, ref[5:7]) and torch.equal(on_storage, ref)
+    del view, on_storage, other
+    pooled = {torch.frombuffer(b, dtype=torch.uint8, count=1).data_ptr() for b in pair_mod._HESS_POOL}
+    again = pair_potential_derivatives(ta, tb).hessian
+    assert again.data_ptr() in pooled and torch.equal(again, ref)

@@ -69,3 +69,35 @@ def test_forked_child_computes(tmp_path):
     }
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr
+
+
+_THREADS_SCRIPT = """
+from concurrent.futures import ThreadPoolExecutor
+import numba, torch
+from cfd_torch import pair_potential_derivatives
+from cfd_torch.contact._pair_numba import PARALLEL_MIN_PAIRS
+from cfd_torch.testing import random_separated_pairs
+
+a, b, _ = random_separated_pairs(2 * PARALLEL_MIN_PAIRS, seed=0)
+expected = pair_potential_derivatives(a, b).hessian  # the main thread: the parallel kernel
+assert numba.threading_layer() == "workqueue", numba.threading_layer()
+with ThreadPoolExecutor(3) as pool:
+    got = list(pool.map(lambda _: pair_potential_derivatives(a, b).hessian, range(6)))
+assert all(torch.equal(g, expected) for g in got)
+print("ok")
+"""
+
+
+def test_threads_under_numba_workqueue_layer_run_the_serial_kernels(tmp_path):
+    """numba's workqueue threading layer (its fallback without OpenMP or TBB) is not thread-safe: threads calling
+    the parallel pair kernel at once aborted the process ("Concurrent access has been detected"). Other threads
+    than the main one run the serial twins there, with the same results."""
+    script = tmp_path / "threads.py"
+    script.write_text(_THREADS_SCRIPT)
+    env = {
+        **os.environ,
+        "NUMBA_THREADING_LAYER": "workqueue",
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stdout + out.stderr

@@ -79,6 +79,22 @@ _HESS_POOL: list[mmap.mmap] = []  # recycled huge-page buffers of large outputs 
 _POOL_SIZE = 2
 
 
+def _refs_when_free() -> int:
+    """What ``sys.getrefcount`` reports for a pool buffer that no tensor holds, seen as :func:`_empty_cpu`'s loop
+    sees it (the pool list, the loop variable, getrefcount's argument: 3 up to Python 3.13). Measured, not assumed:
+    an interpreter that borrows references (3.14's) reports fewer, and a fixed 3 would then take a buffer a tensor
+    still holds for free."""
+    pool = [mmap.mmap(-1, mmap.PAGESIZE)]
+    n = 0
+    for buf in pool:
+        n = sys.getrefcount(buf)
+    pool[0].close()
+    return n
+
+
+_FREE_REFS = _refs_when_free()
+
+
 def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     """Uninitialised CPU tensor; large ones are backed by recycled transparent-huge-page buffers.
 
@@ -95,8 +111,8 @@ def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     if nbytes < _HUGEPAGE_MIN_BYTES or advice is None:
         return torch.empty(shape, dtype=dtype)
     for buf in _HESS_POOL:
-        # references: the pool list, the loop variable and getrefcount's argument; more means a tensor holds it
-        if nbytes <= len(buf) <= 2 * nbytes and sys.getrefcount(buf) == 3:
+        # more references than the pool's own (_FREE_REFS) means a tensor holds it
+        if nbytes <= len(buf) <= 2 * nbytes and sys.getrefcount(buf) == _FREE_REFS:
             return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)
     buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     try:
