@@ -1243,3 +1243,17 @@ def test_a_friction_slip_scale_that_underflows_is_refused_by_name():
     q = torch.tensor([[0, 0, 0.1015, 0, 0, 0], [0, 0, -0.1, 0, 0, 0]], dtype=F64)
     v = torch.tensor([[1.0, 0, 0, 0, 0, 0], [0.0] * 6], dtype=F64)
     assert float(step(scene, scene.initial_state(q, v)).q[0, 0]) > 0.0
+
+
+def test_pair_eps_of_a_pair_without_contact_is_refused():
+    """A blend width for a pair the scene never evaluates (static-kinematic, excluded) was accepted silently and
+    never used (a user audit)."""
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=500.0)
+    floor = rigid_body(trimesh.creation.box((2.0, 2.0, 0.2)), kind="static")
+    pusher = rigid_body(trimesh.creation.box((0.05, 0.05, 0.3)), kind="kinematic")
+    assert Scene([box, floor, pusher], pair_eps={(2, 0): 1.0}).pair_eps == {(2, 0): 1.0}
+    why = "is a pair without contact (neither body is dynamic, or the pair is excluded or two links of one robot)"
+    with _says(f"pair_eps: (1, 2) {why}"):
+        Scene([box, floor, pusher], pair_eps={(1, 2): 1.0})
+    with _says(f"pair_eps: (2, 0) {why}"):
+        Scene([box, floor, pusher], pair_eps={(2, 0): 1.0}, exclude=[(0, 2)])
