@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import mmap
 import sys
+import threading
 from typing import NamedTuple
 
 import torch
@@ -77,6 +78,7 @@ class PairDerivatives(NamedTuple):
 
 _HESS_POOL: list[mmap.mmap] = []  # recycled huge-page buffers of large outputs (at most _POOL_SIZE)
 _POOL_SIZE = 2
+_POOL_LOCK = threading.Lock()
 
 
 def _refs_when_free() -> int:
@@ -110,19 +112,20 @@ def _empty_cpu(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     advice = getattr(mmap, "MADV_HUGEPAGE", None)
     if nbytes < _HUGEPAGE_MIN_BYTES or advice is None:
         return torch.empty(shape, dtype=dtype)
-    for buf in _HESS_POOL:
-        # more references than the pool's own (_FREE_REFS) means a tensor holds it
-        if nbytes <= len(buf) <= 2 * nbytes and sys.getrefcount(buf) == _FREE_REFS:
-            return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)
-    buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
-    try:
-        buf.madvise(advice)
-    except OSError:
-        pass
-    _HESS_POOL.append(buf)
-    if len(_HESS_POOL) > _POOL_SIZE:
-        _HESS_POOL.pop(0)
-    return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)  # the tensor keeps buf alive
+    with _POOL_LOCK:  # (two threads must not both take one free buffer between its check and its tensor)
+        for buf in _HESS_POOL:
+            # more references than the pool's own (_FREE_REFS) means a tensor holds it
+            if nbytes <= len(buf) <= 2 * nbytes and sys.getrefcount(buf) == _FREE_REFS:
+                return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)
+        buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+        try:
+            buf.madvise(advice)
+        except OSError:
+            pass
+        _HESS_POOL.append(buf)
+        if len(_HESS_POOL) > _POOL_SIZE:
+            _HESS_POOL.pop(0)
+        return torch.frombuffer(buf, dtype=dtype, count=numel).view(shape)  # the tensor keeps buf alive
 
 
 def _use_numba(X: torch.Tensor, backend: str) -> bool:
