@@ -31,6 +31,7 @@ from cfd_torch import Action, Params, Scene, State, step
 from cfd_torch._validate import check_positive, is_real
 from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
+from cfd_torch.sim.types import allow_in_torch_load
 
 __all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_states", "task_at"]
 
@@ -249,6 +250,9 @@ def _generator_seed(seed: int) -> int:
     if 0 <= seed < 2**32:
         return seed
     return int(np.random.SeedSequence(seed % 2**128).generate_state(1)[0])
+
+
+allow_in_torch_load(EnvState, StepOut)
 
 
 class TaskCore(abc.ABC):

@@ -10,6 +10,7 @@ from torch.utils.checkpoint import checkpoint
 
 from cfd_torch import Params
 from cfd_torch._validate import is_int
+from cfd_torch.sim.types import allow_in_torch_load
 
 from .core import EnvState, TaskCore
 
@@ -41,6 +42,9 @@ class Rollout(NamedTuple):
     info: dict[str, torch.Tensor]
     final: EnvState
     q: torch.Tensor
+
+
+allow_in_torch_load(Rollout)
 
 
 def _policy_action(core: TaskCore, policy: Policy, obs: torch.Tensor, t: int) -> torch.Tensor:

@@ -1022,3 +1022,33 @@ def test_render_metadata_and_render_mode_none():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # gym.make's own "not in the possible render_modes"
             gym.make("cfd_torch/Push-v0", render_mode="ansi")
+
+
+def test_states_and_rollouts_load_with_torch_load_defaults(tmp_path):
+    """torch.load's weights_only=True (torch's default from 2.6) refused the library's containers (State, Params,
+    Action, Trajectory, StepInfo, EnvState, StepOut, Rollout): 'Weights only load failed'; they are allowlisted."""
+    from cfd_torch import Action, Trajectory, step
+    from cfd_torch import rollout as sim_rollout
+
+    core = make_core("cfd_torch/Push-v0")
+    s = core.reset(0)
+    out = core.step(s, torch.zeros(1, 2, dtype=F64))
+    roll = rollout(core, s, torch.zeros(2, 1, 2, dtype=F64))
+    scene = core.scene
+    state = scene.initial_state(s.q[0])
+    _, info = step(scene, state, return_info=True)
+    things = [s, out, roll, state, scene.params(), Action(force=torch.zeros(3, 3, dtype=F64)), info,
+              sim_rollout(scene, state, 1)]  # fmt: skip
+    for k, thing in enumerate(things):
+        torch.save(thing, tmp_path / f"{k}.pt")
+        back = torch.load(tmp_path / f"{k}.pt")
+        assert type(back) is type(thing)
+        if isinstance(thing, Trajectory):  # (not a pytree)
+            thing, back = (thing.q, thing.q_prev), (back.q, back.q_prev)
+        flat, _ = torch.utils._pytree.tree_flatten(thing)
+        flat_back, _ = torch.utils._pytree.tree_flatten(back)
+        assert len(flat) == len(flat_back) > 1
+        assert all(
+            torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b
+            for a, b in zip(flat, flat_back, strict=True)
+        )

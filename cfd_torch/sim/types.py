@@ -140,3 +140,14 @@ class StepInfo(NamedTuple):
     friction_force: torch.Tensor
     substeps: torch.Tensor
     seconds: float
+
+
+def allow_in_torch_load(*classes: type) -> None:
+    """Let ``torch.load`` (``weights_only=True``, torch's default from 2.6) rebuild ``classes``: plain containers of
+    tensors and numbers (torch before 2.4 has no allowlist and loads them anyway)."""
+    add = getattr(torch.serialization, "add_safe_globals", None)
+    if add is not None:
+        add(list(classes))
+
+
+allow_in_torch_load(State, Trajectory, Action, Params, StepInfo)
