@@ -91,16 +91,27 @@ FAR = (
 # the longest rotation vector a pose may hold [rad]: its float64 spacing there, 1.2e-10 rad, is about a step's
 # newton_tol (a step solves from the re-centred rotation, the same one to that spacing)
 MAX_ROTATION = 1e6
-# why (the messages of the pose checks)
-LONG_ROTATION = (
-    "beyond 1e6 rad the float64 spacing of a rotation vector exceeds 1.2e-10 rad (about a step's newton_tol), too "
-    "coarse to say which rotation it is; wrap it to the same rotation (cfd_torch.recentre_rotation)"
-)
 
 
-def long_rotations(pose: torch.Tensor) -> torch.Tensor:
-    """(...,) mask of the poses (..., 6) whose rotation vector is longer than :data:`MAX_ROTATION`."""
-    return plain(pose).detach()[..., 3:].norm(dim=-1) > MAX_ROTATION
+def check_rotation_length(pose: torch.Tensor, name: str, where) -> None:
+    """A ValueError naming ``name`` and ``where(mask)`` (the first offending pose of the (...,) mask) if some pose
+    of ``pose`` (..., 6) has a rotation vector longer than :data:`MAX_ROTATION`."""
+    with outside_transforms():
+        turns = plain(pose).detach()[..., 3:].norm(dim=-1) > MAX_ROTATION
+    if bool(turns.any()):
+        raise ValueError(
+            f"{name} has a rotation vector longer than {MAX_ROTATION:g} rad (first at {where(turns)}): beyond 1e6 "
+            "rad the float64 spacing of a rotation vector exceeds 1.2e-10 rad (about a step's newton_tol), too "
+            "coarse to say which rotation it is; wrap it to the same rotation (cfd_torch.recentre_rotation)"
+        )
+
+
+def check_alike(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
+    """A ValueError naming both unless the tensors ``a`` and ``b`` share a dtype and a device."""
+    if a.dtype != b.dtype:
+        raise ValueError(f"{name_a} and {name_b} must share a dtype, got {a.dtype} and {b.dtype}")
+    if a.device != b.device:
+        raise ValueError(f"{name_a} and {name_b} must be on one device, got {a.device} and {b.device}")
 
 
 def max_coord(dtype: torch.dtype) -> float:

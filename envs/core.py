@@ -206,6 +206,7 @@ def stack_states(states: list[EnvState]) -> EnvState:
         }
         return {k: (tuple(v.shape[1:]), v.dtype) for k, v in fields.items()}
 
+    first = None
     for i, st in enumerate(states):
         if not isinstance(st, EnvState):
             raise TypeError(f"states[{i}] must be an EnvState, got {type(st).__name__}")
@@ -214,7 +215,9 @@ def stack_states(states: list[EnvState]) -> EnvState:
                 f"states[{i}] has the task variables {sorted(st.task)}, states[0] {sorted(states[0].task)}: "
                 "states of one task only"
             )
-        first, this = kind(states[0]), kind(st)
+        this = kind(st)
+        if first is None:  # (states[0]'s)
+            first = this
         for k in first:
             if this[k] != first[k]:
                 raise ValueError(

@@ -32,14 +32,13 @@ from .._autograd import VALUES_ONLY, ClosedFormPotential, outside_transforms, pl
 from .._validate import (
     FAR,
     FLOATS,
-    LONG_ROTATION,
-    MAX_ROTATION,
+    check_alike,
     check_count,
     check_not_meta,
     check_positive,
+    check_rotation_length,
     check_stiffness,
     check_tolerance,
-    long_rotations,
     max_coord,
     narrowed,
     widened,
@@ -89,22 +88,19 @@ def _check_pose_values(pose: torch.Tensor, name: str) -> None:
     with outside_transforms():
         bad = ~torch.isfinite(plain(pose)).all(-1)
         if bool(bad.any()):
-            idx = tuple(int(i) for i in torch.nonzero(bad)[0]) if bad.dim() else ()
-            raise ValueError(f"{name} contains NaN or inf (first at batch index {idx})")
+            raise ValueError(f"{name} contains NaN or inf (first at batch index {_first_index(bad)})")
         limit = max_coord(pose.dtype)
         far = plain(pose)[..., :3].abs().amax(-1) > limit
         if bool(far.any()):
-            idx = tuple(int(i) for i in torch.nonzero(far)[0]) if far.dim() else ()
             raise ValueError(
-                f"{name} has a translation beyond {limit:g} m (first at batch index {idx}): {FAR}"
+                f"{name} has a translation beyond {limit:g} m (first at batch index {_first_index(far)}): {FAR}"
             )
-        turns = long_rotations(pose)
-        if bool(turns.any()):
-            idx = tuple(int(i) for i in torch.nonzero(turns)[0]) if turns.dim() else ()
-            raise ValueError(
-                f"{name} has a rotation vector longer than {MAX_ROTATION:g} rad (first at batch index {idx}): "
-                f"{LONG_ROTATION}"
-            )
+    check_rotation_length(pose, name, lambda m: f"batch index {_first_index(m)}")
+
+
+def _first_index(mask: torch.Tensor) -> tuple[int, ...]:
+    """The index of the first True of ``mask`` (() for a 0-d one)."""
+    return tuple(int(i) for i in torch.nonzero(mask)[0]) if mask.dim() else ()
 
 
 def _check_params(mu, margin, eps, split, tol, max_iter):
@@ -125,10 +121,7 @@ def _pair_batch(bsh_a, pose_a, bsh_b, pose_b):
         )
     _check_pose_kind(pose_a, "pose_a")
     _check_pose_kind(pose_b, "pose_b")
-    if pose_a.dtype != pose_b.dtype:
-        raise ValueError(f"pose_a and pose_b must share a dtype, got {pose_a.dtype} and {pose_b.dtype}")
-    if pose_a.device != pose_b.device:
-        raise ValueError(f"pose_a and pose_b must be on one device, got {pose_a.device} and {pose_b.device}")
+    check_alike(pose_a, pose_b, "pose_a", "pose_b")
     _check_pose_values(pose_a, "pose_a")
     _check_pose_values(pose_b, "pose_b")
     try:

@@ -39,6 +39,7 @@ from .._autograd import (
 from .._geometry import frame_origin
 from .._threads import parallel_kernels, start_numba_pool
 from .._validate import (
+    check_alike,
     check_count,
     check_positive,
     check_stiffness,
@@ -380,10 +381,7 @@ class _PairPotentialFn(torch.autograd.Function):
 def _prepare(tri_a, tri_b, mu, margin, tol, max_iter, name):
     check_triangles(tri_a, "tri_a")
     check_triangles(tri_b, "tri_b")
-    if tri_a.dtype != tri_b.dtype:
-        raise ValueError(f"tri_a and tri_b must share a dtype, got {tri_a.dtype} and {tri_b.dtype}")
-    if tri_a.device != tri_b.device:
-        raise ValueError(f"tri_a and tri_b must be on one device, got {tri_a.device} and {tri_b.device}")
+    check_alike(tri_a, tri_b, "tri_a", "tri_b")
     check_stiffness(mu, "mu")
     check_positive(margin, "margin")
     check_tolerance(tol, "tol")

@@ -28,11 +28,9 @@ from .._autograd import (
 from .._validate import (
     FAR,
     FLOATS,
-    LONG_ROTATION,
-    MAX_ROTATION,
     check_not_meta,
+    check_rotation_length,
     is_int,
-    long_rotations,
     max_coord,
     narrowed,
     widened,
@@ -194,12 +192,7 @@ def contact_potential(
             raise ValueError(
                 f"poses has a translation beyond {limit:g} m (first at body {int(torch.nonzero(far)[0])}): {FAR}"
             )
-        turns = long_rotations(poses)
-        if bool(turns.any()):
-            raise ValueError(
-                f"poses has a rotation vector longer than {MAX_ROTATION:g} rad (first at body "
-                f"{int(torch.nonzero(turns)[0])}): {LONG_ROTATION}"
-            )
+    check_rotation_length(poses, "poses", lambda m: f"body {int(torch.nonzero(m)[0])}")
     _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:
         grad = poses.requires_grad and torch.is_grad_enabled()

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from .._autograd import outside_transforms, plain
-from .._validate import FLOATS, LONG_ROTATION, MAX_ROTATION, long_rotations
+from .._validate import FLOATS, check_rotation_length
 from .feasibility import contained, infeasible_reason
 from .types import Params
 
@@ -69,13 +69,7 @@ def check_state_tensor(
 def check_rotations(x: torch.Tensor, name: str) -> None:
     """Poses ``x`` ([B,] n, 6) must have rotation vectors no longer than ``MAX_ROTATION`` (a clear ValueError naming
     ``name`` and the first row)."""
-    with outside_transforms():
-        turns = long_rotations(x)
-    if bool(turns.any()):
-        raise ValueError(
-            f"{name} has a rotation vector longer than {MAX_ROTATION:g} rad (first at {first_row(turns)}): "
-            f"{LONG_ROTATION}"
-        )
+    check_rotation_length(x, name, first_row)
 
 
 def first_row(bad: torch.Tensor, bodies: list[int] | None = None, what: str = "body") -> str:
