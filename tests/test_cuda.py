@@ -83,7 +83,8 @@ def test_pair_potential_value_gradient_and_second_order_match_cpu(dtype):
     assert out["cpu"][2].abs().max() > 0
     rtol = 1e-10 if dtype == F64 else 1e-5
     for name, d, r in zip(("value", "grad a", "grad b", "hvp"), out["dev"], out["cpu"], strict=True):
-        _close(d.detach(), r.detach(), rtol, atol=rtol * float(r.abs().max()), what=name)
+        d, r = d.detach(), r.detach()
+        _close(d, r, rtol, atol=rtol * float(r.abs().max()), what=name)
 
 
 def test_pair_potential_derivatives_match_cpu():

@@ -101,6 +101,12 @@ REFUSED = [
     ("impact_model_1d", ["--schemes", "aligned:0.05:1"], "--schemes"),  # G above gap0: silently plain
     ("stress", ["--seed", "-1"], "--seed"),
     ("bench_pair", ["--device", "foo"], "--device"),
+    ("bench_device", ["--device", "cpu"], "--device"),  # the CPU is the other side of the comparison
+    ("bench_device", ["--batches", "0"], "--batches"),
+    ("bench_device", ["--budget-s", "0"], "--budget-s"),
+    ("profile_task_step", ["--cases", "Pool:1"], "--cases"),
+    ("profile_task_step", ["--cases", "Push:0"], "--cases"),
+    ("profile_task_step", ["--device", "foo"], "--device"),
     ("demo_pair", ["--margin", "-1"], "--margin"),
     ("demo_billiards", ["--dt", "-1"], "--dt"),
     ("push_reach", ["--dt", "-0.01"], "--dt"),
