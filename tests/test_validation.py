@@ -1007,6 +1007,10 @@ def test_bsh_vertices_and_small_arguments_are_checked_by_name():
     ground = rigid_body(box, kind="static")
     with _says("density must be a finite positive number, got -1.0"):
         rigid_body(box, kind="static", density=-1.0)
+    with _says(
+        "density must be a Python number, got a tensor", TypeError
+    ):  # it read: a finite positive number
+        rigid_body(box, density=torch.tensor(1000.0, dtype=F64, requires_grad=True))
     with _says("scene must be a cfd_torch.Scene, got NoneType", TypeError):
         pair_forces(None, poses)
     with _says("bodies must be a sequence of RigidBody, got int", TypeError):

@@ -112,7 +112,7 @@ def rigid_body(
         max_edge: refine triangles longer than this when building the contact hierarchy (see :class:`BSH`).
 
     Raises:
-        TypeError: ``mesh`` is not a ``trimesh.Trimesh``.
+        TypeError: ``mesh`` is not a ``trimesh.Trimesh``, or ``density`` is a tensor (mass gradients: ``Params``).
         ValueError: unknown kind, non-positive density, a mesh with NaN/inf vertices or degenerate (zero-area)
             faces, a ``max_edge`` that would split it into more than 2,000,000 triangles, or a dynamic mesh that
             is not a watertight closed volume, that intersects itself, whose shells would miscount its solid
@@ -136,6 +136,11 @@ def rigid_body(
         mesh = trimesh.Trimesh(V, Fc, process=False)
         mesh.remove_unreferenced_vertices()
         V, Fc = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    if isinstance(density, torch.Tensor):
+        raise TypeError(
+            "density must be a Python number, got a tensor: a body's mass properties are fixed when it is built; "
+            "for gradients with respect to mass pass Params (scene.params(), its mass and second_moment) to step"
+        )
     if not (is_real(density) and 0 < density < float("inf")):
         raise ValueError(f"density must be a finite positive number, got {density!r}")
     if kind != "dynamic":
