@@ -107,7 +107,7 @@ def test_pair_potential_gradcheck_and_gradgradcheck_on_device():
 
 # ------------------------------------------------------------------------------------------------ meshes
 def _mesh_poses() -> tuple[torch.Tensor, torch.Tensor]:
-    """Three pose pairs: near contact (1 mm gap), mid range, far (3 m)."""
+    """Three pose pairs of two 0.1 m balls: near contact (centres 0.201 m apart), mid range, far (3 m)."""
     pa = torch.zeros(3, 6, dtype=F64)
     pb = torch.tensor(
         [[0.201, 0.0, 0.0, 0.1, 0.2, 0.3], [0.0, 0.35, 0.1, 1.0, 0.0, -0.5], [3.0, 0.0, 0.0, 0.0, 0.0, 2.0]],
