@@ -848,6 +848,34 @@ def test_huge_step_does_not_tunnel_through_the_table():
         step(scene, state)
 
 
+@pytest.mark.parametrize("speed", [10.0, 20.0, 50.0])
+def test_a_body_thinner_than_ccd_spacing_does_not_fall_through_a_thick_floor(speed):
+    """A 5 mm ball (margin and stiffness scaled to it, as the README advises) dropped at 10-50 m/s onto a 10 cm
+    floor: with the path samples ccd_spacing = 1 cm apart it passed wholly inside the floor between two samples,
+    ending inside it or below it without an error (a session-53 audit); the samples are now at most half the
+    thinnest moving body's thickness apart, and it lands."""
+    floor = trimesh.creation.box((2.0, 2.0, 0.1))
+    floor.apply_translation((0.0, 0.0, -0.05))
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=2, radius=0.0025))
+    scene = Scene([rigid_body(floor, kind="static"), ball], dt=0.01, friction=0.5, mu=1e-14, margin=1e-4)
+    assert scene.solver.ccd_spacing == 0.01 and scene.path_spacing == pytest.approx(0.0025 * 0.982, rel=1e-3)
+    state = scene.initial_state(_poses((), (0.0, 0.0, 0.3)), _poses((), (0.0, 0.0, -speed)))
+    for _ in range(3):
+        state = step(scene, state)
+    assert 0.0025 < float(state.q[1, 2]) < 0.0028  # resting on the floor (its radius plus the gap)
+
+
+def test_path_spacing_is_ccd_spacing_unless_a_moving_body_is_thinner(cube, ground, pusher):
+    """Half the thinnest dynamic or kinematic body's thickness (static bodies do not move along a path)."""
+    assert Scene((cube, ground), dt=0.01).path_spacing == 0.01  # a 0.2 m cube
+    assert Scene((cube, ground, pusher), dt=0.01).path_spacing == 0.01  # a 5 cm thick paddle
+    plate = rigid_body(trimesh.creation.box((0.3, 0.2, 0.004)))
+    assert Scene((plate, ground), dt=0.01).path_spacing == pytest.approx(0.002)
+    thin_floor = trimesh.creation.box((1.0, 1.0, 0.004))
+    assert Scene((cube, rigid_body(thin_floor, kind="static")), dt=0.01).path_spacing == 0.01
+    assert Scene((plate, ground), dt=0.01, ccd_spacing=0.001).path_spacing == 0.001
+
+
 def test_pole_tipping_over_its_edge_at_a_large_step_is_not_refused(ground):
     """A 0.8 m pole falling over turns about its bottom edge by up to 0.2 rad per step at dt = 0.033 s: the straight
     path in q between two poses would dip that edge into the ground (by r dtheta^2 / 8), which once raised a false

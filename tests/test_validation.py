@@ -768,9 +768,10 @@ def test_a_body_wholly_inside_another_is_refused():
     rod = rigid_body(trimesh.creation.box((0.1, 0.1, 2.0)))
     scene = Scene([rod, rigid_body(ring, kind="kinematic")], gravity=(0.0, 0.0, 0.0))
     step(scene, scene.initial_state(torch.zeros(2, 6, dtype=F64)))
-    # a kinematic paddle (5 mm) whose target lies inside a dynamic box, reached by a move shorter than ccd_spacing
-    # (so no sample of its path crosses the box's surface): refused; a 5 cm paddle's longer move into the box
-    # pushes the box
+    # a kinematic paddle (5 mm) whose target lies inside a dynamic box, 9 mm from its start: the path samples are
+    # at most half its thickness apart, so one lands on the crossing and the paddle pushes the box; were the move
+    # shorter than the samples' spacing (no sample of its path on the box's surface, as with the samples 1 cm
+    # apart before session 53), the target inside would be refused
     box = rigid_body(trimesh.creation.box((0.4, 0.4, 0.4)))
     paddle = rigid_body(trimesh.creation.box((0.005, 0.005, 0.005)), kind="kinematic")
     scene = Scene([box, paddle], gravity=(0.0, 0.0, 0.0))
@@ -778,6 +779,8 @@ def test_a_body_wholly_inside_another_is_refused():
     target = torch.tensor(
         [[0.1955, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=F64
     )  # 2 mm inside the box's face (1 mm: within the margin, pushed)
+    assert float(step(scene, scene.initial_state(q), Action(target=target)).q[0, 0]) < -0.0065
+    object.__setattr__(scene, "path_spacing", 0.01)  # a sparser sweep: the crossing between two samples
     with _says("action.target: body 1 lies inside body 0"):
         step(scene, scene.initial_state(q), Action(target=target))
     big = rigid_body(trimesh.creation.box((0.05, 0.05, 0.05)), kind="kinematic")

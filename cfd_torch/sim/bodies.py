@@ -217,6 +217,27 @@ def rigid_body(
 MAX_REFINED_FACES = 200_000
 
 
+# the 13 directions of a cubic lattice's nearest neighbours (axes, face and body diagonals), unit length
+_LATTICE = np.array(
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [1, 0, 1], [1, 0, -1], [0, 1, 1], [0, 1, -1],
+     [1, 1, 1], [1, 1, -1], [1, -1, 1], [-1, 1, 1]], dtype=np.float64,
+)  # fmt: skip
+_LATTICE /= np.linalg.norm(_LATTICE, axis=1, keepdims=True)
+
+
+def thickness(vertices: np.ndarray) -> float:
+    """A body's thickness [m]: the least extent of its vertices (V, 3) along their three principal axes and 13 fixed
+    directions. Exact for boxes, plates and rods (along a principal axis) and for a regular tetrahedron in its
+    canonical frame (edge to edge along an axis); otherwise an upper bound of the least width, near it for
+    compact bodies (a 320-face icosphere of radius r: 1.96 r)."""
+    V = np.asarray(vertices, dtype=np.float64)
+    c = V - V.mean(0)
+    _, axes = np.linalg.eigh(c.T @ c)
+    dirs = np.concatenate([axes.T, _LATTICE])
+    proj = c @ dirs.T  # (V, D)
+    return float((proj.max(0) - proj.min(0)).min())
+
+
 def refine_obstacles(
     bodies: Sequence[RigidBody], pairs: torch.Tensor, factor: float
 ) -> tuple[RigidBody, ...]:

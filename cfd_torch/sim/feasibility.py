@@ -4,12 +4,13 @@ reachable. One contract for all three:
 * A configuration is **feasible** when every interacting body pair's potential is finite (no pair within the
   margin); the contact model's collision query decides (it agrees exactly with the potential's +inf).
 * A **move** of the iterate q0 -> q1 (the warm start, a Newton trial) is accepted only if q1 is feasible and so is
-  the straight path in q at points whose largest vertex displacement is at most ``ccd_spacing`` apart (features
+  the straight path in q at points whose largest vertex displacement is at most ``scene.path_spacing`` apart
+  (``ccd_spacing``, or half the thinnest moving body's thickness where that is less; features
   thinner than about that plus the margin can still be jumped over in one move).
 * The step's **solution must be reachable** from the start-of-step poses without passing through a static body:
   each moving body, shrunk by ``reach_shrink`` about its centre of mass (an interpolated path is not the body's
   motion, and dipping a few millimetres into a support it rests or lands on is not tunnelling), must be clear of
-  static bodies at points ``ccd_spacing`` apart along the straight path in q, or along a turn about its
+  static bodies at points ``path_spacing`` apart along the straight path in q, or along a turn about its
   least-moving vertex (a body tipping over an edge); if neither is clear (a large tumbling step), it is refused
   only if some centre of mass crosses a static surface. With a huge dt the minimiser can lie beyond an obstacle,
   reached by iterates that went around it. Pairs of moving bodies are not checked here: their straight
@@ -172,15 +173,15 @@ def _spaced(dist: torch.Tensor, spacing: float, x0: torch.Tensor, x1: torch.Tens
 
 
 def _samples(prob: StepProblem, q0, q1, scenes):
-    """Points of the straight paths q0 -> q1 at most ccd_spacing apart, ends excluded: (S, Q) coordinates, the
-    scene of each (S,) and the index of its path (S,)."""
-    qs, path = _spaced(displacement(prob, q0, q1, scenes), prob.scene.solver.ccd_spacing, q0, q1)
+    """Points of the straight paths q0 -> q1 at most the scene's path_spacing apart, ends excluded: (S, Q)
+    coordinates, the scene of each (S,) and the index of its path (S,)."""
+    qs, path = _spaced(displacement(prob, q0, q1, scenes), prob.scene.path_spacing, q0, q1)
     return qs, scenes[path], path
 
 
 def sweep_clear(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None = None) -> torch.Tensor:
     """(S,) bool: whether the straight paths of every body's pose p0 -> p1 (S, N, 6) are feasible at points at most
-    ccd_spacing apart (ends excluded; p0 feasible, p1 checked by the caller), for the pairs the (P,) mask ``sel``
+    path_spacing apart (ends excluded; p0 feasible, p1 checked by the caller), for the pairs the (P,) mask ``sel``
     selects (default all). The kinematic bodies' own motion over a step is checked this way: the Newton moves hold
     them at their targets."""
     return _sweep(scene, p0, p1, sel, start=False)[1]
@@ -199,7 +200,7 @@ def _sweep(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None, 
     d = p1 - p0
     r = scene.extent.to(p0)
     dist = (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
-    ps, path = _spaced(dist, scene.solver.ccd_spacing, p0, p1)
+    ps, path = _spaced(dist, scene.path_spacing, p0, p1)
     S = len(p0)
     clear = torch.ones(S, dtype=torch.bool, device=p0.device)
     query = torch.cat([p0, ps]) if start else ps
@@ -213,7 +214,7 @@ def _sweep(scene, p0: torch.Tensor, p1: torch.Tensor, sel: torch.Tensor | None, 
 
 def path_clear(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:
     """(A,) bool: whether the straight paths q0 -> q1 (q0 feasible; q1 checked by the caller) are feasible at
-    points at most ccd_spacing apart, all samples of all scenes in one collision query."""
+    points at most path_spacing apart, all samples of all scenes in one collision query."""
     qs, sc, path = _samples(prob, q0, q1, scenes)
     clear = torch.ones(len(q0), dtype=torch.bool, device=q0.device)
     if len(qs):
@@ -277,7 +278,7 @@ def reachable(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor) -> torch.Te
     if not bool(sel.any()):
         return ok
     scenes = torch.arange(B, device=q0.device)
-    n = torch.ceil(displacement(prob, q0, q1, scenes) / scene.solver.ccd_spacing).long()
+    n = torch.ceil(displacement(prob, q0, q1, scenes) / scene.path_spacing).long()
     shrink = scene.solver.reach_shrink
     kin = scene.kinematics
     dyn = kin.bodies.to(q0.device)

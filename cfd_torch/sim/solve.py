@@ -34,6 +34,8 @@ Work = tuple[int, int, int]  # energy evaluations, node pairs, leaf pairs
 # Newton's converged step (at most newton_tol per coordinate) is taken unchecked when it moves no vertex more than
 # this fraction of the contact margin (far from where the barrier could be crossed), else through the line search
 _FINAL_MOVE = 1e-2
+# a failed solve's message names the moving bodies' mass ratio from this span up
+_MASS_SPAN_HINT = 1e3
 
 
 def _add(a: Work, b: Work) -> Work:
@@ -135,7 +137,7 @@ def _newton(
         pair_bodies = _pair_bodies(prob.scene).to(q.device)
     res = newton(
         energy, q, first, tol=tol, max_iter=s.max_newton_iter, max_move=20.0 * s.ccd_spacing,
-        free_move=s.ccd_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
+        free_move=prob.scene.path_spacing, move_ok=lambda a, b, sc: path_clear(prob, a, b, sc),
         displacement=lambda a, b, sc: displacement(prob, a, b, sc), majorize=majorize, block=block,
         pair_bodies=pair_bodies, final_move=_FINAL_MOVE * prob.scene.contact.margin,
     )  # fmt: skip
@@ -356,11 +358,18 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
             Stop.MAX_ITER: f"the step did not converge in {s.max_newton_iter} Newton iterations",
         }[r]
         gmax = float(res.at.grad[b].abs().max())
+        m = prob.mass[b]
+        span = float(m.max() / m.min()) if m.numel() else 1.0
+        ratio = (
+            f"; the moving bodies' masses span {span:.0e}x: a light body pressed by a much heavier one (a ratio "
+            "of 1e5 stalled Newton in a session-53 audit) needs a smaller dt, or masses closer together"
+            if span >= _MASS_SPAN_HINT else ""
+        )  # fmt: skip
         raise StepError(
             f"{what}{where} (newton_tol={s.newton_tol}): max |dL/dq| = {gmax:.3e}, last line search step "
             f"{float(res.alpha[b]):.1e}; try a smaller dt (a heavy or fast body), a contact margin and stiffness "
             f"suited to the bodies' scale, a larger max_newton_iter, or, if ccd_spacing={s.ccd_spacing:g} is small "
-            "against the bodies' motion, a larger one (an iteration moves a vertex at most 20 x ccd_spacing)"
+            f"against the bodies' motion, a larger one (an iteration moves a vertex at most 20 x ccd_spacing){ratio}"
         )
     q_t = _coords(prob)[0]
     ok = reachable(prob, q_t, res.q)
