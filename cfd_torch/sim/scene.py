@@ -161,7 +161,9 @@ class Scene:
     kinematic rigid bodies, ``Action.target``'s rows), ``articulation_rows`` (each robot's first state row),
     ``pairs`` (P, 2) the interacting body pairs (at least one dynamic body, not excluded), ``kinematics`` the map
     from the step's unknowns to poses, ``contact_model`` (given, or built from ``contact``; ``contact`` is then
-    the model's own ``config``, or the defaults for a model without one).
+    the model's own ``config``, or the defaults for a model without one), ``path_spacing`` [m] the largest vertex
+    displacement between two samples of the no-tunnelling path checks (``ccd_spacing``, or half the thinnest
+    moving body's thickness where that is less).
     """
 
     def __init__(
