@@ -181,8 +181,8 @@ class SolverConfig:
             step pushing bodies out of a kinematic body's way runs a solve per stage, each with this cap).
         ccd_spacing: [m] no tunnelling: a move of the iterate is accepted only if its straight path stays feasible
             at points at most this far apart (largest vertex displacement), or half the thinnest moving body's
-            thickness where that is less (``Scene.path_spacing``), and one Newton iteration moves no vertex more
-            than 20 times this.
+            thickness plus the margin where that is less (``Scene.path_spacing``), and one Newton iteration
+            moves no vertex more than 20 times this.
         reach_shrink: the end-of-step reachability check shrinks the moving bodies by this fraction about their
             centres of mass (an interpolated path is not the body's motion; dipping a few millimetres into a
             support it rests or lands on is not tunnelling).

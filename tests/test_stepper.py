@@ -858,7 +858,9 @@ def test_a_body_thinner_than_ccd_spacing_does_not_fall_through_a_thick_floor(spe
     floor.apply_translation((0.0, 0.0, -0.05))
     ball = rigid_body(trimesh.creation.icosphere(subdivisions=2, radius=0.0025))
     scene = Scene([rigid_body(floor, kind="static"), ball], dt=0.01, friction=0.5, mu=1e-14, margin=1e-4)
-    assert scene.solver.ccd_spacing == 0.01 and scene.path_spacing == pytest.approx(0.0025 * 0.982, rel=1e-3)
+    assert scene.solver.ccd_spacing == 0.01 and scene.path_spacing == pytest.approx(
+        0.0025 * 0.982 + 1e-4, rel=1e-3
+    )
     state = scene.initial_state(_poses((), (0.0, 0.0, 0.3)), _poses((), (0.0, 0.0, -speed)))
     for _ in range(3):
         state = step(scene, state)
@@ -866,14 +868,18 @@ def test_a_body_thinner_than_ccd_spacing_does_not_fall_through_a_thick_floor(spe
 
 
 def test_path_spacing_is_ccd_spacing_unless_a_moving_body_is_thinner(cube, ground, pusher):
-    """Half the thinnest dynamic or kinematic body's thickness (static bodies do not move along a path)."""
+    """Half the thinnest dynamic or kinematic body's thickness plus the margin (static bodies do not move along a
+    path); a flat kinematic sheet (no thickness) gets samples a margin apart."""
     assert Scene((cube, ground), dt=0.01).path_spacing == 0.01  # a 0.2 m cube
     assert Scene((cube, ground, pusher), dt=0.01).path_spacing == 0.01  # a 5 cm thick paddle
     plate = rigid_body(trimesh.creation.box((0.3, 0.2, 0.004)))
-    assert Scene((plate, ground), dt=0.01).path_spacing == pytest.approx(0.002)
+    assert Scene((plate, ground), dt=0.01).path_spacing == pytest.approx(0.003)
+    assert Scene((plate, ground), dt=0.01, margin=1e-4).path_spacing == pytest.approx(0.0021)
     thin_floor = trimesh.creation.box((1.0, 1.0, 0.004))
     assert Scene((cube, rigid_body(thin_floor, kind="static")), dt=0.01).path_spacing == 0.01
     assert Scene((plate, ground), dt=0.01, ccd_spacing=0.001).path_spacing == 0.001
+    sheet = trimesh.Trimesh([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]], [[0, 1, 2]])
+    assert Scene((cube, rigid_body(sheet, kind="kinematic")), dt=0.01).path_spacing == pytest.approx(0.001)
 
 
 def test_pole_tipping_over_its_edge_at_a_large_step_is_not_refused(ground):

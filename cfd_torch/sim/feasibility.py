@@ -5,7 +5,7 @@ reachable. One contract for all three:
   margin); the contact model's collision query decides (it agrees exactly with the potential's +inf).
 * A **move** of the iterate q0 -> q1 (the warm start, a Newton trial) is accepted only if q1 is feasible and so is
   the straight path in q at points whose largest vertex displacement is at most ``scene.path_spacing`` apart
-  (``ccd_spacing``, or half the thinnest moving body's thickness where that is less; features
+  (``ccd_spacing``, or half the thinnest moving body's thickness plus the margin where less; features
   thinner than about that plus the margin can still be jumped over in one move).
 * The step's **solution must be reachable** from the start-of-step poses without passing through a static body:
   each moving body, shrunk by ``reach_shrink`` about its centre of mass (an interpolated path is not the body's

@@ -163,7 +163,7 @@ class Scene:
     from the step's unknowns to poses, ``contact_model`` (given, or built from ``contact``; ``contact`` is then
     the model's own ``config``, or the defaults for a model without one), ``path_spacing`` [m] the largest vertex
     displacement between two samples of the no-tunnelling path checks (``ccd_spacing``, or half the thinnest
-    moving body's thickness where that is less).
+    moving body's thickness plus the contact margin where that is less).
     """
 
     def __init__(
@@ -334,12 +334,14 @@ class Scene:
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
         )
         #: [m] the spacing of the path checks' samples (moves of the iterate, kinematic sweeps, reachability):
-        #: ccd_spacing, or half the thickness of the thinnest moving body where that is less; a body crosses a
-        #: surface over a displacement of at least its thickness, so a sample lands on the crossing (a 5 mm ball
-        #: fell through a 10 cm floor between samples 1 cm apart)
+        #: ccd_spacing, or half the thickness plus margins of the thinnest moving body where that is less; a body
+        #: is within the margin of a surface it crosses over a displacement of at least its thickness plus two
+        #: margins, so a sample lands on the crossing (a 5 mm ball fell through a 10 cm floor between samples 1 cm
+        #: apart; a flat kinematic sheet gets samples a margin apart)
         moving = [b for b in bodies if b.kind != "static"]
         self.path_spacing = min(
-            [self.solver.ccd_spacing] + [0.5 * thickness(b.bsh.vertices.numpy()) for b in moving]
+            [self.solver.ccd_spacing]
+            + [0.5 * thickness(b.bsh.vertices.numpy()) + self.contact.margin for b in moving]
         )
         # which bodies are closed, consistently wound surfaces, and their hierarchies in one node table (CPU,
         # float64; each body's root ``probe_root``): the start-of-step check that no body lies wholly inside another
