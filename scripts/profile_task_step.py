@@ -1,5 +1,5 @@
 """Where a task core's step spends its time on a device: cProfile's Python-level table and torch.profiler's operator
-table (with CUDA, the kernels launched and the device's busy time) of one step.
+table (with CUDA, the kernel launches, the device operations and the device's busy time) of one step.
 
 For every ``TASK:B`` of ``--cases``: the core is made on ``--device`` (float64), reset with seed 0 and B
 environments, stepped once untimed (compilation, CUDA context, the landing), then one step from there under
@@ -61,12 +61,13 @@ def profile_step(task: str, batch: int, device: torch.device, numba: bool) -> st
         rollout(core, start, a[1:])
         sync()
     ops = prof.key_averages()
-    kernels = sum(e.count for e in ops if e.device_type.name == "CUDA")
+    device_ops = sum(e.count for e in ops if e.device_type.name == "CUDA")  # kernels, copies and fills
+    launches = sum(e.count for e in ops if e.key == "cudaLaunchKernel")
     buf = io.StringIO()
     pstats.Stats(pr, stream=buf).sort_stats("cumtime").print_stats(35)
     head = f"{task} B={batch} one step on {device}: {wall:.3f} s (cProfile on)"
     if device.type == "cuda":
-        head += f"; GPU kernels launched: {kernels}"
+        head += f"; {launches} kernel launches, {device_ops} device operations (kernels, copies, fills)"
     table = ops.table(sort_by="self_cpu_time_total", row_limit=30, max_name_column_width=60)
     return f"{head}\n\n{table}\n\n{buf.getvalue()}"
 

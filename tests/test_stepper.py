@@ -878,6 +878,11 @@ def test_path_spacing_is_ccd_spacing_unless_a_moving_body_is_thinner(cube, groun
     thin_floor = trimesh.creation.box((1.0, 1.0, 0.004))
     assert Scene((cube, rigid_body(thin_floor, kind="static")), dt=0.01).path_spacing == 0.01
     assert Scene((plate, ground), dt=0.01, ccd_spacing=0.001).path_spacing == 0.001
+    # IPC's pairs are infeasible only within 1e-6 dhat: its margin, not ContactConfig.margin
+    assert Scene((plate, ground), dt=0.01, potential="ipc").path_spacing == pytest.approx(0.002 + 1e-8)
+    turned = trimesh.creation.box((0.3, 0.2, 0.004))  # the plate's thin direction, whatever its frame
+    turned.apply_transform(trimesh.transformations.rotation_matrix(0.7, (1.0, 2.0, 3.0)))
+    assert Scene((rigid_body(turned), ground), dt=0.01).path_spacing == pytest.approx(0.003)
     sheet = trimesh.Trimesh([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]], [[0, 1, 2]])
     assert Scene((cube, rigid_body(sheet, kind="kinematic")), dt=0.01).path_spacing == pytest.approx(0.001)
 

@@ -769,7 +769,8 @@ def test_a_body_wholly_inside_another_is_refused():
     scene = Scene([rod, rigid_body(ring, kind="kinematic")], gravity=(0.0, 0.0, 0.0))
     step(scene, scene.initial_state(torch.zeros(2, 6, dtype=F64)))
     # a kinematic paddle (5 mm) whose target lies inside a dynamic box, 9 mm from its start: the path samples are
-    # at most half its thickness apart, so one lands on the crossing and the paddle pushes the box; were the move
+    # at most half its thickness plus the margin apart (3.5 mm), so one lands on the crossing and the paddle
+    # pushes the box; were the move
     # shorter than the samples' spacing (no sample of its path on the box's surface, as with the samples 1 cm
     # apart before session 53), the target inside would be refused
     box = rigid_body(trimesh.creation.box((0.4, 0.4, 0.4)))

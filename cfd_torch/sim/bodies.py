@@ -225,15 +225,20 @@ _LATTICE = np.array(
 _LATTICE /= np.linalg.norm(_LATTICE, axis=1, keepdims=True)
 
 
-def thickness(vertices: np.ndarray) -> float:
-    """A body's thickness [m]: the least extent of its vertices (V, 3) along their three principal axes and 13 fixed
-    directions. Exact for boxes, plates and rods (along a principal axis) and for a regular tetrahedron in its
-    canonical frame (edge to edge along an axis); otherwise an upper bound of the least width, near it for
-    compact bodies (a 320-face icosphere of radius r: 1.96 r)."""
+def thickness(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """A body's thickness [m]: the least extent of its vertices (V, 3) along the normals of its (up to 256)
+    largest faces (F, 3), its three principal axes and 13 fixed directions. Exact where the thinnest direction is
+    a face normal (a box, a plate, any convex polyhedron whose least width is face to vertex); otherwise an upper
+    bound of the least width, near it for compact bodies (a 320-face icosphere of radius r: 1.96 r)."""
     V = np.asarray(vertices, dtype=np.float64)
     c = V - V.mean(0)
     _, axes = np.linalg.eigh(c.T @ c)
-    dirs = np.concatenate([axes.T, _LATTICE])
+    tri = V[np.asarray(faces)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(n, axis=1)
+    big = np.argsort(-area)[:256]
+    normals = n[big][area[big] > 0] / area[big][area[big] > 0, None]
+    dirs = np.concatenate([normals, axes.T, _LATTICE])
     proj = c @ dirs.T  # (V, D)
     return float((proj.max(0) - proj.min(0)).min())
 

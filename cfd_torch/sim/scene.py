@@ -337,11 +337,12 @@ class Scene:
         #: ccd_spacing, or half the thickness plus margins of the thinnest moving body where that is less; a body
         #: is within the margin of a surface it crosses over a displacement of at least its thickness plus two
         #: margins, so a sample lands on the crossing (a 5 mm ball fell through a 10 cm floor between samples 1 cm
-        #: apart; a flat kinematic sheet gets samples a margin apart)
+        #: apart; a flat kinematic sheet gets samples a margin apart, which every path check then pays for)
         moving = [b for b in bodies if b.kind != "static"]
+        margin = getattr(self.contact_model, "margin", self.contact.margin)  # IPC's: 1e-6 dhat
         self.path_spacing = min(
             [self.solver.ccd_spacing]
-            + [0.5 * thickness(b.bsh.vertices.numpy()) + self.contact.margin for b in moving]
+            + [0.5 * thickness(b.bsh.vertices.numpy(), b.bsh.faces.numpy()) + margin for b in moving]
         )
         # which bodies are closed, consistently wound surfaces, and their hierarchies in one node table (CPU,
         # float64; each body's root ``probe_root``): the start-of-step check that no body lies wholly inside another

@@ -259,7 +259,7 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
                     + (f" (scene {int(m[k])})" if B > 1 else "")
                 )
             # a kinematic body that ends inside a moving one without crossing a surface on the way (a move
-            # shorter than ccd_spacing): nothing could push that body out
+            # shorter than path_spacing): nothing could push that body out
             clear = m[ok_t[m]]
             _refuse_contained(scene, p1[ok_t[m]], "action.target", clear, kp)
     work: Work = (0, 0, 0)
