@@ -8,7 +8,8 @@ rollouts (wall time, the device synchronised around each phase), medians. Enviro
 environments stepped ``--horizon`` times (forward only, and forward + backward). The two devices' rewards must agree
 to 1e-7 of their magnitude, absolutely below 1 (the CPU's numba kernels and the device's tensor code take different
 round-off paths; a Newton step may land within the solver's tolerance elsewhere): a larger difference is reported
-in the table's "same" column. A (task, device) stops at the first batch size whose rollouts took longer than ``--budget-s``.
+in the table's "same" column. A (task, device) stops at the first batch size whose rollouts took longer than
+``--budget-s``.
 
 Writes ``bench_device.json``, ``bench_device.md`` (printed too) and ``bench_device.png`` (environment steps per
 second, forward + backward, against B; one panel per task) under ``--out``.
