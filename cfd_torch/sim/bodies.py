@@ -228,8 +228,8 @@ _LATTICE /= np.linalg.norm(_LATTICE, axis=1, keepdims=True)
 def thickness(vertices: np.ndarray, faces: np.ndarray) -> float:
     """A body's thickness [m]: the least extent of its vertices (V, 3) along the normals of its (up to 256)
     largest faces (F, 3), its three principal axes and 13 fixed directions. Exact where the thinnest direction is
-    a face normal (a box, a plate, any convex polyhedron whose least width is face to vertex); otherwise an upper
-    bound of the least width, near it for compact bodies (a 320-face icosphere of radius r: 1.96 r)."""
+    one of those (a box's or a plate's face normal, in any frame); otherwise an upper bound of the least width,
+    near it for compact bodies (a 320-face icosphere of radius r: 1.96 r)."""
     V = np.asarray(vertices, dtype=np.float64)
     c = V - V.mean(0)
     _, axes = np.linalg.eigh(c.T @ c)
