@@ -72,6 +72,23 @@ def int_range(lo: int, hi: int):
     return parse
 
 
+def torch_device(text: str):
+    """An argparse ``type=``: a torch device this machine can use, cpu, cuda or cuda:N."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise argparse.ArgumentTypeError(f"must be cpu, cuda or cuda:N, got {text!r}")
+    try:
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as err:
+        raise argparse.ArgumentTypeError(f"{text!r} is not available here ({err})") from None
+    return device
+
+
 def folder_problem(path: Path) -> str | None:
     """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder),
     else None."""

@@ -33,7 +33,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numba  # noqa: E402
 import torch  # noqa: E402
-from _cli import folder_problem, positive_float, positive_int  # noqa: E402
+from _cli import folder_problem, positive_float, positive_int, torch_device  # noqa: E402
 from _provenance import git_revision  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -138,7 +138,12 @@ def plot(out: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default="cuda", help="the device to time beside the CPU: cuda or cuda:N")
+    ap.add_argument(
+        "--device",
+        type=torch_device,
+        default="cuda",
+        help="the device to time beside the CPU: cuda or cuda:N",
+    )
     ap.add_argument("--tasks", nargs="+", choices=TASKS, default=["Billiards", "Push", "Sort"], help="tasks")
     ap.add_argument("--batches", nargs="+", type=positive_int, default=[1, 8, 64], help="batch sizes B")
     ap.add_argument("--horizon", type=positive_int, default=5, help="steps per rollout")
@@ -152,14 +157,9 @@ def main() -> None:
     problem = folder_problem(args.out)
     if problem:
         ap.error(f"argument --out: {problem}")
-    try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        device = None
-    if device is None or device.type != "cuda":
-        ap.error(f"argument --device: must be cuda or cuda:N, got {args.device!r}")
-    if not torch.cuda.is_available():
-        ap.error(f"argument --device: {args.device!r} is not available here (torch sees no CUDA device)")
+    device = args.device
+    if device.type != "cuda":
+        ap.error(f"argument --device: must be cuda or cuda:N (the CPU is the other side), got {device}")
     args.out.mkdir(parents=True, exist_ok=True)
     batches = sorted(set(args.batches))
     rows = []

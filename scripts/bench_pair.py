@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numba
 import torch
-from _cli import positive_int
+from _cli import positive_int, torch_device
 from _provenance import git_revision
 from tqdm import tqdm
 
@@ -73,18 +73,11 @@ def main() -> None:
         "--backend", default="auto", choices=["auto", "numba", "torch"],
         help="pair solver backend (auto: numba on CPU, torch elsewhere; numba needs --device cpu)",
     )  # fmt: skip
-    ap.add_argument("--device", default="cpu", help="torch device of the inputs: cpu, cuda or cuda:N")
+    ap.add_argument(
+        "--device", type=torch_device, default="cpu", help="torch device of the inputs: cpu, cuda or cuda:N"
+    )
     args = ap.parse_args()
-    try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        device = None
-    if device is None or device.type not in ("cpu", "cuda"):
-        ap.error(f"argument --device: must be cpu, cuda or cuda:N, got {args.device!r}")
-    try:
-        torch.empty(0, device=device)  # torch can use the device here
-    except (RuntimeError, AssertionError) as err:
-        ap.error(f"argument --device: {args.device!r} is not available here ({err})")
+    device = args.device
     if args.backend == "numba" and device.type != "cpu":
         ap.error(f"argument --backend: numba needs --device cpu, got {args.device!r}")
     args.out.mkdir(parents=True, exist_ok=True)

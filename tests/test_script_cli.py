@@ -55,6 +55,19 @@ def test_the_number_types_accept_their_range_only(scripts_path):
             parse(text)
 
 
+def test_the_device_type_takes_a_usable_torch_device(scripts_path):
+    import torch
+    from _cli import torch_device
+
+    assert torch_device("cpu") == torch.device("cpu")
+    for text in ("foo", "meta", "cuda:x"):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"must be cpu, cuda or cuda:N, got '{text}'"):
+            torch_device(text)
+    if not torch.cuda.is_available():
+        with pytest.raises(argparse.ArgumentTypeError, match="'cuda:1' is not available here"):
+            torch_device("cuda:1")
+
+
 # (script, arguments, the option its error must name): each is refused while the command line is parsed, before the
 # output folder is made or any work starts
 REFUSED = [
