@@ -338,11 +338,13 @@ class Scene:
         #: is within the margin of a surface it crosses over a displacement of at least its thickness plus two
         #: margins, so a sample lands on the crossing (a 5 mm ball fell through a 10 cm floor between samples 1 cm
         #: apart; a flat kinematic sheet gets samples a margin apart, which every path check then pays for)
-        moving = [b for b in bodies if b.kind != "static"]
+        moving = {
+            id(b.bsh): b.bsh for b in bodies if b.kind != "static"
+        }.values()  # (shared hierarchies once)
         margin = getattr(self.contact_model, "margin", self.contact.margin)  # IPC's: 1e-6 dhat
         self.path_spacing = min(
             [self.solver.ccd_spacing]
-            + [0.5 * thickness(b.bsh.vertices.numpy(), b.bsh.faces.numpy()) + margin for b in moving]
+            + [0.5 * thickness(t.vertices.numpy(), t.faces.numpy()) + margin for t in moving]
         )
         # which bodies are closed, consistently wound surfaces, and their hierarchies in one node table (CPU,
         # float64; each body's root ``probe_root``): the start-of-step check that no body lies wholly inside another

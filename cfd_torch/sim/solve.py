@@ -358,8 +358,8 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
             Stop.MAX_ITER: f"the step did not converge in {s.max_newton_iter} Newton iterations",
         }[r]
         gmax = float(res.at.grad[b].abs().max())
-        m = prob.mass[b]
-        span = float(m.max() / m.min()) if m.numel() else 1.0
+        m = prob.mass[b]  # (a scene has at least one dynamic body)
+        span = float(m.max() / m.min())
         ratio = (
             f"; the moving bodies' masses span {span:.0e}x: a light body pressed by a much heavier one (a ratio "
             "of 1e5 stalled Newton in a session-53 audit) needs a smaller dt, or masses closer together"
