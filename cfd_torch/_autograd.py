@@ -65,6 +65,12 @@ def tracked(x: torch.Tensor) -> bool:
         return True
     if x.requires_grad and torch.is_grad_enabled():
         return True
+    return has_tangent(x)
+
+
+def has_tangent(x: torch.Tensor) -> bool:
+    """Whether ``x`` carries a forward-mode tangent (``torch.autograd.forward_ad``, or a ``torch.func.jvp`` /
+    ``jacfwd`` level); forward mode runs under ``torch.no_grad`` too."""
     return torch.autograd.forward_ad.unpack_dual(x).tangent is not None
 
 
@@ -75,10 +81,10 @@ def vmap_error(name: str) -> NotImplementedError:
     )
 
 
-def forward_mode_error(name: str) -> NotImplementedError:
+def forward_mode_error(name: str, order: str = "to second order") -> NotImplementedError:
     return NotImplementedError(
         f"{name} does not support forward-mode AD (torch.func.jvp, jacfwd, hessian); use reverse mode "
-        "(torch.autograd, torch.func.grad or jacrev, to second order)"
+        f"(torch.autograd, torch.func.grad or jacrev, {order})"
     )
 
 
@@ -102,10 +108,7 @@ def refuse_transforms(message: str, *tensors: object) -> None:
     torch.func transform or carries a forward-mode tangent (``torch.autograd.forward_ad``): for code whose autograd
     Function is not in the new style and has no jvp."""
     for x in tensors:
-        if isinstance(x, torch.Tensor) and (
-            _functorch.is_functorch_wrapped_tensor(x)
-            or torch.autograd.forward_ad.unpack_dual(x).tangent is not None
-        ):
+        if isinstance(x, torch.Tensor) and (_functorch.is_functorch_wrapped_tensor(x) or has_tangent(x)):
             raise NotImplementedError(message)
 
 

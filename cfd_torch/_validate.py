@@ -36,6 +36,12 @@ def narrowed(x: torch.Tensor, dtype: torch.dtype, what: str, inputs: str) -> tor
     ``what`` names the result, ``inputs`` the arguments whose dtype it takes."""
     y = x.to(dtype)
     if dtype != x.dtype:
+        if torch._C._functorch.is_legacy_batchedtensor(x):  # (its values cannot be read: no check possible)
+            raise NotImplementedError(
+                f"{what} in {dtype}: autograd's batched gradients (torch.autograd.functional.jacobian or hessian "
+                f"with vectorize=True, autograd.grad with is_grads_batched=True) cannot check its cast from float64 "
+                f"for overflow; pass {inputs} as float64, or use vectorize=False"
+            )
         with outside_transforms():
             px = plain(x).detach()
             over = torch.isfinite(px) & ~torch.isfinite(plain(y))

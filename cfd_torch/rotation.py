@@ -16,6 +16,8 @@ import math
 
 import torch
 
+from ._autograd import tracked
+
 __all__ = [
     "rotation_matrix",
     "rotation_derivatives",
@@ -67,7 +69,7 @@ def rotation_matrix(omega: torch.Tensor) -> torch.Tensor:
         omega.dim() == 2
         and omega.device.type == "cpu"
         and omega.dtype == torch.float64
-        and not omega.requires_grad
+        and not tracked(omega)
     ):
         return rotation_derivatives(omega, 0)[0]  # numba kernel (no autograd needed)
     K = _hat(omega)
@@ -133,11 +135,12 @@ def rotation_derivatives(
         omega: (N, 3) rotation vectors.
         order: 0 (R only), 1 (R, dR) or 2; derivatives above the order are None.
 
-    On the CPU, for float64 inputs that do not require grad, a numba kernel computes the same formulas (a step
+    On the CPU, for float64 inputs that no derivative flows through (no grad, torch.func transform or forward-mode
+    tangent: ``_autograd.tracked``), a numba kernel computes the same formulas (a step
     calls this several times per Newton iteration for a handful of bodies: microseconds instead of a millisecond
     of small tensor ops); otherwise the tensor code below (any device, differentiable by autograd).
     """
-    if omega.device.type == "cpu" and omega.dtype == torch.float64 and not omega.requires_grad:
+    if omega.device.type == "cpu" and omega.dtype == torch.float64 and not tracked(omega):
         from ._rotation_numba import rotation_derivatives_cpu
 
         R, dR, d2R = rotation_derivatives_cpu(omega.detach().numpy(), order)

@@ -441,6 +441,56 @@ def test_plain_torch_functions_run_under_vmap_and_check_values_there():
         blend_weight(r.float(), torch.tensor(0.6, dtype=F64), 0.5)
 
 
+def test_rotation_matrix_carries_forward_mode_tangents_and_runs_under_vmap():
+    """The (N, 3) float64 CPU input took the numba kernel whenever it did not require grad, dropping a forward-mode
+    tangent (a zero derivative, unannounced) and failing under jacfwd and vmap (no storage)."""
+    from cfd_torch.rotation import rotation_derivatives, rotation_matrix
+
+    w = torch.tensor([[0.3, -0.2, 0.9], [1e-3, 2.0, -0.5]], dtype=F64)
+    t = torch.tensor([[1.0, 0.5, -0.25], [0.2, -1.0, 0.7]], dtype=F64)
+    J = torch.autograd.functional.jacobian(rotation_matrix, w)  # (2, 3, 3, 2, 3)
+    ref = torch.einsum("aijbk,bk->aij", J, t)
+    assert float(ref.abs().max()) > 0.1
+    with torch.autograd.forward_ad.dual_level():
+        tan = torch.autograd.forward_ad.unpack_dual(
+            rotation_matrix(torch.autograd.forward_ad.make_dual(w, t))
+        ).tangent
+    assert tan is not None
+    torch.testing.assert_close(tan, ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(torch.func.jacfwd(rotation_matrix)(w), J, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(torch.func.vmap(rotation_matrix)(w[:, None])[:, 0], rotation_matrix(w))
+    dR = torch.func.vmap(lambda x: rotation_derivatives(x, 1)[1])(w[:, None])[:, 0]
+    torch.testing.assert_close(dR, rotation_derivatives(w, 1)[1])
+
+
+def test_float32_batched_gradients_are_refused_by_name():
+    """A float32 input's gradient is cast back from the float64 solve with an overflow check, which cannot read
+    autograd's batched gradients (jacobian/hessian(vectorize=True), is_grads_batched): a clear refusal instead of
+    torch's internal "Batching rule not implemented for aten::detach"; float64 and vectorize=False work."""
+    a, b = _pairs()
+    x = a[:2].float()
+    f = functools.partial(lambda y, b: pair_potential(y, b, mu=1.0), b=b[:2].float())
+    with pytest.raises(
+        NotImplementedError, match=r"pair_potential's gradient in torch.float32: autograd's batched"
+    ):
+        torch.autograd.functional.jacobian(f, x, vectorize=True)
+    y = x.clone().requires_grad_(True)
+    v = f(y)
+    with pytest.raises(NotImplementedError, match="pass tri_a and tri_b as float64, or use vectorize=False"):
+        torch.autograd.grad(v, y, torch.eye(2), is_grads_batched=True)
+    J = torch.autograd.functional.jacobian(f, x)
+    J64 = torch.autograd.functional.jacobian(
+        lambda y: pair_potential(y, b[:2], mu=1.0), a[:2], vectorize=True
+    )
+    assert float(J64.abs().max()) > 0
+    torch.testing.assert_close(J.double(), J64, rtol=1e-5, atol=1e-5 * float(J64.abs().max()))
+    pa, pb = _near_poses()
+    with pytest.raises(NotImplementedError, match="mesh_potential's gradient in torch.float32"):
+        torch.autograd.functional.jacobian(
+            lambda p: mesh_potential(_ico(), p, _box(), pb.float(), mu=1.0), pa.float(), vectorize=True
+        )
+
+
 def test_compile_traces_around_the_numba_input_checks_on_a_cold_first_call(tmp_path):
     """torch.compile of a function calling pair_potential, first call in a fresh process: dynamo failed on numba's
     first-call compilation inside the triangle check ("exception table entry start instruction has no offset")."""

@@ -62,6 +62,41 @@ def test_pair_baselines_are_differentiable_once_and_refuse_the_second_derivative
             torch.autograd.grad(g.sum(), b)
 
 
+def test_pair_baselines_refuse_forward_mode_and_sdrs_refuses_vmap():
+    """Forward mode ran past the first-order Function (a tangent does not require grad, and torch.no_grad does not
+    stop it): jacfwd(jacfwd(sdrs)) gave a Hessian 2.5x off, unannounced. Now every forward-mode use raises by name;
+    vmap of sdrs (whose plane search loops on values) raises by name; vmap of ipc's value works."""
+    a, b = feature_pairs(3e-3)["vertex-face"]
+    a, b = a[None], b[None]
+    for name, fn in (
+        ("ipc_pair_barrier", lambda x, y: ipc_pair_barrier(x, y, dhat=1e-2)),
+        ("sdrs_pair_potential", lambda x, y: sdrs_pair_potential(x, y, dhat=1e-2, margin=1e-3)),
+    ):
+        s = lambda y, fn=fn: fn(a, y).sum()  # noqa: E731
+        assert float(s(b)) > 0
+        refusal = f"{name} does not support forward-mode AD"
+        with pytest.raises(NotImplementedError, match=refusal):
+            torch.func.jvp(s, (b,), (torch.ones_like(b),))
+        with pytest.raises(NotImplementedError, match=refusal):
+            torch.func.jacfwd(torch.func.jacfwd(s))(b)
+        with pytest.raises(NotImplementedError, match=refusal):
+            torch.func.hessian(s)(b)
+        with torch.autograd.forward_ad.dual_level(), torch.no_grad():
+            with pytest.raises(NotImplementedError, match=refusal):
+                s(torch.autograd.forward_ad.make_dual(b, torch.ones_like(b)))
+        with pytest.raises(NotImplementedError, match=f"{name} does not support torch.func.vmap"):
+            torch.func.vmap(torch.func.grad(s))(b[None])
+        x = b.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(s(x), x)
+        assert float(g.abs().max()) > 0
+        torch.testing.assert_close(torch.func.grad(s)(b), g, rtol=1e-12, atol=0)
+    with pytest.raises(NotImplementedError, match="sdrs_pair_potential does not support torch.func.vmap"):
+        torch.func.vmap(lambda y: sdrs_pair_potential(a, y))(b[None])
+    torch.testing.assert_close(
+        torch.func.vmap(lambda y: ipc_pair_barrier(a, y))(b[None])[0], ipc_pair_barrier(a, b)
+    )
+
+
 def test_baselines_check_their_arguments():
     a, b = feature_pairs(3e-3)["vertex-face"]
     a, b = a[None], b[None]

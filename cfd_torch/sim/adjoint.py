@@ -187,7 +187,9 @@ class StepFn(torch.autograd.Function):
         if torch.is_grad_enabled():  # create_graph=True
             raise RuntimeError(
                 "cfd_torch.step: second derivatives through a simulation step are not implemented (the step's "
-                "backward is a first-order adjoint); do not use create_graph=True through step()"
+                "backward is a first-order adjoint); do not use create_graph=True through step(), nor "
+                "torch.autograd.functional's jvp, hvp, vhp or hessian, which differentiate a backward (for a "
+                "Jacobian use torch.autograd.functional.jacobian or one backward per output vector)"
             )
         with _serial_torch():
             return StepFn._backward(ctx, gout)
