@@ -343,6 +343,46 @@ def test_step_error_names_the_reason(bodies):
         step(scene, state, return_info="no")
 
 
+def test_step_error_reports_the_whole_energys_gradient_when_bodies_were_frozen(monkeypatch):
+    """A failed solve's message quoted the gradient of the last evaluation, which after a freeze covers only the
+    bodies still iterating: a frozen 160 kg cube resting on the ground read as its weight (1.59e3), the ball that
+    failed to converge as 454 (a session-54 audit). The message quotes the whole energy's gradient at the last
+    iterate."""
+    import re
+
+    import cfd_torch.sim.solve as solve_module
+    from cfd_torch.sim.energy import incremental_potential
+
+    cube = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=20000.0, max_edge=0.1)
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+    m = trimesh.creation.box((3.0, 1.0, 0.05))
+    m.apply_translation([0, 0, -0.025])
+    ground = rigid_body(m, kind="static", max_edge=0.2)
+    scene = Scene((cube, ball, ground), friction=0.5, mu=1e-7)
+    q = torch.tensor([_pose(0, 0, 0.1015), [1.0, 0, 0.25, 0.3, 0.2, 0], _pose()], dtype=F64)
+    v = torch.tensor([[0.0] * 6, [0.5, 0, -4.0, 6.0, 3.0, 0], [0.0] * 6], dtype=F64)
+    state = scene.initial_state(q, v)
+    for _ in range(3):  # the cube settles: it freezes early in the failing step
+        state = step(scene, state)
+    seen = {}
+    newton_fn = solve_module._newton
+
+    def spy(prob, *args):
+        res, work = newton_fn(prob, *args)
+        seen["prob"], seen["res"] = prob, res
+        return res, work
+
+    monkeypatch.setattr(solve_module, "_newton", spy)
+    with pytest.raises(StepError, match="did not converge in 5 Newton iterations") as err:
+        step(scene.replace(max_newton_iter=5), state)
+    reported = float(re.search(r"max \|dL/dq\| = ([0-9.e+-]+),", str(err.value)).group(1))
+    res = seen["res"]
+    whole = incremental_potential(seen["prob"], res.q, 1).grad[0]
+    assert float(res.at.grad[0, :6].abs().max()) > 1e3  # the frozen cube's restricted gradient: its weight
+    assert float(whole[:6].abs().max()) < 1e-2  # the cube at rest on the ground
+    assert reported == pytest.approx(float(whole.abs().max()), rel=1e-3)
+
+
 def test_substeps_retry_a_failed_step(bodies):
     """A fast drop that the full step cannot solve in its iteration cap goes through as sub-steps, and lands
     where the same scene with a 4 times smaller dt lands."""

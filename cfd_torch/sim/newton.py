@@ -63,7 +63,8 @@ class NewtonResult(NamedTuple):
 
     Attributes:
         q: (B, Q) the last iterate.
-        at: the order-2 evaluation at q (exact Hessian, contact Hessian, forces, ...).
+        at: the order-2 evaluation at q (exact Hessian, contact Hessian, forces, ...); of a scene that did not
+            converge, it may cover only the bodies still iterating (a frozen body's rows lack its contacts).
         iters: (B,) Newton iterations.
         reason: (B,) codes of :class:`Stop`.
         alpha: (B,) the last line search's step.

@@ -357,7 +357,10 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
             "decreasing, reachable trial along the direction)",
             Stop.MAX_ITER: f"the step did not converge in {s.max_newton_iter} Newton iterations",
         }[r]
-        gmax = float(res.at.grad[b].abs().max())
+        # the gradient of the whole energy at the last iterate (``res.at`` may cover only the bodies still
+        # iterating, where a frozen body's gradient lacks its contacts: a resting body's reads as its weight)
+        sel = torch.tensor([b], device=q0.device)
+        gmax = float(_energy(prob)(res.q[sel], sel, 1).grad[0].abs().max())
         m = prob.mass[b]  # (a scene has at least one dynamic body)
         span = float(m.max() / m.min())
         ratio = (
