@@ -450,7 +450,7 @@ class TaskCore(abc.ABC):
     def check_state(self, state: EnvState) -> None:
         """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
         and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6), ``t`` (B,)
-        int64, and the task variables a start of this task has (the same keys, shapes after the batch, float or
+        int64 and >= 0, and the task variables a start of this task has (the same keys, shapes after the batch, float or
         int64), the float ones finite and each within its range (:meth:`check_task`)."""
         if not isinstance(state, EnvState):
             raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
@@ -459,7 +459,12 @@ class TaskCore(abc.ABC):
         for name, x in fields.items():
             if not isinstance(x, torch.Tensor):
                 raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-            wrong_dtype = x.is_floating_point() and x.dtype != self.dtype
+            # (the poses in the core's dtype; an integer pose reached the pusher's action code unchecked)
+            wrong_dtype = (
+                x.dtype != self.dtype
+                if name in ("state.q", "state.q_prev")
+                else (x.is_floating_point() and x.dtype != self.dtype)
+            )
             if wrong_dtype or not _same_device(x.device, self.device):
                 raise TypeError(
                     f"{name} is {x.dtype} on {x.device} but this core is {self.dtype} on {self.device} "
@@ -477,6 +482,8 @@ class TaskCore(abc.ABC):
             raise ValueError(
                 f"state.t must be an int64 tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"
             )
+        if bool((state.t < 0).any()):
+            raise ValueError(f"state.t counts steps: it must be >= 0, got {state.t.tolist()}")
         fields = self._task_fields
         if set(state.task) != set(fields):
             raise ValueError(

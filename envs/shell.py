@@ -243,6 +243,11 @@ class CoreVectorEnv(VectorEnv):
         SyncVectorEnv's."""
         return tuple(self._seeds)
 
+    @property
+    def np_random(self) -> tuple[np.random.Generator, ...]:
+        """Each environment's generator, which its unseeded resets draw from (read-only, as SyncVectorEnv's)."""
+        return tuple(self._rngs)
+
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
         if seed is None:
             seeds: list[int | None] = [None] * self.num_envs

@@ -460,6 +460,12 @@ def test_native_vector_env_step_is_all_or_nothing_and_seeds_like_sync(monkeypatc
     obs_sync, _ = sync.reset(seed=3)
     np.testing.assert_array_equal(obs, obs_sync)
     assert vec.np_random_seed == tuple(sync.np_random_seed) == (3, 4, 5)
+    # np_random is the environments' generators, as sync's (it was VectorEnv's own, seeded from entropy, unused)
+    assert len(vec.np_random) == 3
+    for mine, theirs in zip(vec.np_random, sync.np_random, strict=True):
+        assert mine.bit_generator.state == theirs.bit_generator.state
+    obs, _ = vec.reset()
+    np.testing.assert_array_equal(obs, sync.reset()[0])  # unseeded resets drawn from those generators
     with pytest.raises(TypeError, match="seed must be None, an int or a sequence of ints"):
         vec.reset(seed=2.5)
     vec.reset(seed=3)
@@ -556,6 +562,11 @@ def test_task_arguments_actions_and_states_are_checked():
             r"state.t must be an int64 tensor of shape \(2,\)",
         ),
         ({"task": {"target": s32.task["target"] * float("nan")}}, ValueError, r"\['target'\] contains NaN"),
+        # an integer pose failed inside the pusher's action code (torch's "expected m1 and m2 to have the same
+        # dtype"); a negative step count passed
+        ({"q": s32.q.long()}, TypeError, "state.q is torch.int64 on cpu but this core is torch.float32"),
+        ({"q": s32.q.bool()}, TypeError, "state.q is torch.bool on cpu but this core is torch.float32"),
+        ({"t": torch.tensor([0, -4])}, ValueError, r"state.t counts steps: it must be >= 0, got \[0, -4\]"),
         (
             {"q": s32.q[0], "q_prev": s32.q_prev[0]},
             ValueError,

@@ -9,6 +9,7 @@ devices before reading any value, so they fire before a meta tensor could reach 
 from __future__ import annotations
 
 import math
+import pickle
 import re
 
 import numpy as np
@@ -563,6 +564,16 @@ def test_a_body_turning_too_fast_names_its_body_and_scene():
         step(sc, State(q, q - 0.01 * v))
     with pytest.raises(StepError, match=r"the free rotation of a body \(body 1\) over the step"):
         step(sc, State(q[2], q[2] - 0.01 * v[2]))
+    # the callers that add context (the env shells name the environment, a batch solved in groups its scenes)
+    # raise type(err)(message) again: the error was rebuilt with that message as its row, and its own text without
+    # the body or scene; it pickles with its row (a process pool sends it back to the parent)
+    with pytest.raises(StepError) as err:
+        step(sc, State(q, q - 0.01 * v))
+    assert type(err.value).__name__ == "FreeRotationError" and err.value.row == 5
+    again = type(err.value)(f"environment 2: {err.value}")
+    assert str(again).startswith("environment 2: the free rotation of a body (body 1, scene 2) over the step")
+    back = pickle.loads(pickle.dumps(err.value))
+    assert str(back) == str(err.value) and back.row == 5
 
 
 def test_state_dtypes_must_match(scene, state):

@@ -24,6 +24,7 @@ from .energy import (
     StepProblem,
     body_terms,
     end_poses,
+    free_rotation_message,
     predicted_rotation,
     scene_pairs,
 )
@@ -119,7 +120,7 @@ def _predicted(
     except FreeRotationError as err:  # name the body (and the scene, in a batch)
         b, i = divmod(err.row, Nd)
         where = f" (body {int(dyn[i])}{f', scene {b}' if B > 1 else ''})"
-        raise FreeRotationError(err.row, where) from None
+        raise FreeRotationError(free_rotation_message(where), err.row) from None
     if not scene.simulates_joints:
         return _Prediction(r, r)
     th_t = kin.coords(q_t)

@@ -273,14 +273,24 @@ def _mv_residual(F, S, M):
 
 
 class FreeRotationError(StepError):
-    """:func:`predicted_rotation` found no free rotation for the body in row ``row`` of its inputs."""
+    """:func:`predicted_rotation` found no free rotation for the body in row ``row`` of its inputs (None when the
+    error was raised again with more context). Built as any exception, from its message: ``type(err)(message)``
+    and pickling keep working."""
 
-    def __init__(self, row: int, where: str = "") -> None:
-        super().__init__(
-            f"the free rotation of a body{where} over the step (the discrete rigid body's equation) has no solution "
-            "Newton's method finds: the body turns more than about pi / 2 rad per step; reduce dt"
-        )
+    def __init__(self, message: str, row: int | None = None) -> None:
+        super().__init__(message)
         self.row = row
+
+    def __reduce__(self):
+        return type(self), (str(self), self.row)
+
+
+def free_rotation_message(where: str = "") -> str:
+    """The message of a :class:`FreeRotationError` (``where``: the body, and the scene in a batch)."""
+    return (
+        f"the free rotation of a body{where} over the step (the discrete rigid body's equation) has no solution "
+        "Newton's method finds: the body turns more than about pi / 2 rad per step; reduce dt"
+    )
 
 
 def predicted_rotation(
@@ -334,7 +344,7 @@ def predicted_rotation(
         drift = ((F - F0.detach()) * Sd.transpose(1, 2)).sum((1, 2))  # tr((F - F0) S)
         bad = bad | ~(drift.abs() <= 1e-9 * trace)
         if bool(bad.any()):
-            raise FreeRotationError(int(torch.nonzero(bad)[0, 0]))
+            raise FreeRotationError(free_rotation_message(), int(torch.nonzero(bad)[0, 0]))
     if any(tracked(x) for x in (q_t, q_p, S)):  # one more step, differentiable, from the converged F
         r, jac = _mv_residual(F, S, M)
         return Rt @ (F @ rotation_matrix(-torch.linalg.solve(jac, r)))
