@@ -1158,3 +1158,50 @@ def test_torch_thread_count_survives_the_start_of_numba_threads():
     assert started == 1 and threads == 2
     for case in ("pairs", "triangles", "rollout"):
         assert _threads_after(case) == (1, 1), case
+
+
+def test_a_scene_that_froze_nothing_keeps_its_energies_when_another_in_its_batch_freezes(monkeypatch):
+    """When one scene of a batch froze a body, Newton recomputed the restricted energy and rounding scale of every
+    scene still iterating: a scene that froze nothing got another scale formula's value (1 % off), which its line
+    search's tolerance reads, so its path could depend on the batch it was in (a session-54 audit). Only the
+    scenes that froze are recomputed, and each scene of the batch steps as it does alone."""
+    import cfd_torch.sim.newton as newton_module
+
+    g = torch.Generator().manual_seed(1)
+    cube = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), max_edge=0.1)
+    ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))
+    m = trimesh.creation.box((3.0, 1.0, 0.05))
+    m.apply_translation([0, 0, -0.025])
+    ground = rigid_body(m, kind="static", max_edge=0.2)
+    scene = Scene((cube, cube, ball, ball, ground), friction=0.4)
+    xs, qs, vs = [-1.0, -0.4, 0.2, 0.8], [], []
+    for _ in range(3):
+        rows, vel = [], []
+        for i in range(4):
+            up = float(torch.rand(1, generator=g)) >= 0.5
+            z = 0.15 + 0.3 * float(torch.rand(1, generator=g)) if up else 0.1015
+            rot = (0.3 * (torch.rand(3, generator=g) - 0.5)).tolist() if up else [0.0, 0.0, 0.0]
+            rows.append([xs[i] + 0.1 * float(torch.rand(1, generator=g)), 0.0, z, *rot])
+            vel.append((torch.randn(6, generator=g) * torch.tensor([0.3, 0.3, 0.2, 1, 1, 1])).tolist())
+        qs.append(rows + [_pose()])
+        vs.append(vel + [[0.0] * 6])
+    state = scene.initial_state(torch.tensor(qs, dtype=F64), torch.tensor(vs, dtype=F64))
+    calls = []
+    restricted = newton_module._restricted
+
+    def spy(ev, rows, act, pair_moving, others=None):
+        if others is None:
+            calls.append(act.clone())
+        return restricted(ev, rows, act, pair_moving, others)
+
+    monkeypatch.setattr(newton_module, "_restricted", spy)
+    alone = [State(state.q[b], state.q_prev[b]) for b in range(3)]
+    for _ in range(3):
+        batch = step(scene, state)
+        n_batch = len(calls)
+        alone = [step(scene, st) for st in alone]
+        for b in range(3):
+            torch.testing.assert_close(batch.q[b], alone[b].q, rtol=0, atol=1e-12)
+        state = batch
+        assert n_batch > 0
+    assert calls and all(not bool(a.all(1).any()) for a in calls)  # every recomputed scene froze a body

@@ -315,10 +315,13 @@ def newton(
                 act[sc] = ak & ~frz
                 whole[sc] = whole_i[k] & ~frz.any(1)
                 p[k] = torch.where(frz[:, block], torch.zeros((), dtype=p.dtype, device=dev), p[k])
-                value, scale, _ = _restricted(cur, sc, act[sc], pair_moving)
-                cur.value[sc], cur.scale[sc] = value, scale
+                # the energies of the scenes that froze a body now cover the bodies still iterating (the others'
+                # stay as evaluated: a scene's path must not depend on the batch it is in)
+                f = frz.any(1)
+                value, scale, _ = _restricted(cur, sc[f], act[sc[f]], pair_moving)
+                cur.value[sc[f]], cur.scale[sc[f]] = value, scale
                 L = L.clone()
-                L[k] = value
+                L[k[f]] = value
         if bool(small.any()):
             idx, L, g, p, long_step = idx[keep], L[keep], g[keep], p[keep], long_step[keep]
             if idx.numel() == 0:
