@@ -14,6 +14,7 @@ import trimesh
 
 from cfd_torch import Action, Scene, State, rigid_body
 from cfd_torch.sim.articulation import Articulation, articulation
+from cfd_torch.sim.mjcf import load_mjcf
 from cfd_torch.sim.stepper import rollout, step
 
 F64 = torch.float64
@@ -1714,3 +1715,38 @@ def test_model_base_places_the_robot_where_mujoco_does():
     np.testing.assert_allclose(
         rotation_matrix(rows[:, 3:]).numpy(), d.ximat[1:].reshape(-1, 3, 3), atol=1e-12
     )
+
+
+def test_a_link_with_a_mesh_geom_rests_where_the_same_link_built_of_a_box_does():
+    """An arm whose bob is a mesh geom (a cube given by its 8 vertices, MuJoCo's hull of them) swings down onto a
+    table and comes to rest where the same arm with a box geom does: the mesh's triangles collide and its mass
+    properties equal the box's (to MuJoCo's float32 vertices); the two triangulations of the cube differ, so the
+    rest poses agree to the contact's scale (6e-6 m measured), not to rounding."""
+    cube = " ".join(f"{x} {y} {z}" for z in (-0.05, 0.05) for y in (-0.05, 0.05) for x in (-0.05, 0.05))
+    xml = f"""<mujoco><compiler angle="radian"/><asset><mesh name="cube" vertex="{cube}"/></asset>
+      <worldbody><body name="base" pos="0 0 0.5"><geom type="box" size=".03 .03 .03"/>
+        <body name="arm"><joint name="j" axis="0 1 0" damping="0.5"/>
+          <geom type="capsule" fromto="0 0 0 .4 0 0" size=".01"/>{{bob}}</body></body></worldbody></mujoco>"""
+    ends = {}
+    for kind, bob in (("mesh", '<geom type="mesh" mesh="cube" pos=".45 0 0"/>'), ("box", '<geom size=".05 .05 .05" '
+                      'type="box" pos=".45 0 0"/>')):  # fmt: skip
+        assert [g.kind for g in load_mjcf(xml.format(bob=bob)).links[1].geoms] == ["capsule", kind]
+        arm = articulation(xml.format(bob=bob))
+        table = rigid_body(trimesh.creation.box((0.4, 0.4, 0.3)), kind="static")  # its top at z = 0.15
+        scene = Scene([table], articulations=[arm], dt=0.01)
+        rows = arm.poses(torch.zeros(1, dtype=F64), torch.tensor([0, 0, 0.5, 0, 0, 0], dtype=F64))
+        q = torch.cat([torch.tensor([[0.45, 0.0, 0.0, 0, 0, 0]], dtype=F64), rows])
+        traj = rollout(scene, State(q, q), [Action(ctrl=torch.zeros(0, dtype=F64))] * 80)
+        ends[kind] = traj.q[-1, 2]
+        assert abs(float(traj.q[-1, 2, 2] - traj.q[-2, 2, 2])) < 1e-6  # at rest
+        assert float(traj.q[-1, 2, 2]) > 0.15 + 0.05 * 0.9  # on the table, not through it
+    mesh_arm, box_arm = (
+        load_mjcf(xml.format(bob=b)).links[1]
+        for b in (
+            '<geom type="mesh" mesh="cube" pos=".45 0 0"/>',
+            '<geom size=".05 .05 .05" type="box" pos=".45 0 0"/>',
+        )
+    )
+    assert mesh_arm.mass == pytest.approx(box_arm.mass, rel=1e-7)
+    np.testing.assert_allclose(mesh_arm.second_moment, box_arm.second_moment, rtol=0, atol=1e-7)
+    torch.testing.assert_close(ends["mesh"], ends["box"], rtol=0, atol=2e-5)

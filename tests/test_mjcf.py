@@ -4,6 +4,7 @@ refusals."""
 
 import importlib.resources
 import math
+import os
 import warnings
 
 import mujoco
@@ -459,13 +460,8 @@ def test_refusals() -> None:
         load_mjcf(_one_body('<freejoint name="fj"/>'))
     with pytest.raises(ValueError, match="joint 'bj' of body 'b': ball joints"):
         load_mjcf(_one_body('<joint name="bj" type="ball"/>'))
-    mesh = '<asset><mesh name="tet" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset>'
-    with pytest.raises(ValueError, match="geom 'blob' of body 'b' has unsupported type mesh"):
-        load_mjcf(
-            _one_body('<geom name="blob" type="mesh" mesh="tet"/>').replace(
-                "<worldbody>", mesh + "<worldbody>"
-            )
-        )
+    with pytest.raises(ValueError, match="geom 'ground' of body 'b' has unsupported type plane"):
+        load_mjcf(_one_body('<geom name="ground" type="plane" size="1 1 0.1"/>'))
     with pytest.raises(ValueError, match="geom 'hull' of body 'b': shell inertia"):
         load_mjcf(_one_body('<joint name="h"/><geom name="hull" size="0.1" shellinertia="true"/>'))
     two_roots = '<mujoco><worldbody><body name="a"/><body name="c"/></worldbody></mujoco>'
@@ -494,11 +490,16 @@ def test_visual_only_mesh_geoms_are_left_out_with_a_warning() -> None:
     for zero in ('mass="0"', 'density="0"'):
         with pytest.warns(UserWarning, match=r"geoms \['base/#1', 'arm/#1'\] are left out"):
             load_mjcf(bare.format(v=f'<geom class="visual" mesh="shell" {zero}/>'))
-    # a mesh geom MuJoCo collides, or whose mass counts, is still refused
-    with pytest.raises(ValueError, match="has unsupported type mesh"):
-        load_mjcf(xml.format(v='<geom type="mesh" mesh="shell"/>'))
-    with pytest.raises(ValueError, match="has unsupported type mesh .left out only when visual"):
-        load_mjcf(bare.format(v='<geom class="visual" mesh="shell"/>'))
+    # a mesh geom MuJoCo collides, or whose mass counts, is a geom of its link (section "mesh geoms" below)
+    collides = load_mjcf(xml.format(v='<geom type="mesh" mesh="shell"/>'))
+    for a, b in zip(collides.links, plain.links, strict=True):
+        assert a.mass == b.mass and len(a.geoms) == 2 and a.geoms[1].kind == "mesh"
+        assert len(a.mesh.faces) == len(b.mesh.faces) + 4  # the tetrahedron MuJoCo makes of the four vertices
+    with pytest.warns(
+        UserWarning, match=r"geoms \['arm/#1'\] are left out"
+    ):  # (the arm's mass: its <inertial>)
+        counted = load_mjcf(bare.format(v='<geom class="visual" mesh="shell"/>'))
+    assert counted.links[0].mass == pytest.approx(1000 * (0.2**3 + 0.1**3 / 6), rel=1e-6)  # box + tetrahedron
 
 
 def test_source_must_be_text_or_a_path() -> None:
@@ -663,3 +664,103 @@ def test_gymnasium_ant_with_servos() -> None:
         )
     with pytest.raises(ValueError, match="servos must be"):
         gymnasium_ant_xml(servos=(0.0, 1.0))
+
+
+# ------------------------------------------------------------------------------------------------ mesh geoms
+def _ring_model(folder, inertia: str, ring: str = 'density="500"') -> str:
+    """An arm on a fixed base whose link carries a capsule and a torus mesh (an STL file beside the model, read
+    through meshdir), tilted on its geom frame; the model file's path."""
+    import trimesh
+
+    os.makedirs(folder / "meshes", exist_ok=True)
+    trimesh.creation.torus(0.3, 0.1).export(folder / "meshes" / "torus.stl")
+    xml = f"""<mujoco><compiler meshdir="meshes" angle="radian"/>
+      <asset><mesh name="T" file="torus.stl" inertia="{inertia}"/></asset>
+      <worldbody><body name="base"><geom type="box" size=".05 .05 .05"/>
+        <body name="arm"><joint name="j" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 .5 0 0" size=".02"/>
+          <geom name="ring" type="mesh" mesh="T" {ring} pos=".5 0 .1" euler="1.2 .3 .1"/></body></body>
+      </worldbody></mujoco>"""
+    path = folder / "robot.xml"
+    path.write_text(xml)
+    return str(path)
+
+
+def _against_mujoco(model: MJCFModel, path: str, link: str, rel: float) -> None:
+    """The link's mass, COM and inertia against MuJoCo's compiled body, to ``rel`` (MuJoCo keeps mesh vertices in
+    float32, so a mesh's mass properties agree to about 1e-8, not to rounding)."""
+    m = mujoco.MjModel.from_xml_path(path)
+    spec = next(x for x in model.links if x.name == link)
+    b = m.body(link).id
+    assert spec.mass == pytest.approx(m.body_mass[b], rel=rel)
+    np.testing.assert_allclose(spec.com, m.body_ipos[b], rtol=0, atol=rel * np.abs(spec.com).max())
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, m.body_iquat[b])
+    R = R.reshape(3, 3)
+    inertia = R @ np.diag(m.body_inertia[b]) @ R.T
+    ours = np.trace(spec.second_moment) * np.eye(3) - spec.second_moment
+    np.testing.assert_allclose(ours, inertia, rtol=0, atol=rel * np.abs(inertia).max())
+
+
+def test_mesh_geoms_collide_and_count_their_mass_as_mujoco_does(tmp_path) -> None:
+    """A mesh geom (a torus, an STL file read through meshdir) is part of its link: its triangles are MuJoCo's
+    compiled mesh placed by the geom frame, and its mass properties MuJoCo's under <mesh inertia="exact"> (the
+    closed mesh) and "convex" (its hull), to 1e-7; under the default "legacy", which gives a non-convex mesh its
+    hull's volume and more, the closed mesh's, with a warning that names the mesh and the fix."""
+    exact = load_mjcf(_ring_model(tmp_path / "exact", "exact"))
+    _against_mujoco(exact, str(tmp_path / "exact" / "robot.xml"), "arm", 1e-7)
+    convex = load_mjcf(_ring_model(tmp_path / "convex", "convex"))
+    _against_mujoco(convex, str(tmp_path / "convex" / "robot.xml"), "arm", 1e-7)
+    arm = exact.links[1]
+    ring = arm.geoms[1]
+    assert (
+        ring.kind == "mesh" and ring.name == "ring" and ring.mass == pytest.approx(500 * 0.0584605, rel=1e-5)
+    )
+    assert convex.links[1].mass > arm.mass * 1.4  # the hull holds the hole
+    # the collision mesh: the capsule's triangles and the ring's, placed by the geom frame (its centre 0.1 above
+    # the arm's axis, tilted): the ring's vertices lie 0.2-0.4 m from its centre, in its tilted plane
+    assert len(arm.mesh.faces) == len(arm.geoms[0].mesh.faces) + len(ring.mesh.faces)
+    V = np.asarray(ring.mesh.vertices)
+    centre = V.mean(0)
+    np.testing.assert_allclose(centre, [0.5, 0.0, 0.1], atol=1e-6)
+    d = np.linalg.norm(V - centre, axis=1)
+    assert 0.2 - 1e-6 < d.min() and d.max() < 0.4 + 1e-6
+    with pytest.warns(
+        UserWarning, match=r"mesh 'T' of geom 'ring' of body 'arm' is not convex.*inertia=\"exact\""
+    ):
+        legacy = load_mjcf(_ring_model(tmp_path / "legacy", "legacy"))
+    # (MuJoCo centres the mesh at its own legacy centre there: other float32 vertices, so not to the last bit)
+    assert legacy.links[1].mass == pytest.approx(exact.links[1].mass, rel=1e-7)
+    assert mujoco.MjModel.from_xml_path(str(tmp_path / "legacy" / "robot.xml")).body_mass[2] > 1.4 * arm.mass
+    # a convex mesh under the default legacy rule: as MuJoCo, quietly
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cube = _one_body('<joint name="j"/><geom name="c" type="mesh" mesh="cube" density="300"/>').replace(
+            "<worldbody>",
+            '<asset><mesh name="cube" vertex="0 0 0 .2 0 0 0 .3 0 .2 .3 0 0 0 .1 .2 0 .1 0 .3 .1 .2 .3 .1"/></asset>'
+            "<worldbody>",
+        )
+        model = load_mjcf(cube)
+    assert model.links[1].mass == pytest.approx(1000 * 4 / 3 * math.pi * 0.1**3 + 300 * 0.006, rel=1e-7)
+    (tmp_path / "cube.xml").write_text(cube)
+    _against_mujoco(model, str(tmp_path / "cube.xml"), "b", 1e-7)
+
+
+def test_mesh_geoms_that_need_mass_properties_must_be_closed(tmp_path) -> None:
+    """An open mesh (a tetrahedron missing a face) has no volume: refused by name where its mass counts, loaded
+    where it does not (an <inertial> in its body, mass="0")."""
+    asset = '<asset><mesh name="open" vertex="0 0 0 .1 0 0 0 .1 0 0 0 .1" face="0 2 1 0 1 3 0 3 2"/></asset>'
+
+    def body(geom: str, inertial: str = "") -> str:
+        return _one_body(f'{inertial}<joint name="j"/>{geom}').replace("<worldbody>", asset + "<worldbody>")
+
+    with pytest.raises(
+        ValueError, match="mesh 'open' of geom 'lid' of body 'b' is not a closed, outward-wound"
+    ):
+        load_mjcf(body('<geom name="lid" type="mesh" mesh="open"/>'))
+    ball = 1000 * 4 / 3 * math.pi * 0.1**3
+    held = load_mjcf(body('<geom name="lid" type="mesh" mesh="open"/>', '<inertial pos="0 0 0" mass="2" '
+                          'diaginertia=".01 .01 .01"/>'))  # fmt: skip
+    assert held.links[1].mass == 2.0 and held.links[1].geoms[1].kind == "mesh"
+    light = load_mjcf(body('<geom name="lid" type="mesh" mesh="open" mass="0"/>'))
+    assert light.links[1].mass == pytest.approx(ball, rel=1e-12)
+    assert len(light.links[1].mesh.faces) == len(light.links[1].geoms[0].mesh.faces) + 3

@@ -17,11 +17,16 @@ orientation by each joint's local rotation, in order, keeping the joint anchor f
 makes the model floating: the root pose is then a separate floating base, not a joint.
 
 Mass properties are analytic (density x volume of the ideal shape, not of the triangulated mesh) and reproduce
-MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding; MuJoCo's principal
+MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding. A mesh geom's come
+from MuJoCo's compiled mesh (float32 vertices: about 1e-8 relative), as its `<mesh inertia>` says: "exact" the
+closed mesh, "convex" its hull, "legacy" (MuJoCo's default) the closed mesh too, which is MuJoCo's for a convex mesh
+(a non-convex one is warned of: MuJoCo's legacy rule overestimates it); a mesh geom collides as its own triangles
+(MuJoCo collides its convex hull). MuJoCo's principal
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
-naming the element: mesh/plane/hfield/sdf geoms in a link that MuJoCo collides or counts the mass of (visual
-ones are left out, with a warning), shell inertia, ball joints, free joints below the root,
+naming the element: plane/hfield/sdf geoms in a link that MuJoCo collides or counts the mass of (visual
+ones are left out, with a warning, as are visual-only mesh geoms), a mesh whose mass counts that is not a closed,
+outward-wound surface, shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos (those acting only outside the root's
 subtree are left out; actuator plugins and actuators in a group ``<option actuatorgroupdisable>`` disables are
 refused), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
@@ -50,7 +55,7 @@ import numpy as np
 import torch
 import trimesh
 
-from .._validate import is_int
+from .._validate import check_mesh, is_int
 
 __all__ = [
     "ActuatorSpec",
@@ -101,14 +106,18 @@ class GeomSpec:
     Attributes:
         name: geom name ("" when the MJCF leaves it unnamed).
         body: name of the MuJoCo body it belongs to (the link's body or one welded to it).
-        kind: "sphere", "capsule", "box", "cylinder" or "ellipsoid".
-        size: (3,) MuJoCo's compiled size: radius; radius, half-length; half-sizes; radius, half-height; radii.
+        kind: "sphere", "capsule", "box", "cylinder", "ellipsoid" or "mesh".
+        size: (3,) MuJoCo's compiled size: radius; radius, half-length; half-sizes; radius, half-height; radii (a
+            mesh's: MuJoCo's, unused here).
         pos: (3,) geom centre in the link frame.
         quat: (4,) w, x, y, z: geom frame orientation in the link frame (capsule/cylinder axis = geom z).
         mass: analytic mass [kg] (0 for geoms outside `inertiagrouprange` or in a body with an `<inertial>` used).
         contype: MuJoCo contact type bits.
         conaffinity: MuJoCo contact affinity bits.
-        mesh: closed, outward-wound triangulation in the link frame (inscribed in the ideal shape).
+        mesh: closed, outward-wound triangulation in the link frame (inscribed in the ideal shape; a mesh geom's:
+            MuJoCo's compiled mesh, its own triangles).
+        com: (3,) the geom's centre of mass in the link frame (its centre, but for a mesh).
+        second_moment: (3, 3) S about ``com``, link frame axes (zero when ``mass`` is 0).
         friction: MuJoCo's sliding friction coefficient of the geom.
     """
 
@@ -123,6 +132,8 @@ class GeomSpec:
     conaffinity: int
     mesh: trimesh.Trimesh
     friction: float = 1.0
+    com: np.ndarray | None = None
+    second_moment: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -228,6 +239,10 @@ _GEOM_KINDS = {
 }
 _JOINT_KINDS = {int(mujoco.mjtJoint.mjJNT_HINGE): "hinge", int(mujoco.mjtJoint.mjJNT_SLIDE): "slide"}
 _FREE = int(mujoco.mjtJoint.mjJNT_FREE)
+_MESH = int(mujoco.mjtGeom.mjGEOM_MESH)
+# a mesh whose volume is within this fraction of its convex hull's is convex (MuJoCo's legacy inertia is exact
+# there): MuJoCo keeps mesh vertices in float32, whose rounding moves a cube's volume by about 1e-8
+_CONVEX_REL = 1e-6
 # Prefix of the private names given to unnamed geoms, to match the spec's geoms with the compiled ones.
 _GEOM_TAG = "__cfd_torch_geom_"
 
@@ -336,6 +351,7 @@ def load_mjcf(
     explicit_inertial = {b.name: bool(b.explicitinertial) for b in spec.bodies}
     inertiafromgeom = mujoco.mjtInertiaFromGeom(spec.compiler.inertiafromgeom)
     group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
+    mesh_inertia = {mesh.name: int(mesh.inertia) for mesh in spec.meshes}
     m = spec.compile()
 
     root_id = m.body(root).id
@@ -425,10 +441,10 @@ def load_mjcf(
                     cylinder_sections,
                     counts,
                     mass_scale,
+                    mesh_inertia,
                 )
                 if counts:
-                    R = quat_to_matrix(geom.quat)
-                    parts.append((geom.mass, geom.pos, R @ _geom_second_moment(geom) @ R.T))
+                    parts.append((geom.mass, geom.com, geom.second_moment))
                 geoms.append(geom)
         mass, com, S = _combine(parts)
         pose = link_pose[k]
@@ -458,8 +474,9 @@ def load_mjcf(
 
     if left_out:
         warnings.warn(
-            f"geoms {left_out[:8]}{' ...' if len(left_out) > 8 else ''} are left out: of a type without a mesh "
-            "here (mesh, plane, hfield, sdf), with contype = conaffinity = 0 and no mass counted (visual only)",
+            f"geoms {left_out[:8]}{' ...' if len(left_out) > 8 else ''} are left out: visual only (contype = "
+            "conaffinity = 0 and no mass counted), of a type kept only where it collides or has mass (mesh) or "
+            "never (plane, hfield, sdf)",
             UserWarning,
             stacklevel=3,
         )
@@ -842,10 +859,11 @@ def _geom_spec(
     cylinder_sections: int,
     counts: bool,
     mass_scale: float,
+    mesh_inertia: dict[str, int],
 ) -> GeomSpec:
     compiled_name = m.geom(g).name
     name, density, explicit_mass, shell = source[compiled_name]
-    kind = _GEOM_KINDS.get(int(m.geom_type[g]))
+    kind = "mesh" if int(m.geom_type[g]) == _MESH else _GEOM_KINDS.get(int(m.geom_type[g]))
     label = f"'{name}'" if name else f"#{g - m.body_geomadr[m.geom_bodyid[g]]} (unnamed)"
     if shell and counts:
         raise ValueError(
@@ -858,11 +876,21 @@ def _geom_spec(
             "only when visual: contype = conaffinity = 0 and no mass counted)"
         )
     size = m.geom_size[g].copy()
-    volume = _volume(kind, size)
-    mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
     T = T_link_body @ _transform(m.geom_pos[g], m.geom_quat[g])
-    mesh = _primitive_mesh(kind, size, sphere_subdivisions, capsule_count, cylinder_sections)
-    mesh.apply_transform(T)
+    if kind == "mesh":
+        where = f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}'"
+        massless = explicit_mass == 0 or (math.isnan(explicit_mass) and density == 0)
+        mesh, volume, com, S_unit = _mesh_geom(m, g, T, where, counts and not massless, mesh_inertia)
+        mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
+        S = S_unit * (mass / volume if counts else 0.0)
+    else:
+        volume = _volume(kind, size)
+        mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
+        mesh = _primitive_mesh(kind, size, sphere_subdivisions, capsule_count, cylinder_sections)
+        mesh.apply_transform(T)
+        com = T[:3, 3].copy()
+        R = T[:3, :3]
+        S = R @ _shape_second_moment(kind, size, mass) @ R.T
     return GeomSpec(
         name=name,
         body=m.body(m.geom_bodyid[g]).name,
@@ -875,7 +903,50 @@ def _geom_spec(
         conaffinity=int(m.geom_conaffinity[g]),
         mesh=mesh,
         friction=float(m.geom_friction[g, 0]),
+        com=com,
+        second_moment=S if counts else np.zeros((3, 3)),
     )
+
+
+def _mesh_geom(
+    m: mujoco.MjModel, g: int, T: np.ndarray, where: str, counts: bool, mesh_inertia: dict[str, int]
+) -> tuple[trimesh.Trimesh, float, np.ndarray, np.ndarray]:
+    """A mesh geom's triangles in the link frame (MuJoCo's compiled mesh, placed by the geom frame ``T``: link <-
+    geom), and where its mass counts, the volume, centre of volume (link frame) and second moment per unit density
+    about it (link frame axes), from the mesh as MuJoCo's ``<mesh inertia>`` says: "exact" and "legacy" the closed
+    mesh itself (MuJoCo's legacy rule overestimates a non-convex mesh's volume: warned of), "convex" its convex
+    hull. Else volume 1 and zero moments."""
+    mid = int(m.geom_dataid[g])
+    name = m.mesh(mid).name
+    v0, nv = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
+    f0, nf = int(m.mesh_faceadr[mid]), int(m.mesh_facenum[mid])
+    V = m.mesh_vert[v0 : v0 + nv].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    F = m.mesh_face[f0 : f0 + nf].astype(np.int64)
+    check_mesh(V, F, f"mesh '{name}' of {where}: vertices", f"mesh '{name}' of {where}: faces")
+    mesh = trimesh.Trimesh(V, F, process=False)
+    if not counts:
+        return mesh, 1.0, T[:3, 3].copy(), np.zeros((3, 3))
+    mode = mesh_inertia.get(name, int(mujoco.mjtMeshInertia.mjINERTIA_LEGACY))
+    solid = mesh
+    if mode == int(mujoco.mjtMeshInertia.mjINERTIA_CONVEX):
+        solid = mesh.convex_hull
+    elif not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):
+        raise ValueError(
+            f"mesh '{name}' of {where} is not a closed, outward-wound surface, so its mass properties are undefined: "
+            'give its body an <inertial>, the geom mass="0", or the mesh inertia="convex" (its convex hull\'s)'
+        )
+    elif mode == int(mujoco.mjtMeshInertia.mjINERTIA_LEGACY):
+        hull = mesh.convex_hull.volume
+        if abs(hull - mesh.volume) > _CONVEX_REL * hull:
+            warnings.warn(
+                f"mesh '{name}' of {where} is not convex: its mass properties here are the closed mesh's "
+                f"(volume {mesh.volume:.6g}); MuJoCo's default legacy rule gives a non-convex mesh more (its hull "
+                f'holds {hull:.6g}): set inertia="exact" on the <mesh> for MuJoCo to agree',
+                UserWarning,
+                stacklevel=5,
+            )
+    props = solid.mass_properties  # (density 1)
+    return mesh, float(props["volume"]), np.asarray(props["center_mass"]), _inertia_to_S(props["inertia"])
 
 
 def _volume(kind: str, size: np.ndarray) -> float:
@@ -891,17 +962,17 @@ def _volume(kind: str, size: np.ndarray) -> float:
     return 4.0 / 3.0 * math.pi * float(np.prod(size))  # ellipsoid
 
 
-def _geom_second_moment(geom: GeomSpec) -> np.ndarray:
-    """(3, 3) S = int rho X X^T dV about the geom centre, geom frame (diagonal for these shapes)."""
-    m, s = geom.mass, geom.size
-    if geom.kind == "sphere":
+def _shape_second_moment(kind: str, s: np.ndarray, m: float) -> np.ndarray:
+    """(3, 3) S = int rho X X^T dV about the centre of a primitive geom of kind ``kind``, size ``s`` and mass ``m``,
+    geom frame (diagonal for these shapes)."""
+    if kind == "sphere":
         return np.eye(3) * m * s[0] ** 2 / 5.0
-    if geom.kind == "ellipsoid":
+    if kind == "ellipsoid":
         return np.diag(m * s**2 / 5.0)
-    if geom.kind == "box":
+    if kind == "box":
         return np.diag(m * s**2 / 3.0)
     r, h = float(s[0]), float(s[1])  # radius, half-length
-    if geom.kind == "cylinder":
+    if kind == "cylinder":
         return np.diag([m * r * r / 4.0, m * r * r / 4.0, m * h * h / 3.0])
     # capsule: a cylinder of length 2h plus two hemispheres of mass m_sph / 2 each (mass split by volume). About
     # its flat face a hemisphere has int z dm = (3 r / 8) m_sph / 2 and int z^2 dm = (r^2 / 5) m_sph / 2, so about
