@@ -96,7 +96,7 @@ def check_params(
     """Finite, physical, on the state's device, each field shared or per scene; returned with a batch dimension B:
     mass > 0, friction >= 0, the symmetric part of S positive semi-definite with a positive definite inertia
     tr(S) I - S, servo gains >= 0 (None: ``gains``, the scene's (U,) kp and kv; ``servos`` (U,) bool: which
-    actuators are servos, the others' entries unused and not checked). A message about values names the first
+    actuators are servos, the others' entries unused: checked finite only). A message about values names the first
     offending scene (in a batch) and body (``bodies``: the scene's index of each of the Nd dynamic bodies) or
     actuator."""
     if not isinstance(params, Params):

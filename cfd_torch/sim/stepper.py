@@ -327,9 +327,10 @@ def step(
             away); rotation vectors no longer than 1e6 rad.
         action: forces ([B,] N, 3), torques ([B,] N, 3) and kinematic targets ([B,] K, 6); unbatched fields are
             shared by a batch; None: nothing acts, kinematic bodies stay put.
-        params: differentiable mass / second moment / friction coefficient, shared ((Nd,), (Nd, 3, 3), ()) or per
-            scene ((B, Nd), ...) (default: ``scene.params()``), float32 or float64 whatever the state's dtype (the
-            step runs in float64; each field's gradient comes back in its dtype).
+        params: differentiable mass / second moment / friction coefficient / servo gains kp and kv, shared ((Nd,),
+            (Nd, 3, 3), (), (U,), (U,)) or per scene ((B, Nd), ...) (default: ``scene.params()``), float32 or
+            float64 whatever the state's dtype (the step runs in float64; each field's gradient comes back in its
+            dtype).
         return_info: also return the :class:`StepInfo` (solver statistics, end-of-step forces).
 
     Returns:
@@ -488,7 +489,7 @@ def rollout(
 def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     """Contact forces between every two bodies at poses q ([B,] N, 6): F[..., i, j, :] (N, N, 6) is the generalised
     force of body i on body j, -dP_ij/dq_j (columns 0-2 the world-frame force [N], 3-5 conjugate to the rotation
-    vector); zero for pairs without contact (static-static, excluded). Not differentiable: where q requires grad, a
+    vector); zero for pairs without contact (static-static, kinematic-static, excluded). Not differentiable: where q requires grad, a
     backward through F raises (a constant would drop its part of a loss's gradient silently).
 
     Raises:
