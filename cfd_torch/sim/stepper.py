@@ -489,8 +489,9 @@ def rollout(
 def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     """Contact forces between every two bodies at poses q ([B,] N, 6): F[..., i, j, :] (N, N, 6) is the generalised
     force of body i on body j, -dP_ij/dq_j (columns 0-2 the world-frame force [N], 3-5 conjugate to the rotation
-    vector); zero for pairs without contact (static-static, kinematic-static, excluded). Not differentiable: where q requires grad, a
-    backward through F raises (a constant would drop its part of a loss's gradient silently).
+    vector); zero for pairs without contact (static-static, kinematic-static, excluded). Not differentiable:
+    where q requires grad, a backward through F raises (a constant would drop its part of a loss's gradient
+    silently).
 
     Raises:
         TypeError: scene is not a Scene, or q not a tensor.
