@@ -764,3 +764,93 @@ def test_mesh_geoms_that_need_mass_properties_must_be_closed(tmp_path) -> None:
     light = load_mjcf(body('<geom name="lid" type="mesh" mesh="open" mass="0"/>'))
     assert light.links[1].mass == pytest.approx(ball, rel=1e-12)
     assert len(light.links[1].mesh.faces) == len(light.links[1].geoms[0].mesh.faces) + 3
+
+
+# ------------------------------------------------------------------------------------------------ URDF
+_URDF = """<robot name="ringarm">
+  <mujoco><compiler meshdir="meshes"/></mujoco>
+  <link name="base">
+    <inertial><origin xyz="0 0 0.05"/><mass value="2.0"/>
+      <inertia ixx="0.01" iyy="0.02" izz="0.03" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><origin xyz="0 0 0.05"/><geometry><box size="0.2 0.2 0.1"/></geometry></collision>
+    <visual><geometry><box size="0.2 0.2 0.1"/></geometry></visual>
+  </link>
+  <link name="upper">
+    <inertial><origin xyz="0 0 0.2"/><mass value="1.25"/>
+      <inertia ixx="0.011" iyy="0.012" izz="0.002" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><origin xyz="0 0 0.2"/><geometry><cylinder radius="0.04" length="0.4"/></geometry></collision>
+  </link>
+  <link name="ring">
+    <inertial><origin xyz="0.3 0 0"/><mass value="3.0"/>
+      <inertia ixx="0.1" iyy="0.1" izz="0.2" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><origin xyz="0.3 0 0" rpy="1.2 0.3 0.1"/>
+      <geometry><mesh filename="package://ringarm/meshes/ring.stl"/></geometry></collision>
+  </link>
+  <link name="tool"/>
+  <joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 1 0"/><limit lower="-1.5" upper="1.5" effort="50" velocity="2"/></joint>
+  <joint name="elbow" type="continuous"><parent link="upper"/><child link="ring"/><origin xyz="0 0 0.4" rpy="0 0.2 0"/>
+    <axis xyz="1 0 0"/><dynamics damping="0.1" friction="{friction}"/></joint>
+  <joint name="tool_fixed" type="fixed"><parent link="ring"/><child link="tool"/><origin xyz="0.9 0 0"/></joint>
+</robot>"""
+
+
+def _urdf_file(folder, friction: float = 0.0) -> str:
+    import trimesh
+
+    os.makedirs(folder / "meshes", exist_ok=True)
+    trimesh.creation.torus(0.3, 0.1).export(folder / "meshes" / "ring.stl")
+    path = folder / "ringarm.urdf"
+    path.write_text(_URDF.format(friction=friction))
+    return str(path)
+
+
+def test_urdf_is_read_with_mujocos_importer(tmp_path) -> None:
+    """A URDF (primitives, a package:// mesh found in its meshdir, a revolute joint with an effort limit, a
+    continuous one with damping, a fixed joint) loads as MuJoCo imports it: the links and joints it names, its
+    <inertial>s as the links' masses, link frames equal to MuJoCo's kinematics of the URDF itself at random joint
+    values (to 1e-6: MuJoCo writes its MJCF with 6 digits), the fixed joint's child welded into its parent, and
+    the mesh a collision geom of its link. Joint friction (MuJoCo's frictionloss) is refused by name, as in
+    MJCF; a URDF MuJoCo cannot read is a ValueError saying so."""
+    path = _urdf_file(tmp_path)
+    model = load_mjcf(path)
+    assert [link.name for link in model.links] == ["base", "upper", "ring"]
+    assert [link.bodies for link in model.links][2] == ("ring", "tool")
+    assert [(j.name, j.kind) for j in model.joints] == [("shoulder", "hinge"), ("elbow", "hinge")]
+    assert model.joints[0].range == (-1.5, 1.5) and model.joints[1].range is None
+    assert model.joints[1].damping == pytest.approx(0.1) and model.actuators == ()
+    assert [link.mass for link in model.links] == [2.0, 1.25, 3.0]
+    inertia = np.trace(model.links[1].second_moment) * np.eye(3) - model.links[1].second_moment
+    np.testing.assert_allclose(np.diag(inertia), [0.011, 0.012, 0.002], rtol=1e-12)
+    assert [g.kind for g in model.links[2].geoms] == ["mesh"] and len(model.links[2].mesh.faces) > 1000
+    spec = mujoco.MjSpec.from_file(
+        path
+    )  # MuJoCo's own reading of the URDF, the root body not fused into the world
+    spec.compiler.fusestatic = False
+    m = spec.compile()
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        q = rng.uniform(-1.4, 1.4, 2)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        for link, T in zip(model.links, _reference_fk(model, q), strict=True):
+            b = m.body(link.name).id
+            np.testing.assert_allclose(T[:3, 3], d.xpos[b], rtol=0, atol=1e-6, err_msg=link.name)
+            np.testing.assert_allclose(
+                T[:3, :3], d.xmat[b].reshape(3, 3), rtol=0, atol=1e-6, err_msg=link.name
+            )
+    # and it simulates: hung from its fixed base, the arm held out sideways swings down under gravity
+    from cfd_torch import Action, Scene, State, articulation, rollout
+
+    arm = articulation(path)
+    scene = Scene([], articulations=[arm], dt=0.01)
+    q0 = torch.tensor([1.2, 0.0], dtype=torch.float64)
+    rows = arm.poses(q0)
+    traj = rollout(scene, State(rows, rows), [Action(ctrl=torch.zeros(0, dtype=torch.float64))] * 20)
+    z = traj.q[:, 2, 2]  # the ring link's centre of mass falls
+    assert float(z[-1]) < float(z[0]) - 0.01
+    with pytest.raises(ValueError, match="frictionloss"):
+        load_mjcf(_urdf_file(tmp_path / "rough", friction=0.3))
+    with pytest.raises(ValueError, match="the URDF could not be read by MuJoCo's importer"):
+        load_mjcf(_URDF.format(friction=0).replace('<child link="ring"/>', '<child link="nowhere"/>'))

@@ -334,10 +334,11 @@ class Articulation:
 def articulation(
     source, *, max_edge: float | None = None, mount=None, kinematic: bool = False, **mjcf_options
 ) -> Articulation:
-    """An :class:`Articulation` from an MJCF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its options
-    pass through). A free joint on the root body makes a floating base; without one the base is fixed: a joint-less
-    root stands where the state puts it, a root with joints (a cart's slide, a planar robot's root joints) hangs
-    from the MJCF's world frame placed at ``mount`` (translation, rotation vector; default the origin).
+    """An :class:`Articulation` from an MJCF or URDF file or string (:func:`cfd_torch.sim.mjcf.load_mjcf`; its
+    options pass through). A free joint on the root body makes a floating base; without one the base is fixed: a
+    joint-less root stands where the state puts it, a root with joints (a cart's slide, a planar robot's root
+    joints) hangs from the MJCF's world frame placed at ``mount`` (translation, rotation vector; default the
+    origin).
 
     ``kinematic=True`` makes a robot whose coordinates follow the action exactly (a pusher): its moving links are
     kinematic bodies, posed each step by forward kinematics of ``Action.joints``, pushing the dynamic bodies

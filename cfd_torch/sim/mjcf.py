@@ -1,4 +1,5 @@
 """MJCF front end of articulated bodies: MuJoCo XML -> links, joints, collision meshes, mass properties, actuators.
+URDF is read as the MJCF MuJoCo's URDF importer makes of it.
 
 `load_mjcf` parses an MJCF file or string with MuJoCo itself (an `MjSpec` for what the compiled model does not keep:
 a geom's density or explicit mass, whether a body has an `<inertial>` element; the compiled `MjModel` for
@@ -291,7 +292,8 @@ def load_mjcf(
     """Read an articulated model from MJCF.
 
     Args:
-        source: path of an MJCF file, or the MJCF text itself (anything starting with "<").
+        source: path of an MJCF file, or the MJCF text itself (anything starting with "<"); or URDF (a root
+            element ``<robot>``), read through MuJoCo's URDF importer (:func:`_urdf_as_mjcf`).
         root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
             model; the worldbody's own geoms (floors) and other top-level bodies are ignored, and so are the
             actuators that act on them only.
@@ -332,6 +334,8 @@ def load_mjcf(
         base = os.path.dirname(os.path.abspath(source))
     else:
         xml = source.lstrip("\ufeff")
+    if _is_urdf(xml):
+        xml = _urdf_as_mjcf(xml, base)
     xml, tree = _prepared_xml(xml, base)
     spec = _spec(xml, base)
     unnamed = _unnamed_bodies(spec.worldbody)
@@ -506,6 +510,33 @@ def load_mjcf(
         xml=xml,
         friction=frictions.pop() if len(frictions) == 1 else None,
     )
+
+
+def _is_urdf(xml: str) -> bool:
+    """Whether the model text is URDF (its root element ``<robot>``)."""
+    try:
+        return ET.fromstring(xml).tag == "robot"
+    except ET.ParseError:
+        return False  # (reported as the MJCF's)
+
+
+def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
+    """The MJCF MuJoCo's URDF importer makes of ``urdf`` (asset files read relative to the folder ``base``; mesh
+    files by their names alone in its meshdir, as MuJoCo reads URDF: ``<mujoco><compiler meshdir=.../></mujoco>``
+    in the URDF sets it), with the bodies of fixed joints kept (``fusestatic`` off: they are welded into their link
+    here anyway) and no joint effort limits (URDF has no actuators; MuJoCo turns ``<limit effort>`` into
+    ``actuatorfrcrange``, which would clamp actuators added to the model, not modelled here). MuJoCo writes
+    numbers with 6 significant digits."""
+    try:
+        spec = _spec(urdf, base)
+        spec.compiler.fusestatic = False
+        spec.compiler.discardvisual = False  # (URDF's visual elements are dropped on reading either way)
+        for joint in spec.joints:
+            joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        spec.compile()
+        return spec.to_xml()
+    except ValueError as e:  # (MuJoCo's parse and compile errors)
+        raise ValueError(f"the URDF could not be read by MuJoCo's importer: {e}") from None
 
 
 def _prepared_xml(xml: str, base: str | None) -> tuple[str, ET.Element]:
