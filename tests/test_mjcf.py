@@ -692,7 +692,8 @@ def _against_mujoco(model: MJCFModel, path: str, link: str, rel: float) -> None:
     spec = next(x for x in model.links if x.name == link)
     b = m.body(link).id
     assert spec.mass == pytest.approx(m.body_mass[b], rel=rel)
-    np.testing.assert_allclose(spec.com, m.body_ipos[b], rtol=0, atol=rel * np.abs(spec.com).max())
+    size = max(np.abs(spec.com).max(), math.sqrt(np.trace(spec.second_moment) / spec.mass))
+    np.testing.assert_allclose(spec.com, m.body_ipos[b], rtol=0, atol=rel * size)
     R = np.zeros(9)
     mujoco.mju_quat2Mat(R, m.body_iquat[b])
     R = R.reshape(3, 3)
@@ -852,5 +853,49 @@ def test_urdf_is_read_with_mujocos_importer(tmp_path) -> None:
     assert float(z[-1]) < float(z[0]) - 0.01
     with pytest.raises(ValueError, match="frictionloss"):
         load_mjcf(_urdf_file(tmp_path / "rough", friction=0.3))
+    # a <mimic> MuJoCo's importer drops is warned of; a mesh path MuJoCo does not follow gets the meshdir hint
+    mimic = _URDF.format(friction=0).replace(
+        '<dynamics damping="0.1"', '<mimic joint="shoulder"/><dynamics damping="0.1"'
+    )
+    (tmp_path / "mimic.urdf").write_text(mimic)
+    with pytest.warns(
+        UserWarning, match=r"URDF joints \['elbow'\] have a <mimic>, which MuJoCo's importer drops"
+    ):
+        load_mjcf(str(tmp_path / "mimic.urdf"))
+    (tmp_path / "nodir.urdf").write_text(_URDF.format(friction=0).replace('<compiler meshdir="meshes"/>', ""))
+    with pytest.raises(ValueError, match=r"Error opening file.*by their names alone, from its meshdir"):
+        load_mjcf(str(tmp_path / "nodir.urdf"))
     with pytest.raises(ValueError, match="the URDF could not be read by MuJoCo's importer"):
         load_mjcf(_URDF.format(friction=0).replace('<child link="ring"/>', '<child link="nowhere"/>'))
+
+
+def test_mesh_mass_rules_read_the_mesh_as_mujoco_compiles_it(tmp_path) -> None:
+    """Three ways the mass properties left MuJoCo's (a review of the mesh-geom change): an unnamed <mesh> (named
+    after its file) lost its inertia rule (convex read as legacy: 37 % light, and warned of); inertia="convex"
+    took the full hull where MuJoCo's honours maxhullvert (33.2 kg against 8.7); an OBJ, whose vertices MuJoCo
+    keeps per face, was refused as not closed. Each against MuJoCo's compiled body, to 1e-7."""
+    import trimesh
+
+    torus = trimesh.creation.torus(0.3, 0.1)
+    torus.export(tmp_path / "ring.stl")
+    trimesh.creation.icosphere(subdivisions=3, radius=0.2).export(tmp_path / "ball.stl")
+    soup = trimesh.Trimesh(torus.vertices[torus.faces].reshape(-1, 3), np.arange(3 * len(torus.faces)).reshape(-1, 3),
+                           process=False)  # fmt: skip
+    soup.export(tmp_path / "soup.obj")
+    cases = {
+        "unnamed": ('<mesh file="ring.stl" inertia="convex"/>', "ring"),
+        "maxhullvert": ('<mesh name="b" file="ball.stl" inertia="convex" maxhullvert="8"/>', "b"),
+        "obj": ('<mesh name="s" file="soup.obj" inertia="exact"/>', "s"),
+    }
+    for label, (asset, mesh) in cases.items():
+        xml = (
+            f'<mujoco><compiler meshdir="{tmp_path}"/><asset>{asset}</asset><worldbody><body name="root">'
+            f'<joint name="j"/><geom type="mesh" mesh="{mesh}"/></body></worldbody></mujoco>'
+        )
+        path = tmp_path / f"{label}.xml"
+        path.write_text(xml)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # (the unnamed convex mesh was warned of as legacy)
+            model = load_mjcf(str(path))
+        _against_mujoco(model, str(path), "root", 1e-7)
+    assert len(trimesh.load(tmp_path / "soup.obj", process=False).vertices) == 3 * len(torus.faces)

@@ -355,7 +355,7 @@ def load_mjcf(
     explicit_inertial = {b.name: bool(b.explicitinertial) for b in spec.bodies}
     inertiafromgeom = mujoco.mjtInertiaFromGeom(spec.compiler.inertiafromgeom)
     group_lo, group_hi = (int(g) for g in spec.compiler.inertiagrouprange)
-    mesh_inertia = {mesh.name: int(mesh.inertia) for mesh in spec.meshes}
+    mesh_inertia = [int(mesh.inertia) for mesh in spec.meshes]  # (compiled in this order: by mesh id)
     m = spec.compile()
 
     root_id = m.body(root).id
@@ -527,6 +527,14 @@ def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
     here anyway) and no joint effort limits (URDF has no actuators; MuJoCo turns ``<limit effort>`` into
     ``actuatorfrcrange``, which would clamp actuators added to the model, not modelled here). MuJoCo writes
     numbers with 6 significant digits."""
+    mimics = [j.get("name", "?") for j in ET.fromstring(urdf).iter("joint") if j.find("mimic") is not None]
+    if mimics:
+        warnings.warn(
+            f"URDF joints {mimics[:8]}{' ...' if len(mimics) > 8 else ''} have a <mimic>, which MuJoCo's importer "
+            "drops: here they move on their own",
+            UserWarning,
+            stacklevel=4,
+        )
     try:
         spec = _spec(urdf, base)
         spec.compiler.fusestatic = False
@@ -536,7 +544,13 @@ def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
         spec.compile()
         return spec.to_xml()
     except ValueError as e:  # (MuJoCo's parse and compile errors)
-        raise ValueError(f"the URDF could not be read by MuJoCo's importer: {e}") from None
+        hint = (
+            "; MuJoCo reads a URDF's mesh files by their names alone, from its meshdir (relative to the URDF's "
+            'folder): set it in the URDF, <mujoco><compiler meshdir="..."/></mujoco>'
+            if "Error opening file" in str(e)
+            else ""
+        )
+        raise ValueError(f"the URDF could not be read by MuJoCo's importer: {e}{hint}") from None
 
 
 def _prepared_xml(xml: str, base: str | None) -> tuple[str, ET.Element]:
@@ -890,7 +904,7 @@ def _geom_spec(
     cylinder_sections: int,
     counts: bool,
     mass_scale: float,
-    mesh_inertia: dict[str, int],
+    mesh_inertia: list[int],
 ) -> GeomSpec:
     compiled_name = m.geom(g).name
     name, density, explicit_mass, shell = source[compiled_name]
@@ -939,14 +953,31 @@ def _geom_spec(
     )
 
 
+def _hull(m: mujoco.MjModel, mid: int, V: np.ndarray) -> trimesh.Trimesh:
+    """The convex hull MuJoCo made of mesh ``mid`` (``maxhullvert`` honoured), over its vertices ``V``: the faces of
+    its ``mesh_graph`` (numvert, numface, vert_edgeadr, vert_globalid, edge_localid, face_globalid); trimesh's hull
+    of ``V`` where MuJoCo made none."""
+    adr = int(m.mesh_graphadr[mid])
+    if adr < 0:
+        return trimesh.Trimesh(V, process=False).convex_hull
+    graph = m.mesh_graph[adr:]
+    nv, nf = int(graph[0]), int(graph[1])
+    start = 2 + 2 * nv + nv + 3 * nf
+    faces = graph[start : start + 3 * nf].reshape(nf, 3).astype(np.int64)
+    hull = trimesh.Trimesh(V, faces, process=False)
+    hull.remove_unreferenced_vertices()
+    trimesh.repair.fix_normals(hull)  # (outward, whatever MuJoCo's orientation)
+    return hull
+
+
 def _mesh_geom(
-    m: mujoco.MjModel, g: int, T: np.ndarray, where: str, counts: bool, mesh_inertia: dict[str, int]
+    m: mujoco.MjModel, g: int, T: np.ndarray, where: str, counts: bool, mesh_inertia: list[int]
 ) -> tuple[trimesh.Trimesh, float, np.ndarray, np.ndarray]:
     """A mesh geom's triangles in the link frame (MuJoCo's compiled mesh, placed by the geom frame ``T``: link <-
     geom), and where its mass counts, the volume, centre of volume (link frame) and second moment per unit density
-    about it (link frame axes), from the mesh as MuJoCo's ``<mesh inertia>`` says: "exact" and "legacy" the closed
-    mesh itself (MuJoCo's legacy rule overestimates a non-convex mesh's volume: warned of), "convex" its convex
-    hull. Else volume 1 and zero moments."""
+    about it (link frame axes), from the mesh as MuJoCo's ``<mesh inertia>`` (``mesh_inertia``, by compiled mesh
+    id) says: "exact" and "legacy" the closed mesh itself (MuJoCo's legacy rule overestimates a non-convex mesh's
+    volume: warned of), "convex" MuJoCo's convex hull of it. Else volume 1 and zero moments."""
     mid = int(m.geom_dataid[g])
     name = m.mesh(mid).name
     v0, nv = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
@@ -957,22 +988,24 @@ def _mesh_geom(
     mesh = trimesh.Trimesh(V, F, process=False)
     if not counts:
         return mesh, 1.0, T[:3, 3].copy(), np.zeros((3, 3))
-    mode = mesh_inertia.get(name, int(mujoco.mjtMeshInertia.mjINERTIA_LEGACY))
-    solid = mesh
+    mode = mesh_inertia[mid]
+    # (the closed surface with the copies of a vertex merged: MuJoCo keeps an OBJ's per-face vertices)
+    solid = trimesh.Trimesh(V, F, process=False)
+    solid.merge_vertices()
     if mode == int(mujoco.mjtMeshInertia.mjINERTIA_CONVEX):
-        solid = mesh.convex_hull
-    elif not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):
+        solid = _hull(m, mid, V)
+    elif not (solid.is_watertight and solid.is_winding_consistent and solid.volume > 0):
         raise ValueError(
             f"mesh '{name}' of {where} is not a closed, outward-wound surface, so its mass properties are undefined: "
             'give its body an <inertial>, the geom mass="0", or the mesh inertia="convex" (its convex hull\'s)'
         )
     elif mode == int(mujoco.mjtMeshInertia.mjINERTIA_LEGACY):
-        hull = mesh.convex_hull.volume
-        if abs(hull - mesh.volume) > _CONVEX_REL * hull:
+        hull = solid.convex_hull.volume
+        if abs(hull - solid.volume) > _CONVEX_REL * hull:
             warnings.warn(
                 f"mesh '{name}' of {where} is not convex: its mass properties here are the closed mesh's "
-                f"(volume {mesh.volume:.6g}); MuJoCo's default legacy rule gives a non-convex mesh more (its hull "
-                f'holds {hull:.6g}): set inertia="exact" on the <mesh> for MuJoCo to agree',
+                f"(volume {solid.volume:.6g}); MuJoCo's default legacy rule gives a non-convex mesh more (its hull "
+                f'holds {hull:.6g}): in MJCF, set inertia="exact" on the <mesh> for MuJoCo to agree',
                 UserWarning,
                 stacklevel=5,
             )
