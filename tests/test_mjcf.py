@@ -863,8 +863,18 @@ def test_urdf_is_read_with_mujocos_importer(tmp_path) -> None:
     ):
         load_mjcf(str(tmp_path / "mimic.urdf"))
     (tmp_path / "nodir.urdf").write_text(_URDF.format(friction=0).replace('<compiler meshdir="meshes"/>', ""))
-    with pytest.raises(ValueError, match=r"Error opening file.*by their names alone, from its meshdir"):
+    with pytest.raises(
+        ValueError, match=r"Error opening file.*by their names alone, from its meshdir .*: pass meshdir="
+    ):
         load_mjcf(str(tmp_path / "nodir.urdf"))
+    # a ROS package's layout, robot/urdf/robot.urdf beside robot/meshes/: meshdir= finds them, the URDF untouched
+    os.makedirs(tmp_path / "robot" / "urdf")
+    os.rename(tmp_path / "nodir.urdf", tmp_path / "robot" / "urdf" / "robot.urdf")
+    os.rename(tmp_path / "meshes", tmp_path / "robot" / "meshes")
+    ros = load_mjcf(tmp_path / "robot" / "urdf" / "robot.urdf", meshdir="../meshes")
+    assert ros.links[2].mesh.vertices.shape == model.links[2].mesh.vertices.shape
+    with pytest.raises(TypeError, match="meshdir must be a folder path"):
+        load_mjcf(path, meshdir=3)
     with pytest.raises(ValueError, match="the URDF could not be read by MuJoCo's importer"):
         load_mjcf(_URDF.format(friction=0).replace('<child link="ring"/>', '<child link="nowhere"/>'))
 
@@ -899,3 +909,11 @@ def test_mesh_mass_rules_read_the_mesh_as_mujoco_compiles_it(tmp_path) -> None:
             model = load_mjcf(str(path))
         _against_mujoco(model, str(path), "root", 1e-7)
     assert len(trimesh.load(tmp_path / "soup.obj", process=False).vertices) == 3 * len(torus.faces)
+    # meshdir= replaces an MJCF's own (a model whose meshdir is wrong loads with the right one)
+    wrong = (tmp_path / "obj.xml").read_text().replace(f'meshdir="{tmp_path}"', 'meshdir="elsewhere"')
+    (tmp_path / "wrong.xml").write_text(wrong)
+    with pytest.raises(ValueError, match="elsewhere"):
+        load_mjcf(str(tmp_path / "wrong.xml"))
+    assert load_mjcf(str(tmp_path / "wrong.xml"), meshdir=str(tmp_path)).links[0].mass == pytest.approx(
+        load_mjcf(str(tmp_path / "obj.xml")).links[0].mass, rel=1e-15
+    )

@@ -285,6 +285,7 @@ def load_mjcf(
     source: str | os.PathLike,
     *,
     root: str | None = None,
+    meshdir: str | os.PathLike | None = None,
     sphere_subdivisions: int = 2,
     capsule_count: tuple[int, int] = (12, 6),
     cylinder_sections: int = 16,
@@ -294,6 +295,9 @@ def load_mjcf(
     Args:
         source: path of an MJCF file, or the MJCF text itself (anything starting with "<"); or URDF (a root
             element ``<robot>``), read through MuJoCo's URDF importer (:func:`_urdf_as_mjcf`).
+        meshdir: the folder of the model's mesh files, relative to the model file's folder (the working directory
+            for text) or absolute, in place of the model's ``<compiler meshdir>``: a URDF's ``package://`` meshes,
+            which MuJoCo looks up by their file names alone, kept in ``../meshes`` beside its ``urdf/`` folder.
         root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
             model; the worldbody's own geoms (floors) and other top-level bodies are ignored, and so are the
             actuators that act on them only.
@@ -334,9 +338,16 @@ def load_mjcf(
         base = os.path.dirname(os.path.abspath(source))
     else:
         xml = source.lstrip("\ufeff")
-    if _is_urdf(xml):
-        xml = _urdf_as_mjcf(xml, base)
+    if meshdir is not None and not isinstance(meshdir, (str, os.PathLike)):
+        raise TypeError(f"meshdir must be a folder path (str or os.PathLike), got {type(meshdir).__name__}")
+    meshdir = None if meshdir is None else os.fspath(meshdir)
+    urdf = _is_urdf(xml)
+    if urdf:
+        xml = _urdf_as_mjcf(xml, base, meshdir)
     xml, tree = _prepared_xml(xml, base)
+    if meshdir is not None and not urdf:  # (after the includes are inlined: theirs are overridden too)
+        xml = _with_meshdir(xml, meshdir)
+        tree = ET.fromstring(xml)
     spec = _spec(xml, base)
     unnamed = _unnamed_bodies(spec.worldbody)
     if unnamed:
@@ -520,13 +531,26 @@ def _is_urdf(xml: str) -> bool:
         return False  # (reported as the MJCF's)
 
 
-def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
+def _with_meshdir(xml: str, meshdir: str) -> str:
+    """The MJCF text with every ``<compiler>``'s meshdir set to ``meshdir`` (a compiler element added first where
+    there is none)."""
+    tree = ET.fromstring(xml)
+    compilers = list(tree.iter("compiler"))
+    if not compilers:
+        compilers = [ET.Element("compiler")]
+        tree.insert(0, compilers[0])
+    for c in compilers:
+        c.set("meshdir", meshdir)
+    return ET.tostring(tree, encoding="unicode")
+
+
+def _urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> str:
     """The MJCF MuJoCo's URDF importer makes of ``urdf`` (asset files read relative to the folder ``base``; mesh
     files by their names alone in its meshdir, as MuJoCo reads URDF: ``<mujoco><compiler meshdir=.../></mujoco>``
     in the URDF sets it), with the bodies of fixed joints kept (``fusestatic`` off: they are welded into their link
     here anyway) and no joint effort limits (URDF has no actuators; MuJoCo turns ``<limit effort>`` into
     ``actuatorfrcrange``, which would clamp actuators added to the model, not modelled here). MuJoCo writes
-    numbers with 6 significant digits."""
+    numbers with 6 significant digits. ``meshdir``: in place of the URDF's own."""
     mimics = [j.get("name", "?") for j in ET.fromstring(urdf).iter("joint") if j.find("mimic") is not None]
     if mimics:
         warnings.warn(
@@ -537,6 +561,8 @@ def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
         )
     try:
         spec = _spec(urdf, base)
+        if meshdir is not None:
+            spec.meshdir = meshdir
         spec.compiler.fusestatic = False
         spec.compiler.discardvisual = False  # (URDF's visual elements are dropped on reading either way)
         for joint in spec.joints:
@@ -546,7 +572,7 @@ def _urdf_as_mjcf(urdf: str, base: str | None) -> str:
     except ValueError as e:  # (MuJoCo's parse and compile errors)
         hint = (
             "; MuJoCo reads a URDF's mesh files by their names alone, from its meshdir (relative to the URDF's "
-            'folder): set it in the URDF, <mujoco><compiler meshdir="..."/></mujoco>'
+            'folder): pass meshdir=, or set it in the URDF, <mujoco><compiler meshdir="..."/></mujoco>'
             if "Error opening file" in str(e)
             else ""
         )
