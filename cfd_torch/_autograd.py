@@ -47,6 +47,12 @@ def plain(x: torch.Tensor) -> torch.Tensor:
     return x.permute(*front, *axes)
 
 
+def legacy_batched(x: torch.Tensor) -> bool:
+    """Whether ``x`` is one of autograd's own batched tensors (``jacobian(..., vectorize=True)``,
+    ``is_grads_batched=True``), whose values cannot be read."""
+    return _functorch.is_legacy_batchedtensor(x)
+
+
 def outside_transforms() -> contextlib.AbstractContextManager:
     """Context in which code runs on plain tensors with torch.func's transforms set aside (the interpreter stack is
     emptied and restored on exit): inside, ops do not wrap their results, so tensors keep their storage (numpy
@@ -117,7 +123,7 @@ def refuse_batched(message: str, *tensors: object) -> None:
     outputs of ``autograd.grad(..., is_grads_batched=True)`` and ``autograd.functional.jacobian(vectorize=True)``."""
     for x in tensors:
         # autograd's own batching (legacy batched tensors), or torch.func's
-        if (isinstance(x, torch.Tensor) and _functorch.is_legacy_batchedtensor(x)) or _vmapped(x):
+        if (isinstance(x, torch.Tensor) and legacy_batched(x)) or _vmapped(x):
             raise NotImplementedError(message)
 
 

@@ -12,7 +12,7 @@ import numba
 import numpy as np
 import torch
 
-from ._autograd import outside_transforms, plain
+from ._autograd import legacy_batched, outside_transforms, plain
 from ._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 from ._threads import parallel_kernels, serial_twin, start_numba_pool
 
@@ -36,7 +36,7 @@ def narrowed(x: torch.Tensor, dtype: torch.dtype, what: str, inputs: str) -> tor
     ``what`` names the result, ``inputs`` the arguments whose dtype it takes."""
     y = x.to(dtype)
     if dtype != x.dtype:
-        if torch._C._functorch.is_legacy_batchedtensor(x):  # (its values cannot be read: no check possible)
+        if legacy_batched(x):  # (its values cannot be read: no check possible)
             raise NotImplementedError(
                 f"{what} in {dtype}: autograd's batched gradients (torch.autograd.functional.jacobian or hessian "
                 f"with vectorize=True, autograd.grad with is_grads_batched=True) cannot check its cast from float64 "
@@ -334,14 +334,20 @@ def check_pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
     return out
 
 
-def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) -> None:
+def check_mesh(
+    vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str, rel: float | None = None
+) -> None:
     """Validate a triangle mesh given as arrays: finite vertices, face indices in range, no degenerate face.
 
     Args:
         vertices: (V, 3) float64 vertex positions.
         faces: (F, 3) integer vertex indices.
         vname, fname: how the two are named in error messages (e.g. "mesh.vertices", "mesh.faces").
+        rel: a face is degenerate when twice its area is below ``rel`` times its longest edge squared (default
+            100 float64 machine epsilons; vertices rounded to float32 need about 100 float32 epsilons).
     """
+    if rel is None:
+        rel = _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps)
     bad = ~np.isfinite(vertices).all(1)
     if bad.any():
         raise ValueError(
@@ -354,7 +360,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) 
     kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 and parallel_kernels() else _triangle_codes_serial
     if kernel is _triangle_codes_nb:
         start_numba_pool()
-    kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), _MAX_COORD, code)
+    kernel(tri, rel, _MAX_COORD, code)
     huge = code == 3
     if huge.any():
         raise ValueError(

@@ -13,8 +13,9 @@ long-range potential of this library fixes (SPEC sections 1-2).
   Once some plane leaves every vertex more than dhat + delta/2 away (and |n| <= 1 - dhat) the minimum is exactly 0:
   for two parallel faces, beyond a gap of (2 dhat + delta) / (1 - dhat), about 2.1 dhat.
 
-Both pair functions are differentiable once (a second derivative raises: autograd through them would hold the
-closest points or the plane fixed, which is exact to first order only); the simulator's contact models
+Both pair functions are differentiable once, in reverse mode (a second derivative raises: autograd through them
+would hold the closest points or the plane fixed, which is exact to first order only; forward mode raises, and
+``torch.func.vmap`` of their gradients and of ``sdrs_pair_potential``); the simulator's contact models
 (``contact/ipc.py``, ``contact/sdrs.py``) have the exact Hessians. ``ipc_pair_barrier`` is the barrier of the
 pair's distance, ``b(d^2)`` of the closest points: ipc-toolkit sums the barrier over the pair's 6 point-triangle
 and 9 edge-edge distances (and mollifies nearly parallel edges), which ``IpcContact`` does; the two agree where one
@@ -79,8 +80,8 @@ def _first_order(tri_a: torch.Tensor, tri_b: torch.Tensor, f, name: str) -> torc
 class _FirstOrder(torch.autograd.Function):
     """(``f(tri_a, tri_b)`` (K,), its gradients): the backward is autograd's gradient of ``f`` (exact), and its own
     derivative in the triangles raises (autograd's second derivative of ``f`` is not the exact one). New style:
-    the forward runs on plain tensors, so torch.func.grad works too; forward mode and vmap raise (forward-over-
-    forward through ``f`` held the closest points or the plane fixed: a Hessian 2.5x off, unannounced)."""
+    the forward runs on plain tensors, so torch.func.grad works too; forward mode and vmap raise (forward over
+    forward through ``f`` would hold the closest points or the plane fixed, as autograd's second derivative)."""
 
     @staticmethod
     def forward(tri_a, tri_b, f, name):
@@ -151,7 +152,7 @@ def ipc_pair_barrier(
     tri_a: torch.Tensor, tri_b: torch.Tensor, *, dhat: float = 1e-2, kappa: float = 1.0
 ) -> torch.Tensor:
     """IPC barrier on the triangle-triangle distance, ``kappa b(d^2; dhat^2)`` (module docstring: the closest
-    points' distance, not ipc-toolkit's sum over the pair's features); differentiable once.
+    points' distance, not ipc-toolkit's sum over the pair's features); differentiable once, in reverse mode.
 
     Args:
         tri_a, tri_b: (K, 3, 3) triangles [m], same dtype and device.

@@ -459,7 +459,7 @@ class TaskCore(abc.ABC):
         for name, x in fields.items():
             if not isinstance(x, torch.Tensor):
                 raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-            # (the poses in the core's dtype; an integer pose reached the pusher's action code unchecked)
+            # (the poses in the core's dtype exactly; other tensors, where floating point)
             wrong_dtype = (
                 x.dtype != self.dtype
                 if name in ("state.q", "state.q_prev")
@@ -483,7 +483,10 @@ class TaskCore(abc.ABC):
                 f"state.t must be an int64 tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"
             )
         if bool((state.t < 0).any()):
-            raise ValueError(f"state.t counts steps: it must be >= 0, got {state.t.tolist()}")
+            i = int(torch.nonzero(state.t < 0)[0, 0])
+            raise ValueError(
+                f"state.t counts steps: it must be >= 0, got {int(state.t[i])} (environment {i})"
+            )
         fields = self._task_fields
         if set(state.task) != set(fields):
             raise ValueError(

@@ -566,7 +566,11 @@ def test_task_arguments_actions_and_states_are_checked():
         # dtype"); a negative step count passed
         ({"q": s32.q.long()}, TypeError, "state.q is torch.int64 on cpu but this core is torch.float32"),
         ({"q": s32.q.bool()}, TypeError, "state.q is torch.bool on cpu but this core is torch.float32"),
-        ({"t": torch.tensor([0, -4])}, ValueError, r"state.t counts steps: it must be >= 0, got \[0, -4\]"),
+        (
+            {"t": torch.tensor([0, -4])},
+            ValueError,
+            r"state.t counts steps: it must be >= 0, got -4 \(environment 1\)",
+        ),
         (
             {"q": s32.q[0], "q_prev": s32.q_prev[0]},
             ValueError,

@@ -705,8 +705,10 @@ def _against_mujoco(model: MJCFModel, path: str, link: str, rel: float) -> None:
 def test_mesh_geoms_collide_and_count_their_mass_as_mujoco_does(tmp_path) -> None:
     """A mesh geom (a torus, an STL file read through meshdir) is part of its link: its triangles are MuJoCo's
     compiled mesh placed by the geom frame, and its mass properties MuJoCo's under <mesh inertia="exact"> (the
-    closed mesh) and "convex" (its hull), to 1e-7; under the default "legacy", which gives a non-convex mesh its
-    hull's volume and more, the closed mesh's, with a warning that names the mesh and the fix."""
+    closed mesh) and "convex" (its hull), to 1e-7; under the default "legacy", the closed mesh's, with a warning
+    that quotes what MuJoCo's legacy rule counts for a mesh not star-shaped about its centre (the torus: 0.0870
+    against 0.0585 m^3) and names the fix; a mesh MuJoCo's legacy rule gets right (a convex one, an icosphere with
+    a dent) loads quietly, as MuJoCo has it."""
     exact = load_mjcf(_ring_model(tmp_path / "exact", "exact"))
     _against_mujoco(exact, str(tmp_path / "exact" / "robot.xml"), "arm", 1e-7)
     convex = load_mjcf(_ring_model(tmp_path / "convex", "convex"))
@@ -726,7 +728,8 @@ def test_mesh_geoms_collide_and_count_their_mass_as_mujoco_does(tmp_path) -> Non
     d = np.linalg.norm(V - centre, axis=1)
     assert 0.2 - 1e-6 < d.min() and d.max() < 0.4 + 1e-6
     with pytest.warns(
-        UserWarning, match=r"mesh 'T' of geom 'ring' of body 'arm' is not convex.*inertia=\"exact\""
+        UserWarning,
+        match=r"mesh 'T' of geom 'ring' of body 'arm': .*legacy rule counts 0.0870292 .*inertia=\"exact\"",
     ):
         legacy = load_mjcf(_ring_model(tmp_path / "legacy", "legacy"))
     # (MuJoCo centres the mesh at its own legacy centre there: other float32 vertices, so not to the last bit)
@@ -744,6 +747,56 @@ def test_mesh_geoms_collide_and_count_their_mass_as_mujoco_does(tmp_path) -> Non
     assert model.links[1].mass == pytest.approx(1000 * 4 / 3 * math.pi * 0.1**3 + 300 * 0.006, rel=1e-7)
     (tmp_path / "cube.xml").write_text(cube)
     _against_mujoco(model, str(tmp_path / "cube.xml"), "b", 1e-7)
+    import trimesh
+
+    dent = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    dent.vertices[0] *= 0.5  # not convex, yet star-shaped about its centre: MuJoCo's legacy volume is exact
+    dent.export(tmp_path / "dent.stl")
+    xml = (
+        f'<mujoco><compiler meshdir="{tmp_path}"/><asset><mesh name="d" file="dent.stl"/></asset><worldbody>'
+        '<body name="root"><joint name="j"/><geom type="mesh" mesh="d"/></body></worldbody></mujoco>'
+    )
+    (tmp_path / "dent.xml").write_text(xml)
+    assert dent.convex_hull.volume > dent.volume * (1 + 1e-4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dented = load_mjcf(str(tmp_path / "dent.xml"))
+    _against_mujoco(dented, str(tmp_path / "dent.xml"), "root", 1e-7)
+
+
+def test_mesh_geoms_with_degenerate_triangles_or_no_hull_are_refused_by_name(tmp_path) -> None:
+    """A zero-area triangle of a mesh file comes back from MuJoCo (float32 vertices moved into the mesh's inertial
+    frame) as a sliver of about 1e-8 relative area, which the float64 test let through where MuJoCo turned the
+    mesh: refused by name at float32's resolution. A mesh with inertia="convex" that no geom collides with would
+    crash MuJoCo 3.2.7's compiler (a segmentation fault): refused by name before it is compiled."""
+    import trimesh
+
+    box = trimesh.creation.box((0.1, 0.2, 0.3))
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.5, [1, 2, 3]))
+    V = np.vstack([box.vertices, (box.vertices[0] + box.vertices[1]) / 2])  # a point on an edge
+    F = np.vstack([box.faces, [[0, len(V) - 1, 1]]])  # a zero-area triangle along that edge
+    trimesh.Trimesh(V, F, process=False).export(tmp_path / "sliver.stl")
+    xml = (
+        f'<mujoco><compiler meshdir="{tmp_path}"/><asset><mesh name="s" file="sliver.stl"/></asset><worldbody>'
+        '<body name="root"><inertial pos="0 0 0" mass="1" diaginertia=".01 .01 .01"/><joint name="j"/>'
+        '<geom name="g" type="mesh" mesh="s"/></body></worldbody></mujoco>'
+    )
+    with pytest.raises(
+        ValueError, match=r"mesh 's' of geom 'g' of body 'root': faces has degenerate triangles"
+    ):
+        load_mjcf(xml)
+    box.export(tmp_path / "box.stl")
+    for geom in (
+        '<geom type="box" size=".1 .1 .1"/>',
+        '<geom type="mesh" mesh="b" contype="0" conaffinity="0"/>',
+    ):
+        xml = (
+            f'<mujoco><compiler meshdir="{tmp_path}"/><asset><mesh name="b" file="box.stl" inertia="convex"/>'
+            f'</asset><worldbody><body name="root"><joint name="j"/><geom size=".1"/>{geom}</body></worldbody>'
+            "</mujoco>"
+        )
+        with pytest.raises(ValueError, match=r"mesh 'b': inertia=\"convex\" on a mesh that no geom collides"):
+            load_mjcf(xml)
 
 
 def test_mesh_geoms_that_need_mass_properties_must_be_closed(tmp_path) -> None:

@@ -1161,10 +1161,11 @@ def test_torch_thread_count_survives_the_start_of_numba_threads():
 
 
 def test_a_scene_that_froze_nothing_keeps_its_energies_when_another_in_its_batch_freezes(monkeypatch):
-    """When one scene of a batch froze a body, Newton recomputed the restricted energy and rounding scale of every
-    scene still iterating: a scene that froze nothing got another scale formula's value (1 % off), which its line
-    search's tolerance reads, so its path could depend on the batch it was in (a session-54 audit). Only the
-    scenes that froze are recomputed, and each scene of the batch steps as it does alone."""
+    """When one scene of a batch freezes a body, Newton recomputes the restricted energy and rounding scale of the
+    scenes that froze, and only of those: a scene that froze nothing keeps its evaluated ones (it got another scale
+    formula's value, 1 % off, which its line search's tolerance reads). Checked on the recomputations themselves
+    (each row passed has a frozen body: the calls are spied on); that each scene of the batch also steps as it does
+    alone held before the change too, here as in the audit's runs (no end pose moved)."""
     import cfd_torch.sim.newton as newton_module
 
     g = torch.Generator().manual_seed(1)

@@ -20,14 +20,15 @@ makes the model floating: the root pose is then a separate floating base, not a 
 Mass properties are analytic (density x volume of the ideal shape, not of the triangulated mesh) and reproduce
 MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding. A mesh geom's come
 from MuJoCo's compiled mesh (float32 vertices: about 1e-8 relative), as its `<mesh inertia>` says: "exact" the
-closed mesh, "convex" its hull, "legacy" (MuJoCo's default) the closed mesh too, which is MuJoCo's for a convex mesh
-(a non-convex one is warned of: MuJoCo's legacy rule overestimates it); a mesh geom collides as its own triangles
-(MuJoCo collides its convex hull). MuJoCo's principal
+closed mesh, "convex" MuJoCo's hull of it, "legacy" (MuJoCo's default) the closed mesh too, which is MuJoCo's for a
+mesh star-shaped about its centre (where MuJoCo's legacy rule counts more, a warning says so); a mesh geom collides
+as its own triangles (MuJoCo collides its convex hull). MuJoCo's principal
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: plane/hfield/sdf geoms in a link that MuJoCo collides or counts the mass of (visual
 ones are left out, with a warning, as are visual-only mesh geoms), a mesh whose mass counts that is not a closed,
-outward-wound surface, shell inertia, ball joints, free joints below the root,
+outward-wound surface (but under `inertia="convex"`), a mesh with `inertia="convex"` that no geom collides with
+(MuJoCo 3.2.7's compiler crashes on it), shell inertia, ball joints, free joints below the root,
 unnamed joints, actuators other than joint-driven motors and position servos (those acting only outside the root's
 subtree are left out; actuator plugins and actuators in a group ``<option actuatorgroupdisable>`` disables are
 refused), compiler options that bound masses (`boundmass`, `boundinertia`, `balanceinertia`) or drop
@@ -115,8 +116,8 @@ class GeomSpec:
         mass: analytic mass [kg] (0 for geoms outside `inertiagrouprange` or in a body with an `<inertial>` used).
         contype: MuJoCo contact type bits.
         conaffinity: MuJoCo contact affinity bits.
-        mesh: closed, outward-wound triangulation in the link frame (inscribed in the ideal shape; a mesh geom's:
-            MuJoCo's compiled mesh, its own triangles).
+        mesh: triangulation in the link frame: closed and outward-wound, inscribed in the ideal shape; a mesh
+            geom's, MuJoCo's compiled mesh, its own triangles (open where its mass does not count).
         com: (3,) the geom's centre of mass in the link frame (its centre, but for a mesh).
         second_moment: (3, 3) S about ``com``, link frame axes (zero when ``mass`` is 0).
         friction: MuJoCo's sliding friction coefficient of the geom.
@@ -132,9 +133,9 @@ class GeomSpec:
     contype: int
     conaffinity: int
     mesh: trimesh.Trimesh
+    com: np.ndarray
+    second_moment: np.ndarray
     friction: float = 1.0
-    com: np.ndarray | None = None
-    second_moment: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -147,8 +148,8 @@ class LinkSpec:
         pos: (3,) link frame origin in the parent link frame at zero joint values (root: in the world frame).
         quat: (4,) w, x, y, z: link frame orientation in the parent link frame (root: in the world frame).
         joints: the link's joints, applied in MJCF order.
-        mesh: all the link's geoms (welded bodies included) in the link frame, concatenated; each geom's mesh is
-            closed, the union need not be.
+        mesh: all the link's geoms (welded bodies included) in the link frame, concatenated; each primitive
+            geom's mesh is closed (a mesh geom's where its mass counts), the union need not be.
         mass: link mass [kg].
         com: (3,) centre of mass in the link frame.
         second_moment: (3, 3) S = int rho X X^T dV about the COM, link frame axes (inertia = tr(S) I - S).
@@ -241,9 +242,13 @@ _GEOM_KINDS = {
 _JOINT_KINDS = {int(mujoco.mjtJoint.mjJNT_HINGE): "hinge", int(mujoco.mjtJoint.mjJNT_SLIDE): "slide"}
 _FREE = int(mujoco.mjtJoint.mjJNT_FREE)
 _MESH = int(mujoco.mjtGeom.mjGEOM_MESH)
-# a mesh whose volume is within this fraction of its convex hull's is convex (MuJoCo's legacy inertia is exact
-# there): MuJoCo keeps mesh vertices in float32, whose rounding moves a cube's volume by about 1e-8
-_CONVEX_REL = 1e-6
+# MuJoCo's legacy volume of a mesh within this fraction of the closed mesh's is the same (float32 vertices: about
+# 1e-8 apart)
+_LEGACY_REL = 1e-6
+# a mesh triangle whose doubled area is below this fraction of its longest edge squared is degenerate: MuJoCo keeps
+# mesh vertices in float32 and moves them into the mesh's inertial frame, so a zero-area triangle of the file comes
+# back with an area of about 1e-8 of that (the float64 test, 100 machine epsilons, lets it through)
+_MESH_DEGENERACY_REL = 100.0 * float(np.finfo(np.float32).eps)
 # Prefix of the private names given to unnamed geoms, to match the spec's geoms with the compiled ones.
 _GEOM_TAG = "__cfd_torch_geom_"
 
@@ -290,14 +295,15 @@ def load_mjcf(
     capsule_count: tuple[int, int] = (12, 6),
     cylinder_sections: int = 16,
 ) -> MJCFModel:
-    """Read an articulated model from MJCF.
+    """Read an articulated model from MJCF or URDF.
 
     Args:
         source: path of an MJCF file, or the MJCF text itself (anything starting with "<"); or URDF (a root
             element ``<robot>``), read through MuJoCo's URDF importer (:func:`_urdf_as_mjcf`).
         meshdir: the folder of the model's mesh files, relative to the model file's folder (the working directory
-            for text) or absolute, in place of the model's ``<compiler meshdir>``: a URDF's ``package://`` meshes,
-            which MuJoCo looks up by their file names alone, kept in ``../meshes`` beside its ``urdf/`` folder.
+            for text) or absolute, in place of the model's ``<compiler meshdir>``: for example ``"../meshes"`` for a
+            URDF's ``package://`` meshes (MuJoCo looks them up by their file names alone) in a ROS package's
+            ``meshes/`` beside its ``urdf/`` folder.
         root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
             model; the worldbody's own geoms (floors) and other top-level bodies are ignored, and so are the
             actuators that act on them only.
@@ -309,7 +315,9 @@ def load_mjcf(
         The model; see `MJCFModel`.
 
     Raises:
-        ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it.
+        ValueError: for an MJCF feature outside the supported set (see the module docstring), naming it, or a
+            model MuJoCo cannot read.
+        TypeError: ``source`` or ``meshdir`` is not text or a path.
     """
     if not (is_int(sphere_subdivisions) and 0 <= sphere_subdivisions <= 6):
         raise ValueError(f"sphere_subdivisions must be an int in 0..6, got {sphere_subdivisions!r}")
@@ -417,7 +425,7 @@ def load_mjcf(
     frictions: set[float] = set()  # of the geoms in collision meshes
     # the geoms MuJoCo never collides that stay in a collision mesh (their link has no other)
     visual_only: list[str] = []
-    left_out: list[str] = []  # the visual-only geoms of types the step has no mesh for
+    left_out: list[str] = []  # the visual-only geoms of types kept only where they collide or have mass
     for k, group in enumerate(link_bodies):
         geoms: list[GeomSpec] = []
         # (mass, COM, second moment about the COM) of each body's <inertial> or each geom, link frame
@@ -455,6 +463,7 @@ def load_mjcf(
                     capsule_count,
                     cylinder_sections,
                     counts,
+                    massless,
                     mass_scale,
                     mesh_inertia,
                 )
@@ -564,7 +573,9 @@ def _urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> st
         if meshdir is not None:
             spec.meshdir = meshdir
         spec.compiler.fusestatic = False
-        spec.compiler.discardvisual = False  # (URDF's visual elements are dropped on reading either way)
+        # (the importer drops the URDF's visual elements unless its own <mujoco><compiler> keeps them; kept, they
+        # have no mass and no contact, and are left out below as visual geoms)
+        spec.compiler.discardvisual = False
         for joint in spec.joints:
             joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
         spec.compile()
@@ -701,6 +712,18 @@ def _check_spec(spec: mujoco.MjSpec) -> None:
                 raise ValueError(
                     f"free joint '{joint.name}' in body '{body.name}': only the root body may have a free joint"
                 )
+    colliding = {
+        g.meshname
+        for g in spec.geoms
+        if g.type == mujoco.mjtGeom.mjGEOM_MESH and (g.contype or g.conaffinity)
+    }
+    for mesh in spec.meshes:
+        name = mesh.name or os.path.splitext(os.path.basename(mesh.file))[0]
+        if mesh.inertia == mujoco.mjtMeshInertia.mjINERTIA_CONVEX and name not in colliding:
+            raise ValueError(
+                f"mesh '{name}': inertia=\"convex\" on a mesh that no geom collides with crashes MuJoCo "
+                f'{mujoco.__version__}\'s compiler (a segmentation fault): use inertia="exact", or leave the mesh out'
+            )
     c = spec.compiler
     if c.boundmass > 0 or c.boundinertia > 0 or c.balanceinertia:
         raise ValueError("compiler boundmass/boundinertia/balanceinertia are not supported")
@@ -929,6 +952,7 @@ def _geom_spec(
     capsule_count: tuple[int, int],
     cylinder_sections: int,
     counts: bool,
+    massless: bool,
     mass_scale: float,
     mesh_inertia: list[int],
 ) -> GeomSpec:
@@ -950,13 +974,13 @@ def _geom_spec(
     T = T_link_body @ _transform(m.geom_pos[g], m.geom_quat[g])
     if kind == "mesh":
         where = f"geom {label} of body '{m.body(m.geom_bodyid[g]).name}'"
-        massless = explicit_mass == 0 or (math.isnan(explicit_mass) and density == 0)
         mesh, volume, com, S_unit = _mesh_geom(m, g, T, where, counts and not massless, mesh_inertia)
         mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
         S = S_unit * (mass / volume if counts else 0.0)
     else:
-        volume = _volume(kind, size)
-        mass = mass_scale * (explicit_mass if not math.isnan(explicit_mass) else density * volume)
+        mass = mass_scale * (
+            explicit_mass if not math.isnan(explicit_mass) else density * _volume(kind, size)
+        )
         mesh = _primitive_mesh(kind, size, sphere_subdivisions, capsule_count, cylinder_sections)
         mesh.apply_transform(T)
         com = T[:3, 3].copy()
@@ -1002,15 +1026,22 @@ def _mesh_geom(
     """A mesh geom's triangles in the link frame (MuJoCo's compiled mesh, placed by the geom frame ``T``: link <-
     geom), and where its mass counts, the volume, centre of volume (link frame) and second moment per unit density
     about it (link frame axes), from the mesh as MuJoCo's ``<mesh inertia>`` (``mesh_inertia``, by compiled mesh
-    id) says: "exact" and "legacy" the closed mesh itself (MuJoCo's legacy rule overestimates a non-convex mesh's
-    volume: warned of), "convex" MuJoCo's convex hull of it. Else volume 1 and zero moments."""
+    id) says: "exact" and "legacy" the closed mesh itself (where MuJoCo's legacy rule counts more, on a mesh not
+    star-shaped about its centre, a warning says so), "convex" MuJoCo's convex hull of it. Else volume 1 and zero
+    moments."""
     mid = int(m.geom_dataid[g])
     name = m.mesh(mid).name
     v0, nv = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
     f0, nf = int(m.mesh_faceadr[mid]), int(m.mesh_facenum[mid])
     V = m.mesh_vert[v0 : v0 + nv].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     F = m.mesh_face[f0 : f0 + nf].astype(np.int64)
-    check_mesh(V, F, f"mesh '{name}' of {where}: vertices", f"mesh '{name}' of {where}: faces")
+    check_mesh(
+        V,
+        F,
+        f"mesh '{name}' of {where}: vertices",
+        f"mesh '{name}' of {where}: faces",
+        rel=_MESH_DEGENERACY_REL,
+    )
     mesh = trimesh.Trimesh(V, F, process=False)
     if not counts:
         return mesh, 1.0, T[:3, 3].copy(), np.zeros((3, 3))
@@ -1023,20 +1054,32 @@ def _mesh_geom(
     elif not (solid.is_watertight and solid.is_winding_consistent and solid.volume > 0):
         raise ValueError(
             f"mesh '{name}' of {where} is not a closed, outward-wound surface, so its mass properties are undefined: "
-            'give its body an <inertial>, the geom mass="0", or the mesh inertia="convex" (its convex hull\'s)'
+            'give its body an <inertial>, the geom mass="0" (where other geoms of its body have mass), or the mesh '
+            'inertia="convex" (its convex hull\'s)'
         )
     elif mode == int(mujoco.mjtMeshInertia.mjINERTIA_LEGACY):
-        hull = solid.convex_hull.volume
-        if abs(hull - solid.volume) > _CONVEX_REL * hull:
+        legacy = _legacy_volume(solid)
+        if legacy > (1.0 + _LEGACY_REL) * solid.volume:
             warnings.warn(
-                f"mesh '{name}' of {where} is not convex: its mass properties here are the closed mesh's "
-                f"(volume {solid.volume:.6g}); MuJoCo's default legacy rule gives a non-convex mesh more (its hull "
-                f'holds {hull:.6g}): in MJCF, set inertia="exact" on the <mesh> for MuJoCo to agree',
+                f"mesh '{name}' of {where}: its mass properties here are the closed mesh's (volume "
+                f"{solid.volume:.6g}); MuJoCo's default legacy rule counts {legacy:.6g} for it (a mesh not "
+                f'star-shaped about its centre): in MJCF, set inertia="exact" on the <mesh> for MuJoCo to agree',
                 UserWarning,
                 stacklevel=5,
             )
     props = solid.mass_properties  # (density 1)
     return mesh, float(props["volume"]), np.asarray(props["center_mass"]), _inertia_to_S(props["inertia"])
+
+
+def _legacy_volume(mesh: trimesh.Trimesh) -> float:
+    """The volume MuJoCo's legacy mesh inertia counts: the tetrahedra from the area-weighted centre of the faces to
+    each face, their magnitudes summed (the closed mesh's volume where the mesh is star-shaped about that centre,
+    more elsewhere)."""
+    tri = mesh.triangles
+    area = mesh.area_faces
+    c = (tri.mean(1) * area[:, None]).sum(0) / area.sum()
+    a, b, d = tri[:, 0] - c, tri[:, 1] - c, tri[:, 2] - c
+    return float(np.abs(np.einsum("ij,ij->i", a, np.cross(b, d))).sum() / 6.0)
 
 
 def _volume(kind: str, size: np.ndarray) -> float:
