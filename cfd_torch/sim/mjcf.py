@@ -58,6 +58,7 @@ import torch
 import trimesh
 
 from .._validate import check_mesh, is_int
+from .urdf import is_urdf, urdf_as_mjcf
 
 __all__ = [
     "ActuatorSpec",
@@ -299,7 +300,7 @@ def load_mjcf(
 
     Args:
         source: path of an MJCF file, or the MJCF text itself (anything starting with "<"); or URDF (a root
-            element ``<robot>``), read through MuJoCo's URDF importer (:func:`_urdf_as_mjcf`).
+            element ``<robot>``), read through MuJoCo's URDF importer (:func:`cfd_torch.sim.urdf.urdf_as_mjcf`).
         meshdir: the folder of the model's mesh files, relative to the model file's folder (the working directory
             for text) or absolute, in place of the model's ``<compiler meshdir>``: for example ``"../meshes"`` for a
             URDF's ``package://`` meshes (MuJoCo looks them up by their file names alone) in a ROS package's
@@ -349,9 +350,9 @@ def load_mjcf(
     if meshdir is not None and not isinstance(meshdir, (str, os.PathLike)):
         raise TypeError(f"meshdir must be a folder path (str or os.PathLike), got {type(meshdir).__name__}")
     meshdir = None if meshdir is None else os.fspath(meshdir)
-    urdf = _is_urdf(xml)
+    urdf = is_urdf(xml)
     if urdf:
-        xml = _urdf_as_mjcf(xml, base, meshdir)
+        xml = urdf_as_mjcf(xml, base, meshdir)
     xml, tree = _prepared_xml(xml, base)
     if meshdir is not None and not urdf:  # (after the includes are inlined: theirs are overridden too)
         xml = _with_meshdir(xml, meshdir)
@@ -532,14 +533,6 @@ def load_mjcf(
     )
 
 
-def _is_urdf(xml: str) -> bool:
-    """Whether the model text is URDF (its root element ``<robot>``)."""
-    try:
-        return ET.fromstring(xml).tag == "robot"
-    except ET.ParseError:
-        return False  # (reported as the MJCF's)
-
-
 def _with_meshdir(xml: str, meshdir: str) -> str:
     """The MJCF text with every ``<compiler>``'s meshdir set to ``meshdir`` (a compiler element added first where
     there is none)."""
@@ -551,43 +544,6 @@ def _with_meshdir(xml: str, meshdir: str) -> str:
     for c in compilers:
         c.set("meshdir", meshdir)
     return ET.tostring(tree, encoding="unicode")
-
-
-def _urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> str:
-    """The MJCF MuJoCo's URDF importer makes of ``urdf`` (asset files read relative to the folder ``base``; mesh
-    files by their names alone in its meshdir, as MuJoCo reads URDF: ``<mujoco><compiler meshdir=.../></mujoco>``
-    in the URDF sets it), with the bodies of fixed joints kept (``fusestatic`` off: they are welded into their link
-    here anyway) and no joint effort limits (URDF has no actuators; MuJoCo turns ``<limit effort>`` into
-    ``actuatorfrcrange``, which would clamp actuators added to the model, not modelled here). MuJoCo writes
-    numbers with 6 significant digits. ``meshdir``: in place of the URDF's own."""
-    mimics = [j.get("name", "?") for j in ET.fromstring(urdf).iter("joint") if j.find("mimic") is not None]
-    if mimics:
-        warnings.warn(
-            f"URDF joints {mimics[:8]}{' ...' if len(mimics) > 8 else ''} have a <mimic>, which MuJoCo's importer "
-            "drops: here they move on their own",
-            UserWarning,
-            stacklevel=4,
-        )
-    try:
-        spec = _spec(urdf, base)
-        if meshdir is not None:
-            spec.meshdir = meshdir
-        spec.compiler.fusestatic = False
-        # (the importer drops the URDF's visual elements unless its own <mujoco><compiler> keeps them; kept, they
-        # have no mass and no contact, and are left out below as visual geoms)
-        spec.compiler.discardvisual = False
-        for joint in spec.joints:
-            joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
-        spec.compile()
-        return spec.to_xml()
-    except ValueError as e:  # (MuJoCo's parse and compile errors)
-        hint = (
-            "; MuJoCo reads a URDF's mesh files by their names alone, from its meshdir (relative to the URDF's "
-            'folder): pass meshdir=, or set it in the URDF, <mujoco><compiler meshdir="..."/></mujoco>'
-            if "Error opening file" in str(e)
-            else ""
-        )
-        raise ValueError(f"the URDF could not be read by MuJoCo's importer: {e}{hint}") from None
 
 
 def _prepared_xml(xml: str, base: str | None) -> tuple[str, ET.Element]:
