@@ -8,6 +8,8 @@ import numba
 import pytest
 import torch
 
+import cfd_torch  # noqa: F401  (before any test module imports mujoco: it picks MuJoCo's headless GL backend)
+
 sys.path.insert(0, str(Path(__file__).parent))
 
 F64 = torch.float64
