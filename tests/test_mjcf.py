@@ -859,7 +859,7 @@ def _urdf_file(folder, friction: float = 0.0) -> str:
     return str(path)
 
 
-def test_urdf_is_read_with_mujocos_importer(tmp_path) -> None:
+def test_urdf_is_read_with_mujocos_importer(tmp_path, capfd) -> None:
     """A URDF (primitives, a package:// mesh found in its meshdir, a revolute joint with an effort limit, a
     continuous one with damping, a fixed joint) loads as MuJoCo imports it: the links and joints it names, its
     <inertial>s as the links' masses, link frames equal to MuJoCo's kinematics of the URDF itself at random joint
@@ -877,6 +877,13 @@ def test_urdf_is_read_with_mujocos_importer(tmp_path) -> None:
     inertia = np.trace(model.links[1].second_moment) * np.eye(3) - model.links[1].second_moment
     np.testing.assert_allclose(np.diag(inertia), [0.011, 0.012, 0.002], rtol=1e-12)
     assert [g.kind for g in model.links[2].geoms] == ["mesh"] and len(model.links[2].mesh.faces) > 1000
+    # unnamed collision elements are named after their link (MuJoCo printed a warning for each)
+    assert [g.name for link in model.links for g in link.geoms] == [
+        "base/collision0",
+        "upper/collision0",
+        "ring/collision0",
+    ]
+    assert "duplicate name" not in capfd.readouterr().out
     spec = mujoco.MjSpec.from_file(
         path
     )  # MuJoCo's own reading of the URDF, the root body not fused into the world

@@ -26,7 +26,8 @@ def urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> str
     here anyway) and no joint effort limits (URDF has no actuators; MuJoCo turns ``<limit effort>`` into
     ``actuatorfrcrange``, which would clamp actuators added to the model, not modelled here). MuJoCo writes
     numbers with 6 significant digits. ``meshdir``: in place of the URDF's own."""
-    mimics = [j.get("name", "?") for j in ET.fromstring(urdf).iter("joint") if j.find("mimic") is not None]
+    tree = ET.fromstring(urdf)
+    mimics = [j.get("name", "?") for j in tree.iter("joint") if j.find("mimic") is not None]
     if mimics:
         warnings.warn(
             f"URDF joints {mimics[:8]}{' ...' if len(mimics) > 8 else ''} have a <mimic>, which MuJoCo's importer "
@@ -34,6 +35,8 @@ def urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> str
             UserWarning,
             stacklevel=4,
         )
+    if _name_geometry(tree):
+        urdf = ET.tostring(tree, encoding="unicode")
     try:
         spec = mujoco.MjSpec.from_string(urdf)
         if base is not None:
@@ -56,3 +59,23 @@ def urdf_as_mjcf(urdf: str, base: str | None, meshdir: str | None = None) -> str
             else ""
         )
         raise ValueError(f"the URDF could not be read by MuJoCo's importer: {e}{hint}") from None
+
+
+def _name_geometry(tree: ET.Element) -> bool:
+    """Name each unnamed <collision> and <visual> of the URDF ``tree`` after its link ("arm/collision1"), in place:
+    the geoms MuJoCo makes of them carry the names (in messages), and its importer stops printing a warning for
+    each unnamed one. Whether any was named."""
+    taken = {e.get("name") for e in tree.iter() if e.tag in ("collision", "visual") and e.get("name")}
+    named = False
+    for link in tree.iter("link"):
+        for kind in ("collision", "visual"):
+            for k, element in enumerate(link.findall(kind)):
+                if element.get("name"):
+                    continue
+                name = f"{link.get('name', '')}/{kind}{k}"
+                while name in taken:
+                    name += "_"
+                element.set("name", name)
+                taken.add(name)
+                named = True
+    return named
