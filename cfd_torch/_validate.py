@@ -334,20 +334,14 @@ def check_pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
     return out
 
 
-def check_mesh(
-    vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str, rel: float | None = None
-) -> None:
+def check_mesh(vertices: np.ndarray, faces: np.ndarray, vname: str, fname: str) -> None:
     """Validate a triangle mesh given as arrays: finite vertices, face indices in range, no degenerate face.
 
     Args:
         vertices: (V, 3) float64 vertex positions.
         faces: (F, 3) integer vertex indices.
         vname, fname: how the two are named in error messages (e.g. "mesh.vertices", "mesh.faces").
-        rel: a face is degenerate when twice its area is below ``rel`` times its longest edge squared (default
-            100 float64 machine epsilons; vertices rounded to float32 need about 100 float32 epsilons).
     """
-    if rel is None:
-        rel = _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps)
     bad = ~np.isfinite(vertices).all(1)
     if bad.any():
         raise ValueError(
@@ -360,7 +354,7 @@ def check_mesh(
     kernel = _triangle_codes_nb if tri.shape[0] >= 100_000 and parallel_kernels() else _triangle_codes_serial
     if kernel is _triangle_codes_nb:
         start_numba_pool()
-    kernel(tri, rel, _MAX_COORD, code)
+    kernel(tri, _DEGENERACY_EPS_MULTIPLE * float(np.finfo(np.float64).eps), _MAX_COORD, code)
     huge = code == 3
     if huge.any():
         raise ValueError(

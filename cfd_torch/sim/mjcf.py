@@ -21,8 +21,8 @@ Mass properties are analytic (density x volume of the ideal shape, not of the tr
 MuJoCo's compiled `body_mass`, `body_ipos` and principal moments `body_inertia` to rounding. A mesh geom's come
 from MuJoCo's compiled mesh (float32 vertices: about 1e-8 relative), as its `<mesh inertia>` says: "exact" the
 closed mesh, "convex" MuJoCo's hull of it, "legacy" (MuJoCo's default) the closed mesh too, which is MuJoCo's for a
-mesh star-shaped about its centre (where MuJoCo's legacy rule counts more, a warning says so); a mesh geom collides
-as its own triangles (MuJoCo collides its convex hull). MuJoCo's principal
+mesh star-shaped about its legacy centre (where MuJoCo's legacy rule counts more, a warning says so); a mesh geom
+collides as its own triangles (MuJoCo collides its convex hull). MuJoCo's principal
 axes `body_iquat` of a multi-geom body come from its iterative mju_eig3 and agree only to its tolerance (~1e-7
 relative where principal moments nearly coincide). Refused with a `ValueError`
 naming the element: plane/hfield/sdf geoms in a link that MuJoCo collides or counts the mass of (visual
@@ -246,10 +246,12 @@ _MESH = int(mujoco.mjtGeom.mjGEOM_MESH)
 # MuJoCo's legacy volume of a mesh within this fraction of the closed mesh's is the same (float32 vertices: about
 # 1e-8 apart)
 _LEGACY_REL = 1e-6
-# a mesh triangle whose doubled area is below this fraction of its longest edge squared is degenerate: MuJoCo keeps
-# mesh vertices in float32 and moves them into the mesh's inertial frame, so a zero-area triangle of the file comes
-# back with an area of about 1e-8 of that (the float64 test, 100 machine epsilons, lets it through)
-_MESH_DEGENERACY_REL = 100.0 * float(np.finfo(np.float32).eps)
+# a mesh triangle is degenerate when its doubled area is below this many float32 epsilons of its longest edge times
+# the mesh's largest coordinate: MuJoCo keeps mesh vertices in float32 and moves them into the mesh's inertial
+# frame, so a zero-area triangle of the file comes back with an area of the order of that rounding, which the
+# float64 test on the edges alone lets through; a real sliver (a 3 m rod of 1 mm radius in 256 sections: 2.5e-5 m
+# wide) stays above it
+_MESH_DEGENERACY_EPS32 = 10.0
 # Prefix of the private names given to unnamed geoms, to match the spec's geoms with the compiled ones.
 _GEOM_TAG = "__cfd_torch_geom_"
 
@@ -983,7 +985,7 @@ def _mesh_geom(
     geom), and where its mass counts, the volume, centre of volume (link frame) and second moment per unit density
     about it (link frame axes), from the mesh as MuJoCo's ``<mesh inertia>`` (``mesh_inertia``, by compiled mesh
     id) says: "exact" and "legacy" the closed mesh itself (where MuJoCo's legacy rule counts more, on a mesh not
-    star-shaped about its centre, a warning says so), "convex" MuJoCo's convex hull of it. Else volume 1 and zero
+    star-shaped about its legacy centre, a warning says so), "convex" MuJoCo's convex hull of it. Else volume 1 and zero
     moments."""
     mid = int(m.geom_dataid[g])
     name = m.mesh(mid).name
@@ -991,13 +993,18 @@ def _mesh_geom(
     f0, nf = int(m.mesh_faceadr[mid]), int(m.mesh_facenum[mid])
     V = m.mesh_vert[v0 : v0 + nv].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     F = m.mesh_face[f0 : f0 + nf].astype(np.int64)
-    check_mesh(
-        V,
-        F,
-        f"mesh '{name}' of {where}: vertices",
-        f"mesh '{name}' of {where}: faces",
-        rel=_MESH_DEGENERACY_REL,
-    )
+    check_mesh(V, F, f"mesh '{name}' of {where}: vertices", f"mesh '{name}' of {where}: faces")
+    own = m.mesh_vert[v0 : v0 + nv].astype(np.float64)  # (the float32 values, in the mesh's frame)
+    tri = own[F]
+    twice_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(1)
+    eps = _MESH_DEGENERACY_EPS32 * float(np.finfo(np.float32).eps) * float(np.abs(own).max())
+    bad = twice_area < eps * longest
+    if bad.any():
+        raise ValueError(
+            f"mesh '{name}' of {where}: faces has degenerate triangles (zero area, up to the rounding of MuJoCo's "
+            f"float32 vertices): first face {int(np.argmax(bad))}, {int(bad.sum())} in all"
+        )
     mesh = trimesh.Trimesh(V, F, process=False)
     if not counts:
         return mesh, 1.0, T[:3, 3].copy(), np.zeros((3, 3))
@@ -1019,7 +1026,7 @@ def _mesh_geom(
             warnings.warn(
                 f"mesh '{name}' of {where}: its mass properties here are the closed mesh's (volume "
                 f"{solid.volume:.6g}); MuJoCo's default legacy rule counts {legacy:.6g} for it (a mesh not "
-                f'star-shaped about its centre): in MJCF, set inertia="exact" on the <mesh> for MuJoCo to agree',
+                f'star-shaped about its legacy centre): in MJCF, set inertia="exact" on the <mesh> for MuJoCo to agree',
                 UserWarning,
                 stacklevel=5,
             )
@@ -1028,14 +1035,22 @@ def _mesh_geom(
 
 
 def _legacy_volume(mesh: trimesh.Trimesh) -> float:
-    """The volume MuJoCo's legacy mesh inertia counts: the tetrahedra from the area-weighted centre of the faces to
-    each face, their magnitudes summed (the closed mesh's volume where the mesh is star-shaped about that centre,
-    more elsewhere)."""
+    """The volume MuJoCo's legacy mesh inertia counts (MuJoCo 3.2's two passes): the tetrahedra from the
+    area-weighted centre of the faces to each face give, weighted by their magnitudes, a centre c (their own
+    centroids averaged); the tetrahedra from c to each face, their magnitudes summed, are the volume (the closed
+    mesh's where the mesh is star-shaped about c, more elsewhere)."""
     tri = mesh.triangles
+    centroid = tri.mean(1)
     area = mesh.area_faces
-    c = (tri.mean(1) * area[:, None]).sum(0) / area.sum()
-    a, b, d = tri[:, 0] - c, tri[:, 1] - c, tri[:, 2] - c
-    return float(np.abs(np.einsum("ij,ij->i", a, np.cross(b, d))).sum() / 6.0)
+    fc = (centroid * area[:, None]).sum(0) / area.sum()
+
+    def magnitudes(c: np.ndarray) -> np.ndarray:
+        a, b, d = tri[:, 0] - c, tri[:, 1] - c, tri[:, 2] - c
+        return np.abs(np.einsum("ij,ij->i", a, np.cross(b, d))) / 6.0
+
+    v = magnitudes(fc)
+    c = (v[:, None] * (0.75 * centroid + 0.25 * fc)).sum(0) / v.sum()
+    return float(magnitudes(c).sum())
 
 
 def _volume(kind: str, size: np.ndarray) -> float:
