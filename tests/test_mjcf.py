@@ -854,6 +854,17 @@ def test_mesh_geoms_that_need_mass_properties_must_be_closed(tmp_path) -> None:
     light = load_mjcf(body('<geom name="lid" type="mesh" mesh="open" mass="0"/>'))
     assert light.links[1].mass == pytest.approx(ball, rel=1e-12)
     assert len(light.links[1].mesh.faces) == len(light.links[1].geoms[0].mesh.faces) + 3
+    # a kinematic robot's masses play no part: its mesh geoms' are not read, and the open mesh loads
+    from cfd_torch import articulation
+
+    xml = body('<geom name="lid" type="mesh" mesh="open"/>')
+    with pytest.raises(ValueError, match="mesh 'open' of geom 'lid' of body 'b' is not a closed"):
+        articulation(xml)
+    pusher = articulation(xml, kinematic=True)
+    assert pusher.num_links == 2 and len(pusher.bodies[1].bsh.faces) == len(light.links[1].mesh.faces)
+    assert load_mjcf(xml, mesh_masses=False).links[1].mass == pytest.approx(ball, rel=1e-12)
+    with pytest.raises(TypeError, match="mesh_masses must be a bool"):
+        load_mjcf(xml, mesh_masses=0)
 
 
 # ------------------------------------------------------------------------------------------------ URDF

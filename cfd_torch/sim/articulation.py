@@ -343,9 +343,12 @@ def articulation(
     ``kinematic=True`` makes a robot whose coordinates follow the action exactly (a pusher): its moving links are
     kinematic bodies, posed each step by forward kinematics of ``Action.joints``, pushing the dynamic bodies
     through contact and differentiable in those coordinates; its actuators, masses, limits and damping play no
-    part."""
+    part (its mesh geoms' masses are not read: ``mesh_masses=False``, so an open mesh loads)."""
     return Articulation(
-        load_mjcf(source, **mjcf_options), max_edge=max_edge, mount=mount, kinematic=kinematic
+        load_mjcf(source, **{"mesh_masses": not kinematic, **mjcf_options}),
+        max_edge=max_edge,
+        mount=mount,
+        kinematic=kinematic,
     )
 
 

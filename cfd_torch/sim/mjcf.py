@@ -294,6 +294,7 @@ def load_mjcf(
     *,
     root: str | None = None,
     meshdir: str | os.PathLike | None = None,
+    mesh_masses: bool = True,
     sphere_subdivisions: int = 2,
     capsule_count: tuple[int, int] = (12, 6),
     cylinder_sections: int = 16,
@@ -307,6 +308,8 @@ def load_mjcf(
             for text) or absolute, in place of the model's ``<compiler meshdir>``: for example ``"../meshes"`` for a
             URDF's ``package://`` meshes (MuJoCo looks them up by their file names alone) in a ROS package's
             ``meshes/`` beside its ``urdf/`` folder.
+        mesh_masses: False leaves the masses of mesh geoms out (0), for a robot whose masses play no part
+            (``articulation(..., kinematic=True)`` passes it): an open mesh whose mass would count loads.
         root: name of the root body; default: the single top-level body of the worldbody. Its subtree is the
             model; the worldbody's own geoms (floors) and other top-level bodies are ignored, and so are the
             actuators that act on them only.
@@ -335,6 +338,8 @@ def load_mjcf(
             f"capsule_count must be two ints (longitude, latitude), each >= 3 (fewer give an open mesh), got "
             f"{capsule_count!r}"
         )
+    if not isinstance(mesh_masses, bool):
+        raise TypeError(f"mesh_masses must be a bool, got {type(mesh_masses).__name__}")
     if not (is_int(cylinder_sections) and cylinder_sections >= 3):
         raise ValueError(f"cylinder_sections must be an int >= 3, got {cylinder_sections!r}")
     # the model file's folder: asset files (meshes) and <include>d files are read from it, as MuJoCo does
@@ -449,7 +454,11 @@ def load_mjcf(
                 )
             for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
                 # MuJoCo infers masses from the geoms in inertiagrouprange only.
-                counts = not inertial and group_lo <= m.geom_group[g] <= group_hi
+                counts = (
+                    not inertial
+                    and group_lo <= m.geom_group[g] <= group_hi
+                    and (mesh_masses or int(m.geom_type[g]) != _MESH)
+                )
                 name, density, explicit_mass, _ = geom_source[m.geom(g).name]
                 massless = explicit_mass == 0 or (math.isnan(explicit_mass) and density == 0)
                 if int(m.geom_type[g]) not in _GEOM_KINDS and not (
