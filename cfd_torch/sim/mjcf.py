@@ -972,12 +972,10 @@ def _geom_spec(
 
 def _hull(m: mujoco.MjModel, mid: int, V: np.ndarray) -> trimesh.Trimesh:
     """The convex hull MuJoCo made of mesh ``mid`` (``maxhullvert`` honoured), over its vertices ``V``: the faces of
-    its ``mesh_graph`` (numvert, numface, vert_edgeadr, vert_globalid, edge_localid, face_globalid); trimesh's hull
-    of ``V`` where MuJoCo made none."""
-    adr = int(m.mesh_graphadr[mid])
-    if adr < 0:
-        return trimesh.Trimesh(V, process=False).convex_hull
-    graph = m.mesh_graph[adr:]
+    its ``mesh_graph`` (numvert, numface, vert_edgeadr, vert_globalid, edge_localid, face_globalid). MuJoCo makes
+    one for every mesh a geom collides with, and a convex-inertia mesh that none collides with is refused
+    (``_check_spec``)."""
+    graph = m.mesh_graph[int(m.mesh_graphadr[mid]) :]
     nv, nf = int(graph[0]), int(graph[1])
     start = 2 + 2 * nv + nv + 3 * nf
     faces = graph[start : start + 3 * nf].reshape(nf, 3).astype(np.int64)
@@ -1000,10 +998,10 @@ def _mesh_geom(
     name = m.mesh(mid).name
     v0, nv = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
     f0, nf = int(m.mesh_faceadr[mid]), int(m.mesh_facenum[mid])
-    V = m.mesh_vert[v0 : v0 + nv].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    own = m.mesh_vert[v0 : v0 + nv].astype(np.float64)  # (the float32 values, in the mesh's frame)
+    V = own @ T[:3, :3].T + T[:3, 3]
     F = m.mesh_face[f0 : f0 + nf].astype(np.int64)
     check_mesh(V, F, f"mesh '{name}' of {where}: vertices", f"mesh '{name}' of {where}: faces")
-    own = m.mesh_vert[v0 : v0 + nv].astype(np.float64)  # (the float32 values, in the mesh's frame)
     tri = own[F]
     twice_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(1)
@@ -1019,7 +1017,7 @@ def _mesh_geom(
         return mesh, 1.0, T[:3, 3].copy(), np.zeros((3, 3))
     mode = mesh_inertia[mid]
     # (the closed surface with the copies of a vertex merged: MuJoCo keeps an OBJ's per-face vertices)
-    solid = trimesh.Trimesh(V, F, process=False)
+    solid = mesh.copy()
     solid.merge_vertices()
     if mode == int(mujoco.mjtMeshInertia.mjINERTIA_CONVEX):
         solid = _hull(m, mid, V)
