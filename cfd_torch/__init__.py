@@ -70,7 +70,10 @@ from .sim.bodies import RigidBody, rigid_body  # noqa: E402
 from .sim.kinematics import FreeBodies, Kinematics  # noqa: E402
 from .sim.scene import Scene  # noqa: E402
 from .sim.stepper import pair_forces, recentre_rotation, rollout, step  # noqa: E402
-from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory  # noqa: E402
+from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory, allow_in_torch_load  # noqa: E402
+
+# torch.load's default (weights_only=True) rebuilds the plain containers a user keeps: hierarchies, bodies, configs
+allow_in_torch_load(BSH, RigidBody, ContactConfig, FrictionConfig, SolverConfig)
 
 __all__ = [
     "BSH",

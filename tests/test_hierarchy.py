@@ -98,3 +98,62 @@ def test_bad_meshes_are_rejected():
         BSH.build(v, np.array([0, 1, 2]))
     with pytest.raises(ValueError, match="max_edge"):
         BSH.build(v, np.array([[0, 1, 2]]), max_edge=-1.0)
+
+
+def _fields(b: BSH) -> dict:
+    return {
+        f: getattr(b, f).clone() for f in ("vertices", "faces", "centre", "radius", "child", "tri", "depth")
+    }
+
+
+def test_bsh_from_saved_fields_is_the_same_hierarchy_and_bad_fields_are_refused():
+    import io
+
+    from cfd_torch import mesh_potential
+
+    ball = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=2, radius=0.5))
+    small = BSH.from_trimesh(trimesh.creation.icosphere(subdivisions=1, radius=0.5))
+    qa = torch.zeros(6, dtype=F64)
+    qb = torch.tensor([1.002, 0, 0, 0.1, 0, 0], dtype=F64)
+    ref = mesh_potential(ball, qa, ball, qb)
+    assert float(ref) > 0
+    again = BSH(**_fields(ball))
+    assert torch.equal(mesh_potential(again, qa, again, qb), ref)
+    # torch.load's default (weights_only=True) rebuilds it
+    buf = io.BytesIO()
+    torch.save(ball, buf)
+    buf.seek(0)
+    loaded = torch.load(buf)
+    assert torch.equal(mesh_potential(loaded, qa, loaded, qb), ref)
+
+    def refused(match, err=ValueError, **change):
+        with pytest.raises(err, match=match):
+            BSH(**{**_fields(ball), **change})
+
+    f = _fields(ball)
+    refused(r"BSH\.centre must be a torch\.Tensor", TypeError, centre=f["centre"].numpy())
+    refused(
+        r"BSH\.vertices must be a torch\.float64 tensor on the CPU, got torch\.float32",
+        vertices=f["vertices"].float(),
+    )
+    refused(r"BSH\.faces must be a torch\.int64", faces=f["faces"].int())
+    refused(r"BSH\.radius must have shape \(639,\)", radius=f["radius"][:, None])
+    refused(
+        r"BSH\.centre must have shape \(159, 3\)", vertices=small.vertices, faces=small.faces
+    )  # another mesh
+    refused(r"BSH\.faces index vertices out of range", vertices=small.vertices)
+    refused(r"BSH\.radius does not contain the vertices below node 0", radius=torch.zeros_like(f["radius"]))
+    shrunk = f["radius"].clone()
+    leaf = int(torch.nonzero(f["tri"] >= 0)[5])
+    shrunk[leaf] *= 0.9
+    refused(rf"below node {leaf} \(1 nodes in all\)", radius=shrunk)
+    refused(r"BSH\.radius must be finite", radius=torch.full_like(f["radius"], float("nan")))
+    cyc = f["child"].clone()
+    cyc[1] = cyc[0]  # node 1 points back at its siblings: not a tree
+    refused(r"BSH\.child must make a binary tree", child=cyc)
+    refused(r"BSH\.child must make a binary tree", child=f["child"].flip(1).roll(1, 0))
+    tri = f["tri"].clone()
+    leaves = torch.nonzero(tri >= 0).flatten()
+    tri[leaves[0]] = tri[leaves[1]]  # a triangle twice, another never
+    refused(r"BSH\.tri must give each leaf a distinct triangle", tri=tri)
+    refused(r"BSH\.depth must count from 0", depth=f["depth"] + 1)

@@ -6,7 +6,9 @@ Oracle of the batch tests: stepping B scenes together equals stepping each alone
 
 from __future__ import annotations
 
+import io
 import math
+import pickle
 
 import pytest
 import torch
@@ -536,6 +538,27 @@ def test_configs_hold_the_defaults_and_check_their_fields(bodies):
             Scene((cube, ground), **bad)
     with pytest.raises(TypeError, match="unexpected keyword argument 'stiffness'"):
         Scene((cube, ground), stiffness=1.0)
+
+
+def test_scene_pickles_without_its_device_caches_and_bodies_and_configs_load_weights_only(bodies):
+    size = len(pickle.dumps(Scene(bodies, friction=0.4)))  # as _scene_batch builds it, before any use
+    scene, state, target, force = _scene_batch(bodies)
+    out = step(scene, state, Action(target=target, force=force))
+    assert len(pickle.dumps(scene)) == size  # the forest the step built stays out of the pickle
+    again = step(pickle.loads(pickle.dumps(scene)), state, Action(target=target, force=force))
+    assert torch.equal(again.q, out.q) and not torch.equal(out.q, state.q)
+    for obj in (bodies[0], bodies[0].bsh, scene.contact, scene.friction, scene.solver):
+        buf = io.BytesIO()
+        torch.save(obj, buf)
+        buf.seek(0)
+        loaded = torch.load(buf)  # weights_only=True, torch's default
+        assert type(loaded) is type(obj)
+        if hasattr(obj, "radius"):
+            assert torch.equal(loaded.radius, obj.radius)
+        elif hasattr(obj, "bsh"):
+            assert torch.equal(loaded.bsh.centre, obj.bsh.centre) and loaded.mass == obj.mass
+        else:
+            assert loaded == obj
 
 
 # ------------------------------------------------------------------------------------------------ read-outs

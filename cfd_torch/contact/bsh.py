@@ -55,6 +55,9 @@ class BSH:
     tri: torch.Tensor
     depth: torch.Tensor
 
+    def __post_init__(self) -> None:
+        _check_fields(self)
+
     @property
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
@@ -145,6 +148,95 @@ def refined_faces(longest: np.ndarray, edge: float) -> int:
     (each split level quarters a face)."""
     levels = np.ceil(np.log2(np.maximum(longest / edge, 1.0)))
     return int((4.0**levels).sum())
+
+
+_DTYPES = {
+    "vertices": torch.float64, "faces": torch.int64, "centre": torch.float64, "radius": torch.float64,
+    "child": torch.int64, "tri": torch.int64, "depth": torch.int64,
+}  # fmt: skip
+
+
+def _check_fields(b: BSH) -> None:
+    """Refuse a hierarchy whose fields do not form one (e.g. restored from saved arrays that do not belong together):
+    types, shapes and dtypes, a mesh as ``build`` accepts it, a binary tree over all M = 2F - 1 nodes with one leaf
+    per triangle, depths that count from the root, and spheres that contain the vertices below them."""
+    for name, dtype in _DTYPES.items():
+        x = getattr(b, name)
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(
+                f"BSH.{name} must be a torch.Tensor, got {type(x).__name__} (BSH.build makes a hierarchy from a mesh; "
+                f"to restore saved fields, pass torch.as_tensor(x, dtype={dtype}))"
+            )
+        if x.dtype != dtype or x.device.type != "cpu":
+            raise ValueError(f"BSH.{name} must be a {dtype} tensor on the CPU, got {x.dtype} on {x.device}")
+    V, Fc = b.vertices.numpy(), b.faces.numpy()
+    if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < 3:
+        raise ValueError(f"BSH.vertices must have shape (V, 3) with V >= 3, got {tuple(V.shape)}")
+    if Fc.ndim != 2 or Fc.shape[1] != 3 or Fc.shape[0] < 1:
+        raise ValueError(f"BSH.faces must have shape (F, 3) with F >= 1, got {tuple(Fc.shape)}")
+    F = Fc.shape[0]
+    M = 2 * F - 1
+    for name, shape in (
+        ("centre", (M, 3)),
+        ("radius", (M,)),
+        ("child", (M, 2)),
+        ("tri", (M,)),
+        ("depth", (M,)),
+    ):
+        if tuple(getattr(b, name).shape) != shape:
+            raise ValueError(
+                f"BSH.{name} must have shape {shape} (M = 2F - 1 nodes for the F = {F} faces of BSH.faces), got "
+                f"{tuple(getattr(b, name).shape)}"
+            )
+    check_mesh(V, Fc, "BSH.vertices", "BSH.faces")
+    centre, radius = b.centre.numpy(), b.radius.numpy()
+    child, tri, depth = b.child.numpy(), b.tri.numpy(), b.depth.numpy()
+    if not np.isfinite(centre).all():
+        raise ValueError("BSH.centre contains NaN or inf")
+    if not (np.isfinite(radius).all() and (radius >= 0).all()):
+        raise ValueError("BSH.radius must be finite and >= 0")
+    inner = child[:, 0] >= 0
+    node = np.arange(M)
+    kids = child[inner]
+    if (
+        ((child[:, 1] >= 0) != inner).any()
+        or (kids <= node[inner, None]).any()
+        or (kids >= M).any()
+        or (np.bincount(kids.ravel(), minlength=M) != (node > 0)).any()
+    ):
+        raise ValueError(
+            "BSH.child must make a binary tree of the M nodes rooted at node 0: each internal node's two children "
+            "after it, each other node the child of exactly one, leaves (-1, -1)"
+        )
+    leaves = tri[~inner]
+    if (
+        (tri[inner] != -1).any()
+        or leaves.shape[0] != F
+        or (np.bincount(leaves.clip(0, F), minlength=F + 1)[:F] != 1).any()
+    ):
+        raise ValueError(
+            "BSH.tri must give each leaf a distinct triangle (each of the F faces once), -1 elsewhere"
+        )
+    if depth[0] != 0 or (depth[kids] != depth[node[inner], None] + 1).any():
+        raise ValueError("BSH.depth must count from 0 at the root, one more at each child")
+    # every sphere holds the vertices below it: each leaf's triangle is walked up through its ancestors
+    parent = np.full(M, -1)
+    parent[kids.ravel()] = np.repeat(node[inner], 2)
+    pts = V[Fc[leaves]]  # (F, 3, 3)
+    at = node[~inner]
+    reach = np.zeros(M)
+    while at.size:
+        np.maximum.at(reach, at, np.sqrt(((pts - centre[at, None]) ** 2).sum(-1)).max(1))
+        keep = parent[at] >= 0
+        at, pts = parent[at][keep], pts[keep]
+    scale = np.abs(V).max() + radius.max()
+    bad = reach > radius + 1e-9 * scale
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"BSH.radius does not contain the vertices below node {i} ({int(bad.sum())} nodes in all): radius "
+            f"{radius[i]:.6g}, farthest vertex {reach[i]:.6g} from its centre"
+        )
 
 
 def _build_tree(V: np.ndarray, Fc: np.ndarray) -> dict:

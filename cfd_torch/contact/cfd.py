@@ -68,6 +68,10 @@ class CfdContact:
                 table[i, j] = table[j, i] = e
             self._eps = table
 
+    def __getstate__(self) -> dict:
+        # the per-device forests are a cache (concatenations of the hierarchies): a pickle carries no device's tensors
+        return {**self.__dict__, "_forests": {}}
+
     def _pair_eps(self, pairs: torch.Tensor) -> float | torch.Tensor:
         """The blend width of each pair row (s, i, j): ``config.eps`` for all, or (P,) from ``pair_eps``."""
         if self._eps is None:
