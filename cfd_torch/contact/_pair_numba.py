@@ -20,9 +20,11 @@ from .._geometry import tri_tri_closest_nb
 
 CONVERGED, INFEASIBLE, NOT_CONVERGED = 0, 1, 2
 
-# error_model="numpy": IEEE division (1/0 = inf) without Python's per-division zero checks. fastmath is limited to
-# FMA contraction and reciprocal multiplication: no-NaN/no-inf assumptions would break the +inf barrier.
-_JIT = {"cache": True, "error_model": "numpy", "fastmath": {"contract", "arcp"}}
+# error_model="numpy": IEEE division (1/0 = inf) without Python's per-division zero checks. No fastmath: no-NaN/no-inf
+# assumptions would break the +inf barrier, and with FMA contraction and reciprocal multiplication the kernels
+# compiled in a process rounded otherwise than the same kernels loaded from numba's cache (a fresh clone's first run
+# was not reproduced by later ones); without them the two agree bit for bit, at the same speed.
+_JIT = {"cache": True, "error_model": "numpy", "fastmath": False}
 _JIT_INLINE = {**_JIT, "inline": "always"}
 
 _STALL_TOL = 1e-8  # a pair whose relative gradient is below this is done when no step can decrease E any more
