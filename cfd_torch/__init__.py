@@ -2,8 +2,10 @@
 
 Shape letters used throughout: B batch (of scenes or pairs), T time, N bodies, Nd dynamic bodies, K kinematic
 bodies, V vertices, F faces, P body pairs, C friction contacts, Q generalised coordinates. Triangles are
-``(..., 3, 3)`` tensors: vertex index, then xyz. float64 is the reference path; float32 inputs are solved in float64
-and returned in float32.
+``(..., 3, 3)`` tensors: vertex index, then xyz. float64 is the reference path; float32 inputs to the pair, mesh
+and scene potentials and to the simulator are solved in float64 and returned in float32 (the closed forms
+``central_potential``, ``smoothstep`` and ``blend_weight`` compute in their inputs' dtype;
+``mesh_potential_reference``, a test oracle, takes float64 only).
 
 Contact (``cfd_torch.contact``):
     pair_potential(tri_a, tri_b, *, mu, margin)              exact separating-plane potential, 2nd-order autograd
@@ -29,7 +31,7 @@ Simulator (``cfd_torch.sim``, SPEC section 5):
     rollout(scene, state, actions) -> Trajectory            T steps (ordinary autograd through all of them)
     pair_forces(scene, q)                                    contact force of every body on every other
     recentre_rotation(q)                                     rotation vectors wrapped back to |omega| <= pi
-    articulation(mjcf, mount=, kinematic=)                   a robot from MJCF (Scene(..., articulations=[...]))
+    articulation(source, mount=, kinematic=)                 a robot from MJCF or URDF (Scene(..., articulations=))
     FreeBodies, Kinematics                                   the kinematics seam (q -> poses and derivatives)
     StepInfo, StepError                                      step(..., return_info=True)'s statistics; a failed solve
 

@@ -69,6 +69,11 @@ class ContactConfig:
             and the solver are the same for all.
         dhat: the baselines' activation distance [m].
         barrier_stiffness: the baselines' kappa; None: the model's default (IPC 1e6 N / m^3, SDRS 10).
+
+    A field the chosen ``potential`` does not read must stay at its default (ValueError naming it otherwise, as a
+    setting silently ignored would be): ``dhat`` and ``barrier_stiffness`` with "cfd"; ``stiffness``, ``eps``,
+    ``split``, ``pair_tol``, ``pair_max_iter``, ``backend`` and ``refine_obstacles`` (None included) with a
+    baseline. ``margin`` is read by all (SDRS's margin, and a length scale of the step's line search).
     """
 
     stiffness: float = 1e-8
@@ -143,7 +148,9 @@ class FrictionConfig:
     """Lagged, smoothed Coulomb friction (SPEC section 5).
 
     Attributes:
-        coefficient: Coulomb's coefficient mu_f; 0 turns friction off (no lagged data, no cost).
+        coefficient: Coulomb's coefficient mu_f, the default of ``Params.friction`` (``Scene.params()``); friction is
+            off (no lagged data, no cost) in a step whose ``Params.friction`` is 0 and does not require grad, so a
+            step given ``Params(friction=0.5)`` has friction in a scene built with 0.
         eps_v: slip velocity below which friction is in its smoothed static regime [m/s], at least 1e-30.
         active: friction acts on the leaf pairs whose lagged normal force is at least this fraction of the largest
             in their body pair (0: on all of them); the others carry almost none of the load and only cost time.

@@ -57,5 +57,14 @@ def core_class(env_id: str) -> type[TaskCore]:
 
 
 def make_core(env_id: str, **kwargs) -> TaskCore:
-    """The differentiable torch core of a registered task (``kwargs``: the core's arguments, e.g. ``dtype``)."""
+    """The differentiable torch core of a registered task.
+
+    Args:
+        env_id: one of ``IDS``: "cfd_torch/Billiards-v0", "cfd_torch/Push-v0", "cfd_torch/Sort-v0",
+            "cfd_torch/Gather-v0", "cfd_torch/AntPush-v0".
+        **kwargs: the core's arguments (``help(core_class(env_id))``), e.g. ``dtype`` or ``device``.
+
+    Raises:
+        ValueError: an unknown ``env_id`` (the message lists the known ones), or a bad argument of the core.
+    """
     return core_class(env_id)(**kwargs)

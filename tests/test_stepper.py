@@ -816,6 +816,11 @@ def test_friction_off_costs_nothing(cube, ground):
         assert info.leaf_pairs > 0  # the box is in contact
         counts[mu_f] = int(info.friction_contacts)
     assert counts[0.0] == 0 and counts[0.5] > 0
+    # the scene's coefficient is Params.friction's default: a step given 0.5 has friction in a scene built with 0
+    p = scene.params()
+    off = Scene((cube, ground), friction=0.0)
+    _, info = step(off, state, params=Params(p.mass, p.second_moment, p.friction), return_info=True)
+    assert int(info.friction_contacts) == counts[0.5]
 
 
 def test_friction_on_the_loaded_leaf_pairs_only(small_sphere, ground):

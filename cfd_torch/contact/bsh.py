@@ -88,7 +88,10 @@ class BSH:
             max_edge: if given, triangles with an edge longer than this are split (midpoints) until none is.
 
         Raises:
-            ValueError: bad shapes, NaN/inf vertices, out-of-range indices or degenerate faces (naming the face).
+            ValueError: bad shapes, NaN/inf vertices, out-of-range indices or degenerate faces (naming the face),
+                non-integer face indices, or a ``max_edge`` that is not a finite positive number or would split the
+                mesh into more than 2,000,000 triangles.
+            TypeError: vertices that are not real numbers.
         """
         if isinstance(vertices, torch.Tensor) and vertices.requires_grad:
             warnings.warn(

@@ -64,6 +64,10 @@ def smoothstep(s: torch.Tensor) -> torch.Tensor:
 
     Returns:
         (...) Phi(s) in [0, 1], differentiable to any order (zero derivatives outside [0, 1]).
+
+    Raises:
+        TypeError: ``s`` is not a tensor.
+        ValueError: ``s`` holds NaN or is not float32/float64.
     """
     check_finite_tensor(s, "s", allow_inf=True)
     t = s.clamp(0.0, 1.0)
@@ -92,7 +96,9 @@ def blend_weight(r: torch.Tensor, d1: torch.Tensor | float, eps: float, margin: 
         between.
 
     Raises:
-        ValueError: eps not a finite positive number, margin negative, r NaN or negative, d1 not finite and > 0.
+        ValueError: eps not a finite positive number, margin negative, r NaN or negative, d1 not finite and > 0, or
+            a d1 tensor of another dtype or device than r, or not broadcasting with it.
+        TypeError: r not a tensor, or d1 neither a number nor a tensor.
     """
     check_positive(eps, "eps")
     if not (is_real(margin) and 0 <= margin < float("inf")):

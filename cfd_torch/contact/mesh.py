@@ -55,15 +55,15 @@ class MeshDerivatives(NamedTuple):
 
     Attributes:
         value: (...) potential, +inf when some leaf pair is within the margin.
-        grad: (..., 12) d value / d [t_a, omega_a, t_b, omega_b], or None (zero where value is +inf).
-        hessian: (..., 12, 12), or None.
+        grad: (..., 12) d value / d [t_a, omega_a, t_b, omega_b] (zero where value is +inf).
+        hessian: (..., 12, 12), or None (``hessian=False``).
         stats: counts of the traversal: "node_pairs" (all node pairs visited), "leaf_pairs" (exact solves),
             "levels" (the breadth-first traversal's levels, on other devices or with ``backend="torch"``; -1
             where the depth-first CPU kernel ran, which does not count them).
     """
 
     value: torch.Tensor
-    grad: torch.Tensor | None
+    grad: torch.Tensor
     hessian: torch.Tensor | None
     stats: dict
 
@@ -175,6 +175,15 @@ def mesh_potential_derivatives(
         MeshDerivatives(value (...), grad (..., 12), hessian (..., 12, 12) | None, stats), float64 inside, in
         the poses' dtype. Values only: where a pose requires grad, a backward through a field raises (use
         :func:`mesh_potential` under autograd for derivatives of these).
+
+    Raises:
+        TypeError: a hierarchy that is not a :class:`cfd_torch.BSH`, a pose that is not a tensor, or a setting of
+            the wrong type.
+        ValueError: poses not (..., 6) float32/float64 on one device, not broadcasting, with NaN/inf, translations
+            beyond the dtype's limit or rotation vectors beyond 1e6 rad; a setting out of range (``split`` not
+            "both" or "larger").
+        PairSolveError: a leaf pair's plane solve did not converge in ``max_iter`` iterations.
+        NotImplementedError: under ``vmap`` or forward-mode AD.
     """
     refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
@@ -213,13 +222,15 @@ def mesh_potential(
 ) -> torch.Tensor:
     """BSH contact potential of two rigid bodies, differentiable in both poses to first and second order.
 
-    Args: as :func:`mesh_potential_derivatives`.
+    Args: as :func:`mesh_potential_derivatives` (all but ``hessian``: autograd forms what is asked for).
 
     Returns:
         (...) potential in the poses' dtype; +inf when the bodies are within the margin. The backward pass uses
         the closed-form pose gradient; ``create_graph=True`` then gives the closed-form Hessian; a third
         derivative raises. ``torch.func.grad`` and ``jacrev`` work the same way; ``vmap`` and forward mode raise
         ``NotImplementedError``.
+
+    Raises: as :func:`mesh_potential_derivatives`.
     """
     refuse_vmap("mesh_potential", pose_a, pose_b)
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)

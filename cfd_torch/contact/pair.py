@@ -428,6 +428,7 @@ def pair_potential(
 
     Raises:
         ValueError: bad shapes, dtypes, NaN/inf coordinates or degenerate triangles (naming argument and index).
+        TypeError: a triangle argument that is not a tensor, or a setting of the wrong type.
         PairSolveError: the inner solve did not converge for some pair.
     """
     refuse_vmap("pair_potential", tri_a, tri_b)

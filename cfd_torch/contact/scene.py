@@ -159,6 +159,15 @@ def contact_potential(
     Returns:
         ContactPotential(value, grad, hessian, stats); value +inf when some pair of bodies is within the margin
         (or intersecting), and then zero derivatives (not those of the other pairs: check ``isinf(value)``).
+
+    Raises:
+        TypeError: ``poses`` not a tensor, ``bshes`` not a sequence of :class:`cfd_torch.BSH`, or a setting of the
+            wrong type.
+        ValueError: ``poses`` not (N, 6) (one scene: no batch dimension), not float32/float64, with NaN/inf, far
+            translations or long rotation vectors; ``bshes`` or ``static`` not of length N; ``exclude`` holding
+            invalid body pairs (out of range, or a body with itself); a setting out of range.
+        PairSolveError: a leaf pair's plane solve did not converge.
+        NotImplementedError: under ``vmap`` or forward-mode AD.
     """
     if not isinstance(poses, torch.Tensor):
         raise TypeError(f"poses must be a (N, 6) torch.Tensor, got {type(poses).__name__}")

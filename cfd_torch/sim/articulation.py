@@ -343,7 +343,21 @@ def articulation(
     ``kinematic=True`` makes a robot whose coordinates follow the action exactly (a pusher): its moving links are
     kinematic bodies, posed each step by forward kinematics of ``Action.joints``, pushing the dynamic bodies
     through contact and differentiable in those coordinates; its actuators, masses, limits and damping play no
-    part (its mesh geoms' masses are not read: ``mesh_masses=False``, so an open mesh loads)."""
+    part (its mesh geoms' masses are not read: ``mesh_masses=False``, so an open mesh loads).
+
+    Args:
+        source: MJCF or URDF text, or the path of such a file.
+        max_edge: if given, each link's mesh is refined (midpoint splits) until no triangle edge is longer [m]
+            (:meth:`cfd_torch.BSH.build`).
+        mount: the (6,) pose of the world frame a fixed-base robot hangs from; default the origin.
+        kinematic: a robot posed by ``Action.joints`` (above).
+        **mjcf_options: :func:`cfd_torch.sim.mjcf.load_mjcf`'s (e.g. ``meshdir``, ``sphere_subdivisions``).
+
+    Raises:
+        ValueError: as :func:`cfd_torch.sim.mjcf.load_mjcf` (a feature outside the supported set, naming it; a
+            model MuJoCo cannot read), or a bad ``max_edge`` or ``mount``.
+        TypeError: ``source`` or an option of the wrong type.
+    """
     return Articulation(
         load_mjcf(source, **{"mesh_masses": not kinematic, **mjcf_options}),
         max_edge=max_edge,

@@ -108,7 +108,7 @@ def rigid_body(
             smallest second moment below zero within the rounding of the mass properties (a thin plate turned
             off the axes) is taken as zero.
         kind: "dynamic", "static" or "kinematic".
-        density: [kg/m^3], dynamic bodies only; mass = density * volume.
+        density: [kg/m^3], read for dynamic bodies only (mass = density * volume), checked for every kind.
         max_edge: refine triangles longer than this when building the contact hierarchy (see :class:`BSH`).
 
     Raises:

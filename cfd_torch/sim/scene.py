@@ -129,7 +129,8 @@ class Scene:
         dt: time step [s], at least 1e-12.
         gravity: (3,) gravitational acceleration [m/s^2].
         contact: the contact potential's settings (default ``ContactConfig()``).
-        friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off).
+        friction: a :class:`FrictionConfig`, or Coulomb's coefficient alone (default 0: off, unless a step's
+            ``Params.friction`` says otherwise: the coefficient is its default).
         solver: the Newton solve's settings (default ``SolverConfig()``).
         exclude: body pairs (i, j) with no contact between them (e.g. joined bodies).
         pair_eps: body pairs (i, j) whose blend width (``ContactConfig.eps``) is their own, {(i, j): eps}: e.g. a
@@ -387,6 +388,7 @@ class Scene:
 
     @property
     def num_bodies(self) -> int:
+        """N, the bodies of the scene (a robot's links included): a state's rows."""
         return len(self.bodies)
 
     @property
@@ -462,8 +464,10 @@ class Scene:
         return Scene(self._given_bodies, **kw)
 
     def params(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Params:
-        """The scene's differentiable physical parameters as tensors (set requires_grad for their gradients): one
-        row per body the kinematics map moves."""
+        """The scene's differentiable physical parameters as tensors of ``dtype`` on ``device`` (set requires_grad
+        for their gradients): mass and second moment, one row per body the kinematics map moves; the friction
+        coefficient (``FrictionConfig.coefficient``); the servos' gains kp and kv from the articulations' MJCF
+        (empty without simulated robots)."""
         d = self.kinematics.bodies.tolist()
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
@@ -480,7 +484,9 @@ class Scene:
 
         The velocities are rates of the pose coordinates: the translation's (m/s), and the rotation vector's (its
         rate of change, q_prev = poses - dt velocities), which equals the angular velocity only where the rotation
-        vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis).
+        vector is parallel to it or zero (a body at rotation 0, or spinning about its rotation vector's axis). The
+        rows of static and kinematic bodies start at rest whatever ``velocities`` holds there (a static body never
+        moves; a kinematic one moves to the targets of each step's action).
 
         Raises:
             TypeError: poses or velocities is not a tensor.

@@ -325,8 +325,9 @@ def step(
         state: State(q, q_prev), each ([B,] N, 6), float32 or float64 (solved in float64, returned in its dtype:
             a float32 state knows velocities only to its coordinates' spacing over dt, so slow motion is rounded
             away); rotation vectors no longer than 1e6 rad.
-        action: forces ([B,] N, 3), torques ([B,] N, 3) and kinematic targets ([B,] K, 6); unbatched fields are
-            shared by a batch; None: nothing acts, kinematic bodies stay put.
+        action: an :class:`Action`: forces ([B,] N, 3), torques ([B,] N, 3), kinematic targets ([B,] K, 6), and for
+            articulations actuator controls ``ctrl`` and kinematic joint targets ``joints`` (see :class:`Action`);
+            unbatched fields are shared by a batch; None: nothing acts, kinematic bodies stay put.
         params: differentiable mass / second moment / friction coefficient / servo gains kp and kv, shared ((Nd,),
             (Nd, 3, 3), (), (U,), (U,)) or per scene ((B, Nd), ...) (default: ``scene.params()``), float32 or
             float64 whatever the state's dtype (the step runs in float64; each field's gradient comes back in its
@@ -346,6 +347,10 @@ def step(
         StepError: the Newton solve stopped without converging (the message says why), also after the
             ``scene.solver.substeps`` retries; or, for a float32 state, the solution rounded to float32 falls
             within the contact margin.
+        NotImplementedError: under ``torch.func`` transforms (vmap, grad, jacrev, ...) or forward-mode AD, which do
+            not pass through a step (differentiate with ``torch.autograd``).
+        RuntimeError: in a backward that records a graph (``create_graph=True``, second derivatives): the step's
+            backward is a first-order adjoint.
     """
     if action is not None and not isinstance(action, Action):
         raise TypeError(f"action must be a cfd_torch.Action or None, got {type(action).__name__}")
@@ -449,11 +454,24 @@ def rollout(
     *,
     progress: bool = False,
 ) -> Trajectory:
-    """Step ``len(actions)`` times (or ``actions`` times with no action).
+    """Step ``len(actions)`` times (or ``actions`` times with no action), differentiable by autograd.
+
+    Args:
+        scene, state: as in :func:`step`.
+        actions: a sequence of T :class:`Action` (an item None: nothing acts in that step), or a number of steps T
+            with no action.
+        params: as in :func:`step`, shared by every step (default: ``scene.params()``).
+        progress: show a tqdm progress bar over the steps.
 
     Returns:
         The :class:`Trajectory` of the T + 1 states, the first included: fields (T + 1, [B,] N, 6); ``traj[t]`` is
         a State.
+
+    Raises:
+        TypeError: ``actions`` a single Action (for T steps with one action: ``[action] * T``), a tensor, or
+            anything else that is neither a sequence of actions nor a number.
+        ValueError: a negative number of steps, or any of :func:`step`'s.
+        StepError: a step failed (as in :func:`step`).
     """
     if is_int(actions) and not isinstance(actions, torch.Tensor):
         actions = int(actions)

@@ -28,7 +28,7 @@ class State(NamedTuple):
         """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt.
 
         Raises:
-            ValueError: dt is not a finite positive number."""
+            ValueError: dt is not a finite positive Python number (a tensor is refused too)."""
         check_positive(dt, "dt")
         return (self.q - self.q_prev) / dt
 
@@ -93,7 +93,8 @@ class Params(NamedTuple):
         mass: ([B,] Nd) masses of the dynamic bodies [kg].
         second_moment: ([B,] Nd, 3, 3) second moments of mass about the centres of mass, body frame [kg m^2]
             (the step uses their symmetric part).
-        friction: ([B]) Coulomb's coefficient.
+        friction: ([B]) Coulomb's coefficient; it overrides the scene's ``FrictionConfig.coefficient`` (its default):
+            friction is computed wherever it is positive or requires grad.
         kp, kv: ([B,] U) the position actuators' (servos') stiffness and damping gains, in ``Action.ctrl``'s order
             (a servo's joint torque is gear kp ctrl - kp gear^2 theta - kv gear^2 theta_dot; motors' entries are
             unused); None: the MJCF's (``Scene.params()`` fills them in).
