@@ -47,12 +47,16 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import ipctk  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 from _cli import nonnegative_int, positive_float, positive_int  # noqa: E402
+
+try:
+    import ipctk
+except ModuleNotFoundError as err:  # the baseline this script times against
+    raise SystemExit(f"{err}: scripts/bench_contact.py needs IPC Toolkit: pip install '.[bench]'") from None
 from _provenance import git_revision, json_args  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
