@@ -148,6 +148,8 @@ REFUSED = [
     ("trivial_start_runs", ["--tasks", "Push", "Push"], "--tasks"),  # ran and tabulated twice
     ("rolling_ball", ["--dt", "0.01", "0"], "--dt"),
     ("rolling_ball", ["--subdivisions", "7"], "--subdivisions"),
+    ("bench_bodies", ["--layout", "pile", "--steps", "3"], "--steps"),  # the landing steps are 4 and later
+    ("bench_bodies", ["--sizes", "0"], "--sizes"),
 ]
 
 
@@ -314,3 +316,19 @@ def test_rolling_ball_starts_rolling_without_slipping_and_keeps_its_books(script
     assert 0.3 < rot / trans < 0.45  # 2/5 (r / h)^2 for a solid ball: its spin set from the rolling radius
     potential = mass * rolling_ball.GRAVITY * run["rolling_radius_m"]  # (the settled centre's height)
     assert abs(energy - (trans + rot + potential)) < 1e-12 * energy and run["newton_iters"] > 0
+
+
+def test_bench_bodies_times_each_size_and_names_the_library_it_timed(scripts_path, monkeypatch, tmp_path):
+    import bench_bodies
+
+    monkeypatch.setattr(
+        sys, "argv", ["bench_bodies.py", "--sizes", "2", "3", "--steps", "2", "--out", str(tmp_path)]
+    )
+    bench_bodies.main()
+    out = _strict_json(tmp_path / "bench_bodies.json")
+    assert [r["n"] for r in out["rows"]] == [2, 3] and out["commit"] != "unknown"
+    for r in out["rows"]:
+        assert r["step_s"] > 0 and len(r["newton_iters"]) == 2 and min(r["contact_evals"]) >= 1
+    assert (tmp_path / "bench_bodies.md").read_text().count("\n| ") == 3 and (
+        tmp_path / "bench_bodies.png"
+    ).exists()

@@ -30,7 +30,8 @@ from cfd_torch import (
     rollout,
     step,
 )
-from cfd_torch.sim.newton import Stop, newton
+from cfd_torch.sim.energy import EnergyEval
+from cfd_torch.sim.newton import Stop, _incidence, _restricted, newton
 
 F64 = torch.float64
 G = 9.81
@@ -158,8 +159,6 @@ def test_rollout_returns_a_stacked_trajectory(bodies):
 
 # ------------------------------------------------------------------------------------------------ Newton
 def _quadratic(A: torch.Tensor, b: torch.Tensor):
-    from cfd_torch.sim.energy import EnergyEval
-
     def energy(q, scenes, order):
         Aq = torch.einsum("aij,aj->ai", A[scenes], q)
         value = 0.5 * (q * Aq).sum(1) - (b[scenes] * q).sum(1)
@@ -227,6 +226,47 @@ def test_a_loose_newton_tol_still_takes_the_converged_step(bodies):
     scene = Scene([cube, ground], newton_tol=1e-4, gravity=(0.0, 0.0, 0.0), max_newton_iter=1)
     nxt, info = step(scene, State(q, q.clone()), Action(force=force), return_info=True)
     assert float(nxt.q[0, 0]) == pytest.approx(0.5 * 1e-4, rel=1e-3) and int(info.newton_iters) == 1
+
+
+def test_island_energies_summed_by_index_equal_the_masked_sums():
+    """Newton's per-island energies (``_restricted``): summed by index over the pairs at each island's bodies (large
+    scenes, where (islands x pairs) masks grew like N^3) equal the masked sums over all pairs, to rounding."""
+    g = torch.Generator().manual_seed(0)
+    checked = 0
+    for _ in range(200):
+        M = int(torch.randint(2, 12, (1,), generator=g))
+        N = M + int(torch.randint(0, 3, (1,), generator=g))  # with static bodies (moving index M)
+        moving = torch.full((N,), M)
+        moving[torch.randperm(N, generator=g)[:M]] = torch.arange(M)
+        pairs = moving[torch.triu_indices(N, N, 1).T]
+        pairs = pairs[(pairs < M).any(1) & (torch.rand(pairs.shape[0], generator=g) < 0.8)]
+        ev = EnergyEval(
+            *([None] * 9), 0, 0, *(torch.randn(3, n, generator=g, dtype=F64) for n in (M, len(pairs)))
+        )
+        A = int(torch.randint(1, 6, (1,), generator=g))
+        rows = torch.randint(0, 3, (A,), generator=g)
+        label = torch.randint(-1, 3, (A, M), generator=g)  # 0: the island, > 0: other islands, -1: frozen
+        for others in (None, label > 0):
+            dense = _restricted(ev, rows, label == 0, pairs, others)
+            by_index = _restricted(ev, rows, label == 0, _incidence(pairs, M), others)
+            for x, y in zip(dense, by_index, strict=True):
+                if x is None:
+                    assert y is None
+                    continue
+                torch.testing.assert_close(y, x, rtol=1e-14, atol=1e-14)
+                checked += int((x != 0).sum())
+    assert checked > 1000
+
+
+def test_a_step_with_island_energies_summed_by_index_equals_the_masked_one(bodies, monkeypatch):
+    from cfd_torch.sim import newton as newton_module
+
+    scene, state, target, force = _scene_batch(bodies)
+    traj = rollout(scene, state, [Action(target=target, force=force)] * 4)
+    monkeypatch.setattr(newton_module, "_DENSE_ISLANDS", 0)  # every scene sums by index
+    again = rollout(scene, state, [Action(target=target, force=force)] * 4)
+    assert float((traj.q[-1] - traj.q[0]).abs().max()) > 1e-3  # they moved
+    torch.testing.assert_close(again.q, traj.q, rtol=0, atol=1e-10)
 
 
 def test_newton_line_search_failure_is_reported():

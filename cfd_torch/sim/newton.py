@@ -130,33 +130,81 @@ def _call(energy, q, scenes, order, active):
     return energy(q, scenes, order) if active is None else energy(q, scenes, order, active)
 
 
+class _Incidence(NamedTuple):
+    """The interacting pairs at each moving body, sorted by body: body m's are ``pair[offset[m]:offset[m + 1]]``,
+    each with its other body ``partner`` (M for one that does not move)."""
+
+    offset: torch.Tensor  # (M + 1,)
+    pair: torch.Tensor  # (E,)
+    partner: torch.Tensor  # (E,)
+
+
+def _incidence(pair_moving: torch.Tensor, M: int) -> _Incidence:
+    """The incidence of the pairs ``pair_moving`` (P, 2) (moving-body indices, M for a body that does not move)."""
+    ends = pair_moving.reshape(-1)  # (2P,): end e of pair p at 2p + e
+    order = torch.argsort(ends, stable=True)
+    order = order[ends[order] < M]
+    count = torch.bincount(ends[order], minlength=M)
+    offset = torch.cat([count.new_zeros(1), count.cumsum(0)])
+    return _Incidence(offset, order // 2, pair_moving.reshape(-1)[order ^ 1])
+
+
 def _restricted(
     ev: EnergyEval,
     rows: torch.Tensor,
     act: torch.Tensor,
-    pair_moving: torch.Tensor,
+    pairs: torch.Tensor | _Incidence,
     others: torch.Tensor | None = None,
 ):
     """The value and rounding scale of the terms of ``ev``'s scenes ``rows`` (A,) (evaluated over a superset of
-    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs' (``pair_moving`` (P, 2): each
-    pair's bodies as moving-body indices, M for a body that does not move), except pairs with a body of ``others``
-    (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move); third, with
-    ``others``, the value with those pairs included (else None). Only the per-body and per-pair values are read (not
-    the rows of the whole evaluation)."""
-    ext = torch.cat([act, act.new_zeros(act.shape[0], 1)], 1)  # column M: a body that does not move
-    on = ext[:, pair_moving[:, 0]] | ext[:, pair_moving[:, 1]]  # (A, P)
-    body_value = ev.body_value[rows]
-    own_terms = torch.where(act, body_value, 0.0)
+    bodies) that involve the bodies ``act`` (A, M): their own terms and their pairs', except pairs with a body of
+    ``others`` (A, M) (an island's energy leaves out its far-field pairs with the other islands, which they move);
+    third, with ``others``, the value with those pairs included (else None). Only the per-body and per-pair values
+    are read (not the rows of the whole evaluation).
+
+    ``pairs``: each pair's bodies (P, 2) as moving-body indices (M for a body that does not move), summed through
+    (A, P) masks; or their :class:`_Incidence`, summed by index over the pairs at the bodies of ``act`` only (the
+    A islands of a scene whose every body is its own island read each pair twice, not A times: O(M P) per scene
+    instead of O(M^2 P)). The two differ by rounding."""
+    A, M = act.shape
+    own_terms = torch.where(act, ev.body_value[rows], 0.0)
     own = own_terms.sum(1)
-    pair_value = ev.pair_value[rows]
+    ext = torch.cat([act, act.new_zeros(A, 1)], 1)  # column M: a body that does not move
+    oth = None if others is None else torch.cat([others, others.new_zeros(A, 1)], 1)
     every = None
-    if others is not None:
-        every = own + torch.where(on, pair_value, 0.0).sum(1)
-        oth = torch.cat([others, others.new_zeros(others.shape[0], 1)], 1)
-        on = on & ~(oth[:, pair_moving[:, 0]] | oth[:, pair_moving[:, 1]])
-    pv = torch.where(on, pair_value, 0.0)
-    value = own + pv.sum(1)
-    return value, value.abs() + own_terms.abs().sum(1) + 2.0 * pv.abs().sum(1), every
+    if isinstance(pairs, torch.Tensor):
+        on = ext[:, pairs[:, 0]] | ext[:, pairs[:, 1]]  # (A, P)
+        pair_value = ev.pair_value[rows]
+        if oth is not None:
+            every = own + torch.where(on, pair_value, 0.0).sum(1)
+            on = on & ~(oth[:, pairs[:, 0]] | oth[:, pairs[:, 1]])
+        pv = torch.where(on, pair_value, 0.0)
+        value = own + pv.sum(1)
+        return value, value.abs() + own_terms.abs().sum(1) + 2.0 * pv.abs().sum(1), every
+    # (row, pair) entries: the pairs at each row's bodies, a pair of two of them once (at its first body)
+    gi, mi = torch.nonzero(act, as_tuple=True)
+    start, count = pairs.offset[mi], pairs.offset[mi + 1] - pairs.offset[mi]
+    first = torch.repeat_interleave(count.cumsum(0) - count, count)
+    pos = torch.arange(first.numel(), device=act.device) - first + torch.repeat_interleave(start, count)
+    e_row, e_body = torch.repeat_interleave(gi, count), torch.repeat_interleave(mi, count)
+    e_pair, e_partner = pairs.pair[pos], pairs.partner[pos]
+    once = ~ext[e_row, e_partner] | (e_body < e_partner)
+    e_row, e_pair, e_partner = e_row[once], e_pair[once], e_partner[once]
+    pv = ev.pair_value[rows[e_row], e_pair]
+
+    def total(x: torch.Tensor) -> torch.Tensor:
+        return own.new_zeros(A).index_add(0, e_row, x)
+
+    if oth is not None:
+        every = own + total(pv)
+        pv = torch.where(oth[e_row, e_partner], 0.0, pv)
+    value = own + total(pv)
+    return value, value.abs() + own_terms.abs().sum(1) + 2.0 * total(pv.abs()), every
+
+
+# a scene of M moving bodies and P interacting pairs sums its islands' energies by index above M P of this (through
+# (islands, P) masks below it, fewer tensor operations): the choice depends on the scene alone, not on its batch
+_DENSE_ISLANDS = 50_000
 
 
 def newton(
@@ -231,7 +279,9 @@ def newton(
     split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
-        pair_moving = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
+        pairs = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
+        if M * pairs.shape[0] > _DENSE_ISLANDS:
+            pairs = _incidence(pairs, M)
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
         if idx.numel() == 0:
@@ -318,7 +368,7 @@ def newton(
                 # the energies of the scenes that froze a body now cover the bodies still iterating (the others'
                 # stay as evaluated: a scene's path must not depend on the batch it is in)
                 f = frz.any(1)
-                value, scale, _ = _restricted(cur, sc[f], act[sc[f]], pair_moving)
+                value, scale, _ = _restricted(cur, sc[f], act[sc[f]], pairs)
                 cur.value[sc[f]], cur.scale[sc[f]] = value, scale
                 L = L.clone()
                 L[k[f]] = value
@@ -346,7 +396,7 @@ def newton(
         scale_i = cur.scale[idx]
         if freeze:
             others = act_i[gs] & ~gm  # (G, M) the bodies of the other islands of each island's scene
-            L0, scale0, every0 = _restricted(cur, sg, gm, pair_moving, others)
+            L0, scale0, every0 = _restricted(cur, sg, gm, pairs, others)
             cross0 = every0 - L0  # its pairs with the other islands
         else:
             L0, scale0 = L, scale_i
@@ -380,7 +430,7 @@ def newton(
             if k == 0:
                 full = ev
             if freeze:
-                L_try, _, with_others = _restricted(ev, psub, gm_sub, pair_moving, others[sub])
+                L_try, _, with_others = _restricted(ev, psub, gm_sub, pairs, others[sub])
                 # feasible: all its pairs finite, those with the other islands too
                 feas = torch.isfinite(with_others)
                 # slack: the change of its pairs with the other islands, whose own part of it the island's energy
