@@ -203,7 +203,8 @@ def _restricted(
 
 
 # a scene of M moving bodies and P interacting pairs sums its islands' energies by index above M P of this (through
-# (islands, P) masks below it, fewer tensor operations): the choice depends on the scene alone, not on its batch
+# (islands, P) masks below it, fewer tensor operations): the choice depends on the scene alone, not on its batch. On
+# the CPU only: index_add on a GPU adds in no fixed order, and a step would not repeat bit for bit
 _DENSE_ISLANDS = 50_000
 
 
@@ -280,7 +281,7 @@ def newton(
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
         pairs = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
-        if M * pairs.shape[0] > _DENSE_ISLANDS:
+        if M * pairs.shape[0] > _DENSE_ISLANDS and pairs.device.type == "cpu":
             pairs = _incidence(pairs, M)
     for it in range(1, max_iter + 1):
         idx = torch.nonzero(active)[:, 0]
