@@ -58,7 +58,7 @@ import torch
 import trimesh
 
 from .._validate import check_mesh, is_int
-from .urdf import is_urdf, urdf_as_mjcf
+from .urdf import claim_name, is_urdf, urdf_as_mjcf
 
 __all__ = [
     "ActuatorSpec",
@@ -634,11 +634,7 @@ def _name_body_elements(parents: list[ET.Element], prefix: str, taken: set[str])
     named = False
     for k, body in enumerate(b for p in parents for b in _child_bodies(p)):
         if not body.get("name"):
-            name = f"{prefix or 'world'}/{k}"
-            while name in taken:
-                name += "_"
-            body.set("name", name)
-            taken.add(name)
+            claim_name(body, f"{prefix or 'world'}/{k}", taken)
             named = True
         named = _name_body_elements([body], body.get("name"), taken) or named
     return named

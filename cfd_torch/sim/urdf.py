@@ -72,10 +72,14 @@ def _name_geometry(tree: ET.Element) -> bool:
             for k, element in enumerate(link.findall(kind)):
                 if element.get("name"):
                     continue
-                name = f"{link.get('name', '')}/{kind}{k}"
-                while name in taken:
-                    name += "_"
-                element.set("name", name)
-                taken.add(name)
+                claim_name(element, f"{link.get('name', '')}/{kind}{k}", taken)
                 named = True
     return named
+
+
+def claim_name(element: ET.Element, name: str, taken: set[str]) -> None:
+    """Name ``element`` ``name``, with "_" appended while that is ``taken``, and add it to ``taken``."""
+    while name in taken:
+        name += "_"
+    element.set("name", name)
+    taken.add(name)
