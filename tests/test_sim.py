@@ -723,6 +723,22 @@ def test_scene_refines_coarse_obstacles_to_their_partners_scale():
     assert again.bodies[1].bsh.num_faces == refined.bsh.num_faces
 
 
+def test_each_obstacle_is_refined_to_its_own_finest_partner():
+    """Two plain boxes and two balls of different sizes: each box takes the scale of the finest dynamic body it can
+    touch; a pair left out by ``exclude`` is no partner, and a box whose only partner is about as coarse as itself
+    stays as given."""
+    small = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.05))
+    big = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.4))
+    box = rigid_body(trimesh.creation.box(extents=(2.0, 2.0, 0.2)), kind="static")
+    longest = lambda b: float((b.bsh.triangles[:, [1, 2, 0]] - b.bsh.triangles).norm(dim=-1).max())  # noqa: E731
+    scene = Scene((small, box, big, box), exclude=[(0, 3)])
+    a, b = scene.bodies[1], scene.bodies[3]
+    assert longest(a) <= 2.0 * longest(small) * (1 + 1e-12) < longest(b)  # box 1: the small ball's scale
+    assert 2.0 * longest(small) < longest(b) <= 2.0 * longest(big) * (1 + 1e-12)  # box 3: the big ball's only
+    huge = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=3.0))
+    assert Scene((huge, box)).bodies[1] is box  # its partner's edges are longer than the box's: not refined
+
+
 def test_refined_obstacle_costs_fewer_leaf_pairs_and_holds_the_ball_the_same():
     """A ball resting on a plain 12-triangle box: the automatic refinement cuts the exact leaf pairs per evaluation
     several-fold, and the ball comes to rest at the same height (the surface is the same) to within the rest gap's

@@ -265,7 +265,8 @@ def refine_obstacles(
     for k, b in enumerate(bodies):
         if b.kind == "dynamic":
             continue
-        partners = [int(j) for row in pairs.tolist() if k in row for j in row if j != k]
+        rows = pairs[(pairs == k).any(1)]
+        partners = torch.unique(rows[rows != k]).tolist()
         scales = [longest_edge[id(bodies[j])] for j in partners if bodies[j].kind == "dynamic"]
         if not scales:
             continue

@@ -282,9 +282,8 @@ class Scene:
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
-        simulated = {(int(i), int(j)) for i, j in pairs.tolist()}
         for i, j in self.pair_eps:
-            if (min(i, j), max(i, j)) not in simulated:
+            if not bool((pairs == torch.tensor([min(i, j), max(i, j)])).all(1).any()):
                 raise ValueError(
                     f"pair_eps: {(i, j)} is a pair without contact (neither body is dynamic, or the pair is "
                     "excluded or two links of one robot): its blend width would never be used"
