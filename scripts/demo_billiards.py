@@ -8,9 +8,9 @@ velocity is exactly zero at the start, and gradient descent never moves. Our pot
 it is tiny (the balls are 1 m apart) but points the right way, Adam normalises its scale, the cue ball starts to
 roll toward the object ball, the two collide, and the optimisation then aims the shot at the pocket. At the
 default step (0.05 s: the aimed cue ball moves more than its diameter per step) the loss is not smooth in the
-velocity near the optimum: a step is a local minimum of its incremental potential (README, "A step is a local
-minimum"), and two shots 2e-4 m/s apart can end in different ones (loss 7e-4 against 6e-2 in iterations 58 and 59 of
-a run); the JSON and the GIF give the best iterate beside the last.
+velocity near the optimum: a step is a local minimum of its incremental potential (docs/simulator.md, "A step is a
+local minimum"), and two shots 2e-4 m/s apart can end in different ones (loss 7e-4 against 6e-2 in iterations 58
+and 59 of a run); the JSON and the GIF give the best iterate beside the last.
 
 Writes ``<out>/billiards_demo.png`` (loss, gradient norm, trajectories), ``<out>/billiards_demo.json`` and
 ``<out>/billiards_demo.gif`` (the best iterate's shot seen from above, the pocket a black disc; ``--no-gif`` skips

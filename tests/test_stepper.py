@@ -1232,7 +1232,8 @@ def test_fast_path_equals_the_plain_reference_path():
     frozen body away (0.4 % off in this gradient): both now match central differences of the forward.
 
     (Not a break shot: where faceted balls collide the step's incremental potential has several local minima, and
-    the two paths' different iterates can end in different ones, millimetres apart; see the README.)"""
+    the two paths' different iterates can end in different ones, millimetres apart; see docs/simulator.md, "A step
+    is a local minimum".)"""
     cube = rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)))
     ball_mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
     ball = rigid_body(ball_mesh)
