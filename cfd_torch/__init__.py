@@ -24,6 +24,7 @@ Contact (``cfd_torch.contact``):
 Simulator (``cfd_torch.sim``, SPEC section 5):
     rigid_body(mesh, kind=, density=, max_edge=)             body with exact volumetric mass properties
     Scene(bodies, dt=, gravity=, contact=, friction=, solver=)  bodies and settings of a simulation
+    rest_gap(body), stiffness_for_rest_gap(body, gap)        how high a body rests; the stiffness for a gap
     FrictionConfig, SolverConfig                             Coulomb friction; the Newton solve
     step(scene, State(q, q_prev), Action(force, torque, target, ctrl, joints), Params(...)) -> State
                                                              differentiable step, batched over a leading
@@ -70,6 +71,7 @@ from .contact.scene import ContactPotential, contact_potential  # noqa: E402
 from .sim.articulation import Articulation, articulation  # noqa: E402
 from .sim.bodies import RigidBody, rigid_body  # noqa: E402
 from .sim.kinematics import FreeBodies, Kinematics  # noqa: E402
+from .sim.rest import RestGapWarning, rest_gap, stiffness_for_rest_gap  # noqa: E402
 from .sim.scene import Scene  # noqa: E402
 from .sim.stepper import pair_forces, recentre_rotation, rollout, step  # noqa: E402
 from .sim.types import Action, Params, State, StepError, StepInfo, Trajectory, allow_in_torch_load  # noqa: E402
@@ -95,6 +97,7 @@ __all__ = [
     "PairDerivatives",
     "PairSolveError",
     "Params",
+    "RestGapWarning",
     "RigidBody",
     "Scene",
     "SolverConfig",
@@ -113,8 +116,10 @@ __all__ = [
     "pair_potential",
     "pair_potential_derivatives",
     "recentre_rotation",
+    "rest_gap",
     "rigid_body",
     "rollout",
     "smoothstep",
     "step",
+    "stiffness_for_rest_gap",
 ]

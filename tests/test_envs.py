@@ -15,6 +15,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import cfd_torch.envs as envs
+from cfd_torch import RestGapWarning
 from cfd_torch.envs import EnvState, make_core, rollout
 from cfd_torch.envs.core import stack_states, task_at
 
@@ -750,7 +751,8 @@ def test_the_pusher_starts_clear_of_cubes_smaller_than_itself(task):
     the penetrating start). Each footprint now has its own radius, 5 cm apart; the default layout is unchanged."""
     from cfd_torch import step
 
-    core = make_core(task, cube_size=0.02, spread=0.3)
+    with pytest.warns(RestGapWarning, match=r"body 0 \(0.004 kg, 2 cm across\) would rest about"):
+        core = make_core(task, cube_size=0.02, spread=0.3)  # 2 cm cubes at the default stiffness hover
     n = core.num_cubes
     s = core.reset(0, 600)
     half = math.hypot(*core.pusher.size[:2]) / 2

@@ -9,6 +9,8 @@ from __future__ import annotations
 import io
 import math
 import pickle
+import re
+import warnings
 
 import pytest
 import torch
@@ -1285,3 +1287,73 @@ def test_a_scene_that_froze_nothing_keeps_its_energies_when_another_in_its_batch
         state = batch
         assert n_batch > 0
     assert calls and all(not bool(a.all(1).any()) for a in calls)  # every recomputed scene froze a body
+
+
+# ======================================================================================== rest gaps
+def test_rest_gap_is_where_a_settled_body_rests_and_the_stiffness_for_a_gap_inverts_it():
+    """A 5 cm, 125 g cube dropped from 2 mm onto a 1 m floor settles where rest_gap (with that floor) says, to 1 %;
+    the stiffness for a chosen gap rests the body at that gap (the force is linear in the stiffness)."""
+    from cfd_torch import rest_gap, stiffness_for_rest_gap
+
+    cube = rigid_body(trimesh.creation.box((0.05, 0.05, 0.05)), density=1000.0)
+    floor = rigid_body(trimesh.creation.box((1.0, 1.0, 0.1)), kind="static")
+    predicted = rest_gap(cube, floor=floor)
+    scene = Scene((cube, floor), friction=0.5)
+    q = torch.tensor([_pose(0, 0, 0.027), _pose(0, 0, -0.05)], dtype=F64)
+    z = rollout(scene, scene.initial_state(q), 120).q[:, 0, 2] - 0.025
+    assert float((z[-20:].max() - z[-20:].min()).abs()) < 1e-7  # at rest
+    assert abs(float(z[-1]) - predicted) < 0.01 * predicted  # observed 2.647e-3 m for both
+    mu = stiffness_for_rest_gap(cube, 4e-3)
+    assert abs(rest_gap(cube, mu) - 4e-3) < 1e-8
+    assert (
+        rest_gap(cube, 10 * mu) > 4e-3 > rest_gap(cube, mu / 10) > 1e-3
+    )  # stiffer: higher; never in the margin
+
+
+def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_rests_it():
+    """At the default stiffness a 2 cm, 8 g cube rests centimetres above its floor: the Scene warns with the
+    stiffness that rests it two margins up, and with that stiffness it does not warn; a 10 cm, 1 kg cube, a scene
+    without gravity and a baseline potential are not warned of; a stiffness whose far field outweighs the body at
+    every height says so."""
+    from cfd_torch import RestGapWarning, rest_gap
+
+    small = rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=1000.0)
+    floor = rigid_body(trimesh.creation.box((0.5, 0.5, 0.1)), kind="static")
+    with pytest.warns(
+        RestGapWarning, match=r"body 1 \(0.008 kg, 2 cm across\) would rest about 6.\d+ mm .* mu=(\S+) rests"
+    ):
+        Scene((floor, small))
+    with pytest.warns(RestGapWarning) as record:
+        Scene((floor, small))
+    mu = float(re.search(r" mu=(\S+) rests", str(record[0].message)).group(1))
+    assert abs(rest_gap(small, mu) - 2e-3) < 2e-4  # the suggestion is rounded to two digits
+    big = rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)), density=1000.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RestGapWarning)
+        Scene((floor, small), mu=mu)
+        Scene((floor, big))
+        Scene((floor, small), gravity=(0.0, 0.0, 0.0))
+        Scene((floor, small), potential="ipc")
+    with pytest.warns(RestGapWarning, match="would be pushed off a flat floor to any height"):
+        Scene((floor, small), mu=1e20)
+
+
+def test_rest_gap_refuses_what_it_cannot_answer():
+    from cfd_torch import rest_gap, stiffness_for_rest_gap
+
+    cube = rigid_body(trimesh.creation.box((0.05, 0.05, 0.05)))
+    floor = rigid_body(trimesh.creation.box((1.0, 1.0, 0.1)), kind="static")
+    with pytest.raises(TypeError, match="body must be a dynamic cfd_torch.RigidBody"):
+        rest_gap(floor)
+    with pytest.raises(TypeError, match="floor must be a cfd_torch.RigidBody"):
+        rest_gap(cube, floor="floor")
+    with pytest.raises(ValueError, match="gravity must be a positive finite number"):
+        rest_gap(cube, gravity=0.0)
+    with pytest.raises(ValueError, match="stiffness must be a positive finite number"):
+        rest_gap(cube, float("nan"))
+    with pytest.raises(ValueError, match="contact must be a ContactConfig of this library's potential"):
+        rest_gap(cube, contact=ContactConfig(potential="ipc"))
+    with pytest.raises(ValueError, match="gap must be a finite number above the contact margin 0.001 m"):
+        stiffness_for_rest_gap(cube, 1e-3)
+    with pytest.raises(ValueError, match="it does not rest"):
+        rest_gap(cube, 1e20)

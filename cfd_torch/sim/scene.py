@@ -24,6 +24,7 @@ from ._checks import check_rotations, check_state_tensor
 from .articulation import ArticulatedKinematics, Articulation
 from .bodies import RigidBody, refine_obstacles, thickness
 from .kinematics import FreeBodies
+from .rest import warn_hovering
 from .types import Params, State
 
 __all__ = ["Scene"]
@@ -295,6 +296,8 @@ class Scene:
         ):
             bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
         self.bodies = bodies
+        if contact_model is None:  # (robots' links hang from their joints: not theirs to rest)
+            warn_hovering(bodies[: len(bodies) - sum(a.num_links for a in arts)], self.contact, gravity)
         self.dynamic = torch.tensor(
             [i for i, b in enumerate(bodies) if b.kind == "dynamic"], dtype=torch.long
         )
