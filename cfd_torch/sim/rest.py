@@ -31,7 +31,8 @@ __all__ = ["RestGapWarning", "rest_gap", "stiffness_for_rest_gap"]
 
 # a body is warned of when it would rest more than max(margin, this x its largest extent) above the margin
 _HOVER_FRACTION = 0.05
-_BISECTIONS = 60  # of the gap, between the margin and the first gap the weight exceeds the force at
+_GRID = 40  # gaps scanned from the first the weight wins at down toward the margin (geometric)
+_BISECTIONS = 60  # of the gap, between the grid's neighbours around the highest equilibrium
 
 
 class RestGapWarning(UserWarning):
@@ -116,8 +117,10 @@ def rest_gap(
         contact: the contact settings (margin, blend width, obstacle refinement; default ``ContactConfig()``).
 
     Returns:
-        The largest gap at which the force is the weight, to 1e-6 relative (above the margin; the force grows
-        without bound toward it). A body placed higher falls to it, one placed lower is pushed up to it.
+        The highest gap at which the force is the weight, to 1e-6 relative (above the margin, where the force grows
+        without bound): a body placed higher falls to it. The lift is not monotone in the gap everywhere (the far
+        field's blend bands), so there may be lower equilibria too; the highest is found on a geometric grid of 40
+        gaps down toward the margin (a crossing narrower than the grid's spacing can be missed).
 
     Raises:
         TypeError, ValueError: a body that is not a dynamic RigidBody, a gravity or stiffness that is not a positive
@@ -129,14 +132,22 @@ def rest_gap(
         raise ValueError(f"stiffness must be a positive finite number, got {stiffness!r}")
     bsh, weight = _floor(body, contact, floor), body.mass * float(gravity)
     size = float((body.bsh.vertices.amax(0) - body.bsh.vertices.amin(0)).max())
-    lo, hi = contact.margin, contact.margin + max(contact.margin, size)
+    hi = contact.margin + max(contact.margin, size)
     while float(mu) * _lift(body, bsh, hi, contact) > weight:  # bracket: the weight wins at hi
-        lo, hi = hi, 2.0 * hi
+        hi *= 2.0
         if hi > 1e3 * size:
             raise ValueError(
                 f"the contact force at stiffness {mu:g} outweighs this body's weight up to {hi:.3g} m above the "
                 "floor (1,000 times its size): it does not rest"
             )
+    # the lift need not fall monotonically with the gap (the far field's blend bands): the highest equilibrium is
+    # found on a geometric grid from hi down toward the margin, then bisected
+    lo = contact.margin * (1.0 + 1e-6)
+    grid = [lo * (hi / lo) ** (k / _GRID) for k in range(_GRID, -1, -1)]
+    for upper, lower in zip(grid, grid[1:], strict=False):
+        if float(mu) * _lift(body, bsh, lower, contact) > weight:
+            lo, hi = lower, upper
+            break
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
         if float(mu) * _lift(body, bsh, mid, contact) > weight:
