@@ -1311,10 +1311,10 @@ def test_rest_gap_is_where_a_settled_body_rests_and_the_stiffness_for_a_gap_inve
 
 
 def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_rests_it():
-    """At the default stiffness a 2 cm, 8 g cube rests centimetres above its floor: the Scene warns with the
-    stiffness that rests it two margins up, and with that stiffness it does not warn; a 10 cm, 1 kg cube, a scene
-    without gravity and a baseline potential are not warned of; a stiffness whose far field outweighs the body at
-    every height says so."""
+    """At the default stiffness a 2 cm, 8 g cube rests millimetres to centimetres above its floor: the Scene warns
+    with the stiffness that rests it two margins up, and with that stiffness it does not warn; a 10 cm, 1 kg cube,
+    a scene without gravity or with gravity along another axis than -z, and a baseline potential are not warned
+    of; a stiffness whose far field outweighs the body at every height says so."""
     from cfd_torch import RestGapWarning, rest_gap
 
     small = rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=1000.0)
@@ -1333,6 +1333,7 @@ def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_res
         Scene((floor, small), mu=mu)
         Scene((floor, big))
         Scene((floor, small), gravity=(0.0, 0.0, 0.0))
+        Scene((floor, small), gravity=(0.0, -9.81, 0.0))  # (the floor model is z up: not judged)
         Scene((floor, small), potential="ipc")
     with pytest.warns(RestGapWarning, match="would be pushed off a flat floor to any height"):
         Scene((floor, small), mu=1e20)

@@ -188,9 +188,11 @@ def warn_hovering(bodies, contact: ContactConfig, gravity: tuple[float, float, f
     """Warn (:class:`RestGapWarning`) of each distinct dynamic body of ``bodies`` that would rest more than
     max(margin, 5 % of its largest extent) above the margin at ``contact``'s stiffness, on the default floor of
     :func:`rest_gap` (a lower bound of its gap on a wider floor), with a stiffness that rests it two margins up there.
-    Nothing without gravity or for a baseline potential. One evaluation of the potential per distinct body."""
+    Nothing without gravity, with gravity not along -z, or for a baseline potential. One evaluation of the potential
+    per distinct body."""
     g = math.sqrt(sum(x * x for x in gravity))
-    if g == 0 or contact.potential != "cfd":
+    # (the floor model is z up: gravity along another axis has the bodies rest on other faces than it assumes)
+    if g == 0 or contact.potential != "cfd" or not -gravity[2] > (1 - 1e-9) * g:
         return
     seen: set[int] = set()
     for k, body in enumerate(bodies):
