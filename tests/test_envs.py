@@ -751,7 +751,7 @@ def test_the_pusher_starts_clear_of_cubes_smaller_than_itself(task):
     the penetrating start). Each footprint now has its own radius, 5 cm apart; the default layout is unchanged."""
     from cfd_torch import step
 
-    with pytest.warns(RestGapWarning, match=r"body 0 \(0.004 kg, 2 cm across\) would rest about"):
+    with pytest.warns(RestGapWarning, match=r"bodies 0, 1, .* \(0.004 kg, 2 cm tall\) would rest about"):
         core = make_core(task, cube_size=0.02, spread=0.3)  # 2 cm cubes at the default stiffness hover
     n = core.num_cubes
     s = core.reset(0, 600)

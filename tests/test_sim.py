@@ -1310,17 +1310,20 @@ def test_rest_gap_is_where_a_settled_body_rests_and_the_stiffness_for_a_gap_inve
     )  # stiffer: higher; never in the margin
 
 
-def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_rests_it():
+def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_rests_it(monkeypatch):
     """At the default stiffness a 2 cm, 8 g cube rests millimetres to centimetres above its floor: the Scene warns
     with the stiffness that rests it two margins up, and with that stiffness it does not warn; a 10 cm, 1 kg cube,
-    a scene without gravity or with gravity along another axis than -z, and a baseline potential are not warned
-    of; a stiffness whose far field outweighs the body at every height says so."""
-    from cfd_torch import RestGapWarning, rest_gap
+    a planar scene, one without gravity, with gravity along another axis than -z or with nothing to rest on, a
+    baseline potential and a robot's light link are not warned of; gravity tilted by 1 degree still is; a
+    stiffness whose far field outweighs the body at every height says so. Bodies of one shape built separately
+    share one verdict."""
+    import cfd_torch.sim.rest as rest_mod
+    from cfd_torch import RestGapWarning, articulation, rest_gap
 
     small = rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=1000.0)
     floor = rigid_body(trimesh.creation.box((0.5, 0.5, 0.1)), kind="static")
     with pytest.warns(
-        RestGapWarning, match=r"body 1 \(0.008 kg, 2 cm across\) would rest about 6.\d+ mm .* mu=(\S+) rests"
+        RestGapWarning, match=r"body 1 \(0.008 kg, 2 cm tall\) would rest about 6.\d+ mm .* mu=(\S+) rests"
     ):
         Scene((floor, small))
     with pytest.warns(RestGapWarning) as record:
@@ -1328,15 +1331,54 @@ def test_a_scene_warns_of_a_body_that_would_hover_and_names_a_stiffness_that_res
     mu = float(re.search(r" mu=(\S+) rests", str(record[0].message)).group(1))
     assert abs(rest_gap(small, mu) - 2e-3) < 2e-4  # the suggestion is rounded to two digits
     big = rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)), density=1000.0)
+    link = articulation(
+        '<mujoco><worldbody><body name="a" pos="0 0 0.1"><freejoint/>'
+        '<geom type="box" size="0.01 0.01 0.01" mass="0.001"/></body></worldbody></mujoco>'
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("error", RestGapWarning)
         Scene((floor, small), mu=mu)
         Scene((floor, big))
+        Scene((floor, small), planar=True)
         Scene((floor, small), gravity=(0.0, 0.0, 0.0))
         Scene((floor, small), gravity=(0.0, -9.81, 0.0))  # (the floor model is z up: not judged)
+        Scene((small, small))  # nothing to rest on
         Scene((floor, small), potential="ipc")
+        Scene((floor,), articulations=[link])  # a robot's links hang from their joints
+    with pytest.warns(RestGapWarning, match="body 1"):
+        Scene((floor, small), gravity=(0.17, 0.0, -9.81))
     with pytest.warns(RestGapWarning, match="would be pushed off a flat floor to any height"):
         Scene((floor, small), mu=1e20)
+    calls = []
+    judge = rest_mod._verdict
+    monkeypatch.setattr(rest_mod, "_verdict", lambda *a: calls.append(1) or judge(*a))
+    twins = [rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=999.0) for _ in range(3)]
+    with pytest.warns(RestGapWarning) as record:
+        Scene((floor, *twins))
+    assert len(calls) == 1 and [str(w.message)[:17] for w in record] == ["bodies 1, 2, 3 (0"]
+
+
+def test_a_light_body_over_a_wide_floor_balances_at_several_heights():
+    """A 2 cm, 8 g cube over a 1 m floor: its lift is not monotone in the gap (1.05, 0.77, 1.05 times its weight at
+    12, 13, 14 mm at the default stiffness: the far field's blend bands), so where it rests depends on where it is
+    released, and the stiffness that balances it at 13 mm balances it unstably: stiffness_for_rest_gap says so and
+    where the body then rests; at 17.5 mm, where the lift falls with the gap, it is stable and says nothing."""
+    from cfd_torch import RestGapWarning, rest_gap, stiffness_for_rest_gap
+
+    small = rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=1000.0)
+    floor = rigid_body(trimesh.creation.box((1.0, 1.0, 0.1)), kind="static")
+    low, high = rest_gap(small, floor=floor, start=3e-3), rest_gap(small, floor=floor, start=30e-3)
+    assert 11e-3 < low < 13e-3 and 17e-3 < high < 18e-3  # observed 12.1 and 17.3 mm
+    with pytest.warns(
+        RestGapWarning, match=r"balances 13 mm above the floor, but unstably .* rests at (\S+) mm"
+    ) as w:
+        mu = stiffness_for_rest_gap(small, 13e-3, floor=floor)
+    ends = float(re.search(r"rests at (\S+) mm", str(w[0].message)).group(1))
+    assert ends > 14.0 and abs(1e3 * rest_gap(small, mu, floor=floor, start=13.013e-3) - ends) < 1e-2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RestGapWarning)
+        mu = stiffness_for_rest_gap(small, 17.5e-3, floor=floor)
+    assert abs(rest_gap(small, mu, floor=floor, start=18e-3) - 17.5e-3) < 1e-7
 
 
 def test_rest_gap_refuses_what_it_cannot_answer():
@@ -1350,11 +1392,13 @@ def test_rest_gap_refuses_what_it_cannot_answer():
         rest_gap(cube, floor="floor")
     with pytest.raises(ValueError, match="gravity must be a positive finite number"):
         rest_gap(cube, gravity=0.0)
-    with pytest.raises(ValueError, match="stiffness must be a positive finite number"):
+    with pytest.raises(ValueError, match="mu must be a positive finite number"):
         rest_gap(cube, float("nan"))
     with pytest.raises(ValueError, match="contact must be a ContactConfig of this library's potential"):
         rest_gap(cube, contact=ContactConfig(potential="ipc"))
     with pytest.raises(ValueError, match="gap must be a finite number above the contact margin 0.001 m"):
         stiffness_for_rest_gap(cube, 1e-3)
+    with pytest.raises(ValueError, match="start must be a finite number above the contact margin"):
+        rest_gap(cube, start=5e-4)
     with pytest.raises(ValueError, match="it does not rest"):
         rest_gap(cube, 1e20)

@@ -15,6 +15,7 @@ further: a 2 cm, 8 g cube rests 6.0 mm above the default floor and 17 mm above a
 
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
 
@@ -29,10 +30,12 @@ from .bodies import RigidBody, refine_obstacles, rigid_body
 
 __all__ = ["RestGapWarning", "rest_gap", "stiffness_for_rest_gap"]
 
-# a body is warned of when it would rest more than max(margin, this x its largest extent) above the margin
+# a body is warned of when it would rest more than max(margin, this x its height) above the margin
 _HOVER_FRACTION = 0.05
-_GRID = 40  # gaps scanned from the first the weight wins at down toward the margin (geometric)
-_BISECTIONS = 60  # of the gap, between the grid's neighbours around the highest equilibrium
+_GRID_RATIO = (
+    1.1  # the geometric grid of gaps the release point moves along, down or up, to the first crossing
+)
+_BISECTIONS = 60  # of the gap, between the grid's neighbours around that crossing
 
 
 class RestGapWarning(UserWarning):
@@ -98,59 +101,83 @@ def _lift(body: RigidBody, floor: BSH, gap: float, contact: ContactConfig) -> fl
 
 def rest_gap(
     body: RigidBody,
-    stiffness: float | None = None,
+    mu: float | None = None,
     *,
     floor: RigidBody | None = None,
+    start: float | None = None,
     gravity: float = 9.81,
     contact: ContactConfig | None = None,
 ) -> float:
-    """The gap [m] between a body's lowest vertex and a flat floor at which the contact force carries its weight.
+    """The gap [m] between a body's lowest vertex and a flat floor where the body, released at rest ``start`` above
+    it, comes to rest: the contact force carries its weight there and falls below it just above.
 
     Args:
         body: a dynamic body (:func:`cfd_torch.rigid_body`), in its mesh's orientation.
-        stiffness: the contact stiffness mu (default: ``contact``'s).
+        mu: the contact stiffness (``ContactConfig.stiffness``, Scene's ``mu=``; default: ``contact``'s).
         floor: the floor to rest on (any :func:`cfd_torch.rigid_body`, its highest vertex taken as its top and its
-            footprint's centre put under the body; a scene's own floor gives that scene's gap, its far field
-            included: a wider floor pushes a light body up further); default: a flat box three times the body's
-            footprint.
+            footprint's centre put under the body); default: a flat box three times the body's footprint. The
+            floor's extent and refinement move the gap (far-field lift, and a wide floor refined more coarsely
+            under the cap of ``MAX_REFINED_FACES``): pass the scene's own floor for that scene's gap.
+        start: the gap it is released at [m] (default: the margin plus the larger of the margin and the body's
+            height).
         gravity: the magnitude of gravity [m/s^2].
         contact: the contact settings (margin, blend width, obstacle refinement; default ``ContactConfig()``).
 
     Returns:
-        The highest gap at which the force is the weight, to 1e-6 relative (above the margin, where the force grows
-        without bound): a body placed higher falls to it. The lift is not monotone in the gap everywhere (the far
-        field's blend bands), so there may be lower equilibria too; the highest is found on a geometric grid of 40
-        gaps down toward the margin (a crossing narrower than the grid's spacing can be missed).
+        The gap, to 1e-6 relative (above the margin, where the force grows without bound): from ``start`` the body
+        moves down while its weight wins and up while the lift does, to the first gap where they change places
+        (found on a geometric grid of ratio 1.1 from ``start``, then bisected; a swing narrower than the grid's
+        spacing can be missed). Near contact the lift falls with the gap; farther out, the far field's blend
+        bands make it rise and fall (a light body over a wide floor can balance at several heights), hence the
+        release height.
 
     Raises:
-        TypeError, ValueError: a body that is not a dynamic RigidBody, a gravity or stiffness that is not a positive
-            finite number, a contact config of a baseline potential.
+        TypeError, ValueError: a body that is not a dynamic RigidBody, a gravity or mu that is not a positive finite
+            number, a contact config of a baseline potential; a mu whose far field outweighs the body up to 1,000
+            times its size (it does not rest).
     """
     contact = _check(body, gravity, contact, floor)
-    mu = contact.stiffness if stiffness is None else stiffness
+    given = mu
+    mu = contact.stiffness if mu is None else mu
     if not (is_real(mu) and 0 < float(mu) < math.inf):
-        raise ValueError(f"stiffness must be a positive finite number, got {stiffness!r}")
+        raise ValueError(f"mu must be a positive finite number, got {given!r}")
     bsh, weight = _floor(body, contact, floor), body.mass * float(gravity)
-    size = float((body.bsh.vertices.amax(0) - body.bsh.vertices.amin(0)).max())
-    hi = contact.margin + max(contact.margin, size)
-    while float(mu) * _lift(body, bsh, hi, contact) > weight:  # bracket: the weight wins at hi
-        hi *= 2.0
-        if hi > 1e3 * size:
-            raise ValueError(
-                f"the contact force at stiffness {mu:g} outweighs this body's weight up to {hi:.3g} m above the "
-                "floor (1,000 times its size): it does not rest"
-            )
-    # the lift need not fall monotonically with the gap (the far field's blend bands): the highest equilibrium is
-    # found on a geometric grid from hi down toward the margin, then bisected
-    lo = contact.margin * (1.0 + 1e-6)
-    grid = [lo * (hi / lo) ** (k / _GRID) for k in range(_GRID, -1, -1)]
-    for upper, lower in zip(grid, grid[1:], strict=False):
-        if float(mu) * _lift(body, bsh, lower, contact) > weight:
-            lo, hi = lower, upper
-            break
+    v = body.bsh.vertices
+    size = float((v.amax(0) - v.amin(0)).max())
+    if start is None:
+        start = contact.margin + max(contact.margin, float(v[:, 2].amax() - v[:, 2].amin()))
+    if not (is_real(start) and contact.margin < float(start) < math.inf):
+        raise ValueError(
+            f"start must be a finite number above the contact margin {contact.margin:g} m, got {start!r}"
+        )
+
+    def lifts(gap: float) -> bool:
+        return float(mu) * _lift(body, bsh, gap, contact) > weight
+
+    # (lo, hi): the lift wins at lo, the weight at hi, the two neighbours on the grid around the first crossing
+    gap = float(start)
+    if lifts(gap):  # pushed up: to the first gap the weight wins at
+        while True:
+            up = gap * _GRID_RATIO
+            if up > 1e3 * size:
+                raise ValueError(
+                    f"the contact force at mu {mu:g} outweighs this body's weight up to {up:.3g} m above the floor "
+                    "(1,000 times its size): it does not rest"
+                )
+            if not lifts(up):
+                lo, hi = gap, up
+                break
+            gap = up
+    else:  # falls: to the first gap the lift wins at (it always does near the margin)
+        while True:
+            down = max(gap / _GRID_RATIO, contact.margin * (1.0 + 1e-9))
+            if lifts(down) or down == gap:
+                lo, hi = down, gap
+                break
+            gap = down
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        if float(mu) * _lift(body, bsh, mid, contact) > weight:
+        if lifts(mid):
             lo = mid
         else:
             hi = mid
@@ -167,11 +194,17 @@ def stiffness_for_rest_gap(
     gravity: float = 9.81,
     contact: ContactConfig | None = None,
 ) -> float:
-    """The contact stiffness mu at which a body rests ``gap`` [m] above a flat floor (its lowest vertex).
+    """The contact stiffness mu at which the lift on a body ``gap`` [m] above a flat floor (its lowest vertex) carries
+    its weight.
 
     Args:
         body, floor, gravity, contact: as in :func:`rest_gap` (``contact``'s stiffness is not read).
         gap: the rest gap wanted [m], above ``contact``'s margin.
+
+    Returns:
+        mu: the body is in equilibrium at ``gap``. Where the lift grows with the gap there (the far field's blend
+        bands) that equilibrium is unstable: a :class:`RestGapWarning` says so and where the body released just
+        above it comes to rest.
 
     Raises:
         TypeError, ValueError: as :func:`rest_gap`; a gap that is not a finite number above the margin.
@@ -181,40 +214,82 @@ def stiffness_for_rest_gap(
         raise ValueError(
             f"gap must be a finite number above the contact margin {contact.margin:g} m, got {gap!r}"
         )
-    return body.mass * float(gravity) / _lift(body, _floor(body, contact, floor), float(gap), contact)
-
-
-def warn_hovering(bodies, contact: ContactConfig, gravity: tuple[float, float, float]) -> None:
-    """Warn (:class:`RestGapWarning`) of each distinct dynamic body of ``bodies`` that would rest more than
-    max(margin, 5 % of its largest extent) above the margin at ``contact``'s stiffness, on the default floor of
-    :func:`rest_gap` (a lower bound of its gap on a wider floor), with a stiffness that rests it two margins up there.
-    Nothing without gravity, with gravity not along -z, or for a baseline potential. One evaluation of the potential
-    per distinct body."""
-    g = math.sqrt(sum(x * x for x in gravity))
-    # (the floor model is z up: gravity along another axis has the bodies rest on other faces than it assumes)
-    if g == 0 or contact.potential != "cfd" or not -gravity[2] > (1 - 1e-9) * g:
-        return
-    seen: set[int] = set()
-    for k, body in enumerate(bodies):
-        if body.kind != "dynamic" or id(body) in seen:
-            continue
-        seen.add(id(body))
-        size = float((body.bsh.vertices.amax(0) - body.bsh.vertices.amin(0)).max())
-        allowed = contact.margin + max(contact.margin, _HOVER_FRACTION * size)
-        floor = _floor(body, contact)
-        if contact.stiffness * _lift(body, floor, allowed, contact) <= body.mass * g:
-            continue
-        try:
-            gap = rest_gap(body, gravity=g, contact=contact)
-            where = f"would rest about {1e3 * gap:.3g} mm above a floor three times its width (higher on a wider one)"
-        except ValueError:  # the far field outweighs it at any gap
-            where = "would be pushed off a flat floor to any height"
-        better = body.mass * g / _lift(body, floor, 2.0 * contact.margin, contact)
+    bsh = _floor(body, contact, floor)
+    mu = body.mass * float(gravity) / _lift(body, bsh, float(gap), contact)
+    above = float(gap) * (1 + 1e-3)
+    if mu * _lift(body, bsh, above, contact) > body.mass * float(
+        gravity
+    ):  # the lift grows with the gap there
+        ends = rest_gap(body, mu, floor=floor, start=above, gravity=gravity, contact=contact)
         warnings.warn(
-            f"body {k} ({body.mass:.3g} kg, {100 * size:.3g} cm across) {where} at the contact stiffness "
-            f"mu={contact.stiffness:g} (its lowest vertex; the default suits bodies of decimetres and kilograms): "
-            f"mu={better:.2g} rests it about {2e3 * contact.margin:.3g} mm up (cfd_torch.stiffness_for_rest_gap, "
-            "cfd_torch.rest_gap)",
+            f"at mu={mu:.6g} the body balances {1e3 * float(gap):.4g} mm above the floor, but unstably (the lift "
+            f"grows with the gap there): released just above it, it rests at {1e3 * ends:.4g} mm",
             RestGapWarning,
-            stacklevel=3,
+            stacklevel=2,
         )
+    return mu
+
+
+def warn_hovering(
+    bodies, contact: ContactConfig, gravity: tuple[float, float, float], planar: bool = False
+) -> None:
+    """Warn (:class:`RestGapWarning`, once per shape) of the dynamic bodies of ``bodies`` that would rest more than
+    max(margin, 5 % of their height) above the margin at ``contact``'s stiffness, on the default floor of
+    :func:`rest_gap`, naming a stiffness that rests them two margins up there. Nothing in a planar scene (its
+    heights are held), without a static or kinematic body to rest on, with gravity more than about 25 degrees off
+    -z (the floor model is z up; the load is the weight along z), or for a baseline potential. Verdicts are kept
+    per shape, mass and settings (one evaluation of the potential per new one; the whole search for the gap where
+    it warns)."""
+    g = -float(gravity[2])
+    if planar or contact.potential != "cfd" or not g > 0.9 * math.sqrt(sum(x * x for x in gravity)):
+        return
+    if all(b.kind == "dynamic" for b in bodies):
+        return
+    rows: dict[tuple, list[int]] = {}  # each verdict's bodies, in order
+    for k, body in enumerate(bodies):
+        if body.kind != "dynamic":
+            continue
+        key = (_shape_key(body.bsh), body.mass, contact, g)
+        if key not in _VERDICTS:
+            if len(_VERDICTS) >= _MAX_VERDICTS:
+                _VERDICTS.pop(next(iter(_VERDICTS)))
+            _VERDICTS[key] = _verdict(body, contact, g)
+        rows.setdefault(key, []).append(k)
+    for key, ks in rows.items():
+        if _VERDICTS[key] is not None:
+            who = f"body {ks[0]}" if len(ks) == 1 else f"bodies {', '.join(map(str, ks))}"
+            warnings.warn(f"{who} {_VERDICTS[key]}", RestGapWarning, stacklevel=3)
+
+
+_MAX_VERDICTS = 1024
+_VERDICTS: dict[tuple, str | None] = {}  # memo: (shape, mass, contact settings, load) -> message or None
+
+
+def _shape_key(bsh: BSH) -> bytes:
+    """A digest of a hierarchy's vertices and faces (bodies of one shape built separately share verdicts)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(bsh.vertices.numpy().tobytes())
+    h.update(bsh.faces.numpy().tobytes())
+    return h.digest()
+
+
+def _verdict(body: RigidBody, contact: ContactConfig, g: float) -> str | None:
+    """The warning's text (after "body k ") if the body would rest too high, else None."""
+    v = body.bsh.vertices
+    height = float(v[:, 2].amax() - v[:, 2].amin())
+    allowed = contact.margin + max(contact.margin, _HOVER_FRACTION * height)
+    floor = _floor(body, contact)
+    if contact.stiffness * _lift(body, floor, allowed, contact) <= body.mass * g:
+        return None
+    try:
+        gap = rest_gap(body, gravity=g, contact=contact)
+        where = f"would rest about {1e3 * gap:.3g} mm above a floor three times its width"
+    except ValueError:  # the far field outweighs it at any gap
+        where = "would be pushed off a flat floor to any height"
+    better = body.mass * g / _lift(body, floor, 2.0 * contact.margin, contact)
+    return (
+        f"({body.mass:.3g} kg, {100 * height:.3g} cm tall) {where} at the contact stiffness mu={contact.stiffness:g} "
+        f"(its lowest vertex; the default suits bodies of decimetres and kilograms): mu={better:.2g} rests it about "
+        f"{2e3 * contact.margin:.3g} mm up there (cfd_torch.rest_gap(body, mu, floor=...) for a given floor, "
+        "cfd_torch.stiffness_for_rest_gap)"
+    )

@@ -297,7 +297,9 @@ class Scene:
             bodies = refine_obstacles(bodies, pairs, self.contact.refine_obstacles)
         self.bodies = bodies
         if contact_model is None:  # (robots' links hang from their joints: not theirs to rest)
-            warn_hovering(bodies[: len(bodies) - sum(a.num_links for a in arts)], self.contact, gravity)
+            warn_hovering(
+                bodies[: len(bodies) - sum(a.num_links for a in arts)], self.contact, gravity, planar
+            )
         self.dynamic = torch.tensor(
             [i for i, b in enumerate(bodies) if b.kind == "dynamic"], dtype=torch.long
         )
