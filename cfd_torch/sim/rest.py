@@ -8,9 +8,10 @@ up); lighter and smaller bodies rest higher, centimetre ones centimetres up (:fu
 
 The floor is a flat box three times the body's footprint under it (or the scene's own floor, ``floor=``), refined
 as a :class:`cfd_torch.Scene` refines an obstacle for it (its ``refine_obstacles``), and the body keeps its mesh's
-orientation (z up), its lowest vertex ``gap`` above the floor. The far field of a wider floor lifts a light body
-further: a 2 cm, 8 g cube rests 6.0 mm above the default floor and 17 mm above a 1 m box at the default stiffness
-(where a settled rollout rests it 15 mm up; a 5 cm, 125 g cube: 2.1, 2.65 and 2.65 mm).
+orientation (z up), its lowest vertex ``gap`` above the floor. The floor's extent and refinement move the gap: at
+the default stiffness a 2 cm, 8 g cube rests 6.0 mm above the default floor and 12-17 mm above a 1 m box,
+depending on where it is released (a settled rollout: 15 mm); a 5 cm, 125 g cube 2.1 and 2.65 mm (the rollout
+2.65); a 0.5 kg ball of 5 cm radius 4.6 mm, and 3.1 mm above a 2 m box (the rollout 3.0).
 """
 
 from __future__ import annotations
@@ -32,9 +33,8 @@ __all__ = ["RestGapWarning", "rest_gap", "stiffness_for_rest_gap"]
 
 # a body is warned of when it would rest more than max(margin, this x its height) above the margin
 _HOVER_FRACTION = 0.05
-_GRID_RATIO = (
-    1.1  # the geometric grid of gaps the release point moves along, down or up, to the first crossing
-)
+# the geometric grid of gaps the released body moves along, down or up, to the first crossing
+_GRID_RATIO = 1.1
 _BISECTIONS = 60  # of the gap, between the grid's neighbours around that crossing
 
 
@@ -214,12 +214,10 @@ def stiffness_for_rest_gap(
         raise ValueError(
             f"gap must be a finite number above the contact margin {contact.margin:g} m, got {gap!r}"
         )
-    bsh = _floor(body, contact, floor)
-    mu = body.mass * float(gravity) / _lift(body, bsh, float(gap), contact)
+    bsh, weight = _floor(body, contact, floor), body.mass * float(gravity)
+    mu = weight / _lift(body, bsh, float(gap), contact)
     above = float(gap) * (1 + 1e-3)
-    if mu * _lift(body, bsh, above, contact) > body.mass * float(
-        gravity
-    ):  # the lift grows with the gap there
+    if mu * _lift(body, bsh, above, contact) > weight:  # the lift grows with the gap there
         ends = rest_gap(body, mu, floor=floor, start=above, gravity=gravity, contact=contact)
         warnings.warn(
             f"at mu={mu:.6g} the body balances {1e3 * float(gap):.4g} mm above the floor, but unstably (the lift "
