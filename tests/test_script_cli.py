@@ -150,6 +150,9 @@ REFUSED = [
     ("rolling_ball", ["--subdivisions", "7"], "--subdivisions"),
     ("bench_bodies", ["--layout", "pile", "--steps", "3"], "--steps"),  # the landing steps are 4 and later
     ("bench_bodies", ["--sizes", "0"], "--sizes"),
+    ("rest_gaps", ["--steps", "10"], "--steps"),  # the rest test looks at the last 20
+    ("rest_gaps", ["--sizes", "0.5", "--floor", "1"], "--floor"),  # the floor must reach past the bodies
+    ("rest_gaps", ["--mu", "0"], "--mu"),
 ]
 
 
@@ -331,4 +334,30 @@ def test_bench_bodies_times_each_size_and_names_the_library_it_timed(scripts_pat
         assert r["step_s"] > 0 and len(r["newton_iters"]) == 2 and min(r["contact_evals"]) >= 1
     assert (tmp_path / "bench_bodies.md").read_text().count("\n| ") == 3 and (
         tmp_path / "bench_bodies.png"
+    ).exists()
+
+
+def test_rest_gaps_compares_a_settled_rollout_with_the_prediction(scripts_path, tmp_path):
+    """A 10 cm, 1 kg cube settles where rest_gap says (to 1 %), and the Scene did not warn of it; the tables and the
+    plot are written."""
+    import rest_gaps
+
+    argv = [
+        "--shapes",
+        "cube",
+        "--sizes",
+        "0.1",
+        "--densities",
+        "1000",
+        "--steps",
+        "60",
+        "--out",
+        str(tmp_path),
+    ]
+    rest_gaps.main(argv)
+    (row,) = _strict_json(tmp_path / "rest_gaps.json")["rows"]
+    assert row["spread_last_20"] < 1e-7 and not row["warned"]
+    assert abs(row["settled"] - row["predicted"]) < 0.01 * row["predicted"]  # observed 1.576 mm both
+    assert (tmp_path / "rest_gaps.md").read_text().count("\n| cube 10 cm") == 1 and (
+        tmp_path / "rest_gaps.png"
     ).exists()
