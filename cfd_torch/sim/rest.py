@@ -141,21 +141,35 @@ def rest_gap(
     mu = contact.stiffness if mu is None else mu
     if not (is_real(mu) and 0 < float(mu) < math.inf):
         raise ValueError(f"mu must be a positive finite number, got {given!r}")
-    bsh, weight = _floor(body, contact, floor), body.mass * float(gravity)
-    v = body.bsh.vertices
-    size = float((v.amax(0) - v.amin(0)).max())
     if start is None:
-        start = contact.margin + max(contact.margin, float(v[:, 2].amax() - v[:, 2].amin()))
+        start = _default_start(body, contact)
     if not (is_real(start) and contact.margin < float(start) < math.inf):
         raise ValueError(
             f"start must be a finite number above the contact margin {contact.margin:g} m, got {start!r}"
         )
+    return _settle(
+        body, _floor(body, contact, floor), float(mu), body.mass * float(gravity), float(start), contact
+    )
+
+
+def _default_start(body: RigidBody, contact: ContactConfig) -> float:
+    """:func:`rest_gap`'s default release gap: the margin plus the larger of the margin and the body's height."""
+    v = body.bsh.vertices[:, 2]
+    return contact.margin + max(contact.margin, float(v.amax() - v.amin()))
+
+
+def _settle(
+    body: RigidBody, bsh: BSH, mu: float, weight: float, start: float, contact: ContactConfig
+) -> float:
+    """:func:`rest_gap` on the floor's hierarchy ``bsh``, its arguments checked."""
+    v = body.bsh.vertices
+    size = float((v.amax(0) - v.amin(0)).max())
 
     def lifts(gap: float) -> bool:
-        return float(mu) * _lift(body, bsh, gap, contact) > weight
+        return mu * _lift(body, bsh, gap, contact) > weight
 
     # (lo, hi): the lift wins at lo, the weight at hi, the two neighbours on the grid around the first crossing
-    gap = float(start)
+    gap = start
     if lifts(gap):  # pushed up: to the first gap the weight wins at
         while True:
             up = gap * _GRID_RATIO
@@ -218,7 +232,7 @@ def stiffness_for_rest_gap(
     mu = weight / _lift(body, bsh, float(gap), contact)
     above = float(gap) * (1 + 1e-3)
     if mu * _lift(body, bsh, above, contact) > weight:  # the lift grows with the gap there
-        ends = rest_gap(body, mu, floor=floor, start=above, gravity=gravity, contact=contact)
+        ends = _settle(body, bsh, mu, weight, above, contact)
         warnings.warn(
             f"at mu={mu:.6g} the body balances {1e3 * float(gap):.4g} mm above the floor, but unstably (the lift "
             f"grows with the gap there): released just above it, it rests at {1e3 * ends:.4g} mm",
@@ -280,7 +294,7 @@ def _verdict(body: RigidBody, contact: ContactConfig, g: float) -> str | None:
     if contact.stiffness * _lift(body, floor, allowed, contact) <= body.mass * g:
         return None
     try:
-        gap = rest_gap(body, gravity=g, contact=contact)
+        gap = _settle(body, floor, contact.stiffness, body.mass * g, _default_start(body, contact), contact)
         where = f"would rest about {1e3 * gap:.3g} mm above a floor three times its width"
     except ValueError:  # the far field outweighs it at any gap
         where = "would be pushed off a flat floor to any height"
