@@ -23,6 +23,7 @@ import trimesh
 from cfd_torch import Action, Params, Scene, State, StepError, rigid_body, rollout, step
 from cfd_torch._geometry import triangle_closest_points
 from cfd_torch.rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
+from cfd_torch.sim.bodies import inner_radius
 from cfd_torch.sim.feasibility import penetrating
 
 F64 = torch.float64
@@ -851,6 +852,67 @@ def test_huge_step_does_not_tunnel_through_the_table():
     state = scene.initial_state(_poses((-0.5, 0.0, -0.05), (-5e-4, 0.0, 0.0161)))
     with pytest.raises(StepError, match="reduce dt"):
         step(scene, state)
+
+
+@pytest.mark.parametrize("shape", ["ball", "cube"])
+def test_two_bodies_that_would_pass_through_each_other_in_one_step_are_refused_then_sub_stepped(shape):
+    """Two 5 cm bodies meeting head-on at 10 m/s each (a relative motion of four body sizes per step): the
+    iterates cannot cross each other, but they went round each other to the minimiser beyond, and the bodies
+    flew on through each other with 103-106 % of their speed (a session-53 audit; this library's check of the
+    step's end covered static bodies only). Now the step is refused, naming the pair, and with sub-steps the two
+    collide: they end on their own sides, with less energy than they had."""
+    r = 0.025
+    mesh = (
+        trimesh.creation.icosphere(subdivisions=2, radius=r)
+        if shape == "ball"
+        else trimesh.creation.box((2 * r,) * 3)
+    )
+    bodies = [rigid_body(mesh, density=1000.0), rigid_body(mesh, density=1000.0)]
+    q = _poses((-r - 0.052, 0.0, 0.0), (r + 0.052, 0.0, 0.0))
+    v = _poses((10.0,), (-10.0,))
+    scene = Scene(bodies, dt=DT)
+    with pytest.raises(
+        StepError, match=r"centre of mass passes through body [01]\): reduce dt, or let the step retry"
+    ):
+        step(scene, scene.initial_state(q, v))
+    scene = Scene(bodies, dt=DT, substeps=8)
+    state = scene.initial_state(q, v)
+    for _ in range(5):
+        state = step(scene, state)
+    assert float(state.q[0, 0]) < float(
+        state.q[1, 0]
+    )  # on their own sides (before, each was beyond the other)
+    speed = state.velocity(DT)[:, :3].norm(dim=1)
+    assert float(speed.max()) < 5.0  # (they kept 10.3-10.6 m/s before)
+
+
+def test_inner_radius_is_the_largest_ball_about_the_origin_inside_a_closed_surface():
+    box = trimesh.creation.box((0.2, 0.1, 0.4))
+    assert inner_radius(box.vertices, box.faces) == pytest.approx(0.05, rel=1e-12)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    assert 0.5 * 0.95 < inner_radius(ball.vertices, ball.faces) < 0.5
+    box.apply_translation((0.0, 0.0, 0.3))  # the origin outside the solid
+    assert inner_radius(box.vertices, box.faces) == 0.0
+    ring = trimesh.creation.annulus(r_min=0.1, r_max=0.2, height=0.05)  # the origin in the hole
+    assert inner_radius(ring.vertices, ring.faces) == 0.0
+    ball.invert()  # inward-facing: the origin is outside its solid
+    assert inner_radius(ball.vertices, ball.faces) == 0.0
+
+
+def test_a_glancing_collision_of_two_fast_balls_is_not_refused():
+    """Two balls passing with their centres 1.2 radii apart sideways at 2 m/s each (0.4 radii per step): they touch
+    and deflect; the relative motion of their centres never comes within a radius, so the step is not refused."""
+    r = 0.05
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=r)
+    bodies = [rigid_body(mesh, density=1000.0), rigid_body(mesh, density=1000.0)]
+    scene = Scene(bodies, dt=DT)
+    state = scene.initial_state(_poses((-0.1, 0.0, 0.0), (0.1, 1.2 * r, 0.0)), _poses((2.0,), (-2.0,)))
+    gaps = []
+    for _ in range(12):
+        state = step(scene, state)
+        gaps.append(float((state.q[0, :3] - state.q[1, :3]).norm()))
+    assert min(gaps) < 2 * r + 0.005  # they met
+    assert float(state.q[0, 0]) > float(state.q[1, 0])  # and passed each other sideways, as balls do
 
 
 @pytest.mark.parametrize("speed", [10.0, 20.0, 50.0])

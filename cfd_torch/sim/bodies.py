@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .._geometry import _closest_point_triangle
 from .._validate import check_mesh, closed_surface, is_real, miscounted_component, self_intersection
 from ..contact.bsh import BSH, edge_lengths, refined_faces
 from ._checks import physical_second_moment
@@ -241,6 +242,25 @@ def thickness(vertices: np.ndarray, faces: np.ndarray) -> float:
     dirs = np.concatenate([normals, axes.T, _LATTICE])
     proj = c @ dirs.T  # (V, D)
     return float((proj.max(0) - proj.min(0)).min())
+
+
+def inner_radius(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The radius [m] of the largest ball about the frame origin inside a closed, consistently wound surface
+    (vertices (V, 3), faces (F, 3)): the origin's distance to the nearest point of the surface where the origin
+    lies in the solid (winding number above 1/2), else 0 (an open surface, or an origin outside: a ring's or a
+    bowl's centre of mass). A moving body's frame sits at its centre of mass."""
+    tri = torch.from_numpy(np.asarray(vertices, dtype=np.float64)[np.asarray(faces)])  # (F, 3, 3)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    la, lb, lc = a.norm(dim=1), b.norm(dim=1), c.norm(dim=1)
+    # the solid angle of each triangle seen from the origin (van Oosterom and Strackee)
+    num = (a * torch.cross(b, c, dim=1)).sum(1)
+    den = la * lb * lc + (a * b).sum(1) * lc + (a * c).sum(1) * lb + (b * c).sum(1) * la
+    winding = float(torch.atan2(num, den).sum()) / (2.0 * math.pi)
+    if not winding > 0.5:
+        return 0.0
+    zero = torch.zeros(len(tri), dtype=torch.float64)
+    near = _closest_point_triangle((zero, zero, zero), *(tuple(x[:, k] for k in range(3)) for x in (a, b, c)))
+    return float(torch.sqrt(near[0] ** 2 + near[1] ** 2 + near[2] ** 2).min())
 
 
 def refine_obstacles(

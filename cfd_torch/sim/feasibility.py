@@ -7,14 +7,15 @@ reachable. One contract for all three:
   the straight path in q at points whose largest vertex displacement is at most ``scene.path_spacing`` apart
   (``ccd_spacing``, or half the thinnest moving body's thickness plus the margin where less; features
   thinner than about that plus the margin can still be jumped over in one move).
-* The step's **solution must be reachable** from the start-of-step poses without passing through a static body:
+* The step's **solution must be reachable** from the start-of-step poses without passing through another body:
   each moving body, shrunk by ``reach_shrink`` about its centre of mass (an interpolated path is not the body's
   motion, and dipping a few millimetres into a support it rests or lands on is not tunnelling), must be clear of
-  static bodies at points ``path_spacing`` apart along the straight path in q, or along a turn about its
-  least-moving vertex (a body tipping over an edge); if neither is clear (a large tumbling step), it is refused
-  only if some centre of mass crosses a static surface. With a huge dt the minimiser can lie beyond an obstacle,
-  reached by iterates that went around it. Pairs of moving bodies are not checked here: their straight
-  interpolation may overlap after a legitimate collision.
+  the bodies it interacts with at points ``path_spacing`` apart along the straight path in q (kinematic bodies
+  from their start-of-step poses to their targets), or along a turn about its least-moving vertex (a body
+  tipping over an edge); if neither is clear (a large tumbling step, or two moving bodies whose interpolations
+  overlap after a legitimate collision), it is refused only if some centre of mass passes through another body
+  (:func:`_crossing`). With a huge dt the minimiser can lie beyond an obstacle, or beyond another moving body,
+  reached by iterates that went around it.
 * A **kinematic body's motion** over the step (from its start-of-step pose to its target, the moving bodies at
   their start-of-step poses) is checked the same way: one that would pass through a moving body makes the start
   carry the bodies along or push them out of its way (:func:`cfd_torch.sim.solve.start`).
@@ -248,52 +249,99 @@ def _pivot_path(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor):
     return at
 
 
-def _centre_crosses_static(prob: StepProblem, b: int, q0: torch.Tensor, q1: torch.Tensor) -> bool:
-    """Whether the segment from some dynamic body's centre of mass at q0 to that at q1 ((Nd, 6); dynamic frames sit
-    at the centres of mass) crosses a triangle of a static body of scene b (exact; both ends are outside)."""
+def _crossing(
+    prob: StepProblem, sel: torch.Tensor, p0: torch.Tensor, p1: torch.Tensor
+) -> tuple[int, int] | None:
+    """The first pair (i, j) of the pairs ``sel`` (P,) in which body i's centre of mass passes through body j on
+    the way from the poses p0 to p1 (N, 6), or None. Against a static or kinematic body j: the segment between
+    i's centres, in j's frame, crosses j's surface (exact segment-triangle tests; both ends are outside). Between
+    two moving bodies: the straight relative motion of their centres passes one centre within the other body's
+    ``inner_radius`` (a ball inside its solid whatever it turns: a body may spin through a large angle in such a
+    step). A moving body's frame sits at its centre of mass."""
     scene = prob.scene
-    for j in torch.nonzero(scene.static_mask)[:, 0].tolist():
-        pose = prob.fixed[b, j]
-        tri = scene.bodies[j].bsh.triangles.to(q0) @ rotation_matrix(pose[3:]).T + pose[:3]  # (T, 3, 3)
-        Nd, T = q0.shape[0], tri.shape[0]
+    dev = p0.device
+    moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
+    moving[scene.kinematics.bodies] = True
+    pairs = scene.pairs[sel]
+    both = moving[pairs[:, 0]] & moving[pairs[:, 1]]
+    if bool(both.any()):
+        i, j = pairs[both, 0], pairs[both, 1]
+        r0 = p0[i.to(dev), :3] - p0[j.to(dev), :3]
+        d = p1[i.to(dev), :3] - p1[j.to(dev), :3] - r0
+        s = ((-r0 * d).sum(1) / (d * d).sum(1).clamp_min(1e-300)).clamp(0.0, 1.0)
+        closest = (r0 + s[:, None] * d).norm(dim=1)
+        ri, rj = scene.inner_radius.to(p0)[i.to(dev)], scene.inner_radius.to(p0)[j.to(dev)]
+        hit = torch.nonzero(closest < torch.maximum(ri, rj))[:, 0]
+        if len(hit):
+            k = int(hit[0])
+            return (int(i[k]), int(j[k])) if bool(rj[k] >= ri[k]) else (int(j[k]), int(i[k]))
+    one = pairs[~both]
+    inner = torch.where(moving[one[:, 0]], one[:, 0], one[:, 1])
+    outer = torch.where(moving[one[:, 0]], one[:, 1], one[:, 0])
+    ends = []
+    for p in (p0, p1):  # the moving body's centre in the other body's frame at that end
+        R = rotation_matrix(p[outer.to(dev), 3:])
+        ends.append(torch.einsum("kji,kj->ki", R, p[inner.to(dev), :3] - p[outer.to(dev), :3]))
+    c0, c1 = ends
+    # only segments that come within the other body's extent of its frame origin can reach its surface
+    d = c1 - c0
+    s = ((-c0 * d).sum(1) / (d * d).sum(1).clamp_min(1e-300)).clamp(0.0, 1.0)
+    near = ((c0 + s[:, None] * d).norm(dim=1) <= scene.extent.to(p0)[outer.to(dev)]).cpu()
+    for j in torch.unique(outer[near]).tolist():
+        k = torch.nonzero(near & (outer == j))[:, 0]
+        tri = scene.bodies[j].bsh.triangles.to(p0)  # (T, 3, 3), j's frame
+        K, T = len(k), tri.shape[0]
         hit = segment_hits_triangle(
-            q0[:, None, :3].expand(Nd, T, 3), q1[:, None, :3].expand(Nd, T, 3), tri[None].expand(Nd, T, 3, 3)
-        )
+            c0[k.to(dev), None].expand(K, T, 3),
+            c1[k.to(dev), None].expand(K, T, 3),
+            tri[None].expand(K, T, 3, 3),
+        ).any(1)
         if bool(hit.any()):
-            return True
-    return False
+            return int(inner[k[int(torch.nonzero(hit)[0, 0])]]), j
+    return None
 
 
-def reachable(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
-    """(B,) bool: whether each scene's moving bodies get from q0 to q1 (B, Q) without passing through a static
-    body (see the module's contract)."""
+def reachable(
+    prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor
+) -> tuple[torch.Tensor, dict[int, tuple[int, int]]]:
+    """(B,) bool: whether each scene's moving bodies get from q0 to q1 (B, Q) without passing through another body
+    (see the module's contract), and for each scene refused a pair (i, j): body i's centre of mass crossed body
+    j's surface."""
     scene = prob.scene
     B = q0.shape[0]
     a, b = scene.pairs[:, 0], scene.pairs[:, 1]
-    st = scene.static_mask
-    dyn_mask = torch.zeros(scene.num_bodies, dtype=torch.bool)
-    dyn_mask[scene.kinematics.bodies] = True
-    sel = (st[a] ^ st[b]) & (dyn_mask[a] | dyn_mask[b])
+    moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
+    moving[scene.kinematics.bodies] = True
+    sel = moving[a] | moving[b]
     ok = torch.ones(B, dtype=torch.bool, device=q0.device)
+    blocked: dict[int, tuple[int, int]] = {}
     if not bool(sel.any()):
-        return ok
+        return ok, blocked
     scenes = torch.arange(B, device=q0.device)
     n = torch.ceil(displacement(prob, q0, q1, scenes) / scene.path_spacing).long()
     shrink = scene.solver.reach_shrink
     kin = scene.kinematics
     dyn = kin.bodies.to(q0.device)
+    k_idx = scene.kinematic.to(q0.device)
     for i in torch.nonzero(n > 1)[:, 0].tolist():
         k = torch.arange(1, int(n[i]), device=q0.device, dtype=q0.dtype)[:, None] / float(n[i])
+        fixed = prob.fixed[i].expand(len(k), -1, -1).clone()
+        # kinematic bodies move from their start-of-step poses to their targets along the same path
+        k_start, k_end = prob.q_t[i, k_idx], prob.fixed[i, k_idx]
+        fixed[:, k_idx] = k_start + k[:, :, None] * (k_end - k_start)
         straight = q0[i] + k * (q1[i] - q0[i])  # (n - 1, Q)
-        fixed = prob.fixed[i].expand(len(k), -1, -1)
         if not bool(infeasible_pairs(scene, kin.poses(straight, fixed), sel, shrink).any()):
             continue
-        p0 = kin.poses(q0[i : i + 1], prob.fixed[i : i + 1])[0, dyn]
-        p1 = kin.poses(q1[i : i + 1], prob.fixed[i : i + 1])[0, dyn]
-        at = _pivot_path(prob, p0, p1)
+        p0 = kin.poses(q0[i : i + 1], prob.fixed[i : i + 1])[0]
+        p0[k_idx] = k_start
+        p1 = kin.poses(q1[i : i + 1], prob.fixed[i : i + 1])[0]
+        at = _pivot_path(prob, p0[dyn], p1[dyn])
         pivot = fixed.clone()
         pivot[:, dyn] = torch.stack([at(float(s)) for s in k[:, 0]])
         if not bool(infeasible_pairs(scene, pivot, sel, shrink).any()):
             continue
-        ok[i] = not _centre_crosses_static(prob, i, p0, p1)
-    return ok
+        pair = _crossing(prob, sel, p0, p1)
+        if pair is not None:
+            ok[i] = False
+            blocked[i] = pair
+    return ok, blocked

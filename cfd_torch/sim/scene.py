@@ -22,7 +22,7 @@ from ..contact.scene import body_pairs
 from ..contact.sdrs import SdrsContact
 from ._checks import check_rotations, check_state_tensor
 from .articulation import ArticulatedKinematics, Articulation
-from .bodies import RigidBody, refine_obstacles, thickness
+from .bodies import RigidBody, inner_radius, refine_obstacles, thickness
 from .kinematics import FreeBodies
 from .rest import warn_hovering
 from .types import Params, State
@@ -165,7 +165,9 @@ class Scene:
     from the step's unknowns to poses, ``contact_model`` (given, or built from ``contact``; ``contact`` is then
     the model's own ``config``, or the defaults for a model without one), ``path_spacing`` [m] the largest vertex
     displacement between two samples of the no-tunnelling path checks (``ccd_spacing``, or half the thinnest
-    moving body's thickness plus the contact margin where that is less).
+    moving body's thickness plus the contact margin where that is less), ``inner_radius`` (N,) [m] each dynamic
+    body's largest ball about its centre of mass inside its solid (0 for an open surface, a centre of mass outside
+    the solid, and the other bodies), which the end-of-step check refuses another body's centre to pass through.
     """
 
     def __init__(
@@ -359,6 +361,14 @@ class Scene:
         trees = tuple({id(b.bsh): b.bsh for b in bodies}.values())
         shut = [closed_surface(t.vertices.numpy(), t.faces.numpy()) for t in trees]
         self.closed = torch.tensor([shut[uniq[id(b.bsh)]] for b in bodies], dtype=torch.bool)
+        # [m] each moving body's largest ball about its centre of mass inside its solid (0 for the others): the
+        # reachability check refuses a step in which another body's centre of mass passes through it
+        inner = {
+            id(b.bsh): inner_radius(b.bsh.vertices.numpy(), b.bsh.faces.numpy())
+            for b in bodies
+            if b.kind == "dynamic" and shut[uniq[id(b.bsh)]]
+        }
+        self.inner_radius = torch.tensor([inner.get(id(b.bsh), 0.0) for b in bodies], dtype=torch.float64)
         self.probe_forest = build_forest(trees, torch.float64, torch.device("cpu")) if any(shut) else None
         self.probe_root = (
             self.probe_forest.roots[torch.tensor([uniq[id(b.bsh)] for b in bodies])]
