@@ -314,23 +314,33 @@ def body_pair(p: object, name: str) -> tuple[int, int]:
 def check_pair_eps(pair_eps: object, n: int) -> dict[tuple[int, int], float]:
     """``pair_eps`` checked: body pairs of two different indices in [0, n), each with one positive blend width
     ((i, j) and (j, i) are one pair: given both, they must agree)."""
-    if pair_eps is None:
+    return _pair_setting(pair_eps, n, "pair_eps", "eps", "the blend width", check_positive)
+
+
+def check_pair_mu(pair_mu: object, n: int) -> dict[tuple[int, int], float]:
+    """``pair_mu`` checked: body pairs of two different indices in [0, n), each with one contact stiffness (finite,
+    positive, at most :data:`MAX_STIFFNESS`; (i, j) and (j, i) are one pair: given both, they must agree)."""
+    return _pair_setting(pair_mu, n, "pair_mu", "mu", "the stiffness", check_stiffness)
+
+
+def _pair_setting(
+    value: object, n: int, name: str, short: str, what: str, check
+) -> dict[tuple[int, int], float]:
+    """A mapping {(i, j): x} of body pairs to one number each, checked (``check(x, label)`` raises ValueError)."""
+    if value is None:
         return {}
-    if not isinstance(pair_eps, Mapping):
-        raise TypeError(f"pair_eps must be a mapping {{(i, j): eps}}, got {type(pair_eps).__name__}")
+    if not isinstance(value, Mapping):
+        raise TypeError(f"{name} must be a mapping {{(i, j): {short}}}, got {type(value).__name__}")
     out: dict[tuple[int, int], float] = {}
-    for key, e in pair_eps.items():
-        i, j = body_pair(key, "pair_eps")
+    for key, x in value.items():
+        i, j = body_pair(key, name)
         if not (0 <= i < n and 0 <= j < n and i != j):
-            raise ValueError(f"pair_eps: {key!r} is not a pair of two body indices in [0, {n})")
-        if not (is_real(e) and 0 < e < math.inf):
-            raise ValueError(
-                f"pair_eps: the blend width of {key!r} must be a finite positive number, got {e!r}"
-            )
+            raise ValueError(f"{name}: {key!r} is not a pair of two body indices in [0, {n})")
+        check(x, f"{name}: {what} of {key!r}")
         other = out.get((j, i))
-        if other is not None and not math.isclose(other, float(e), rel_tol=1e-6):
-            raise ValueError(f"pair_eps: {(i, j)} and {(j, i)} are one pair, given {float(e)} and {other}")
-        out[(i, j)] = float(e)
+        if other is not None and not math.isclose(other, float(x), rel_tol=1e-6):
+            raise ValueError(f"{name}: {(i, j)} and {(j, i)} are one pair, given {float(x)} and {other}")
+        out[(i, j)] = float(x)
     return out
 
 

@@ -703,6 +703,61 @@ def test_pair_eps_sets_one_body_pairs_blend_width_and_leaves_the_others(bodies):
             Scene((cube, ground, ball), pair_eps=bad)
 
 
+def test_pair_mu_scales_one_body_pairs_potential_and_friction_and_leaves_the_others(bodies):
+    """``Scene(pair_mu=...)``: the named pair's value, gradient, Hessian and lagged normal forces are the default
+    ones times its stiffness ratio (the potential is linear in mu), every other pair's are unchanged (bit for bit),
+    on both backends; a pair_mu equal to the scene's stiffness changes nothing."""
+    cube, ground, _, ball = bodies
+    q = torch.tensor([[_pose(0.0, 0.0, 0.1015), _pose(), _pose(0.45, 0.1, 0.15)]], dtype=F64)
+    pairs = torch.tensor([[0, 0, 1], [0, 0, 2], [0, 1, 2]])
+    mu = Scene((cube, ground, ball)).contact.stiffness
+    for backend in ("auto", "torch"):
+        plain_model = Scene((cube, ground, ball), backend=backend).contact_model
+        plain = plain_model.evaluate(q, pairs, 2)
+        mixed_model = Scene((cube, ground, ball), backend=backend, pair_mu={(1, 0): 7 * mu}).contact_model
+        mixed = mixed_model.evaluate(q, pairs, 2)
+        assert float(plain.grad[0].abs().max()) > 0 and float(plain.grad[2].abs().max()) > 0
+        for k, ratio in ((0, 7.0), (1, 1.0), (2, 1.0)):
+            torch.testing.assert_close(mixed.value[k], ratio * plain.value[k], rtol=1e-14, atol=0)
+            torch.testing.assert_close(mixed.grad[k], ratio * plain.grad[k], rtol=1e-14, atol=0)
+            torch.testing.assert_close(mixed.hess[k], ratio * plain.hess[k], rtol=1e-14, atol=0)
+        lag0, lag = plain_model.lagged(q, pairs, 0.0), mixed_model.lagged(q, pairs, 0.0)
+        assert torch.equal(lag.pair, lag0.pair) and bool((lag0.pair == 0).any())
+        expect = torch.where(lag0.pair == 0, 7.0, 1.0).to(F64) * lag0.normal_force
+        torch.testing.assert_close(lag.normal_force, expect, rtol=1e-14, atol=0)
+        same = Scene((cube, ground, ball), backend=backend, pair_mu={(0, 1): mu}).contact_model.evaluate(
+            q, pairs, 2
+        )
+        assert torch.equal(same.value, plain.value) and torch.equal(same.hess, plain.hess)
+
+
+def test_pair_mu_rests_a_small_body_at_its_own_gap_beside_a_large_one():
+    """A mixed scene: a 2 cm, 8 g cube hovers millimetres up at the default stiffness (a RestGapWarning) beside a
+    20 cm box that rests at the default's gap; with the small cube's floor pair at the stiffness for a 2 mm gap
+    (``stiffness_for_rest_gap``) the Scene does not warn, the small cube settles at that gap and the box where it
+    did."""
+    from cfd_torch import RestGapWarning, stiffness_for_rest_gap
+
+    small = rigid_body(trimesh.creation.box((0.02, 0.02, 0.02)), density=1000.0)
+    big = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=500.0)
+    floor = rigid_body(trimesh.creation.box((1.0, 1.0, 0.1)), kind="static")
+    q = torch.tensor([_pose(0, 0, -0.05), _pose(0.3, 0, 0.0125), _pose(-0.2, 0, 0.1025)], dtype=F64)
+    with pytest.warns(RestGapWarning, match=r"body 1 \(0.008 kg.*pair_mu=\{\(body, floor\): mu\}"):
+        Scene((floor, small, big), friction=0.5)
+    mu_small = stiffness_for_rest_gap(small, 2e-3, floor=floor)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RestGapWarning)
+        scene = Scene((floor, small, big), friction=0.5, pair_mu={(1, 0): mu_small})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RestGapWarning)
+        plain = Scene((floor, small, big), friction=0.5)
+    z = rollout(scene, scene.initial_state(q), 150).q[-1, :, 2]
+    z_plain = rollout(plain, plain.initial_state(q), 150).q[-1, :, 2]
+    assert abs(float(z[1]) - 0.01 - 2e-3) < 0.05 * 2e-3  # the small cube at its own gap
+    assert float(z_plain[1]) - 0.01 > 3 * 2e-3  # (where the default left it)
+    assert abs(float(z[2] - z_plain[2])) < 1e-6  # the box as at the default (the far pair's pull aside)
+
+
 # ================================================================================================ coarse obstacles
 def _ball_on_box_scene(**kw):
     ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1))

@@ -1264,6 +1264,32 @@ def test_a_friction_slip_scale_that_underflows_is_refused_by_name():
     assert float(step(scene, scene.initial_state(q, v)).q[0, 0]) > 0.0
 
 
+def test_pair_mu_is_checked_like_pair_eps():
+    box = rigid_body(trimesh.creation.box((0.2, 0.2, 0.2)), density=500.0)
+    floor = rigid_body(trimesh.creation.box((2.0, 2.0, 0.2)), kind="static")
+    pusher = rigid_body(trimesh.creation.box((0.05, 0.05, 0.3)), kind="kinematic")
+    assert Scene([box, floor, pusher], pair_mu={(1, 0): 2e-8}).pair_mu == {(1, 0): 2e-8}
+    why = "is a pair without contact (neither body is dynamic, or the pair is excluded or two links of one robot)"
+    with _says(f"pair_mu: (1, 2) {why}: its stiffness would never be used"):
+        Scene([box, floor, pusher], pair_mu={(1, 2): 1e-8})
+    with _says("pair_mu: the stiffness of (0, 1) must be a finite positive number"):
+        Scene([box, floor, pusher], pair_mu={(0, 1): -1e-8})
+    with _says("pair_mu: the stiffness of (0, 1) must be at most 1e+250"):
+        Scene([box, floor, pusher], pair_mu={(0, 1): 1e300})
+    with _says("pair_mu: (0, 5) is not a pair of two body indices in [0, 3)"):
+        Scene([box, floor, pusher], pair_mu={(0, 5): 1e-8})
+    with _says("pair_mu: (1, 0) and (0, 1) are one pair, given 2e-08 and 1e-08"):
+        Scene([box, floor, pusher], pair_mu={(0, 1): 1e-8, (1, 0): 2e-8})
+    with pytest.raises(TypeError, match=r"pair_mu must be a mapping \{\(i, j\): mu\}"):
+        Scene([box, floor, pusher], pair_mu=[(0, 1, 1e-8)])
+    with _says(
+        "pair_mu sets stiffnesses of this library's potential; the contact model potential='ipc' has its own"
+    ):
+        Scene([box, floor, pusher], pair_mu={(0, 1): 1e-8}, potential="ipc")
+    scene = Scene([box, floor, pusher], pair_mu={(0, 1): 2e-8})
+    assert scene.replace(dt=0.02).pair_mu == {(0, 1): 2e-8}  # carried over
+
+
 def test_pair_eps_of_a_pair_without_contact_is_refused():
     """A blend width for a pair the scene never evaluates (static-kinematic, excluded) was accepted silently and
     never used (a user audit)."""

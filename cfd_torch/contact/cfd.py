@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-from .._validate import check_pair_eps
+from .._validate import check_pair_eps, check_pair_mu
 from ..config import ContactConfig
 from ..rotation import rotation_matrix
 from ._traverse import Forest, build_forest, penetrating, traverse
@@ -41,6 +41,10 @@ class CfdContact:
         pair_eps: body pairs (i, j) whose blend width is not ``config.eps``, with their own (a positive number):
             e.g. a wide band between a pusher and the objects it should find, a narrow one between the objects
             and the floor they rest on.
+        pair_mu: body pairs (i, j) whose stiffness is not ``config.stiffness``, with their own: the potential is
+            linear in it, so their values, derivatives and lagged normal forces are scaled by mu_ij /
+            ``config.stiffness`` (e.g. a stiffer contact for a small, light body on a floor, which the default
+            leaves hovering, beside decimetre bodies that keep it: :func:`cfd_torch.stiffness_for_rest_gap`).
     """
 
     warm_start = True  # evaluate() takes ids / warm: the leaf pairs' plane solves start from earlier planes
@@ -50,6 +54,7 @@ class CfdContact:
         bshes: Sequence[BSH],
         config: ContactConfig | None = None,
         pair_eps: Mapping[tuple[int, int], float] | None = None,
+        pair_mu: Mapping[tuple[int, int], float] | None = None,
     ) -> None:
         if not all(isinstance(b, BSH) for b in bshes):
             raise ValueError("bshes must be a sequence of cfd_torch.BSH")
@@ -67,6 +72,13 @@ class CfdContact:
             for (i, j), e in pair_eps.items():
                 table[i, j] = table[j, i] = e
             self._eps = table
+        self._mu = None  # (N, N) each body pair's stiffness over config.stiffness, when some pair has its own
+        pair_mu = check_pair_mu(pair_mu, N)
+        if pair_mu:
+            table = torch.ones((N, N), dtype=torch.float64)
+            for (i, j), mu in pair_mu.items():
+                table[i, j] = table[j, i] = mu / self.config.stiffness
+            self._mu = table
 
     def __getstate__(self) -> dict:
         # the per-device forests are a cache (concatenations of the hierarchies): a pickle carries no device's tensors
@@ -78,6 +90,12 @@ class CfdContact:
             return self.config.eps
         eps = self._eps.to(pairs.device)
         return eps[pairs[:, 1], pairs[:, 2]]
+
+    def _pair_scale(self, pairs: torch.Tensor) -> torch.Tensor | None:
+        """Each pair row's (s, i, j) stiffness over ``config.stiffness`` (P,), or None where none has its own."""
+        if self._mu is None:
+            return None
+        return self._mu.to(pairs.device)[pairs[:, 1], pairs[:, 2]]
 
     def _forest(self, device: torch.device) -> tuple[Forest, torch.Tensor]:
         """The concatenated float64 hierarchies on ``device`` and each body's root node (N,)."""
@@ -125,6 +143,12 @@ class CfdContact:
             warm=(ids, keys, planes) if use_warm else None,
         )  # fmt: skip
         v, g, h, st = out[:4]
+        scale = self._pair_scale(pairs)
+        if scale is not None:  # the potential is linear in its stiffness
+            scale = scale.to(v)
+            v = v * scale
+            g = None if g is None else g * scale[:, None]
+            h = None if h is None else h * scale[:, None, None]
         return ContactEval(v, g, h, st["node_pairs"], st["leaf_pairs"], out[4] if use_warm else None)
 
     def infeasible(
@@ -223,7 +247,7 @@ class CfdContact:
                         bb.contiguous().numpy(), float(active), pairs.shape[0],
                     )
                 )  # fmt: skip
-                return LaggedContacts(lp[keep], X, x, T, lam, warm)
+                return LaggedContacts(lp[keep], X, x, T, self._scaled(lam, pairs, lp[keep]), warm)
             ga, gb = g[:, 0], g[:, 1]
             if active > 0 and lp.numel():
                 lam = lw * torch.linalg.vector_norm(ga, dim=-1).sum(1)
@@ -266,4 +290,10 @@ class CfdContact:
         t = table[:, :3] if create_graph else table[:, :3].detach()
         xa = torch.einsum("cij,cj->ci", R[ba], pa) + t[ba]
         xb = torch.einsum("cij,cj->ci", R[bb], pb) + t[bb]
+        lam = self._scaled(lam, pairs, lp)
         return LaggedContacts(lp, torch.stack([pa, pb], 1), torch.stack([xa, xb], 1), T, lam, warm)
+
+    def _scaled(self, lam: torch.Tensor, pairs: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
+        """The contacts' normal forces ``lam`` (C,) of the pair rows ``lp`` scaled by their pairs' stiffness."""
+        scale = self._pair_scale(pairs)
+        return lam if scale is None else lam * scale.to(lam)[lp]

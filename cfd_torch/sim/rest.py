@@ -16,6 +16,7 @@ depending on where it is released (a settled rollout: 15 mm); a 5 cm, 125 g cube
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import warnings
@@ -243,11 +244,16 @@ def stiffness_for_rest_gap(
 
 
 def warn_hovering(
-    bodies, contact: ContactConfig, gravity: tuple[float, float, float], planar: bool = False
+    bodies,
+    contact: ContactConfig,
+    gravity: tuple[float, float, float],
+    planar: bool = False,
+    pair_mu: dict[tuple[int, int], float] | None = None,
 ) -> None:
     """Warn (:class:`RestGapWarning`, once per shape) of the dynamic bodies of ``bodies`` that would rest more than
-    max(margin, 5 % of their height) above the margin at ``contact``'s stiffness, on the default floor of
-    :func:`rest_gap`, naming a stiffness that rests them two margins up there. Nothing in a planar scene (its
+    max(margin, 5 % of their height) above the margin at their stiffness, on the default floor of
+    :func:`rest_gap`, naming a stiffness that rests them two margins up there. A body's stiffness is the least of
+    its pairs' with the static and kinematic bodies (``pair_mu``'s, else ``contact``'s). Nothing in a planar scene (its
     heights are held), without a static or kinematic body to rest on, with gravity more than about 25 degrees off
     -z (the floor model is z up; the load is the weight along z), or for a baseline potential. Verdicts are kept
     per shape, mass and settings (one evaluation of the potential per new one; the whole search for the gap where
@@ -257,15 +263,19 @@ def warn_hovering(
         return
     if all(b.kind == "dynamic" for b in bodies):
         return
+    pair_mu = pair_mu or {}
+    supports = [j for j, b in enumerate(bodies) if b.kind != "dynamic"]
     rows: dict[tuple, list[int]] = {}  # each verdict's bodies, in order
     for k, body in enumerate(bodies):
         if body.kind != "dynamic":
             continue
-        key = (_shape_key(body.bsh), body.mass, contact, g)
+        mu = min(pair_mu.get((k, j), pair_mu.get((j, k), contact.stiffness)) for j in supports)
+        own = contact if mu == contact.stiffness else dataclasses.replace(contact, stiffness=mu)
+        key = (_shape_key(body.bsh), body.mass, own, g)
         if key not in _VERDICTS:
             if len(_VERDICTS) >= _MAX_VERDICTS:
                 _VERDICTS.pop(next(iter(_VERDICTS)))
-            _VERDICTS[key] = _verdict(body, contact, g)
+            _VERDICTS[key] = _verdict(body, own, g)
         rows.setdefault(key, []).append(k)
     for key, ks in rows.items():
         if _VERDICTS[key] is not None:
@@ -302,6 +312,6 @@ def _verdict(body: RigidBody, contact: ContactConfig, g: float) -> str | None:
     return (
         f"({body.mass:.3g} kg, {100 * height:.3g} cm tall) {where} at the contact stiffness mu={contact.stiffness:g} "
         f"(its lowest vertex; the default suits bodies of decimetres and kilograms): mu={better:.2g} rests it about "
-        f"{2e3 * contact.margin:.3g} mm up there (cfd_torch.rest_gap(body, mu, floor=...) for a given floor, "
-        "cfd_torch.stiffness_for_rest_gap)"
+        f"{2e3 * contact.margin:.3g} mm up there (Scene(..., pair_mu={{(body, floor): mu}}) for its contacts alone; "
+        "cfd_torch.rest_gap(body, mu, floor=...) for a given floor, cfd_torch.stiffness_for_rest_gap)"
     )

@@ -11,7 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from .._validate import body_pair, check_pair_eps, closed_surface, is_real
+from .._validate import body_pair, check_pair_eps, check_pair_mu, closed_surface, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig, with_potential
 from ..contact._traverse import build_forest
 from ..contact.bsh import BSH
@@ -118,7 +118,8 @@ def _same_surface(a: BSH, b: BSH) -> bool:
 # the constructor's arguments other than the bodies, each kept as the attribute of its name (the contact model
 # given as ``_given_contact_model``): what ``Scene.replace`` carries over
 _REPLACEABLE = (
-    "dt", "gravity", "contact", "friction", "solver", "exclude", "pair_eps", "contact_model", "articulations", "planar",
+    "dt", "gravity", "contact", "friction", "solver", "exclude", "pair_eps", "pair_mu", "contact_model",
+    "articulations", "planar",
 )  # fmt: skip
 
 
@@ -139,6 +140,11 @@ class Scene:
             while the boxes' contact with the floor keeps the narrow default (a wide band there only costs leaf
             pairs). This library's potential only: with a baseline ``potential`` or a ``contact_model`` it raises
             ValueError (they have no blend).
+        pair_mu: body pairs (i, j) whose contact stiffness (``ContactConfig.stiffness``, ``mu``) is their own,
+            {(i, j): mu}: e.g. a stiffer contact between a small, light body and the floor (the default stiffness
+            leaves centimetre bodies of grams hovering millimetres to centimetres up, with a
+            :class:`~cfd_torch.RestGapWarning`; :func:`cfd_torch.stiffness_for_rest_gap` gives the value) beside
+            decimetre bodies that keep the default. This library's potential only, like ``pair_eps``.
         articulations: robots (:func:`cfd_torch.sim.articulation.articulation`); their links are the state rows
             after ``bodies``, each robot's consecutive (``articulation_rows``), with no contact between two links
             of one robot.
@@ -181,6 +187,7 @@ class Scene:
         solver: SolverConfig | None = None,
         exclude: Sequence[tuple[int, int]] = (),
         pair_eps: Mapping[tuple[int, int], float] | None = None,
+        pair_mu: Mapping[tuple[int, int], float] | None = None,
         contact_model: ContactModel | None = None,
         articulations: Sequence[Articulation] = (),
         planar: bool = False,
@@ -261,6 +268,7 @@ class Scene:
         self.exclude = tuple(body_pair(p, "exclude") for p in exclude)
         N = len(bodies)
         self.pair_eps = check_pair_eps(pair_eps, N)
+        self.pair_mu = check_pair_mu(pair_mu, N)
         if contact_model is not None:  # its settings are the model's own (its ``config``, else the defaults)
             own = getattr(contact_model, "config", None)
             own = own if isinstance(own, ContactConfig) else ContactConfig()
@@ -282,15 +290,25 @@ class Scene:
                 + ("given" if contact_model is not None else f"potential={self.contact.potential!r}")
                 + " has no blend: leave pair_eps out (Scene.replace carries it over: replace(..., pair_eps=None))"
             )
+        if self.pair_mu and (contact_model is not None or self.contact.potential != "cfd"):
+            raise ValueError(
+                "pair_mu sets stiffnesses of this library's potential; the contact model "
+                + ("given" if contact_model is not None else f"potential={self.contact.potential!r}")
+                + " has its own: leave pair_mu out (Scene.replace carries it over: replace(..., pair_mu=None))"
+            )
         #: every body pair without contact: ``exclude`` and the pairs of links of one robot
         self.no_contact = self.exclude + tuple(robot_pairs)
         pairs = body_pairs(N, torch.tensor([b.kind != "dynamic" for b in bodies]), self.no_contact)
-        for i, j in self.pair_eps:
-            if not bool((pairs == torch.tensor([min(i, j), max(i, j)])).all(1).any()):
-                raise ValueError(
-                    f"pair_eps: {(i, j)} is a pair without contact (neither body is dynamic, or the pair is "
-                    "excluded or two links of one robot): its blend width would never be used"
-                )
+        for name, table, what in (
+            ("pair_eps", self.pair_eps, "blend width"),
+            ("pair_mu", self.pair_mu, "stiffness"),
+        ):
+            for i, j in table:
+                if not bool((pairs == torch.tensor([min(i, j), max(i, j)])).all(1).any()):
+                    raise ValueError(
+                        f"{name}: {(i, j)} is a pair without contact (neither body is dynamic, or the pair is "
+                        f"excluded or two links of one robot): its {what} would never be used"
+                    )
         if (
             self.contact.refine_obstacles is not None
             and contact_model is None
@@ -300,7 +318,11 @@ class Scene:
         self.bodies = bodies
         if contact_model is None:  # (robots' links hang from their joints: not theirs to rest)
             warn_hovering(
-                bodies[: len(bodies) - sum(a.num_links for a in arts)], self.contact, gravity, planar
+                bodies[: len(bodies) - sum(a.num_links for a in arts)],
+                self.contact,
+                gravity,
+                planar,
+                self.pair_mu,
             )
         self.dynamic = torch.tensor(
             [i for i, b in enumerate(bodies) if b.kind == "dynamic"], dtype=torch.long
@@ -335,7 +357,9 @@ class Scene:
                 else SdrsContact(bshes, c.dhat, margin=c.margin, **kappa)
             )  # fmt: skip
         else:
-            self.contact_model = CfdContact([b.bsh for b in bodies], self.contact, self.pair_eps)
+            self.contact_model = CfdContact(
+                [b.bsh for b in bodies], self.contact, self.pair_eps, self.pair_mu
+            )
         # farthest vertex of each body from its frame origin: bounds vertex displacements
         self.extent = torch.tensor(
             [float(b.bsh.vertices.norm(dim=1).max()) for b in bodies], dtype=torch.float64
