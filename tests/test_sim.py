@@ -744,6 +744,9 @@ def test_pair_mu_rests_a_small_body_at_its_own_gap_beside_a_large_one():
     q = torch.tensor([_pose(0, 0, -0.05), _pose(0.3, 0, 0.0125), _pose(-0.2, 0, 0.1025)], dtype=F64)
     with pytest.warns(RestGapWarning, match=r"body 1 \(0.008 kg.*pair_mu=\{\(body, floor\): mu\}"):
         Scene((floor, small, big), friction=0.5)
+    pusher = rigid_body(trimesh.creation.box((0.05, 0.05, 0.3)), kind="kinematic")
+    with pytest.warns(RestGapWarning, match=r"body 1 \(0.008 kg"):  # judged on its floor, not on the pusher
+        Scene((floor, small, big, pusher), friction=0.5, pair_mu={(1, 3): 1e-10})
     mu_small = stiffness_for_rest_gap(small, 2e-3, floor=floor)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RestGapWarning)

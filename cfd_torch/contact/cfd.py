@@ -43,7 +43,7 @@ class CfdContact:
             and the floor they rest on.
         pair_mu: body pairs (i, j) whose stiffness is not ``config.stiffness``, with their own: the potential is
             linear in it, so their values, derivatives and lagged normal forces are scaled by mu_ij /
-            ``config.stiffness`` (e.g. a stiffer contact for a small, light body on a floor, which the default
+            ``config.stiffness`` (e.g. a lower stiffness for a small, light body on a floor, which the default
             leaves hovering, beside decimetre bodies that keep it: :func:`cfd_torch.stiffness_for_rest_gap`).
     """
 

@@ -13,9 +13,10 @@ reachable. One contract for all three:
   the bodies it interacts with at points ``path_spacing`` apart along the straight path in q (kinematic bodies
   from their start-of-step poses to their targets), or along a turn about its least-moving vertex (a body
   tipping over an edge); if neither is clear (a large tumbling step, or two moving bodies whose interpolations
-  overlap after a legitimate collision), it is refused only if some centre of mass passes through another body
-  (:func:`_crossing`). With a huge dt the minimiser can lie beyond an obstacle, or beyond another moving body,
-  reached by iterates that went around it.
+  overlap after a legitimate collision), it is refused only if, for a pair that neither interpolation keeps
+  clear, a centre of mass lying in its own solid passes through the other body (:func:`_crossing`). With a huge
+  dt the minimiser can lie beyond an obstacle, or beyond another moving body, reached by iterates that went
+  around it.
 * A **kinematic body's motion** over the step (from its start-of-step pose to its target, the moving bodies at
   their start-of-step poses) is checked the same way: one that would pass through a moving body makes the start
   carry the bodies along or push them out of its way (:func:`cfd_torch.sim.solve.start`).
@@ -251,13 +252,15 @@ def _pivot_path(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor):
 
 def _crossing(
     prob: StepProblem, sel: torch.Tensor, p0: torch.Tensor, p1: torch.Tensor
-) -> tuple[int, int] | None:
+) -> tuple[int, int, float] | None:
     """The first pair (i, j) of the pairs ``sel`` (P,) in which body i's centre of mass passes through body j on
-    the way from the poses p0 to p1 (N, 6), or None. Against a static or kinematic body j: the segment between
-    i's centres, in j's frame, crosses j's surface (exact segment-triangle tests; both ends are outside). Between
-    two moving bodies: the straight relative motion of their centres passes one centre within the other body's
-    ``inner_radius`` (a ball inside its solid whatever it turns: a body may spin through a large angle in such a
-    step). A moving body's frame sits at its centre of mass."""
+    the way from the poses p0 to p1 (N, 6), with how far it moves relative to j [m], or None. Against a static or
+    kinematic body j: the segment between i's centres, in j's frame, crosses j's surface (exact segment-triangle
+    tests; both ends are outside). Between two moving bodies: the straight relative motion of their centres
+    passes a centre that lies in its own solid (``inner_radius`` > 0) within the other body's ``inner_radius`` (a
+    ball inside that body whatever it turns: a body may spin through a large angle in such a step; a ring's or a
+    bowl's centre of mass, outside its solid, may lie inside another body's ball). A moving body's frame sits at
+    its centre of mass."""
     scene = prob.scene
     dev = p0.device
     moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
@@ -271,10 +274,13 @@ def _crossing(
         s = ((-r0 * d).sum(1) / (d * d).sum(1).clamp_min(1e-300)).clamp(0.0, 1.0)
         closest = (r0 + s[:, None] * d).norm(dim=1)
         ri, rj = scene.inner_radius.to(p0)[i.to(dev)], scene.inner_radius.to(p0)[j.to(dev)]
-        hit = torch.nonzero(closest < torch.maximum(ri, rj))[:, 0]
+        i_in_j = (closest < rj) & (ri > 0)
+        j_in_i = (closest < ri) & (rj > 0)
+        hit = torch.nonzero(i_in_j | j_in_i)[:, 0]
         if len(hit):
             k = int(hit[0])
-            return (int(i[k]), int(j[k])) if bool(rj[k] >= ri[k]) else (int(j[k]), int(i[k]))
+            moved = float(d[k].norm())
+            return (int(i[k]), int(j[k]), moved) if bool(i_in_j[k]) else (int(j[k]), int(i[k]), moved)
     one = pairs[~both]
     inner = torch.where(moving[one[:, 0]], one[:, 0], one[:, 1])
     outer = torch.where(moving[one[:, 0]], one[:, 1], one[:, 0])
@@ -297,16 +303,17 @@ def _crossing(
             tri[None].expand(K, T, 3, 3),
         ).any(1)
         if bool(hit.any()):
-            return int(inner[k[int(torch.nonzero(hit)[0, 0])]]), j
+            first = int(k[int(torch.nonzero(hit)[0, 0])])
+            return int(inner[first]), j, float(d[first].norm())
     return None
 
 
 def reachable(
     prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor
-) -> tuple[torch.Tensor, dict[int, tuple[int, int]]]:
+) -> tuple[torch.Tensor, dict[int, tuple[int, int, float]]]:
     """(B,) bool: whether each scene's moving bodies get from q0 to q1 (B, Q) without passing through another body
-    (see the module's contract), and for each scene refused a pair (i, j): body i's centre of mass crossed body
-    j's surface."""
+    (see the module's contract), and for each scene refused a pair (i, j) whose body i's centre of mass passes
+    through body j, with how far it moves relative to j [m] (:func:`_crossing`)."""
     scene = prob.scene
     B = q0.shape[0]
     a, b = scene.pairs[:, 0], scene.pairs[:, 1]
@@ -314,7 +321,7 @@ def reachable(
     moving[scene.kinematics.bodies] = True
     sel = moving[a] | moving[b]
     ok = torch.ones(B, dtype=torch.bool, device=q0.device)
-    blocked: dict[int, tuple[int, int]] = {}
+    blocked: dict[int, tuple[int, int, float]] = {}
     if not bool(sel.any()):
         return ok, blocked
     scenes = torch.arange(B, device=q0.device)
@@ -330,7 +337,10 @@ def reachable(
         k_start, k_end = prob.q_t[i, k_idx], prob.fixed[i, k_idx]
         fixed[:, k_idx] = k_start + k[:, :, None] * (k_end - k_start)
         straight = q0[i] + k * (q1[i] - q0[i])  # (n - 1, Q)
-        if not bool(infeasible_pairs(scene, kin.poses(straight, fixed), sel, shrink).any()):
+        bad = infeasible_pairs(scene, kin.poses(straight, fixed), sel, shrink).any(
+            0
+        )  # (P',) of the pairs sel
+        if not bool(bad.any()):
             continue
         p0 = kin.poses(q0[i : i + 1], prob.fixed[i : i + 1])[0]
         p0[k_idx] = k_start
@@ -338,9 +348,13 @@ def reachable(
         at = _pivot_path(prob, p0[dyn], p1[dyn])
         pivot = fixed.clone()
         pivot[:, dyn] = torch.stack([at(float(s)) for s in k[:, 0]])
-        if not bool(infeasible_pairs(scene, pivot, sel, shrink).any()):
+        bad = bad & infeasible_pairs(scene, pivot, sel, shrink).any(0)
+        if not bool(bad.any()):
             continue
-        pair = _crossing(prob, sel, p0, p1)
+        # (only the pairs that neither interpolation keeps clear)
+        pick = sel.clone()
+        pick[torch.nonzero(sel)[:, 0]] = bad.cpu()
+        pair = _crossing(prob, pick, p0, p1)
         if pair is not None:
             ok[i] = False
             blocked[i] = pair

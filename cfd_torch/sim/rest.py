@@ -253,7 +253,8 @@ def warn_hovering(
     """Warn (:class:`RestGapWarning`, once per shape) of the dynamic bodies of ``bodies`` that would rest more than
     max(margin, 5 % of their height) above the margin at their stiffness, on the default floor of
     :func:`rest_gap`, naming a stiffness that rests them two margins up there. A body's stiffness is the least of
-    its pairs' with the static and kinematic bodies (``pair_mu``'s, else ``contact``'s). Nothing in a planar scene (its
+    its pairs' with the static bodies (with the kinematic ones in a scene without a static body; ``pair_mu``'s,
+    else ``contact``'s). Nothing in a planar scene (its
     heights are held), without a static or kinematic body to rest on, with gravity more than about 25 degrees off
     -z (the floor model is z up; the load is the weight along z), or for a baseline potential. Verdicts are kept
     per shape, mass and settings (one evaluation of the potential per new one; the whole search for the gap where
@@ -264,7 +265,10 @@ def warn_hovering(
     if all(b.kind == "dynamic" for b in bodies):
         return
     pair_mu = pair_mu or {}
-    supports = [j for j, b in enumerate(bodies) if b.kind != "dynamic"]
+    # what a body rests on: the static bodies (the kinematic ones where there is none, e.g. a moving platform)
+    supports = [j for j, b in enumerate(bodies) if b.kind == "static"] or [
+        j for j, b in enumerate(bodies) if b.kind == "kinematic"
+    ]
     rows: dict[tuple, list[int]] = {}  # each verdict's bodies, in order
     for k, body in enumerate(bodies):
         if body.kind != "dynamic":

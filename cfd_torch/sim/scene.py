@@ -141,7 +141,7 @@ class Scene:
             pairs). This library's potential only: with a baseline ``potential`` or a ``contact_model`` it raises
             ValueError (they have no blend).
         pair_mu: body pairs (i, j) whose contact stiffness (``ContactConfig.stiffness``, ``mu``) is their own,
-            {(i, j): mu}: e.g. a stiffer contact between a small, light body and the floor (the default stiffness
+            {(i, j): mu}: e.g. a lower stiffness between a small, light body and the floor (the default stiffness
             leaves centimetre bodies of grams hovering millimetres to centimetres up, with a
             :class:`~cfd_torch.RestGapWarning`; :func:`cfd_torch.stiffness_for_rest_gap` gives the value) beside
             decimetre bodies that keep the default. This library's potential only, like ``pair_eps``.

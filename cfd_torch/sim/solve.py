@@ -378,12 +378,12 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
     ok, blocked = reachable(prob, q_t, res.q)
     if not bool(ok.all()):
         b = int(torch.nonzero(~ok)[0, 0])
-        moved = float(displacement(prob, q_t[b : b + 1], res.q[b : b + 1], torch.tensor([b]))[0])
-        i, j = blocked[b]
+        i, j, moved = blocked[b]
         raise StepError(
-            f"the step's solution is not reachable from the start-of-step poses without penetration (it moves "
-            f"{moved:.3g} m: body {i}'s centre of mass passes through body {j}{f', scene {b}' if B > 1 else ''}): "
-            "reduce dt, or let the step retry in sub-steps (SolverConfig.substeps)"
+            f"the step's solution is not reachable from the start-of-step poses without penetration (body {i}'s "
+            f"centre of mass passes through body {j}, moving {moved:.3g} m relative to it"
+            f"{f', scene {b}' if B > 1 else ''}): reduce dt, or let the step retry in sub-steps "
+            "(SolverConfig.substeps)"
         )
     if exact_end and bool(res.stepped.any()):
         sc = torch.nonzero(res.stepped)[:, 0]
