@@ -250,6 +250,13 @@ def _pivot_path(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor):
     return at
 
 
+def _moving(scene) -> torch.Tensor:
+    """(N,) bool: the bodies the step's kinematics map moves (dynamic bodies and simulated links)."""
+    moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
+    moving[scene.kinematics.bodies] = True
+    return moving
+
+
 def _crossing(
     prob: StepProblem, sel: torch.Tensor, p0: torch.Tensor, p1: torch.Tensor
 ) -> tuple[int, int, float] | None:
@@ -263,8 +270,7 @@ def _crossing(
     its centre of mass."""
     scene = prob.scene
     dev = p0.device
-    moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
-    moving[scene.kinematics.bodies] = True
+    moving = _moving(scene)
     pairs = scene.pairs[sel]
     both = moving[pairs[:, 0]] & moving[pairs[:, 1]]
     if bool(both.any()):
@@ -317,8 +323,7 @@ def reachable(
     scene = prob.scene
     B = q0.shape[0]
     a, b = scene.pairs[:, 0], scene.pairs[:, 1]
-    moving = torch.zeros(scene.num_bodies, dtype=torch.bool)
-    moving[scene.kinematics.bodies] = True
+    moving = _moving(scene)
     sel = moving[a] | moving[b]
     ok = torch.ones(B, dtype=torch.bool, device=q0.device)
     blocked: dict[int, tuple[int, int, float]] = {}
@@ -337,9 +342,8 @@ def reachable(
         k_start, k_end = prob.q_t[i, k_idx], prob.fixed[i, k_idx]
         fixed[:, k_idx] = k_start + k[:, :, None] * (k_end - k_start)
         straight = q0[i] + k * (q1[i] - q0[i])  # (n - 1, Q)
-        bad = infeasible_pairs(scene, kin.poses(straight, fixed), sel, shrink).any(
-            0
-        )  # (P',) of the pairs sel
+        # (P',) the pairs sel infeasible somewhere on the path
+        bad = infeasible_pairs(scene, kin.poses(straight, fixed), sel, shrink).any(0)
         if not bool(bad.any()):
             continue
         p0 = kin.poses(q0[i : i + 1], prob.fixed[i : i + 1])[0]
