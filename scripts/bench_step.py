@@ -1,8 +1,9 @@
 """Cost of one simulator step: forward, forward + backward, Newton iterations, optionally against an older revision.
 
-Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol unless stated; every random choice
-from a fixed seed, so both sides of ``--baseline`` and every run get the same scene). Case names in brackets; the
-``--cases`` names are billiards, cubes, push, boxes, ball, ant.
+Scenes (float64, dt = 0.01, the Scene defaults for mu, margin, eps, newton_tol and friction's eps_v unless stated
+(``--friction-eps-v`` sets eps_v in every case); every random choice from a fixed seed, so both sides of
+``--baseline`` and every run get the same scene). Case names in brackets; the ``--cases`` names are billiards, cubes,
+push, boxes, ball, ant.
 
 1. billiards (``billiards{n}``, n = rack balls + cue ball, 16 by default): a break shot, then the balls rolling
    (sliding: friction ``--billiards-friction``, default 0). Balls: icosphere subdivision 2 (320 faces), radius
@@ -413,6 +414,9 @@ def make_cases(args) -> list[Case]:
                     cases.append(ball_on_box(args, refined, mu_f))
             if args.obstacle is not None:
                 cases += [ball_on_obstacle(args, mu_f) for mu_f in (0.0, args.friction)]
+    if getattr(args, "friction_eps_v", None) is not None:
+        for case in cases:
+            case.scene = case.scene.replace(friction_eps_v=args.friction_eps_v)
     return cases
 
 
@@ -931,6 +935,11 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
         "--friction", type=nonnegative_float, default=0.5, help="friction coefficient of the 'on' ball case"
     )
     ap.add_argument(
+        "--friction-eps-v", type=positive_float, default=None, metavar="V",
+        help="every case's friction slip threshold FrictionConfig.eps_v [m/s] (default: the Scene's, 1e-4); a "
+        "larger one takes fewer Newton iterations at sticking contacts and lets them creep faster",
+    )  # fmt: skip
+    ap.add_argument(
         "--obstacle", type=Path, default=None, metavar="PATH",
         help="ball: also rest the ball on this mesh file (a static obstacle, as given; see the docstring)",
     )  # fmt: skip
@@ -963,6 +972,10 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
             ap.error(f"argument --obstacle: no such file: {args.obstacle}")
     if args.out.is_file():
         ap.error(f"argument --out: {args.out} is a file; give a folder")
+    if args.friction_eps_v is not None and not args.friction_eps_v >= 1e-30:
+        ap.error(
+            f"argument --friction-eps-v: must be at least 1e-30 m/s (FrictionConfig.eps_v), got {args.friction_eps_v}"
+        )
     if args.replot and not (args.out / "bench_step.json").is_file():
         ap.error(f"argument --replot: {args.out / 'bench_step.json'} does not exist")
     steps = args.steps or (3 if args.quick else 20)

@@ -99,6 +99,8 @@ REFUSED = [
     ("bench_step", ["--cube-size", "-0.05"], "--cube-size"),
     ("bench_step", ["--friction", "-0.5"], "--friction"),
     ("bench_step", ["--profile", "--profile-steps", "0"], "--profile-steps"),
+    ("bench_step", ["--friction-eps-v", "0"], "--friction-eps-v"),
+    ("bench_step", ["--friction-eps-v", "1e-40"], "--friction-eps-v"),  # below FrictionConfig's 1e-30
     ("far_field_directions", ["--angles", "0"], "--angles"),
     ("far_field_directions", ["--horizon", "0"], "--horizon"),
     ("far_field_directions", ["--radii", "-1"], "--radii"),
