@@ -16,6 +16,7 @@ and model made with different settings, whose mean would mix two experiments).
 
     python scripts/plot_results.py results/sweep
     python scripts/plot_results.py results/sweep/billiards results/sweep/push --out docs/experiments
+    python scripts/plot_results.py results/sweep/billiards --seeds 0 1 2 --out docs/experiments/seeds012
 """
 
 from __future__ import annotations
@@ -174,6 +175,10 @@ def main() -> None:
     ap.add_argument(
         "--best", action="store_true", help="open loop: plot the best loss so far instead of each iterate's"
     )
+    ap.add_argument(
+        "--seeds", type=int, nargs="+", default=None, metavar="S",
+        help="only the runs of these seeds (default: every run in the folders)",
+    )  # fmt: skip
     args = ap.parse_args()
     problem = None if args.out is None else folder_problem(args.out)
     if problem:
@@ -187,6 +192,8 @@ def main() -> None:
             ap.error(f"{d} has no sweep.json (a folder written by scripts/sweep.py --out)")
         for r in json.loads((d / "sweep.json").read_text())["runs"]:
             c = r["config"]
+            if args.seeds is not None and c["seed"] not in args.seeds:
+                continue
             key = (c["task"], c["model"], c["seed"])
             if key in where:
                 raise SystemExit(
@@ -197,7 +204,8 @@ def main() -> None:
             where[key] = d
             runs.append(r)
     if not runs:
-        raise SystemExit(f"no runs in {[str(d / 'sweep.json') for d in args.sweeps]}")
+        of = "" if args.seeds is None else f" of seeds {args.seeds}"
+        raise SystemExit(f"no runs{of} in {[str(d / 'sweep.json') for d in args.sweeps]}")
     mixed = mixed_settings(runs)
     if mixed:
         raise SystemExit(mixed)

@@ -402,6 +402,20 @@ def test_sweep_and_plot_results(tmp_path):
         ("cfd", 3), ("cfd", 4), ("gb", 3)
     ]  # fmt: skip
     assert [s["workers"] for s in resumed["sweeps"]] == [1, 1] and "--resume" in resumed["sweeps"][1]["argv"]
+    # --seeds keeps the runs of those seeds only (gb ran seed 3 alone: its row goes)
+    subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), "--seeds", "4", "--out",
+         str(tmp_path / "s4")],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    rows = (tmp_path / "s4" / "results.md").read_text().splitlines()[2:]
+    assert len(rows) == 1 and rows[0].startswith("| Push | cfd |") and "| 4 |" in rows[0], rows
+    none = subprocess.run(
+        [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), "--seeds", "9", "--out",
+         str(tmp_path / "s9")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert none.returncode != 0 and "no runs of seeds [9]" in none.stderr
     # a cell in two of the folders given to plot_results.py is refused (it would count twice)
     twice = subprocess.run(
         [sys.executable, str(SCRIPTS / "plot_results.py"), str(tmp_path), str(tmp_path), "--out", str(tmp_path / "p")],
