@@ -677,6 +677,53 @@ def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
 
 
 @pytest.mark.parametrize("split", SPLITS)
+def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
+    """The CPU kernels start with fixed buffers (stack, leaves, weight table) and, when one fills up, grow it and
+    traverse the body pair again from its saved rows: started at capacity 1 (every buffer grows, mid-pair, many
+    times) they return exactly what the default capacities return."""
+    from cfd_torch.contact._traverse_numba import penetrating_pairs, traverse_nodes
+
+    n = 6
+    bsh_a, bsh_b = _bsh("ico1"), _bsh("box")
+    near = _random_configs("ico1", "box", n // 2, seed=5, gap=(1.5 * MARGIN, 3 * MARGIN))
+    far = _random_configs("ico1", "box", n // 2, seed=6, gap=(20 * MARGIN, 40 * MARGIN))
+    pose = torch.cat([near[0], far[0], near[1], far[1]])
+    forest = _traverse.forest_of((bsh_a, bsh_b), F64, torch.device("cpu"))
+    pair_body = torch.stack([torch.arange(n), torch.arange(n) + n], 1).numpy()
+    pair_root = forest.roots[None].expand(n, 2).contiguous().numpy()
+    R, dR, d2R = (x.contiguous().numpy() for x in rotation_derivatives(pose[:, 3:], 2))
+    t = pose[:, :3].contiguous().numpy()
+    geo = (forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy())
+    eps = np.full(n, 0.01)
+    for order in (0, 1, 2):
+        runs = []
+        for caps in ((), (1, 1, 1)):
+            out = (np.zeros(n), np.zeros((n, 12)), np.zeros((n, 12, 12)))
+            res = traverse_nodes(*geo, pair_body, pair_root, R, dR, d2R, t, 1.0, eps, 2 * MARGIN, split == "both",
+                                 order, *out, *caps)  # fmt: skip
+            runs.append((res, out))
+        (res0, out0), (res1, out1) = runs
+        n_leaf = res0[7]
+        assert n_leaf > 8 and res0[8] > 8 and res0[4].shape[0] == 256  # leaves, node pairs, the default table
+        assert (res1[7], res1[8]) == (n_leaf, res0[8])
+        for a, b in zip(res0[:4], res1[:4], strict=True):  # leaf node ids, body pairs, weight entries
+            assert np.array_equal(a[:n_leaf], b[:n_leaf])
+        used = int(res0[3][:n_leaf].max()) + 1
+        assert used > 1  # some leaf inherits a blended weight
+        assert np.array_equal(res0[4][:used], res1[4][:used])
+        for a, b in zip(out0[: order + 1], out1[: order + 1], strict=True):
+            assert np.abs(a).max() > 0 and np.array_equal(a, b)
+    flags = []
+    for caps in ((), (1,)):
+        out = np.zeros(n, np.int8)
+        # (a query margin of 10 mm: the near pairs are within it)
+        penetrating_pairs(*geo, forest.tri.numpy(), forest.tris.numpy(), pair_body, pair_root, R, t, np.ones(2 * n),
+                          10 * MARGIN, eps, 2 * MARGIN, split == "both", out, *caps)  # fmt: skip
+        flags.append(out)
+    assert flags[0].tolist() == [1] * (n // 2) + [0] * (n // 2) and np.array_equal(flags[0], flags[1])
+
+
+@pytest.mark.parametrize("split", SPLITS)
 def test_swapping_the_bodies_changes_nothing(split):
     """The potential of two bodies does not depend on their order, whichever split rule (identical meshes tie at
     every level of their hierarchies: "larger" splits both nodes on a tie); the reference agrees."""

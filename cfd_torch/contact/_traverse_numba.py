@@ -128,9 +128,179 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
     add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
 
 
+# the kernels' status codes
+_DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
+
+
+@numba.njit(nogil=True, **_JIT)
+def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
+                grad, hess, sI, sJ, sK, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
+                Mom):  # fmt: skip
+    """Traverse body pair p (bodies ba, bb) from the node pair on top of the stack (sI[0], sJ[0], sK[0]),
+    accumulating its central terms into value[p], grad[p], hess[p] (the upper triangle) and the far node pairs'
+    moments into Z, Mom; leaves are appended from index n_leaf, weight table entries from nw.
+
+    Returns (status, n_leaf, nw, node pairs, whether a far node pair's moments were added): status ``_DONE``, or
+    which buffer filled up (the stack, the leaves, the weight table) before the pair was done; its results are then
+    partial, and the caller grows that buffer and traverses the pair again. The buffers are arguments, never
+    reassigned here: numba reference-counts an array variable reassigned inside a loop at every iteration, which
+    cost three times the traversal's own work."""
+    n_pairs = 0
+    far = False
+    top = 1
+    while top > 0:
+        top -= 1
+        I, J, wid = sI[top], sJ[top], sK[top]
+        W = wv[wid]
+        n_pairs += 1
+        CI = (centre[I, 0], centre[I, 1], centre[I, 2])  # (tuples: no array views in the loop)
+        CJ = (centre[J, 0], centre[J, 1], centre[J, 2])
+        dx = 0.0
+        r2 = 0.0
+        for i in range(3):
+            ca[i] = R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2] + t[ba, i]
+            cb[i] = R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2] + t[bb, i]
+            dx = ca[i] - cb[i]
+            d[i] = dx
+            r2 += dx * dx
+        r = math.sqrt(r2)
+        inv_r = 1.0 / r
+        d1 = radius[I] + radius[J]
+        width = max(eps_p * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
+        s = (r - d1) / width
+        if s <= 0.0:
+            phi = phi1 = phi2 = 0.0
+        elif s >= 1.0:
+            phi, phi1, phi2 = 1.0, 0.0, 0.0
+        else:
+            iw = 1.0 / width
+            phi = s * s * s * (s * (6.0 * s - 15.0) + 10.0)
+            phi1 = 30.0 * s * s * (s - 1.0) ** 2 * iw
+            phi2 = 60.0 * s * (s - 1.0) * (2.0 * s - 1.0) * iw * iw
+        # s <= 0 (spheres overlap): phi = phi' = phi'' = 0, no central term and an unchanged weight, so the
+        # distance's derivatives are not needed (most node pairs near contact)
+        # far (phi = 1, phi' = phi'' = 0): the term is W P_c(r), whose Hessian is formed from its blocks below,
+        # without d2r
+        plain = s >= 1.0
+        if order >= 1 and s > 0.0:
+            u0, u1, u2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
+            for i in range(3):
+                for kk in range(3):
+                    dd[i, 3 + kk] = (
+                        dR[ba, i, 0, kk] * CI[0] + dR[ba, i, 1, kk] * CI[1] + dR[ba, i, 2, kk] * CI[2]
+                    )
+                    dd[i, 9 + kk] = -(
+                        dR[bb, i, 0, kk] * CJ[0] + dR[bb, i, 1, kk] * CJ[1] + dR[bb, i, 2, kk] * CJ[2]
+                    )
+            for c in range(12):
+                dr[c] = u0 * dd[0, c] + u1 * dd[1, c] + u2 * dd[2, c]
+            if order >= 2 and not plain:
+                for a in range(12):  # the upper triangle (the only one read)
+                    for c in range(a, 12):
+                        d2r[a, c] = (
+                            dd[0, a] * dd[0, c] + dd[1, a] * dd[1, c] + dd[2, a] * dd[2, c] - dr[a] * dr[c]
+                        ) * inv_r
+                for kk in range(3):
+                    for ll in range(kk, 3):
+                        acc_a = 0.0
+                        acc_b = 0.0
+                        for i in range(3):
+                            ui = d[i] * inv_r
+                            for m in range(3):
+                                acc_a += ui * d2R[ba, i, m, kk, ll] * CI[m]
+                                acc_b += ui * d2R[bb, i, m, kk, ll] * CJ[m]
+                        d2r[3 + kk, 3 + ll] += acc_a
+                        d2r[9 + kk, 9 + ll] -= acc_b
+        # central term W * phi * P_c(r)
+        if phi > 0.0:
+            sq = math.sqrt(inv_r)
+            ir = sq * sq
+            pc = 12.0 * mu * (1.0 + sq) ** 2
+            pc1 = -12.0 * mu * (ir * sq + ir * ir)
+            pc2 = 12.0 * mu * (1.5 * ir * ir * sq + 2.0 * ir * ir * ir)
+            g = phi * pc
+            value[p] += W * g
+            if order >= 1:
+                g1 = phi1 * pc + phi * pc1
+                for a in range(12):
+                    grad[p, a] += g * wd1[wid, a] + W * g1 * dr[a]
+                if order >= 2:  # the upper triangle (mirrored when the body pair is done)
+                    g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
+                    if plain:
+                        _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ)
+                        far = True
+                        if wid != 0:  # an ancestor in the band: the weight's derivatives
+                            for a in range(12):
+                                for c in range(a, 12):
+                                    hess[p, a, c] += g * wd2[wid, a, c] + g1 * (
+                                        wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c]
+                                    )
+                    # (else: a node pair in the band, 0 < s < 1; its Hessian term is added below, in one pass
+                    # with its children's weight's Hessian)
+        if s >= 1.0:
+            continue
+        # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
+        # s <= 0
+        if s > 0.0:
+            if nw == wv.shape[0]:
+                return _FULL_WEIGHTS, n_leaf, nw, n_pairs, far
+            h = 1.0 - phi
+            if order >= 2:
+                # the central term's Hessian (its upper triangle: mirrored when the body pair is done) and the
+                # children's weight's (W (1 - phi)), from the same products; the weight tables' Hessians are
+                # read only in their upper triangles
+                if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
+                    for a in range(12):
+                        ga = g2 * dr[a]
+                        pa = phi2 * dr[a]
+                        for c in range(a, 12):
+                            d2 = d2r[a, c]
+                            hess[p, a, c] += ga * dr[c] + g1 * d2
+                            wd2[nw, a, c] = (
+                                h * wd2[wid, a, c]
+                                - phi1 * (wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c])
+                                - W * (pa * dr[c] + phi1 * d2)
+                            )
+                else:
+                    for a in range(12):
+                        ga = g2 * dr[a]
+                        pa = phi2 * dr[a]
+                        for c in range(a, 12):
+                            d2 = d2r[a, c]
+                            cr = wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c]
+                            hess[p, a, c] += g * wd2[wid, a, c] + g1 * cr + W * (ga * dr[c] + g1 * d2)
+                            wd2[nw, a, c] = h * wd2[wid, a, c] - phi1 * cr - W * (pa * dr[c] + phi1 * d2)
+            if order >= 1:
+                for a in range(12):
+                    wd1[nw, a] = h * wd1[wid, a] - W * phi1 * dr[a]
+            wv[nw] = W * h
+            wid = nw
+            nw += 1
+        leaf_i = child[I, 0] < 0
+        leaf_j = child[J, 0] < 0
+        if leaf_i and leaf_j:
+            if n_leaf == LI.shape[0]:
+                return _FULL_LEAVES, n_leaf, nw, n_pairs, far
+            LI[n_leaf], LJ[n_leaf], lp[n_leaf], lwid[n_leaf] = I, J, p, wid
+            n_leaf += 1
+            continue
+        si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)
+        ni = 2 if si else 1
+        nj = 2 if sj else 1
+        if top + 4 > sI.shape[0]:
+            return _FULL_STACK, n_leaf, nw, n_pairs, far
+        for a in range(ni):
+            ci = child[I, a] if si else I
+            for b in range(nj):
+                cj = child[J, b] if sj else J
+                sI[top], sJ[top], sK[top] = ci, cj, wid
+                top += 1
+    return _DONE, n_leaf, nw, n_pairs, far
+
+
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split_both,
-                   order, value, grad, hess):  # fmt: skip
+                   order, value, grad, hess, stack_cap=1024, table_cap=256, leaf_cap=256):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
 
     Inherited weights live in a table, not on the stack: entry 0 is the weight 1 (zero derivatives) that every
@@ -144,18 +314,16 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         (order >= 2) of the inherited weight (1 - phi) prod.
     """
     P = pair_body.shape[0]
-    cap = 1024
-    sI = np.empty(cap, np.int64)
-    sJ = np.empty(cap, np.int64)
-    sP = np.empty(cap, np.int64)
-    sK = np.empty(cap, np.int64)
-    wcap = 256
+    sI = np.empty(stack_cap, np.int64)
+    sJ = np.empty(stack_cap, np.int64)
+    sK = np.empty(stack_cap, np.int64)
+    wcap = table_cap
     wv = np.empty(wcap)
     wd1 = np.zeros((wcap if order >= 1 else 1, 12))
     wd2 = np.zeros((wcap if order >= 2 else 1, 12, 12))
     wv[0] = 1.0
     nw = 1
-    lcap = 256
+    lcap = leaf_cap
     LI = np.empty(lcap, np.int64)
     LJ = np.empty(lcap, np.int64)
     lp = np.empty(lcap, np.int64)
@@ -173,179 +341,44 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         dd[k, 6 + k] = -1.0
     Z = np.zeros((9, 9))
     Mom = np.zeros(52)
+    g0 = np.zeros(12)
+    h0 = np.zeros((12, 12))
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
-        sI[0], sJ[0], sP[0], sK[0] = pair_root[p, 0], pair_root[p, 1], p, 0
-        far = False  # a far node pair's Hessian went into the moments Z, Mom
+        # the pair's rows as they were, to start again from when a buffer fills up
+        v0 = value[p]
+        if order >= 1:
+            g0[:] = grad[p]
         if order >= 2:
-            Z[:] = 0.0
-            Mom[:] = 0.0
-        top = 1
-        while top > 0:
-            top -= 1
-            I, J, wid = sI[top], sJ[top], sK[top]
-            W = wv[wid]
-            n_pairs += 1
-            CI = centre[I]
-            CJ = centre[J]
-            dx = 0.0
-            r2 = 0.0
-            for i in range(3):
-                ca[i] = R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2] + t[ba, i]
-                cb[i] = R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2] + t[bb, i]
-                dx = ca[i] - cb[i]
-                d[i] = dx
-                r2 += dx * dx
-            r = math.sqrt(r2)
-            inv_r = 1.0 / r
-            d1 = radius[I] + radius[J]
-            width = max(eps[p] * d1, min_width)  # the blend band: at least BAND_MARGINS margins wide
-            s = (r - d1) / width
-            if s <= 0.0:
-                phi = phi1 = phi2 = 0.0
-            elif s >= 1.0:
-                phi, phi1, phi2 = 1.0, 0.0, 0.0
+            h0[:] = hess[p]
+        while True:
+            if order >= 2:
+                Z[:] = 0.0
+                Mom[:] = 0.0
+            sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
+            status, n_leaf_p, nw_p, n_p, far = _pair_nodes(
+                p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
+                grad, hess, sI, sJ, sK, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z, Mom,
+            )  # fmt: skip
+            if status == _DONE:
+                n_leaf, nw = n_leaf_p, nw_p
+                n_pairs += n_p
+                break
+            value[p] = v0
+            if order >= 1:
+                grad[p] = g0
+            if order >= 2:
+                hess[p] = h0
+            if status == _FULL_STACK:
+                sI, sJ, sK = _grow(sI, 0), _grow(sJ, 0), _grow(sK, 0)
+            elif status == _FULL_LEAVES:
+                LI, LJ, lp, lwid = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lwid, 0)
             else:
-                iw = 1.0 / width
-                phi = s * s * s * (s * (6.0 * s - 15.0) + 10.0)
-                phi1 = 30.0 * s * s * (s - 1.0) ** 2 * iw
-                phi2 = 60.0 * s * (s - 1.0) * (2.0 * s - 1.0) * iw * iw
-            # s <= 0 (spheres overlap): phi = phi' = phi'' = 0, no central term and an unchanged weight, so the
-            # distance's derivatives are not needed (most node pairs near contact)
-            # far (phi = 1, phi' = phi'' = 0): the term is W P_c(r), whose Hessian is formed from its blocks below,
-            # without d2r
-            plain = s >= 1.0
-            if order >= 1 and s > 0.0:
-                u0, u1, u2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
-                for i in range(3):
-                    for kk in range(3):
-                        dd[i, 3 + kk] = (
-                            dR[ba, i, 0, kk] * CI[0] + dR[ba, i, 1, kk] * CI[1] + dR[ba, i, 2, kk] * CI[2]
-                        )
-                        dd[i, 9 + kk] = -(
-                            dR[bb, i, 0, kk] * CJ[0] + dR[bb, i, 1, kk] * CJ[1] + dR[bb, i, 2, kk] * CJ[2]
-                        )
-                for c in range(12):
-                    dr[c] = u0 * dd[0, c] + u1 * dd[1, c] + u2 * dd[2, c]
-                if order >= 2 and not plain:
-                    for a in range(12):  # the upper triangle (the only one read)
-                        for c in range(a, 12):
-                            d2r[a, c] = (
-                                dd[0, a] * dd[0, c]
-                                + dd[1, a] * dd[1, c]
-                                + dd[2, a] * dd[2, c]
-                                - dr[a] * dr[c]
-                            ) * inv_r
-                    for kk in range(3):
-                        for ll in range(kk, 3):
-                            acc_a = 0.0
-                            acc_b = 0.0
-                            for i in range(3):
-                                ui = d[i] * inv_r
-                                for m in range(3):
-                                    acc_a += ui * d2R[ba, i, m, kk, ll] * CI[m]
-                                    acc_b += ui * d2R[bb, i, m, kk, ll] * CJ[m]
-                            d2r[3 + kk, 3 + ll] += acc_a
-                            d2r[9 + kk, 9 + ll] -= acc_b
-            # central term W * phi * P_c(r)
-            if phi > 0.0:
-                sq = math.sqrt(inv_r)
-                ir = sq * sq
-                pc = 12.0 * mu * (1.0 + sq) ** 2
-                pc1 = -12.0 * mu * (ir * sq + ir * ir)
-                pc2 = 12.0 * mu * (1.5 * ir * ir * sq + 2.0 * ir * ir * ir)
-                g = phi * pc
-                value[p] += W * g
+                wv = _grow(wv, 0)
                 if order >= 1:
-                    W1 = wd1[wid]
-                    g1 = phi1 * pc + phi * pc1
-                    for a in range(12):
-                        grad[p, a] += g * W1[a] + W * g1 * dr[a]
-                    if order >= 2:  # the upper triangle (mirrored when the body pair is done)
-                        g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
-                        if plain:
-                            _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ)
-                            far = True
-                            if wid != 0:  # an ancestor in the band: the weight's derivatives
-                                W1 = wd1[wid]
-                                W2 = wd2[wid]
-                                for a in range(12):
-                                    for c in range(a, 12):
-                                        hess[p, a, c] += g * W2[a, c] + g1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                        # (else: a node pair in the band, 0 < s < 1; its Hessian term is added below, in one pass
-                        # with its children's weight's Hessian)
-            if s >= 1.0:
-                continue
-            # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
-            # s <= 0
-            if s > 0.0:
-                if nw == wv.shape[0]:
-                    wv = _grow(wv, 0)
-                    if order >= 1:
-                        wd1 = _grow(wd1, 0)
-                    if order >= 2:
-                        wd2 = _grow(wd2, 0)
-                h = 1.0 - phi
+                    wd1 = _grow(wd1, 0)
                 if order >= 2:
-                    # the central term's Hessian (its upper triangle: mirrored when the body pair is done) and the
-                    # children's weight's (W (1 - phi)), from the same products; the weight tables' Hessians are
-                    # read only in their upper triangles
-                    W1 = wd1[wid]
-                    W2 = wd2[wid]
-                    N2 = wd2[nw]
-                    if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
-                        for a in range(12):
-                            ga = g2 * dr[a]
-                            pa = phi2 * dr[a]
-                            for c in range(a, 12):
-                                d2 = d2r[a, c]
-                                hess[p, a, c] += ga * dr[c] + g1 * d2
-                                N2[a, c] = (
-                                    h * W2[a, c]
-                                    - phi1 * (W1[a] * dr[c] + dr[a] * W1[c])
-                                    - W * (pa * dr[c] + phi1 * d2)
-                                )
-                    else:
-                        for a in range(12):
-                            ga = g2 * dr[a]
-                            pa = phi2 * dr[a]
-                            for c in range(a, 12):
-                                d2 = d2r[a, c]
-                                cr = W1[a] * dr[c] + dr[a] * W1[c]
-                                hess[p, a, c] += g * W2[a, c] + g1 * cr + W * (ga * dr[c] + g1 * d2)
-                                N2[a, c] = h * W2[a, c] - phi1 * cr - W * (pa * dr[c] + phi1 * d2)
-                if order >= 1:
-                    W1 = wd1[wid]
-                    N1 = wd1[nw]
-                    for a in range(12):
-                        N1[a] = h * W1[a] - W * phi1 * dr[a]
-                wv[nw] = W * h
-                wid = nw
-                nw += 1
-            leaf_i = child[I, 0] < 0
-            leaf_j = child[J, 0] < 0
-            if leaf_i and leaf_j:
-                if n_leaf == LI.shape[0]:
-                    LI, LJ, lp, lwid = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lwid, 0)
-                LI[n_leaf], LJ[n_leaf], lp[n_leaf], lwid[n_leaf] = I, J, p, wid
-                n_leaf += 1
-                continue
-            si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)
-            ni = 2 if si else 1
-            nj = 2 if sj else 1
-            if top + 4 > sI.shape[0]:
-                sI, sJ, sP, sK = (
-                    _grow(sI, top + 4),
-                    _grow(sJ, top + 4),
-                    _grow(sP, top + 4),
-                    _grow(sK, top + 4),
-                )
-            for a in range(ni):
-                ci = child[I, a] if si else I
-                for b in range(nj):
-                    cj = child[J, b] if sj else J
-                    sI[top], sJ[top], sP[top], sK[top] = ci, cj, p, wid
-                    top += 1
+                    wd2 = _grow(wd2, 0)
         if far:
             _far_expand(hess, p, Z, Mom, dR, d2R, ba, bb)
         if order >= 2:  # central terms were accumulated into the upper triangle
@@ -395,8 +428,74 @@ def _triangles_intersect(A, B) -> bool:
 
 
 @numba.njit(**_JIT)
+def _pair_hits(ba, bb, sa, sb, centre, radius, child, tri, tris, R, t, margin, eps_p, min_width, split_both, sI, sJ,
+               A, B, q):  # fmt: skip
+    """Whether body pair (ba, bb) has a triangle pair within ``margin`` (``_HIT``; else ``_DONE``), searched from the
+    node pair on top of the stack (sI[0], sJ[0]); ``_FULL_STACK`` when the stack filled up first (the caller grows
+    it and searches again; the buffers are never reassigned here, see :func:`_pair_nodes`)."""
+    top = 1
+    while top > 0:
+        top -= 1
+        I, J = sI[top], sJ[top]
+        CI = (centre[I, 0], centre[I, 1], centre[I, 2])  # (tuples: no array views in the loop)
+        CJ = (centre[J, 0], centre[J, 1], centre[J, 2])
+        r2 = 0.0
+        for i in range(3):
+            dx = (sa * (R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2]) + t[ba, i]) - (
+                sb * (R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2]) + t[bb, i]
+            )
+            r2 += dx * dx
+        d1 = sa * radius[I] + sb * radius[J]
+        r = math.sqrt(r2)
+        if r - d1 >= max(eps_p * d1, min_width):  # the potential's far field: central term only, finite
+            continue
+        # (a relative slack of 1e-9 covers the rounding of the world centres)
+        if r - d1 > margin + 1e-9 * (r + d1):
+            continue
+        leaf_i = child[I, 0] < 0
+        leaf_j = child[J, 0] < 0
+        if leaf_i and leaf_j:
+            ti, tj = tri[I], tri[J]
+            for v in range(3):
+                for i in range(3):
+                    A[v, i] = (
+                        sa
+                        * (
+                            R[ba, i, 0] * tris[ti, v, 0]
+                            + R[ba, i, 1] * tris[ti, v, 1]
+                            + R[ba, i, 2] * tris[ti, v, 2]
+                        )
+                        + t[ba, i]
+                    )
+                    B[v, i] = (
+                        sb
+                        * (
+                            R[bb, i, 0] * tris[tj, v, 0]
+                            + R[bb, i, 1] * tris[tj, v, 1]
+                            + R[bb, i, 2] * tris[tj, v, 2]
+                        )
+                        + t[bb, i]
+                    )
+            if _plane_separated(A, B, margin) or _plane_separated(B, A, margin):
+                continue  # one triangle lies beyond the other's plane by more than the margin (most resting pairs)
+            # (the closest-feature distance is positive when an edge pierces the other triangle's interior)
+            if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin or _triangles_intersect(A, B):
+                return _HIT
+            continue
+        si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)  # as the potential's
+        if top + 4 > sI.shape[0]:
+            return _FULL_STACK
+        for a in range(2 if si else 1):
+            ci = child[I, a] if si else I
+            for b in range(2 if sj else 1):
+                sI[top], sJ[top] = ci, child[J, b] if sj else J
+                top += 1
+    return _DONE
+
+
+@numba.njit(**_JIT)
 def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, eps, min_width,
-                      split_both, out):  # fmt: skip
+                      split_both, out, stack_cap=256):  # fmt: skip
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
@@ -411,66 +510,21 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     moving bodies).
     """
     P = pair_body.shape[0]
-    cap = 256
-    sI = np.empty(cap, np.int64)
-    sJ = np.empty(cap, np.int64)
+    sI = np.empty(stack_cap, np.int64)
+    sJ = np.empty(stack_cap, np.int64)
     A = np.empty((3, 3))
     B = np.empty((3, 3))
     q = np.empty(6)
     for p in range(P):
-        out[p] = 0
         ba, bb = pair_body[p, 0], pair_body[p, 1]
-        sa, sb = scale[ba], scale[bb]
-        sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
-        top = 1
-        while top > 0:
-            top -= 1
-            I, J = sI[top], sJ[top]
-            CI = centre[I]
-            CJ = centre[J]
-            r2 = 0.0
-            for i in range(3):
-                dx = (sa * (R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2]) + t[ba, i]) - (
-                    sb * (R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2]) + t[bb, i]
-                )
-                r2 += dx * dx
-            d1 = sa * radius[I] + sb * radius[J]
-            r = math.sqrt(r2)
-            if r - d1 >= max(eps[p] * d1, min_width):  # the potential's far field: central term only, finite
-                continue
-            # (a relative slack of 1e-9 covers the rounding of the world centres)
-            if r - d1 > margin + 1e-9 * (r + d1):
-                continue
-            leaf_i = child[I, 0] < 0
-            leaf_j = child[J, 0] < 0
-            if leaf_i and leaf_j:
-                TA = tris[tri[I]]
-                TB = tris[tri[J]]
-                for v in range(3):
-                    for i in range(3):
-                        A[v, i] = (
-                            sa * (R[ba, i, 0] * TA[v, 0] + R[ba, i, 1] * TA[v, 1] + R[ba, i, 2] * TA[v, 2])
-                            + t[ba, i]
-                        )
-                        B[v, i] = (
-                            sb * (R[bb, i, 0] * TB[v, 0] + R[bb, i, 1] * TB[v, 1] + R[bb, i, 2] * TB[v, 2])
-                            + t[bb, i]
-                        )
-                if _plane_separated(A, B, margin) or _plane_separated(B, A, margin):
-                    continue  # one triangle lies beyond the other's plane by more than the margin (most resting pairs)
-                # (the closest-feature distance is positive when an edge pierces the other triangle's interior)
-                if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin or _triangles_intersect(A, B):
-                    out[p] = 1
-                    break
-                continue
-            si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)  # as the potential's
-            if top + 4 > sI.shape[0]:
-                sI, sJ = _grow(sI, top + 4), _grow(sJ, top + 4)
-            for a in range(2 if si else 1):
-                ci = child[I, a] if si else I
-                for b in range(2 if sj else 1):
-                    sI[top], sJ[top] = ci, child[J, b] if sj else J
-                    top += 1
+        while True:
+            sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
+            status = _pair_hits(ba, bb, scale[ba], scale[bb], centre, radius, child, tri, tris, R, t, margin, eps[p],
+                                min_width, split_both, sI, sJ, A, B, q)  # fmt: skip
+            if status != _FULL_STACK:
+                break
+            sI, sJ = _grow(sI, 0), _grow(sJ, 0)
+        out[p] = 1 if status == _HIT else 0
 
 
 @numba.njit(nogil=True, **_JIT)  # (called from several threads at once, on the leaves of disjoint body pairs)
