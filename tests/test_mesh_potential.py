@@ -681,7 +681,13 @@ def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
     """The CPU kernels start with fixed buffers (stack, leaves, weight table) and, when one fills up, grow it and
     traverse the body pair again from its saved rows: started at capacity 1 (every buffer grows, mid-pair, many
     times) they return exactly what the default capacities return."""
-    from cfd_torch.contact._traverse_numba import penetrating_pairs, traverse_nodes
+    from cfd_torch.contact._traverse_numba import (
+        LEAF_CAP,
+        STACK_CAP,
+        TABLE_CAP,
+        penetrating_pairs,
+        traverse_nodes,
+    )
 
     n = 6
     bsh_a, bsh_b = _bsh("ico1"), _bsh("box")
@@ -697,14 +703,16 @@ def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
     eps = np.full(n, 0.01)
     for order in (0, 1, 2):
         runs = []
-        for caps in ((), (1, 1, 1)):
+        for caps in ((STACK_CAP, TABLE_CAP, LEAF_CAP), (1, 1, 1)):
             out = (np.zeros(n), np.zeros((n, 12)), np.zeros((n, 12, 12)))
             res = traverse_nodes(*geo, pair_body, pair_root, R, dR, d2R, t, 1.0, eps, 2 * MARGIN, split == "both",
                                  order, *out, *caps)  # fmt: skip
             runs.append((res, out))
         (res0, out0), (res1, out1) = runs
         n_leaf = res0[7]
-        assert n_leaf > 8 and res0[8] > 8 and res0[4].shape[0] == 256  # leaves, node pairs, the default table
+        assert (
+            n_leaf > 8 and res0[8] > 8 and res0[4].shape[0] == TABLE_CAP
+        )  # leaves, node pairs, the first table
         assert (res1[7], res1[8]) == (n_leaf, res0[8])
         for a, b in zip(res0[:4], res1[:4], strict=True):  # leaf node ids, body pairs, weight entries
             assert np.array_equal(a[:n_leaf], b[:n_leaf])
@@ -714,7 +722,7 @@ def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
         for a, b in zip(out0[: order + 1], out1[: order + 1], strict=True):
             assert np.abs(a).max() > 0 and np.array_equal(a, b)
     flags = []
-    for caps in ((), (1,)):
+    for caps in ((STACK_CAP,), (1,)):
         out = np.zeros(n, np.int8)
         # (a query margin of 10 mm: the near pairs are within it)
         penetrating_pairs(*geo, forest.tri.numpy(), forest.tris.numpy(), pair_body, pair_root, R, t, np.ones(2 * n),

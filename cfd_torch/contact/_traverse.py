@@ -204,7 +204,7 @@ def _traverse_cpu(
 
     Several body pairs are traversed by up to four threads, each taking every n-th pair (the kernel is serial
     within a body pair); the results are the same as one thread's, their leaves in another order."""
-    from ._traverse_numba import traverse_nodes
+    from ._traverse_numba import LEAF_CAP, STACK_CAP, TABLE_CAP, traverse_nodes
 
     Nb = R.shape[0]
     dt = R.dtype
@@ -234,7 +234,7 @@ def _traverse_cpu(
         out = traverse_nodes(
             forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pb.numpy(),
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
-            int(order), v.numpy(), g.numpy(), h.numpy(),
+            int(order), v.numpy(), g.numpy(), h.numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
         )  # fmt: skip
         return out, v, g, h
 
@@ -601,7 +601,7 @@ def penetrating(
         raise NotImplementedError("scaled collision queries run on CPU only")
     if pose.device.type == "cpu":
         sc = torch.ones(pose.shape[0], dtype=torch.float64) if scale is None else scale.to(torch.float64)
-        from ._traverse_numba import penetrating_pairs
+        from ._traverse_numba import STACK_CAP, penetrating_pairs
 
         R = rotation_derivatives(pose[:, 3:].to(torch.float64), 0)[0]
         out = torch.empty(pair_body.shape[0], dtype=torch.int8)
@@ -611,7 +611,7 @@ def penetrating(
             pair_root.contiguous().numpy(), R.contiguous().numpy(),
             pose[:, :3].to(torch.float64).contiguous().numpy(), sc.contiguous().numpy(),
             float(margin) * (1.0 + _QUERY_SLACK), _pair_eps(eps, pair_body.shape[0], torch.device("cpu")).numpy(),
-            BAND_MARGINS * float(margin), split == "both", out.numpy(),
+            BAND_MARGINS * float(margin), split == "both", out.numpy(), STACK_CAP,
         )  # fmt: skip
         return out.bool()
     value = traverse(

@@ -128,6 +128,9 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
     add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
 
 
+# the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
+# that leaves out arguments with defaults through its slow path, about half a millisecond per call)
+STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 256, 256
 # the kernels' status codes
 _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
 
@@ -300,7 +303,7 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split_both,
-                   order, value, grad, hess, stack_cap=1024, table_cap=256, leaf_cap=256):  # fmt: skip
+                   order, value, grad, hess, stack_cap, table_cap, leaf_cap):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
 
     Inherited weights live in a table, not on the stack: entry 0 is the weight 1 (zero derivatives) that every
@@ -495,7 +498,7 @@ def _pair_hits(ba, bb, sa, sb, centre, radius, child, tri, tris, R, t, margin, e
 
 @numba.njit(**_JIT)
 def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R, t, scale, margin, eps, min_width,
-                      split_both, out, stack_cap=256):  # fmt: skip
+                      split_both, out, stack_cap):  # fmt: skip
     """Mark in ``out`` (P,) int8 the body pairs that have a triangle pair within ``margin`` (or intersecting).
 
     Exactly the pairs whose BSH potential is +inf: the potential descends every node pair whose spheres overlap,
