@@ -672,7 +672,16 @@ def _solve_range(lo, hi, X, C, mu, delta, lam, tol, max_iter, want_grad, want_he
                         st = CONVERGED
                     break
                 # the trial's E, derivatives and gaps become current
-                p, p2, g, g2, H, H2, sc, sc2, s, s2 = p2, p, g2, g, H2, H, sc2, sc, s2, s
+                # (copied, not swapped: numba reference-counts array variables reassigned in a loop at every
+                # iteration)
+                for i in range(4):
+                    p[i], g[i] = p2[i], g2[i]
+                    for j in range(4):
+                        H[i, j] = H2[i, j]
+                for i in range(9):
+                    sc[i] = sc2[i]
+                for i in range(6):
+                    s[i] = s2[i]
                 e, e_res = e_new, e_res_new
                 damp = 0.0 if damp <= 1e-3 else damp * 0.1
             if st == CONVERGED and _cholesky4(H, L, Li, 0.0):

@@ -127,7 +127,9 @@ def friction_by_pair(slot, F, R, dR, d2R, t, rows, X, x_t, T, lam, mu, e, order,
                 for m in range(3):
                     Gc[i, m] = sign * g[i] * X[c, s, m]
             if shared:
-                G2[f, s] += Gc
+                for i in range(3):
+                    for m in range(3):
+                        G2[f, s, i, m] += Gc[i, m]
             else:
                 add_rotation_terms(hess, f, 3 if s == 0 else 9, Gc, d2R, rows[c, s], 1.0)
         if want_gap:  # (-w c2) v v^T, v = Jc^T u
