@@ -137,21 +137,25 @@ _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
 
 @numba.njit(nogil=True, **_JIT)
 def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
-                Mom):  # fmt: skip
-    """Traverse body pair p (bodies ba, bb) from the node pair on top of the stack (sI[0], sJ[0], sK[0]),
-    accumulating its central terms into value[p], grad[p], hess[p] (the upper triangle) and the far node pairs'
-    moments into Z, Mom; leaves are appended from index n_leaf, weight table entries from nw.
+                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
+                Mom, n_pairs, far):  # fmt: skip
+    """Traverse body pair p (bodies ba, bb) from its stack (sI, sJ, sK, ``top`` entries), accumulating its central
+    terms into value[p], grad[p], hess[p] (the upper triangle) and its far node pairs' moments into Z, Mom (``far``:
+    whether some were added); leaves are appended from index n_leaf, weight table entries from nw.
 
-    Returns (status, n_leaf, nw, node pairs, whether a far node pair's moments were added): status ``_DONE``, or
-    which buffer filled up (the stack, the leaves, the weight table) before the pair was done; its results are then
-    partial, and the caller grows that buffer and traverses the pair again. The buffers are arguments, never
-    reassigned here: numba reference-counts an array variable reassigned inside a loop at every iteration, which
-    cost three times the traversal's own work."""
-    n_pairs = 0
-    far = False
-    top = 1
+    Returns (status, top, n_leaf, nw, n_pairs, far): status ``_DONE``, or which buffer is full (the stack, the
+    leaves, the weight table), checked before a node pair is taken off the stack (each needs at most 3 more stack
+    entries, one leaf and one table entry): the caller grows that buffer and calls again with the returned state,
+    which goes on where this call stopped. The buffers are arguments, never reassigned here: numba
+    reference-counts an array variable reassigned inside a loop at every iteration, which cost three times the
+    traversal's own work."""
     while top > 0:
+        if top + 3 > sI.shape[0]:
+            return _FULL_STACK, top, n_leaf, nw, n_pairs, far
+        if n_leaf == LI.shape[0]:
+            return _FULL_LEAVES, top, n_leaf, nw, n_pairs, far
+        if nw == wv.shape[0]:
+            return _FULL_WEIGHTS, top, n_leaf, nw, n_pairs, far
         top -= 1
         I, J, wid = sI[top], sJ[top], sK[top]
         W = wv[wid]
@@ -245,8 +249,6 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
         # inherited weight W (1 - phi) and its derivatives (product rule), a new table entry; unchanged for
         # s <= 0
         if s > 0.0:
-            if nw == wv.shape[0]:
-                return _FULL_WEIGHTS, n_leaf, nw, n_pairs, far
             h = 1.0 - phi
             if order >= 2:
                 # the central term's Hessian (its upper triangle: mirrored when the body pair is done) and the
@@ -282,23 +284,19 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
         leaf_i = child[I, 0] < 0
         leaf_j = child[J, 0] < 0
         if leaf_i and leaf_j:
-            if n_leaf == LI.shape[0]:
-                return _FULL_LEAVES, n_leaf, nw, n_pairs, far
             LI[n_leaf], LJ[n_leaf], lp[n_leaf], lwid[n_leaf] = I, J, p, wid
             n_leaf += 1
             continue
         si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)
         ni = 2 if si else 1
         nj = 2 if sj else 1
-        if top + 4 > sI.shape[0]:
-            return _FULL_STACK, n_leaf, nw, n_pairs, far
         for a in range(ni):
             ci = child[I, a] if si else I
             for b in range(nj):
                 cj = child[J, b] if sj else J
                 sI[top], sJ[top], sK[top] = ci, cj, wid
                 top += 1
-    return _DONE, n_leaf, nw, n_pairs, far
+    return _DONE, top, n_leaf, nw, n_pairs, far
 
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
@@ -344,34 +342,22 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         dd[k, 6 + k] = -1.0
     Z = np.zeros((9, 9))
     Mom = np.zeros(52)
-    g0 = np.zeros(12)
-    h0 = np.zeros((12, 12))
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
-        # the pair's rows as they were, to start again from when a buffer fills up
-        v0 = value[p]
-        if order >= 1:
-            g0[:] = grad[p]
         if order >= 2:
-            h0[:] = hess[p]
+            Z[:] = 0.0
+            Mom[:] = 0.0
+        sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
+        top = 1
+        far = False
         while True:
-            if order >= 2:
-                Z[:] = 0.0
-                Mom[:] = 0.0
-            sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
-            status, n_leaf_p, nw_p, n_p, far = _pair_nodes(
+            status, top, n_leaf, nw, n_pairs, far = _pair_nodes(
                 p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z, Mom,
+                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
+                Mom, n_pairs, far,
             )  # fmt: skip
             if status == _DONE:
-                n_leaf, nw = n_leaf_p, nw_p
-                n_pairs += n_p
                 break
-            value[p] = v0
-            if order >= 1:
-                grad[p] = g0
-            if order >= 2:
-                hess[p] = h0
             if status == _FULL_STACK:
                 sI, sJ, sK = _grow(sI, 0), _grow(sJ, 0), _grow(sK, 0)
             elif status == _FULL_LEAVES:
@@ -432,12 +418,13 @@ def _triangles_intersect(A, B) -> bool:
 
 @numba.njit(**_JIT)
 def _pair_hits(ba, bb, sa, sb, centre, radius, child, tri, tris, R, t, margin, eps_p, min_width, split_both, sI, sJ,
-               A, B, q):  # fmt: skip
-    """Whether body pair (ba, bb) has a triangle pair within ``margin`` (``_HIT``; else ``_DONE``), searched from the
-    node pair on top of the stack (sI[0], sJ[0]); ``_FULL_STACK`` when the stack filled up first (the caller grows
-    it and searches again; the buffers are never reassigned here, see :func:`_pair_nodes`)."""
-    top = 1
+               top, A, B, q):  # fmt: skip
+    """Whether body pair (ba, bb) has a triangle pair within ``margin``: (``_HIT`` or ``_DONE``, top), searched from
+    its stack (sI, sJ, ``top`` entries); ``_FULL_STACK`` when the stack is full (the caller grows it and calls again
+    with the returned top; the stack is never reassigned here, see :func:`_pair_nodes`)."""
     while top > 0:
+        if top + 3 > sI.shape[0]:
+            return _FULL_STACK, top
         top -= 1
         I, J = sI[top], sJ[top]
         CI = (centre[I, 0], centre[I, 1], centre[I, 2])  # (tuples: no array views in the loop)
@@ -483,17 +470,15 @@ def _pair_hits(ba, bb, sa, sb, centre, radius, child, tri, tris, R, t, margin, e
                 continue  # one triangle lies beyond the other's plane by more than the margin (most resting pairs)
             # (the closest-feature distance is positive when an edge pierces the other triangle's interior)
             if not math.sqrt(tri_tri_closest_nb(A, B, q)) > margin or _triangles_intersect(A, B):
-                return _HIT
+                return _HIT, top
             continue
         si, sj = _split_rule(leaf_i, leaf_j, radius[I], radius[J], split_both)  # as the potential's
-        if top + 4 > sI.shape[0]:
-            return _FULL_STACK
         for a in range(2 if si else 1):
             ci = child[I, a] if si else I
             for b in range(2 if sj else 1):
                 sI[top], sJ[top] = ci, child[J, b] if sj else J
                 top += 1
-    return _DONE
+    return _DONE, top
 
 
 @numba.njit(**_JIT)
@@ -520,10 +505,11 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     q = np.empty(6)
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
+        sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
+        top = 1
         while True:
-            sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
-            status = _pair_hits(ba, bb, scale[ba], scale[bb], centre, radius, child, tri, tris, R, t, margin, eps[p],
-                                min_width, split_both, sI, sJ, A, B, q)  # fmt: skip
+            status, top = _pair_hits(ba, bb, scale[ba], scale[bb], centre, radius, child, tri, tris, R, t, margin,
+                                     eps[p], min_width, split_both, sI, sJ, top, A, B, q)  # fmt: skip
             if status != _FULL_STACK:
                 break
             sI, sJ = _grow(sI, 0), _grow(sJ, 0)
