@@ -257,6 +257,20 @@ def _ill_conditioned(H, L, Li):
 
 
 @numba.njit(**_JIT_INLINE)
+def _take(p, g, H, sc, s, p2, g2, H2, sc2, s2):
+    """The trial's plane, derivatives, scales and gaps (p2, ...) copied into the current ones (p, ...): copied, not
+    swapped, since numba reference-counts array variables reassigned in a loop at every iteration."""
+    for i in range(4):
+        p[i], g[i] = p2[i], g2[i]
+        for j in range(4):
+            H[i, j] = H2[i, j]
+    for i in range(9):
+        sc[i] = sc2[i]
+    for i in range(6):
+        s[i] = s2[i]
+
+
+@numba.njit(**_JIT_INLINE)
 def _refine(Xo, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, Q, B, Hq, L, Li, m, step):
     """Newton steps in E_pp's eigenbasis from a converged plane p of an ill-conditioned pair (``_rotated_epp``);
     returns the refined (e, e_res), with p, g, H, sc, s at the refined plane.
@@ -306,15 +320,7 @@ def _refine(Xo, p, half_delta, lam, e, e_res, g, H, sc, s, p2, g2, H2, sc2, s2, 
             t *= 0.5
         if not ok:
             break
-        for i in range(4):
-            p[i] = p2[i]
-            g[i] = g2[i]
-            for j in range(4):
-                H[i, j] = H2[i, j]
-        for i in range(9):
-            sc[i] = sc2[i]
-        for i in range(6):
-            s[i] = s2[i]
+        _take(p, g, H, sc, s, p2, g2, H2, sc2, s2)
         e, e_res = e_new, e_res_new
     return e, e_res
 
@@ -672,16 +678,7 @@ def _solve_range(lo, hi, X, C, mu, delta, lam, tol, max_iter, want_grad, want_he
                         st = CONVERGED
                     break
                 # the trial's E, derivatives and gaps become current
-                # (copied, not swapped: numba reference-counts array variables reassigned in a loop at every
-                # iteration)
-                for i in range(4):
-                    p[i], g[i] = p2[i], g2[i]
-                    for j in range(4):
-                        H[i, j] = H2[i, j]
-                for i in range(9):
-                    sc[i] = sc2[i]
-                for i in range(6):
-                    s[i] = s2[i]
+                _take(p, g, H, sc, s, p2, g2, H2, sc2, s2)
                 e, e_res = e_new, e_res_new
                 damp = 0.0 if damp <= 1e-3 else damp * 0.1
             if st == CONVERGED and _cholesky4(H, L, Li, 0.0):
