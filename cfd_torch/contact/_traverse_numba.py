@@ -308,6 +308,8 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     node pair starts with, and a node pair in the blend band (0 < s < 1) that descends appends its children's weight
     W (1 - phi) with its gradient and Hessian; stack entries and leaves carry an entry's index. Node pairs whose
     spheres overlap (s <= 0, most of them near contact) pass their parent's index on without copying anything.
+    Body pair after body pair is traversed by :func:`_pair_nodes`; ``stack_cap``, ``table_cap`` and ``leaf_cap``
+    are the buffers' first sizes (``STACK_CAP``, ``TABLE_CAP``, ``LEAF_CAP``; doubled whenever one is full).
 
     Returns:
         (LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs): leaf node ids, body pair and weight entry (valid up to
@@ -495,7 +497,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     too); a body pair stops at its first hit. No weights, no plane solves: a collision query, for the
     feasibility checks of the simulator's start and paths.
     ``scale`` (Nb,) scales each body about its origin (1: as it is; the simulator's reachability check shrinks the
-    moving bodies).
+    moving bodies). ``stack_cap``: the stack's first size (``STACK_CAP``; doubled whenever it is full).
     """
     P = pair_body.shape[0]
     sI = np.empty(stack_cap, np.int64)
