@@ -137,7 +137,7 @@ _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
 
 @numba.njit(nogil=True, **_JIT)
 def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
+                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
                 Mom, n_pairs, far):  # fmt: skip
     """Traverse body pair p (bodies ba, bb) from its stack (sI, sJ, sK, ``top`` entries), accumulating its central
     terms into value[p], grad[p], hess[p] (the upper triangle) and its far node pairs' moments into Z, Mom (``far``:
@@ -162,12 +162,11 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
         n_pairs += 1
         CI = (centre[I, 0], centre[I, 1], centre[I, 2])  # (tuples: no array views in the loop)
         CJ = (centre[J, 0], centre[J, 1], centre[J, 2])
-        dx = 0.0
         r2 = 0.0
         for i in range(3):
-            ca[i] = R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2] + t[ba, i]
-            cb[i] = R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2] + t[bb, i]
-            dx = ca[i] - cb[i]
+            xa = R[ba, i, 0] * CI[0] + R[ba, i, 1] * CI[1] + R[ba, i, 2] * CI[2] + t[ba, i]
+            xb = R[bb, i, 0] * CJ[0] + R[bb, i, 1] * CJ[1] + R[bb, i, 2] * CJ[2] + t[bb, i]
+            dx = xa - xb
             d[i] = dx
             r2 += dx * dx
         r = math.sqrt(r2)
@@ -320,24 +319,20 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     sI = np.empty(stack_cap, np.int64)
     sJ = np.empty(stack_cap, np.int64)
     sK = np.empty(stack_cap, np.int64)
-    wcap = table_cap
-    wv = np.empty(wcap)
-    wd1 = np.zeros((wcap if order >= 1 else 1, 12))
-    wd2 = np.zeros((wcap if order >= 2 else 1, 12, 12))
+    wv = np.empty(table_cap)
+    wd1 = np.zeros((table_cap if order >= 1 else 1, 12))
+    wd2 = np.zeros((table_cap if order >= 2 else 1, 12, 12))
     wv[0] = 1.0
     nw = 1
-    lcap = leaf_cap
-    LI = np.empty(lcap, np.int64)
-    LJ = np.empty(lcap, np.int64)
-    lp = np.empty(lcap, np.int64)
-    lwid = np.empty(lcap, np.int64)
+    LI = np.empty(leaf_cap, np.int64)
+    LJ = np.empty(leaf_cap, np.int64)
+    lp = np.empty(leaf_cap, np.int64)
+    lwid = np.empty(leaf_cap, np.int64)
     n_leaf = 0
     n_pairs = 0
     dd = np.zeros((3, 12))
     dr = np.zeros(12)
     d2r = np.zeros((12, 12))
-    ca = np.zeros(3)
-    cb = np.zeros(3)
     d = np.zeros(3)
     for k in range(3):
         dd[k, k] = 1.0
@@ -355,7 +350,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         while True:
             status, top, n_leaf, nw, n_pairs, far = _pair_nodes(
                 p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, ca, cb, d, Z,
+                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
                 Mom, n_pairs, far,
             )  # fmt: skip
             if status == _DONE:
