@@ -25,11 +25,10 @@ import numpy as np
 import torch
 from _cli import nonnegative_float, positive_int
 from _provenance import git_revision
+from _settings import TASKS
 from tqdm import tqdm
 
 import cfd_torch.envs  # noqa: F401  (registers the ids)
-
-TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 
 def bench(task: str, steps: int, num_envs: int, scale: float) -> dict:
@@ -76,7 +75,7 @@ def bench(task: str, steps: int, num_envs: int, scale: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS, help="tasks to time")
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS, help="tasks to time")
     ap.add_argument("--steps", type=positive_int, default=20, help="timed steps per task and per env kind")
     ap.add_argument("--num-envs", type=positive_int, default=4, help="environments in the native vector env")
     ap.add_argument(

@@ -36,10 +36,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from _cli import folder_problem, nonnegative_float, positive_int  # noqa: E402
 from _provenance import git_commit, git_revision  # noqa: E402
+from _settings import TASKS  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 # One (revision, task) in a fresh process, its settings as JSON in argv[1]: the revision's root (whose cfd_torch and
 # envs/ it imports), the task, the horizons, the runs and the action scale.
@@ -168,7 +168,9 @@ def plot(out: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tasks", nargs="+", choices=TASKS, default=TASKS, help="tasks (default: all five)")
+    ap.add_argument(
+        "--tasks", nargs="+", choices=TASKS, default=list(TASKS), help="tasks (default: all five)"
+    )
     ap.add_argument("--horizons", nargs="+", type=positive_int, default=[25, 50, 100, 200],
                     help="rollout lengths in steps")  # fmt: skip
     ap.add_argument("--runs", type=positive_int, default=3, help="timed rollouts per horizon (median)")

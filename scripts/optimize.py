@@ -88,17 +88,24 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _cli import folder_problem  # noqa: E402
 from _provenance import git_revision  # noqa: E402
+
+# (the vocabulary is also imported from here by the scripts that run experiments)
+from _settings import (  # noqa: E402, F401
+    DEFAULTS,
+    FD_STEPS,
+    LOSSES,
+    MODEL_ONLY,
+    MODELS,
+    OPTIMISERS,
+    TASK_KWARGS,
+    TASKS,
+)
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402
 from cfd_torch.envs import core_class, make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import EnvState, task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
-
-TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
-TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
-OPTIMISERS = ("ngd", "adam", "ngd-ls")
-LOSSES = ("sum", "final", "closest")
 
 
 def task_loss(reward_distance: torch.Tensor, alive: torch.Tensor, kind: str) -> torch.Tensor:
@@ -112,19 +119,6 @@ def task_loss(reward_distance: torch.Tensor, alive: torch.Tensor, kind: str) -> 
         return torch.where(alive > 0, -reward_distance, torch.inf).amin(0)
     last = (alive.sum(0).long() - 1).clamp_min(0)  # alive is 1 up to and including the first terminal step
     return -reward_distance.gather(0, last[None])[0]
-
-
-MODELS = ("cfd", "ipc", "sdrs", "gb", "mujoco-fd")
-FD_STEPS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)  # mujoco-fd: the step sizes its sweep tries
-
-# every key run_experiment reads, with its default (the command line's defaults are these)
-DEFAULTS = {
-    "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
-    "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
-    "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
-    "smooth_samples": 0, "smooth_sigma": 0.1, "task_args": None, "theta_max": None,
-    "out": None, "gif": True,
-}  # fmt: skip
 
 
 class Optimiser:
@@ -403,10 +397,6 @@ def _constructor_parameters(cls: type) -> dict:
         if not any(v.kind == v.VAR_KEYWORD for v in own.values()):
             break
     return params
-
-
-# the settings only one model reads (the others' runs are the same whatever they are): setting -> model
-MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
 
 
 def check_seed(seed) -> None:

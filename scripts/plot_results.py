@@ -32,7 +32,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from _cli import folder_problem  # noqa: E402
-from optimize import DEFAULTS, MODEL_ONLY  # noqa: E402
+from _settings import DEFAULTS, MODEL_ONLY  # noqa: E402
 
 
 def _curves(run: dict, best: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,11 +23,10 @@ from pathlib import Path
 
 import torch
 from _cli import folder_problem, torch_device
+from _settings import TASKS
 from torch.profiler import ProfilerActivity, profile
 
 from cfd_torch.envs import make_core, rollout
-
-TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 
 def case(text: str) -> tuple[str, int]:

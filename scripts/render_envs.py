@@ -15,14 +15,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from _cli import nonnegative_int, positive_int
+from _settings import TASKS
 from PIL import Image
 from tqdm import tqdm
 
 from cfd_torch.envs import make_core
 from cfd_torch.envs.core import task_at
 from cfd_torch.envs.render import write_gif
-
-TASKS = ["Billiards", "Push", "Sort", "Gather", "AntPush"]
 
 
 def scripted(core, state) -> torch.Tensor:
@@ -39,7 +38,7 @@ def scripted(core, state) -> torch.Tensor:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tasks", nargs="+", default=TASKS, choices=TASKS, help="tasks to render")
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS, help="tasks to render")
     ap.add_argument("--steps", type=nonnegative_int, default=40, help="scripted steps after the first frame")
     ap.add_argument("--size", type=positive_int, default=320, help="frame width and height [pixels]")
     ap.add_argument("--out", type=Path, default=Path("results/envs"), help="output folder")

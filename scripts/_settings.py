@@ -1,0 +1,26 @@
+"""The experiments' vocabulary: the tasks, the contact models, and every setting of a run with its default.
+
+Without torch or the library, so that the scripts that only read settings (``plot_results.py``) start at once.
+"""
+
+from __future__ import annotations
+
+TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
+TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
+OPTIMISERS = ("ngd", "adam", "ngd-ls")
+LOSSES = ("sum", "final", "closest")
+
+MODELS = ("cfd", "ipc", "sdrs", "gb", "mujoco-fd")
+FD_STEPS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)  # mujoco-fd: the step sizes its sweep tries
+
+# every key run_experiment reads, with its default (the command line's defaults are these)
+DEFAULTS = {
+    "task": "Billiards", "model": "cfd", "seed": 0, "iters": 30, "horizon": 40, "mpc": False, "steps": 100,
+    "knots": None, "dt": None, "eps": None, "lr": 0.1, "optimizer": "ngd", "gb_samples": 16, "gb_sigma": 0.1,
+    "fd_step": None, "mj_substeps": 10, "threads": None, "loss": "sum", "lr_final": None,
+    "smooth_samples": 0, "smooth_sigma": 0.1, "task_args": None, "theta_max": None,
+    "out": None, "gif": True,
+}  # fmt: skip
+
+# the settings only one model reads (the others' runs are the same whatever they are): setting -> model
+MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
