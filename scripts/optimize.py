@@ -88,18 +88,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _cli import folder_problem  # noqa: E402
 from _provenance import git_revision  # noqa: E402
-
-# (the vocabulary is also imported from here by the scripts that run experiments)
-from _settings import (  # noqa: E402, F401
-    DEFAULTS,
-    FD_STEPS,
-    LOSSES,
-    MODEL_ONLY,
-    MODELS,
-    OPTIMISERS,
-    TASK_KWARGS,
-    TASKS,
-)
+from _settings import DEFAULTS, FD_STEPS, LOSSES, MODELS, OPTIMISERS, TASK_KWARGS, TASKS  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402

@@ -81,7 +81,7 @@ def _ratio(run: dict) -> float:
     return s.get("loss_best", s["loss_end"]) / s["loss_start"]
 
 
-# settings that do not change a run's outcome (those only some models read: optimize.MODEL_ONLY)
+# settings that do not change a run's outcome (those only some models read: _settings.MODEL_ONLY)
 _PER_RUN = {"seed", "out", "gif", "threads"}
 
 
