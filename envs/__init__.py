@@ -26,7 +26,7 @@ import gymnasium as gym
 from .core import EnvState, StepOut, TaskCore
 from .rollout import Rollout, rollout
 
-__all__ = ["EnvState", "IDS", "Rollout", "StepOut", "TaskCore", "core_class", "make_core", "rollout"]
+__all__ = ["EnvState", "IDS", "TASKS", "Rollout", "StepOut", "TaskCore", "core_class", "make_core", "rollout"]
 
 # id -> (module, class prefix, max_episode_steps)
 _TASKS = {
@@ -37,6 +37,7 @@ _TASKS = {
     "cfd_torch/AntPush-v0": ("ant_push", "AntPush", 500),
 }
 IDS = tuple(_TASKS)
+TASKS = tuple(name for _, name, _ in _TASKS.values())  # the tasks' names: "Billiards", ...
 
 for _id, (_module, _name, _steps) in _TASKS.items():
     if _id not in gym.registry:

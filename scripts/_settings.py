@@ -1,11 +1,11 @@
-"""The experiments' vocabulary: the tasks, the contact models, and every setting of a run with its default.
+"""The experiments' vocabulary: the contact models, the optimisers, the losses and every setting of a run with its
+default (the tasks' names are the library's: ``cfd_torch.envs.TASKS``).
 
 Without torch or the library, so that the scripts that only read settings (``plot_results.py``) start at once.
 """
 
 from __future__ import annotations
 
-TASKS = ("Billiards", "Push", "Sort", "Gather", "AntPush")
 TASK_KWARGS = {"Billiards": {"target_ball": 14, "pocket": 1}}
 OPTIMISERS = ("ngd", "adam", "ngd-ls")
 LOSSES = ("sum", "final", "closest")

@@ -35,10 +35,9 @@ import numba  # noqa: E402
 import torch  # noqa: E402
 from _cli import folder_problem, positive_float, positive_int, torch_device  # noqa: E402
 from _provenance import git_revision  # noqa: E402
-from _settings import TASKS  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from cfd_torch.envs import make_core, rollout  # noqa: E402
+from cfd_torch.envs import TASKS, make_core, rollout  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:

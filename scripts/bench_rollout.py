@@ -36,8 +36,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from _cli import folder_problem, nonnegative_float, positive_int  # noqa: E402
 from _provenance import git_commit, git_revision  # noqa: E402
-from _settings import TASKS  # noqa: E402
 from tqdm import tqdm  # noqa: E402
+
+from cfd_torch.envs import TASKS  # noqa: E402 (this checkout's; each revision is timed in a process of its own)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -88,11 +88,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _cli import folder_problem  # noqa: E402
 from _provenance import git_revision  # noqa: E402
-from _settings import DEFAULTS, FD_STEPS, LOSSES, MODELS, OPTIMISERS, TASK_KWARGS, TASKS  # noqa: E402
+from _settings import DEFAULTS, FD_STEPS, LOSSES, MODELS, OPTIMISERS, TASK_KWARGS  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402
-from cfd_torch.envs import core_class, make_core, rollout  # noqa: E402
+from cfd_torch.envs import TASKS, core_class, make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import EnvState, task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
 

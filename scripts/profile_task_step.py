@@ -23,10 +23,9 @@ from pathlib import Path
 
 import torch
 from _cli import folder_problem, torch_device
-from _settings import TASKS
 from torch.profiler import ProfilerActivity, profile
 
-from cfd_torch.envs import make_core, rollout
+from cfd_torch.envs import TASKS, make_core, rollout
 
 
 def case(text: str) -> tuple[str, int]:

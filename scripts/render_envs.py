@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from _cli import nonnegative_int, positive_int
-from _settings import TASKS
 from PIL import Image
 from tqdm import tqdm
 
-from cfd_torch.envs import make_core
+from cfd_torch.envs import TASKS, make_core
 from cfd_torch.envs.core import task_at
 from cfd_torch.envs.render import write_gif
 

@@ -48,8 +48,10 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _cli import folder_problem, interrupted  # noqa: E402
 from _provenance import REVISION_ENV, git_revision  # noqa: E402
-from _settings import DEFAULTS, MODEL_ONLY, MODELS, TASKS  # noqa: E402
+from _settings import DEFAULTS, MODEL_ONLY, MODELS  # noqa: E402
 from optimize import _check_settings, add_arguments, check_seed, run_experiment  # noqa: E402
+
+from cfd_torch.envs import TASKS  # noqa: E402
 
 
 def configs(args: argparse.Namespace) -> list[dict]:

@@ -26,11 +26,9 @@ import numba
 import torch
 from _cli import interrupted
 from _provenance import git_revision
-from _settings import TASKS
 from tqdm import tqdm
 
-import cfd_torch.envs  # noqa: F401 (registers the ids)
-from cfd_torch.envs import make_core, rollout
+from cfd_torch.envs import TASKS, make_core, rollout
 
 
 def run(task: str, seed: int, horizon: int, iters: int, lr: float) -> dict:
