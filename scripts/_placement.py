@@ -59,7 +59,21 @@ def rest_height(
 
 def ball_over(obstacle: trimesh.Trimesh, radius: float, gap: float) -> tuple[float, float, float]:
     """The benchmarks' ball position over ``obstacle``: centred over its xy bounds offset by (0.08, 0.04) of their
-    extents (off any symmetry line), its surface ``gap`` above the obstacle's surface (:func:`rest_height`)."""
+    extents (off any symmetry line), or, where no part of the obstacle lies under that point (a ring's hole, the
+    notch of an L), over the centroid of the non-vertical triangle nearest to it; its surface ``gap`` above the
+    obstacle's surface (:func:`rest_height`). Raises ValueError when every triangle is vertical."""
     (x0, y0, _), (x1, y1, _) = obstacle.bounds
-    xy = (0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0))
+    xy = np.array([0.5 * (x0 + x1) + 0.08 * (x1 - x0), 0.5 * (y0 + y1) + 0.04 * (y1 - y0)])
+    if not np.isfinite(surface_heights(obstacle, xy[None])[0]):
+        tri = np.asarray(obstacle.triangles, dtype=np.float64)
+        e1, e2 = tri[:, 1, :2] - tri[:, 0, :2], tri[:, 2, :2] - tri[:, 0, :2]
+        area = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])  # twice the projected area
+        seen = area > 1e-9 * max(float(area.max(initial=0.0)), 1e-300)
+        if not seen.any():
+            raise ValueError(
+                "--obstacle: every triangle of the obstacle is vertical: nothing to rest a ball on"
+            )
+        centre = tri[seen, :, :2].mean(1)
+        xy = centre[np.argmin(((centre - xy) ** 2).sum(1))]
+    xy = (float(xy[0]), float(xy[1]))
     return (*xy, rest_height(obstacle, radius, xy, gap))

@@ -605,6 +605,13 @@ def main() -> None:
         ap.error(f"argument --obstacle: no such file: {args.obstacle}")
     if args.obstacle is not None and "large" not in args.sections:
         ap.error("argument --obstacle: only the 'large' section uses it; add it to --sections")
+    if args.obstacle is not None:  # a mesh the ball cannot be placed on is refused before any section runs
+        from _placement import ball_over, load_obstacle
+
+        try:
+            ball_over(load_obstacle(args.obstacle), 0.5, 2e-3)
+        except ValueError as err:
+            ap.error(f"argument {err}")
     if args.repeats is None:
         args.repeats = 3 if args.quick else 5
     if args.brute_max_s is None:

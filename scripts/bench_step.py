@@ -37,7 +37,8 @@ push, boxes, ball, ant.
    Timed after the ball has settled. With ``--obstacle PATH`` (any mesh file trimesh reads, in its own frame:
    z up), two more cases, ``ball_obstacle_mu{0,0.5}``: the same ball on that mesh as a static body, as given (the
    Scene refines it as it would any user's obstacle), centred over the mesh's xy bounds offset by (0.08, 0.04) of
-   their extents, its surface 2 mm above the mesh's highest point under its footprint (``_placement.py``).
+   their extents (over the nearest non-vertical triangle's centroid where nothing lies under that point, e.g. a
+   ring's hole), its surface 2 mm above the mesh's highest point under its footprint (``_placement.py``).
 
 6. ant: Gymnasium's Ant (``gymnasium_ant_xml(servos=(100, 5))``: its eight motors as position servos, kp 100
    N m/rad, kv 5 N m s/rad) on a static 3 x 3 x 0.2 m box floor (top face at z = 0; refined to the capsules'
@@ -1012,6 +1013,10 @@ def main() -> None:
         cases = make_cases(args)
     except SettingsError as err:
         build_parser().error(str(err))
+    except ValueError as err:  # an --obstacle file that holds no mesh to rest the ball on
+        if not str(err).startswith("--obstacle"):
+            raise
+        build_parser().error(f"argument {err}")
     if args.only:
         unknown = sorted(set(args.only) - {c.name for c in cases})
         if unknown:

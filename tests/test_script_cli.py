@@ -363,3 +363,37 @@ def test_rest_gaps_compares_a_settled_rollout_with_the_prediction(scripts_path, 
     assert (tmp_path / "rest_gaps.md").read_text().count("\n| cube 10 cm") == 1 and (
         tmp_path / "rest_gaps.png"
     ).exists()
+
+
+def test_the_obstacle_ball_rests_on_a_ring_and_a_mesh_with_nothing_to_rest_on_is_refused(
+    scripts_path, monkeypatch, capsys, tmp_path
+):
+    import numpy as np
+    import trimesh
+    from _placement import ball_over, surface_heights
+
+    import bench_step
+
+    # a ring centred on the origin: the default point, just off its centre, lies over the hole
+    ring = trimesh.creation.annulus(r_min=0.3, r_max=1.0, height=0.2)
+    x, y, z = ball_over(ring, 0.5, 2e-3)
+    assert 0.3 < np.hypot(x, y) < 1.0  # over the ring itself
+    assert np.isfinite(surface_heights(ring, np.array([[x, y]]))[0])
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    low = (ball.vertices + [x, y, z])[:, 2].min()
+    assert 2e-3 - 1e-12 <= low - 0.1 < 2e-3 + 0.05  # above the ring's top face (z = 0.1) by the gap at least
+
+    wall = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], [[0, 1, 2], [0, 2, 3]])
+    path = tmp_path / "wall.stl"
+    wall.export(path)
+    out = tmp_path / "out"
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        ["bench_step.py", "--quick", "--cases", "ball", "--obstacle", str(path), "--out", str(out)],
+    )
+    with pytest.raises(SystemExit) as exit_:
+        bench_step.main()
+    assert exit_.value.code == 2
+    assert "error: argument --obstacle: every triangle of the obstacle is vertical" in capsys.readouterr().err
+    assert not out.exists()
