@@ -368,11 +368,10 @@ def test_rest_gaps_compares_a_settled_rollout_with_the_prediction(scripts_path, 
 def test_the_obstacle_ball_rests_on_a_ring_and_a_mesh_with_nothing_to_rest_on_is_refused(
     scripts_path, monkeypatch, capsys, tmp_path
 ):
+    import bench_step
     import numpy as np
     import trimesh
     from _placement import ball_over, surface_heights
-
-    import bench_step
 
     # a ring centred on the origin: the default point, just off its centre, lies over the hole
     ring = trimesh.creation.annulus(r_min=0.3, r_max=1.0, height=0.2)
