@@ -96,10 +96,16 @@ def _rows(ev: EnergyEval, sel: torch.Tensor) -> EnergyEval:
     return EnergyEval(*(x[sel] if isinstance(x, torch.Tensor) else x for x in ev))
 
 
-def _coupling(H: torch.Tensor, onehot: torch.Tensor) -> torch.Tensor:
+def _coupling(H: torch.Tensor, onehot: torch.Tensor, width: int | None = None) -> torch.Tensor:
     """(A, M, M) bool: the bodies the Hessians H (A, Q, Q) couple (their block's magnitude above 1e-6 of the
-    smaller of their own curvatures); ``onehot`` (Q, M) maps coordinates to bodies."""
-    C = onehot.T @ H.abs() @ onehot
+    smaller of their own curvatures); ``onehot`` (Q, M) maps coordinates to bodies; ``width``: each body's
+    number of coordinates where they come in consecutive runs of that many (free bodies), summed by blocks then
+    (two products with ``onehot`` cost O(Q^2 M): 1.7 ms at 80 cubes)."""
+    A, Q = H.shape[:2]
+    if width is not None:
+        C = H.abs().reshape(A, Q // width, width, Q // width, width).sum((2, 4))
+    else:
+        C = onehot.T @ H.abs() @ onehot
     d = torch.diagonal(C, dim1=1, dim2=2)
     return C > 1e-6 * torch.minimum(d[:, :, None], d[:, None, :])
 
@@ -280,6 +286,8 @@ def newton(
     split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
+        k = block.numel() // M  # the coordinates per body, where every body has that many in a row
+        width = k if torch.equal(block, torch.arange(block.numel(), device=dev) // k) else None
         pairs = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
         if M * pairs.shape[0] > _DENSE_ISLANDS and pairs.device.type == "cpu":
             pairs = _incidence(pairs, M)
@@ -357,7 +365,7 @@ def newton(
             sc = idx[k]
             ak = act_i[k]  # (a scene evaluated whole above converged: not one of these)
             pb = (p[k].abs()[:, :, None] * onehot).amax(1)  # (A, M) largest step per body
-            coupled = _coupling(H[k], onehot)  # (A, M, M), also the line search's islands below
+            coupled = _coupling(H[k], onehot, width)  # (A, M, M), also the line search's islands below
             moving = ak & (pb > tol)
             frz = ak & ~moving & ~(coupled & moving[:, None, :]).any(2) & may_freeze[sc, None]
             frz = frz & (ak & ~frz).any(1, keepdim=True)  # never the last body still iterating
