@@ -535,9 +535,8 @@ def incremental_potential(
     Gp = G if Gf is None else G + Gf
     Hp = None
     if order >= 2:
-        if (
-            prob.joint is None
-        ):  # the body terms' 6 x 6 blocks added on the diagonal in place (Hc stays the contacts')
+        if prob.joint is None:
+            # the body terms' 6 x 6 blocks added on the diagonal in place (Hc stays the contacts' own)
             Hp = Hc.clone() if Hf is None else Hc + Hf
             diag = Hp.view(B, N, 6, N, 6)
             diag[:, dyn, :, dyn, :] += h_b.reshape(B, Nd, 6, 6).transpose(0, 1)

@@ -286,8 +286,8 @@ def newton(
     split = torch.ones(B, dtype=torch.bool, device=dev)
     if freeze:
         onehot = (block[:, None] == torch.arange(M, device=dev)).to(q.dtype)  # (Q, M)
-        k = block.numel() // M  # the coordinates per body, where every body has that many in a row
-        width = k if torch.equal(block, torch.arange(block.numel(), device=dev) // k) else None
+        per_body = block.numel() // M  # the coordinates per body, where every body has that many in a row
+        width = per_body if torch.equal(block, torch.arange(block.numel(), device=dev) // per_body) else None
         pairs = torch.where(pair_bodies >= 0, pair_bodies, M)  # (P, 2), M: a body that does not move
         if M * pairs.shape[0] > _DENSE_ISLANDS and pairs.device.type == "cpu":
             pairs = _incidence(pairs, M)
