@@ -1460,3 +1460,32 @@ def test_rest_gap_refuses_what_it_cannot_answer():
         rest_gap(cube, start=5e-4)
     with pytest.raises(ValueError, match="it does not rest"):
         rest_gap(cube, 1e20)
+
+
+def test_free_body_block_shortcuts_equal_the_general_maps():
+    """The coupling test summed by 6 x 6 blocks and the pullback by slices (free bodies numbered in a row) give
+    what the one-hot products and the index gathers give."""
+    from cfd_torch.sim.kinematics import FreeBodies
+    from cfd_torch.sim.newton import _coupling
+
+    g = torch.Generator().manual_seed(0)
+    M, Q = 7, 42
+    H = torch.randn(3, Q, Q, dtype=torch.float64, generator=g)
+    H = H + H.transpose(1, 2)
+    scale = torch.rand(M, M, generator=g, dtype=torch.float64) < 0.5  # some blocks far below the threshold
+    H = H * torch.where(scale, 1e-9, 1.0).repeat_interleave(6, 0).repeat_interleave(6, 1)
+    onehot = (torch.arange(Q)[:, None] // 6 == torch.arange(M)).to(H.dtype)
+    general, blocks = _coupling(H, onehot), _coupling(H, onehot, 6)
+    assert bool(general.any()) and not bool(general.all())
+    assert torch.equal(general, blocks)
+
+    N = 9
+    rows = torch.randn(2, N, 6, dtype=torch.float64, generator=g)
+    hess = torch.randn(2, 6 * N, 6 * N, dtype=torch.float64, generator=g)
+    for dynamic, span in ((torch.arange(1, 8), True), (torch.tensor([0, 2, 3, 7]), False)):
+        kin = FreeBodies(dynamic, N)
+        assert (kin._span is not None) == span
+        d6 = (dynamic[:, None] * 6 + torch.arange(6)).reshape(-1)
+        gq, hq, (xq,) = kin.pullback(torch.zeros(2, 6 * len(dynamic)), rows, hess, None, (hess,))
+        assert torch.equal(gq, rows.reshape(2, -1)[:, d6])
+        assert torch.equal(hq, hess[:, d6][:, :, d6]) and torch.equal(xq, hq)
