@@ -535,24 +535,21 @@ def incremental_potential(
     Gp = G if Gf is None else G + Gf
     Hp = None
     if order >= 2:
-        if prob.joint is None:
-            # the body terms' 6 x 6 blocks added on the diagonal in place (Hc stays the contacts' own)
-            Hp = Hc.clone() if Hf is None else Hc + Hf
-            diag = Hp.view(B, N, 6, N, 6)
-            diag[:, dyn, :, dyn, :] += h_b.reshape(B, Nd, 6, 6).transpose(0, 1)
-        else:  # (the articulations pull the inertia back on its own too, below)
-            Hp = Hc if Hf is None else Hc + Hf
-            Hb = q.new_zeros(B, N, N, 6, 6)
-            Hb[:, dyn, dyn] = h_b.reshape(B, Nd, 6, 6)
-            Hp = Hp + Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N)
+        # the body terms' 6 x 6 blocks added on the diagonal in place (Hc stays the contacts' own)
+        Hp = Hc.clone() if Hf is None else Hc + Hf
+        Hp.view(B, N, 6, N, 6)[:, dyn, :, dyn, :] += h_b.reshape(B, Nd, 6, 6).transpose(0, 1)
     Gb = q.new_zeros(B, N, 6)
     Gb[:, dyn] = g_b.reshape(B, Nd, 6)
     # the gap majorizer and (for articulations) the inertia are pulled back with the same Jacobian
     extra = []
     if order >= 2 and gap is not None:
         extra.append(gap)
-    if order >= 2 and prob.joint is not None:
-        extra.append(Hb.permute(0, 1, 3, 2, 4).reshape(B, 6 * N, 6 * N))
+    if (
+        order >= 2 and prob.joint is not None
+    ):  # the inertia alone, pulled back on its own for the articulations
+        Hb = q.new_zeros(B, N, 6, N, 6)
+        Hb[:, dyn, :, dyn, :] = h_b.reshape(B, Nd, 6, 6).transpose(0, 1)
+        extra.append(Hb.reshape(B, 6 * N, 6 * N))
     grad, hess, pulled = kin.pullback(q, Gb + Gp, Hp, prob.fixed, extra)
     if jg is not None:
         grad = grad + jg
