@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
+from cfd_torch._validate import is_real
 from cfd_torch.rotation import rotation_matrix
 from cfd_torch.sim.articulation import articulation
 from cfd_torch.sim.mjcf import gymnasium_ant_xml
@@ -75,6 +76,15 @@ class AntPushCore(BoxToTargetCore):
         )
         if actuation not in ("torque", "position"):
             raise ValueError(f"actuation must be 'torque' or 'position', got {actuation!r}")
+        gains_ok = isinstance(servo_gains, (tuple, list)) and len(servo_gains) == 2
+        gains_ok = gains_ok and all(is_real(g) and math.isfinite(g) for g in servo_gains)
+        if not (gains_ok and servo_gains[0] > 0 and servo_gains[1] >= 0):
+            raise ValueError(f"servo_gains must be (kp > 0, kv >= 0), finite numbers, got {servo_gains!r}")
+        if actuation == "torque" and tuple(servo_gains) != (100.0, 5.0):
+            raise ValueError(
+                "servo_gains is read only by actuation='position'; actuation='torque' does not use it: leave it at "
+                "its default (100.0, 5.0)"
+            )
         self.actuation = actuation
         self.mjcf = (gymnasium_ant_xml(servos=servo_gains if actuation == "position" else None),)
         self.ant = articulation(self.mjcf[0])

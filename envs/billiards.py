@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from cfd_torch import Action, Scene, rigid_body
+from cfd_torch.sim.feasibility import feasible, infeasible_reason
 
 from .core import (
     EnvState,
@@ -26,6 +27,7 @@ __all__ = ["BilliardsCore", "BilliardsEnv", "BilliardsVectorEnv", "POCKETS", "ra
 # pocket centres of a 1.27 x 2.54 m playing area whose rack apex is at the origin [m]: far corners, sides, near corners
 POCKETS = ((-0.635, 0.94), (0.635, 0.94), (-0.635, -0.33), (0.635, -0.33), (-0.635, -1.6), (0.635, -1.6))
 _POCKET_RADIUS = 0.08  # the default success radius about a pocket [m]
+_BALL_RADIUS = 0.0286  # the default ball radius [m]
 
 
 def rack_positions(radius: float) -> torch.Tensor:
@@ -83,7 +85,7 @@ class BilliardsCore(TaskCore):
     def __init__(
         self,
         *,
-        ball_radius: float = 0.0286,
+        ball_radius: float = _BALL_RADIUS,
         ball_mass: float = 0.17,
         subdivisions: int = 2,
         max_force: float = 5.0,
@@ -127,6 +129,18 @@ class BilliardsCore(TaskCore):
             **({} if potential == "cfd" else {"dhat": dhat}),
             pair_eps={(15, k): eps for k in range(15)} if potential == "cfd" else None,
         )
+        # the starts' closest pairs: the rack's rows (0.157 ball_radius apart) and the cue ball's nearest start to
+        # the apex ball (0.4 m between centres)
+        closest = torch.zeros(16, 6, dtype=torch.float64)
+        closest[:15, :2] = rack_positions(ball_radius)
+        closest[15, 1] = -0.4
+        if not bool(feasible(scene, closest[None])[0]):
+            margin = getattr(scene.contact_model, "margin", 0.0)
+            raise ValueError(
+                f"ball_radius={ball_radius!r} puts the starting balls {infeasible_reason(scene)} of each other (the "
+                f"rack's rows are 0.157 ball_radius apart, the cue ball starts 0.4 m from the apex ball): "
+                f"ball_radius must lie between about {margin / 0.157:.3g} and {(0.4 - margin) / 2:.3g} m"
+            )
         super().__init__(scene, device=device, dtype=dtype)
         self.ball_radius = ball_radius
         self.max_force = max_force
@@ -202,11 +216,13 @@ class BilliardsCore(TaskCore):
 
     def render_camera(self, aspect: float = 1.0) -> dict:
         """Over the rack, the cue ball's start region and the pockets that can be drawn: for the far corners and
-        the sides (0-3, the default draw) with the default pocket radius, in a square or landscape image, a fixed
-        view that holds them all; otherwise (a near-corner ``pocket`` 4 or 5, below that view; a wider pocket; a
-        portrait image) a view derived from the discs (:func:`~cfd_torch.envs.core.camera_over`)."""
+        the sides (0-3, the default draw) with the default pocket radius and balls no larger than the default, in a
+        square or landscape image, a fixed view that holds them all; otherwise (a near-corner ``pocket`` 4 or 5,
+        below that view; a wider pocket; a larger rack; a portrait image) a view derived from the discs
+        (:func:`~cfd_torch.envs.core.camera_over`)."""
         drawn = range(4) if self.pocket is None else (self.pocket,)
-        if max(drawn) < 4 and self.pocket_radius <= _POCKET_RADIUS and aspect >= 1.0:
+        fixed_view = self.pocket_radius <= _POCKET_RADIUS and self.ball_radius <= _BALL_RADIUS
+        if max(drawn) < 4 and fixed_view and aspect >= 1.0:
             return {"lookat": (0.0, 0.05, 0.0), "distance": 2.5, "azimuth": 90.0, "elevation": -70.0}
         r = self.ball_radius
         discs = [(float(x), float(y), r) for x, y in self.rack]

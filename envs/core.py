@@ -102,6 +102,22 @@ def check_unused_by_potential(potential: str, name: str, value: float, default: 
         )
 
 
+def _usable_device(device: torch.device | str) -> torch.device:
+    """``device`` as a torch.device, checked here (not at the first reset) to hold tensors in this torch build."""
+    try:
+        dev = torch.device(device)
+        torch.zeros(
+            1, device=dev
+        )  # (a backend this torch was not built with, or without a device, raises here)
+    except (RuntimeError, AssertionError, TypeError) as e:
+        raise ValueError(f"device {device!r} is not usable with this torch build: {e}") from e
+    if dev.type == "meta":
+        raise ValueError(
+            "device 'meta' holds no data: the environment needs a device that computes (cpu, cuda)"
+        )
+    return dev
+
+
 @dataclass(frozen=True)
 class EnvState:
     """The full state of B environments.
@@ -297,7 +313,7 @@ class TaskCore(abc.ABC):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.scene = scene
-        self.device = torch.device(device)
+        self.device = _usable_device(device)
         self.dtype = dtype
 
     # ---- what a task defines -------------------------------------------------------------------------------------

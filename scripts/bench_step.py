@@ -79,6 +79,8 @@ torch's intra-op threads (default: torch's own default); the numba kernels use `
 
 Writes ``<out>/bench_step.json`` (every per-step figure), ``<out>/table.md`` (printed too) and
 ``<out>/bench_step_breakdown.png`` (forward and backward per case; ``--replot`` rewrites the last two from the JSON).
+A case whose step fails (a ``StepError``) is reported in the table and the JSON, and the script then exits with
+status 1.
 
     python scripts/bench_step.py --out results/bench_step --profile       # ~10 min on 2 shared cores
     python scripts/bench_step.py --out results/bench_step_quick --quick   # a few minutes
@@ -1071,6 +1073,9 @@ def main() -> None:
     plot(out, args.out / "bench_step_breakdown.png")
     print(text)
     print(f"\nwrote {args.out / 'bench_step.json'}, table.md and bench_step_breakdown.png")
+    failed = [name for name, r in out["cases"].items() if "error" in r]
+    if failed:  # (an older --baseline that cannot run a case is reported in the table, not here)
+        raise SystemExit(f"bench_step: {len(failed)} case(s) failed in this checkout: {', '.join(failed)}")
 
 
 def _threading_layer() -> str | None:

@@ -89,10 +89,16 @@ def _settings_differ(old: dict, new: dict) -> list[str]:
     """The settings (keys of ``new`` but the output folder, threads, GIF and those the run's model does not read)
     in which an earlier run's config differs."""
     old = DEFAULTS | old  # keys added since that run: their defaults
+
+    def same(k: str) -> bool:
+        if k == "task_args":  # no task arguments, given as {} or left out, are the same run
+            return (old.get(k) or None) == (new[k] or None)
+        return old.get(k) == new[k]
+
     return [
         k
         for k in new
-        if k not in _NOT_SETTINGS and MODEL_ONLY.get(k, new["model"]) == new["model"] and old.get(k) != new[k]
+        if k not in _NOT_SETTINGS and MODEL_ONLY.get(k, new["model"]) == new["model"] and not same(k)
     ]
 
 

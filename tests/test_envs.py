@@ -737,6 +737,36 @@ def test_cube_layouts_that_cannot_be_scattered_are_refused_at_construction():
     assert obs.shape == (46,)
 
 
+def test_billiards_refuses_a_ball_radius_whose_start_touches_at_construction():
+    """The rack's rows are 0.157 ball_radius apart and the cue ball starts 0.4 m from the apex ball: a radius that
+    puts them within the contact margin is refused when the environment is made, naming the argument and its range
+    (it used to pass construction and reset, and fail at the first step)."""
+    for r in (0.005, 0.25):
+        with pytest.raises(ValueError, match=r"ball_radius=.* within the contact margin 0.001 .* between about "
+                           r"0.00637 and 0.2 m"):  # fmt: skip
+            gym.make("cfd_torch/Billiards-v0", ball_radius=r)
+    env = gym.make("cfd_torch/Billiards-v0", ball_radius=0.007)  # 1.1 mm rows: feasible, and it steps
+    env.reset(seed=0)
+    env.step(np.zeros(2, np.float32))
+
+
+def test_an_unusable_device_or_unused_servo_gains_are_refused_at_construction():
+    """A device this torch build cannot hold tensors on used to pass construction and fail at the first reset with
+    torch's AssertionError; AntPush's servo_gains were ignored under its default torque actuation."""
+    with pytest.raises(ValueError, match="device 'meta' holds no data"):
+        make_core("cfd_torch/Push-v0", device="meta")
+    with pytest.raises(ValueError, match="device 'nowhere' is not usable with this torch build"):
+        make_core("cfd_torch/Push-v0", device="nowhere")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda' is not usable with this torch build"):
+            make_core("cfd_torch/Push-v0", device="cuda")
+    with pytest.raises(ValueError, match="servo_gains is read only by actuation='position'"):
+        make_core("cfd_torch/AntPush-v0", servo_gains=(1.0, 2.0))
+    for gains in ((1.0, 2.0, 3.0), (-7.0, 1.0), (1.0, float("nan")), "12"):
+        with pytest.raises(ValueError, match=r"servo_gains must be \(kp > 0, kv >= 0\), finite numbers"):
+            make_core("cfd_torch/AntPush-v0", actuation="position", servo_gains=gains)
+
+
 # the pusher's start at seed 7 with the default sizes, as the scatter drew it before each footprint had its own
 # radius (session 52; Sort and Gather share the draw)
 PUSHER_START_SEED7 = dict.fromkeys(

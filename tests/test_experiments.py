@@ -690,6 +690,12 @@ def test_resume_takes_missing_settings_as_defaults():
     more = {**DEFAULTS, "model": "cfd", "gb_samples": DEFAULTS["gb_samples"] + 1}
     assert _settings_differ({**old, "model": "cfd"}, more) == []
     assert _settings_differ({**old, "model": "gb"}, {**more, "model": "gb"}) == ["gb_samples"]
+    # no task arguments, as --task-args '{}' or left out, are the same run; other task arguments are not
+    assert _settings_differ({**old, "task_args": {}}, {**DEFAULTS, "task_args": None}) == []
+    assert _settings_differ({**old, "task_args": None}, {**DEFAULTS, "task_args": {}}) == []
+    assert _settings_differ({**old, "task_args": {}}, {**DEFAULTS, "task_args": {"distance": 1.5}}) == [
+        "task_args"
+    ]
 
 
 def test_first_order_smoothing(tmp_path):

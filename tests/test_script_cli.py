@@ -396,3 +396,34 @@ def test_the_obstacle_ball_rests_on_a_ring_and_a_mesh_with_nothing_to_rest_on_is
     assert exit_.value.code == 2
     assert "error: argument --obstacle: every triangle of the obstacle is vertical" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_bench_step_reports_a_failed_case_and_exits_with_status_1(scripts_path, monkeypatch, tmp_path):
+    """Seven balls of 5 mm at the default stiffness (warned: they would rest 10.8 mm up) do not land within the
+    Newton cap: the table and the JSON name the failure, and the script's status says so."""
+    import bench_step
+
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "bench_step.py",
+            "--quick",
+            "--cases",
+            "billiards",
+            "--num-balls-rows",
+            "3",
+            "--ball-radius",
+            "0.005",
+            "--out",
+            str(tmp_path),
+        ],  # fmt: skip
+    )
+    with (
+        pytest.warns(UserWarning),
+        pytest.raises(SystemExit, match="1 case\\(s\\) failed in this checkout: billiards7"),
+    ):
+        bench_step.main()
+    out = _strict_json(tmp_path / "bench_step.json")
+    assert out["cases"]["billiards7"]["error"].startswith("StepError: the step did not converge")
+    assert "| billiards7 | 7 x 320 + 19200 | failed: StepError" in (tmp_path / "table.md").read_text()
