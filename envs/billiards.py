@@ -47,7 +47,9 @@ class BilliardsCore(TaskCore):
     ``ball_mass`` (0.17 kg) on the plane z = 0, gravity off and no table mesh: a frictionless table top (the balls
     slide, they do not roll). The scene is planar (``Scene(planar=True)``): each ball moves in x, y and turns about
     z only, so no impact lifts it off the table. Bodies 0-14 are the rack (``rack_positions``: apex at the origin,
-    rows toward +y), body 15 the cue ball. dt = 0.01 s; a step the Newton solve cannot converge is retried as up
+    rows toward +y; its rows 0.157 ``ball_radius`` apart, so ``ball_radius`` must lie between about margin / 0.157
+    (6.4 mm at this library's 1 mm margin) and 0.2 m, where the cue ball's nearest start touches the apex ball),
+    body 15 the cue ball. dt = 0.01 s; a step the Newton solve cannot converge is retried as up
     to 8 sub-steps.
 
     Action: (2,) in [-1, 1], the planar force on the cue ball's centre, ``max_force`` (5 N) per unit.
