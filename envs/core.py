@@ -106,9 +106,8 @@ def _usable_device(device: torch.device | str) -> torch.device:
     """``device`` as a torch.device, checked here (not at the first reset) to hold tensors in this torch build."""
     try:
         dev = torch.device(device)
-        torch.zeros(
-            1, device=dev
-        )  # (a backend this torch was not built with, or without a device, raises here)
+        # a backend this torch was not built with, or one without a device present, raises here
+        torch.zeros(1, device=dev)
     except (RuntimeError, AssertionError, TypeError) as e:
         raise ValueError(f"device {device!r} is not usable with this torch build: {e}") from e
     if dev.type == "meta":
