@@ -167,6 +167,29 @@ def test_damping_and_armature_match_the_linear_recursion():
     assert np.abs(th[-20:]).max() < 0.9 * np.abs(ref[:20]).max()  # it did decay
 
 
+SLIDE_MOTOR = """<mujoco><worldbody><body name="base"><geom type="sphere" size="0.05"/>
+<body name="s"><joint name="s" type="slide" axis="1 0 0" range="-0.1 0.3"/>
+<geom type="box" size="0.05 0.05 0.05" pos="0.2 0 0"/></body></body></worldbody>
+<actuator><motor name="m" joint="s" gear="1000" ctrlrange="-10 10"/></actuator></mujoco>"""
+
+
+@pytest.mark.parametrize("ctrl", [3.0, 3.0 * (1 - 1e-9), 1.5])
+def test_a_step_whose_free_solution_lies_on_a_limit_stops_short_of_it(ctrl):
+    """A 1 kg slide from rest under gear 1000: the free step moves it 0.1 ctrl, exactly onto its upper limit at
+    ctrl 3 (and within 1e-9 of it just below; at 1.5 the start's constant-velocity prediction lands there). Newton's
+    step next to the limit's barrier is a fixed fraction of the gap, within newton_tol: the solve used to stop
+    there, 1e-16 from the limit, and the next step refused that state. Now it goes on to the balance, 8.6e-3 m
+    inside at ctrl 3, and the next step runs."""
+    art = articulation(SLIDE_MOTOR)
+    scene = Scene([], articulations=[art], dt=0.01, gravity=(0, 0, 0))
+    q = art.poses(torch.zeros(1, dtype=torch.float64), torch.zeros(6, dtype=torch.float64))
+    s = State(q, q.clone())
+    for _ in range(2):
+        s = step(scene, s, Action(ctrl=torch.tensor([ctrl], dtype=torch.float64)))
+        gap = 0.3 - scene.kinematics.coords(s.q[None]).item()
+        assert gap > 1e-4
+
+
 def test_limits_are_never_crossed_under_a_large_torque():
     art = _pendulum(limits=(-0.2, 0.2), gear=200.0)
     scene = Scene([], articulations=[art], dt=0.01)

@@ -242,7 +242,7 @@ class StepFn(torch.autograd.Function):
             s = (g_b.reshape(B, Nd, 6) * Jlam[:, dyn]).sum()
             joint = _joint_inputs(scene, pred, tctrl, tkp, tkv)
             if joint is not None:
-                _, g_j, _ = kin.joint_terms(q, joint, scene.dt, 1)
+                _, g_j, _, _ = kin.joint_terms(q, joint, scene.dt, 1)
                 s = s + (g_j * lam).sum()
             if ctx.friction_on is not None:
                 lagged = _lagged(scene, tq_t, ctx.friction_on, create_graph=True)

@@ -1256,7 +1256,8 @@ class ArticulatedKinematics:
     def joint_terms(self, q, joint, dt: float, order: int):
         """Armature, damping, springs, limits and the actuators' terms of all joints at q (A, Q), for ``joint``
         (:class:`cfd_torch.sim.energy.JointInputs`: the coordinates one and two steps earlier and the actuators'
-        :class:`JointDrive`): value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``)."""
+        :class:`JointDrive`): value (A,), grad (A, Q), Hessian (A, Q, Q) (up to ``order``), and the limit
+        barriers' part of the value (A,)."""
         idx = self.joint_index.to(q.device)
         q_t, q_p, torque = joint.q_t, joint.q_p, joint.torque
         d = {k: v.to(dtype=q.dtype, device=q.device) for k, v in self.joint_data.items()}
@@ -1285,18 +1286,19 @@ class ArticulatedKinematics:
             0.5 * inv * d["armature"] * acc**2 + 0.5 / dt * d["damping"] * vel**2
             + 0.5 * d["stiffness"] * spring**2 + vs + vl + vu - torque * vel
         ).sum(1)  # fmt: skip
+        limits = (vl + vu).sum(1)
         if order == 0:
-            return value, None, None
+            return value, None, None, limits
         g = (
             inv * d["armature"] * acc + d["damping"] / dt * vel + d["stiffness"] * spring + gs + gl - gu - torque
         )  # fmt: skip
         grad = q.new_zeros(q.shape).index_add(1, idx, g)
         if order == 1:
-            return value, grad, None
+            return value, grad, None, limits
         h = inv * d["armature"] + d["damping"] / dt + d["stiffness"] + d["pd_stiffness"] + hl + hu
         hess = q.new_zeros(q.shape[0], q.shape[1], q.shape[1])
         hess[:, idx, idx] = h
-        return value, grad, hess
+        return value, grad, hess, limits
 
     def servo_gains(self, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
         """(U,) kp and (U,) kv: the MJCF's position-actuator gains (zero for motors), ``Params.kp`` / ``kv``'s

@@ -123,6 +123,8 @@ class EnergyEval(NamedTuple):
             without the split: the Newton solve then freezes no body).
         pair_value: (A, P) each interacting body pair's contact and friction terms (0 for pairs not evaluated).
         warm: the contact model's warm-start data of this evaluation (with ``scene_ids``), or None.
+        barrier_value: (A,) the terms that are +inf somewhere: contact and friction (the sum of ``pair_value``) and
+            joint limits; or None (an energy without them: Newton then takes no step within tol as barrier-limited).
 
     With ``active`` (a subset of the moving bodies), L is the sum of the terms that involve an active body (their
     own terms, and the pairs with at least one of them), and grad / hess are exact in the active bodies'
@@ -143,6 +145,7 @@ class EnergyEval(NamedTuple):
     body_value: torch.Tensor | None = None
     pair_value: torch.Tensor | None = None
     warm: object | None = None
+    barrier_value: torch.Tensor | None = None
 
 
 class BatchRows(NamedTuple):
@@ -522,15 +525,17 @@ def incremental_potential(
             if order >= 2:
                 gap = sum_pairs(B, N, cp, None, gap_c[0])[1]
     jv = jg = jh = None
+    barrier = pair_value.reshape(B, P).sum(1)
     if prob.joint is not None:
         jq = prob.joint
-        jv, jg, jh = kin.joint_terms(q, jq, scene.dt, order)
+        jv, jg, jh, jl = kin.joint_terms(q, jq, scene.dt, order)
         value = value + jv
+        barrier = barrier + jl
     scale = value.abs() + local.abs().sum(1) + (0.0 if jv is None else jv.abs())
     if order == 0:
         return EnergyEval(
             value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs, body_value,
-            pair_value.reshape(B, P), ce.warm if ce is not None else None,
+            pair_value.reshape(B, P), ce.warm if ce is not None else None, barrier,
         )  # fmt: skip
     Gp = G if Gf is None else G + Gf
     Hp = None
@@ -564,5 +569,5 @@ def incremental_potential(
             h_floor = 0.1 * torch.linalg.eigvalsh(pulled[-1]).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
-        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None,
+        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None, barrier,
     )  # fmt: skip

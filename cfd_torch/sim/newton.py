@@ -11,9 +11,9 @@ Step: one iteration moves no vertex more than ``max_move``; then a backtracking 
 trial is accepted only if its energy is finite, decreases enough (up to the energy's rounding scale) and the move
 to it passes ``move_ok`` (no tunnelling). Converged when the undamped Newton step is at most ``tol`` in every
 coordinate at a positive definite Hessian (never in a majorized iteration: its step is shorter than Newton's) and
-the step is not barrier-limited (its decrement -g.p a sizeable part of the contact energy, with a curvature no
-inertia holds: a body started within about ``tol`` of the contact margin takes steps of half its gap, within
-``tol`` with the balance still far; ``_BARRIER_DECREMENT``); that
+the step is not barrier-limited (its decrement -g.p a sizeable part of the contact and joint-limit energy, with a
+curvature no inertia holds: a body within about ``tol`` of the contact margin, or a joint of its limit, takes steps
+of a fixed fraction of its gap, within ``tol`` with the balance still far; ``_BARRIER_DECREMENT``); that
 last step is then taken too (unchecked when it moves no vertex more than ``final_move``, else through the line
 search as one more iteration), so a force too weak to move a body by ``tol`` in one step still moves it: near the
 solution Newton's step is the remaining correction, however small, and dropping it would stop every body whose
@@ -50,14 +50,14 @@ __all__ = ["Stop", "NewtonResult", "newton"]
 _LINE_SEARCH_TRIES = 60
 _ISLAND_TRIES = 20  # an island that finds no step within this many halvings hands its scene to a whole search
 # a Newton step within tol is limited by a barrier's curvature, not converged, where its decrement -g.p exceeds
-# _BARRIER_DECREMENT of the contact and friction energy, _BARRIER_DECREMENT_L of L's magnitude
-# (``EnergyEval.scale``) and _BARRIER_CURVATURE times the least share the bodies' inertia could have of it: on
-# E = c / gap (this library's pair potential near its margin) Newton's step is gap / 2 and its decrement E / 2
-# (IPC's log barrier: the gap and about a tenth of E), a curvature no inertia holds (a box started 1e-9 m above the
-# margin: 3e-3, 1e-3 and 4e20). At a solution the decrement is the step's own p^T H p: in every test and benchmark
-# scene under 1e-8 of the contact energy and 2e-9 of L's magnitude; where a loose tol makes it larger, the inertia
-# holds it (a cube's first step at tol 1e-4: 150 times the least inertia share, its translation's against its
-# rotation's curvature)
+# _BARRIER_DECREMENT of the barriers' energy (contact, friction, joint limits: ``EnergyEval.barrier_value``),
+# _BARRIER_DECREMENT_L of L's magnitude (``EnergyEval.scale``) and _BARRIER_CURVATURE times the least share the
+# bodies' inertia could have of it: on E = c / gap (this library's pair potential near its margin) Newton's step is
+# gap / 2 and its decrement E / 2 (IPC's log barrier and the joint limits': the gap and about a tenth of E), a
+# curvature no inertia holds (a box started 1e-9 m above the margin: 3e-3, 1e-3 and 4e20). At a solution the
+# decrement is the step's own p^T H p: in every test and benchmark scene under 1e-8 of the contact energy and 2e-9
+# of L's magnitude; where a loose tol makes it larger, the inertia holds it (a cube's first step at tol 1e-4: 150
+# times the least inertia share, its translation's against its rotation's curvature)
 _BARRIER_DECREMENT, _BARRIER_DECREMENT_L, _BARRIER_CURVATURE = 1e-5, 1e-6, 1e6
 
 
@@ -339,13 +339,13 @@ def newton(
         p_max = p.abs().amax(1)
         newton_step = pd & ~maj
         small = newton_step & (p_max <= tol)
-        if cur.pair_value is not None and cur.h_floor is not None and bool(small.any()):
-            # a step within tol next to a barrier (a pair within about tol of the contact margin) is not
-            # convergence: there Newton's step is a fixed fraction of the gap, however far the balance is
+        if cur.barrier_value is not None and cur.h_floor is not None and bool(small.any()):
+            # a step within tol next to a barrier (a pair within about tol of the contact margin, a joint of its
+            # limit) is not convergence: there Newton's step is a fixed fraction of the gap, however far the balance
             dec = -(g * p).sum(1)
-            contact = cur.pair_value[idx].sum(1)
+            walls = cur.barrier_value[idx]
             inertia = 10.0 * cur.h_floor[idx] * (p * p).sum(1)  # the least the bodies' inertia adds to dec
-            barrier = (contact > 0) & (dec > _BARRIER_DECREMENT * contact)
+            barrier = (walls > 0) & (dec > _BARRIER_DECREMENT * walls)
             barrier = (
                 barrier & (dec > _BARRIER_DECREMENT_L * cur.scale[idx]) & (dec > _BARRIER_CURVATURE * inertia)
             )
