@@ -1435,22 +1435,25 @@ def test_planar_scene_refuses_roll_and_pitch_and_articulations(small_sphere):
     assert float(scene.initial_state(_poses((0.0,) * 6), v).q_prev[..., 0].min()) < 0
 
 
-@pytest.mark.parametrize("friction", [0.0, 0.5])
-def test_a_start_within_newton_tol_of_the_margin_is_solved_not_declared_converged(friction):
+@pytest.mark.parametrize("friction, gap", [(0.0, 1e-9), (0.5, 1e-9), (0.5, 1e-11)])
+def test_a_start_within_newton_tol_of_the_margin_is_solved_not_declared_converged(friction, gap):
     """A 1 kg box at rest 1e-9 m above the contact margin of a floor (1.4e12 N of contact force): next to the
     barrier Newton's step is half the gap, within newton_tol, and with friction the solve used to stop there after
     one iteration, 5e-10 m moved and 1e12 N unbalanced. Now the step's decrement against the contact energy says it
-    is not converged: the box is pushed up until the forces on it balance."""
+    is not converged: the box is pushed up until the forces on it balance. At 1e-11 m friction's stiffness shortens
+    the steps (they grow by 1.5x per iteration, not 2x) and the solve stopped after four."""
     box = rigid_body(trimesh.creation.box((0.1, 0.1, 0.1)), density=1000.0)
     floor = rigid_body(trimesh.creation.box((2, 2, 0.1)), kind="static")
     scene = Scene([box, floor], dt=0.01, friction=friction)
-    q = torch.tensor([[0, 0, 0.05 + 1e-3 + 1e-9, 0, 0, 0], [0, 0, -0.05, 0, 0, 0]], dtype=torch.float64)
+    q = torch.tensor([[0, 0, 0.05 + 1e-3 + gap, 0, 0, 0], [0, 0, -0.05, 0, 0, 0]], dtype=torch.float64)
     st, info = step(scene, scene.initial_state(q), return_info=True)
     assert int(info.newton_iters) > 10
-    assert float(st.q[0, 2] - q[0, 2]) > 1e-5  # pushed up (4.7e-4 m without friction, 2.3e-5 m with)
+    assert float(st.q[0, 2] - q[0, 2]) > 5e-6  # pushed up (4.7e-4 m without friction, 2.3e-5 and 8e-6 m with)
     contact, fric = info.contact_force[0, :3], info.friction_force[0, :3]
     weight = box.mass * 9.81
     # the step's balance: inertia (m dz / dt^2, the box starting at rest) = contact + friction - weight
     inertia = box.mass * float(st.q[0, 2] - q[0, 2]) / scene.dt**2
     assert float(contact[2]) > weight
-    assert abs(float(contact[2] + fric[2]) - weight - inertia) < 1e-6 * float(contact[2])
+    # (the forces are those of the last evaluated iterate, a step within newton_tol before the end: against
+    # friction's stiffness there, about 1e10 N/m at 1e-11 m, that is 2e-4 of the contact force)
+    assert abs(float(contact[2] + fric[2]) - weight - inertia) < 1e-3 * float(contact[2])

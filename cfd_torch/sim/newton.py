@@ -59,6 +59,10 @@ _ISLAND_TRIES = 20  # an island that finds no step within this many halvings han
 # of L's magnitude; where a loose tol makes it larger, the inertia holds it (a cube's first step at tol 1e-4: 150
 # times the least inertia share, its translation's against its rotation's curvature)
 _BARRIER_DECREMENT, _BARRIER_DECREMENT_L, _BARRIER_CURVATURE = 1e-5, 1e-6, 1e6
+# with friction's stiffness beside the barrier (a box started 1e-11 m above the margin, friction 0.5: the decrement
+# 9e-6 of the barriers' energy at its third step) the steps within tol still grow (by 1.5x there): a step within tol
+# no shorter than the one before, with a decrement above this fraction of the barriers' energy, is not converged
+_BARRIER_GROWING = 1e-10
 
 
 class Stop(enum.IntEnum):
@@ -345,11 +349,14 @@ def newton(
             dec = -(g * p).sum(1)
             walls = cur.barrier_value[idx]
             inertia = 10.0 * cur.h_floor[idx] * (p * p).sum(1)  # the least the bodies' inertia adds to dec
-            barrier = (walls > 0) & (dec > _BARRIER_DECREMENT * walls)
+            stiff = (walls > 0) & (dec > _BARRIER_CURVATURE * inertia)
             barrier = (
-                barrier & (dec > _BARRIER_DECREMENT_L * cur.scale[idx]) & (dec > _BARRIER_CURVATURE * inertia)
+                stiff & (dec > _BARRIER_DECREMENT * walls) & (dec > _BARRIER_DECREMENT_L * cur.scale[idx])
             )
-            small = small & ~barrier
+            # friction's stiffness (large lagged forces next to the margin) shortens those steps and their
+            # decrement, but they still grow from one iteration to the next, where Newton's converging steps shrink
+            growing = stiff & (dec > _BARRIER_GROWING * walls) & (p_max >= last_step[idx])
+            small = small & ~(barrier | growing)
         # the next step if Newton converges quadratically (|p_next| ~ |p|^2 |p| / |p_last|^2): a scene expected to
         # converge in its next iteration does not freeze bodies, which would cost it a whole evaluation more
         soon = newton_step & (p_max**3 <= tol * last_step[idx] ** 2)
