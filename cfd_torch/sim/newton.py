@@ -345,7 +345,7 @@ def newton(
         small = newton_step & (p_max <= tol)
         if cur.barrier_value is not None and cur.h_floor is not None and bool(small.any()):
             # a step within tol next to a barrier (a pair within about tol of the contact margin, a joint of its
-            # limit) is not convergence: there Newton's step is a fixed fraction of the gap, however far the balance
+            # limit) is not convergence: there Newton's step is a fixed fraction of the gap, the balance however far
             dec = -(g * p).sum(1)
             walls = cur.barrier_value[idx]
             inertia = 10.0 * cur.h_floor[idx] * (p * p).sum(1)  # the least the bodies' inertia adds to dec
