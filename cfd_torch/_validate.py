@@ -147,6 +147,21 @@ def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> Non
             )
 
 
+def usable_device(device: torch.device | str, name: str = "device") -> torch.device:
+    """``device`` as a torch.device that holds data in this torch build (not 'meta', not a backend it was built
+    without or whose device is absent), else a ValueError naming ``name``."""
+    try:
+        dev = torch.device(device)
+        torch.empty(0, device=dev)
+    except (RuntimeError, AssertionError, TypeError) as e:
+        raise ValueError(f"{name} {device!r} is not usable with this torch build: {e}") from e
+    if dev.type == "meta":
+        raise ValueError(
+            f"{name} 'meta' holds no data: the environment needs a device that computes (cpu, cuda)"
+        )
+    return dev
+
+
 def check_not_meta(x: torch.Tensor, name: str) -> None:
     """Refuse a tensor on the 'meta' device (a shape without values), naming it."""
     if x.device.type == "meta":

@@ -20,6 +20,8 @@ from .shell import CoreEnv, CoreVectorEnv
 
 __all__ = ["AntPushCore", "AntPushEnv", "AntPushVectorEnv"]
 
+_SERVO_GAINS = (100.0, 5.0)  # position actuation's default (kp, kv)
+
 
 class AntPushCore(BoxToTargetCore):
     """AntPush: the Gymnasium Ant (``gymnasium/envs/mujoco/assets/ant.xml``: a torso on a floating base, four legs
@@ -63,7 +65,7 @@ class AntPushCore(BoxToTargetCore):
         action_cost: float = 1e-3,
         success_radius: float = 0.1,
         actuation: str = "torque",
-        servo_gains: tuple[float, float] = (100.0, 5.0),
+        servo_gains: tuple[float, float] = _SERVO_GAINS,
         potential: str = "cfd",
         eps: float = 1.0,
         dt: float = 0.01,
@@ -80,10 +82,10 @@ class AntPushCore(BoxToTargetCore):
         gains_ok = gains_ok and all(is_real(g) and math.isfinite(g) for g in servo_gains)
         if not (gains_ok and servo_gains[0] > 0 and servo_gains[1] >= 0):
             raise ValueError(f"servo_gains must be (kp > 0, kv >= 0), finite numbers, got {servo_gains!r}")
-        if actuation == "torque" and tuple(servo_gains) != (100.0, 5.0):
+        if actuation == "torque" and tuple(servo_gains) != _SERVO_GAINS:
             raise ValueError(
                 "servo_gains is read only by actuation='position'; actuation='torque' does not use it: leave it at "
-                "its default (100.0, 5.0)"
+                f"its default {_SERVO_GAINS}"
             )
         self.actuation = actuation
         self.mjcf = (gymnasium_ant_xml(servos=servo_gains if actuation == "position" else None),)

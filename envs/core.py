@@ -28,7 +28,7 @@ import torch.utils._pytree as pytree
 import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
-from cfd_torch._validate import check_positive, is_real
+from cfd_torch._validate import check_positive, is_real, usable_device
 from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
 from cfd_torch.sim.types import allow_in_torch_load
@@ -100,21 +100,6 @@ def check_unused_by_potential(potential: str, name: str, value: float, default: 
             f"{name} is read only by {reads}; potential={potential!r} does not use it: leave it at its default "
             f"{default!r}"
         )
-
-
-def _usable_device(device: torch.device | str) -> torch.device:
-    """``device`` as a torch.device, checked here (not at the first reset) to hold tensors in this torch build."""
-    try:
-        dev = torch.device(device)
-        # a backend this torch was not built with, or one without a device present, raises here
-        torch.zeros(1, device=dev)
-    except (RuntimeError, AssertionError, TypeError) as e:
-        raise ValueError(f"device {device!r} is not usable with this torch build: {e}") from e
-    if dev.type == "meta":
-        raise ValueError(
-            "device 'meta' holds no data: the environment needs a device that computes (cpu, cuda)"
-        )
-    return dev
 
 
 @dataclass(frozen=True)
@@ -312,7 +297,7 @@ class TaskCore(abc.ABC):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.scene = scene
-        self.device = _usable_device(device)
+        self.device = usable_device(device)
         self.dtype = dtype
 
     # ---- what a task defines -------------------------------------------------------------------------------------

@@ -82,11 +82,12 @@ def torch_device(text: str):
         device = None
     if device is None or device.type not in ("cpu", "cuda"):
         raise argparse.ArgumentTypeError(f"must be cpu, cuda or cuda:N, got {text!r}")
+    from cfd_torch._validate import usable_device
+
     try:
-        torch.empty(0, device=device)
-    except (RuntimeError, AssertionError) as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not available here ({err})") from None
-    return device
+        return usable_device(device)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"{text!r} is not available here ({err.__cause__})") from None
 
 
 def folder_problem(path: Path) -> str | None:

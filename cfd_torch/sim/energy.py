@@ -525,7 +525,8 @@ def incremental_potential(
             if order >= 2:
                 gap = sum_pairs(B, N, cp, None, gap_c[0])[1]
     jv = jg = jh = None
-    barrier = pair_value.reshape(B, P).sum(1)
+    pair_value = pair_value.reshape(B, P)
+    barrier = pair_value.sum(1)
     if prob.joint is not None:
         jq = prob.joint
         jv, jg, jh, jl = kin.joint_terms(q, jq, scene.dt, order)
@@ -535,7 +536,7 @@ def incremental_potential(
     if order == 0:
         return EnergyEval(
             value, None, None, None, scale, None, None, None, None, node_pairs, leaf_pairs, body_value,
-            pair_value.reshape(B, P), ce.warm if ce is not None else None, barrier,
+            pair_value, ce.warm if ce is not None else None, barrier,
         )  # fmt: skip
     Gp = G if Gf is None else G + Gf
     Hp = None
@@ -569,5 +570,5 @@ def incremental_potential(
             h_floor = 0.1 * torch.linalg.eigvalsh(pulled[-1]).amin(1)
     return EnergyEval(
         value, grad, hess, Hc, scale, gap_q, h_floor, -G, -Gf if Gf is not None else torch.zeros_like(G),
-        node_pairs, leaf_pairs, body_value, pair_value.reshape(B, P), ce.warm if ce is not None else None, barrier,
+        node_pairs, leaf_pairs, body_value, pair_value, ce.warm if ce is not None else None, barrier,
     )  # fmt: skip
