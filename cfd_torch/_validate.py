@@ -156,9 +156,7 @@ def usable_device(device: torch.device | str, name: str = "device") -> torch.dev
     except (RuntimeError, AssertionError, TypeError) as e:
         raise ValueError(f"{name} {device!r} is not usable with this torch build: {e}") from e
     if dev.type == "meta":
-        raise ValueError(
-            f"{name} 'meta' holds no data: the environment needs a device that computes (cpu, cuda)"
-        )
+        raise ValueError(f"{name} 'meta' holds no data: a device that computes is needed (cpu, cuda)")
     return dev
 
 

@@ -87,7 +87,7 @@ def torch_device(text: str):
     try:
         return usable_device(device)
     except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not available here ({err.__cause__})") from None
+        raise argparse.ArgumentTypeError(f"{text!r} is not available here ({err.__cause__ or err})") from None
 
 
 def folder_problem(path: Path) -> str | None:
