@@ -598,6 +598,14 @@ def test_bad_params_raise_value_error(rest_scene):
             step(scene, state, params=bad)
 
 
+@pytest.mark.parametrize("dtype", [torch.int64, torch.float16, torch.bool])
+def test_params_refuses_a_dtype_step_does_not_take(rest_scene, dtype):
+    scene, _ = rest_scene
+    with pytest.raises(ValueError, match="dtype must be torch.float32 or torch.float64"):
+        scene.params(dtype)
+    assert scene.params(torch.float32).friction.dtype == torch.float32  # the dtypes it takes
+
+
 @pytest.mark.parametrize("gap", [-0.01, 0.0, 0.5 * MARGIN])
 def test_penetrating_start_raises(cube, ground, gap):
     scene = Scene((cube, ground))

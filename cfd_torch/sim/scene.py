@@ -11,7 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from .._validate import body_pair, check_pair_eps, check_pair_mu, closed_surface, is_real
+from .._validate import FLOATS, body_pair, check_pair_eps, check_pair_mu, closed_surface, is_real
 from ..config import ContactConfig, FrictionConfig, SolverConfig, with_potential
 from ..contact._traverse import build_forest
 from ..contact.bsh import BSH
@@ -505,7 +505,12 @@ class Scene:
         """The scene's differentiable physical parameters as tensors of ``dtype`` on ``device`` (set requires_grad
         for their gradients): mass and second moment, one row per body the kinematics map moves; the friction
         coefficient (``FrictionConfig.coefficient``); the servos' gains kp and kv from the articulations' MJCF
-        (empty without simulated robots)."""
+        (empty without simulated robots).
+
+        Raises:
+            ValueError: ``dtype`` is not torch.float32 or torch.float64 (the dtypes ``step`` takes)."""
+        if dtype not in FLOATS:
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
         d = self.kinematics.bodies.tolist()
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
