@@ -1068,17 +1068,25 @@ def test_mjcf_physics_the_step_does_not_model_is_refused():
         ),
     ]
     cases += [
-        ('damping="-1"', "", "joint 'j1': damping must be >= 0, got -1"),
-        ('stiffness="-3"', "", "joint 'j1': stiffness must be >= 0, got -3"),
+        ('damping="-1"', "", "joint 'j1': damping must be finite and >= 0, got -1"),
+        ('stiffness="-3"', "", "joint 'j1': stiffness must be finite and >= 0, got -3"),
+        ('armature="inf"', "", "joint 'j1': armature must be finite and >= 0, got inf"),
         (
             "",
             '<actuator><position name="p" joint="j1" kp="-30"/></actuator>',
-            "actuator 'p': kp and kv must be >= 0",
+            "actuator 'p': kp and kv must be finite and >= 0",
+        ),
+        (
+            "",
+            '<actuator><motor name="m" joint="j1" gear="inf"/></actuator>',
+            "actuator 'm': gear must be finite",
         ),
     ]
     for j1, extra, message in cases:
         with pytest.raises(ValueError, match=message):
             articulation(two.format(j1=j1, extra=extra))
+    with pytest.raises(ValueError, match=r"the model \(MJCF or URDF\) is not well-formed XML"):
+        articulation("<robot name='x'><link name='a'></robot>")
     with pytest.raises(ValueError, match="body 'a1': gravcomp is not supported"):
         articulation(two.format(j1="", extra="").replace('<body name="a1">', '<body name="a1" gravcomp="1">'))
     fluid = two.format(j1="", extra="").replace(

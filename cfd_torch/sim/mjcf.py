@@ -566,7 +566,7 @@ def _prepared_xml(xml: str, base: str | None) -> tuple[str, ET.Element]:
     try:
         tree = ET.fromstring(xml)
     except ET.ParseError as e:
-        raise ValueError(f"the MJCF is not well-formed XML: {e}") from None
+        raise ValueError(f"the model (MJCF or URDF) is not well-formed XML: {e}") from None
     here = base or os.getcwd()
     changed = _inline_includes(tree, here, here, set())
     # the <worldbody> sections (a model and the files it includes may each have one) are one world, as in MuJoCo
@@ -890,8 +890,8 @@ def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
         ("armature", m.dof_armature[dadr]),
         ("stiffness", m.jnt_stiffness[j]),
     ):  # negative values add energy: the step's joint terms would have no minimum
-        if float(value) < 0:
-            raise ValueError(f"joint '{joint.name}': {what} must be >= 0, got {float(value):g}")
+        if not 0 <= float(value) < math.inf:
+            raise ValueError(f"joint '{joint.name}': {what} must be finite and >= 0, got {float(value):g}")
     return JointSpec(
         name=joint.name,
         kind=kind,
@@ -1165,8 +1165,10 @@ def _actuator_spec(m: mujoco.MjModel, a: int, joint_index: dict[int, int]) -> Ac
         raise ValueError(
             f"{label}: only motor and position actuators (without activation dynamics) are supported"
         )
-    if kp < 0 or kv < 0:  # a negative gain adds energy: the step's servo term would have no minimum
-        raise ValueError(f"{label}: kp and kv must be >= 0, got kp={kp:g}, kv={kv:g}")
+    if not (0 <= kp < math.inf and 0 <= kv < math.inf):  # a negative gain adds energy: no minimum
+        raise ValueError(f"{label}: kp and kv must be finite and >= 0, got kp={kp:g}, kv={kv:g}")
+    if not math.isfinite(float(m.actuator_gear[a, 0])):
+        raise ValueError(f"{label}: gear must be finite, got {float(m.actuator_gear[a, 0]):g}")
     return ActuatorSpec(
         name=name,
         joint=joint_index[j],
