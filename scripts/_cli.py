@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -91,12 +94,38 @@ def torch_device(text: str):
 
 
 def folder_problem(path: Path) -> str | None:
-    """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder),
+    """Why ``path`` cannot be an output folder (it, or the nearest of its parents that exists, is not a folder or
+    not one this process can write in: a folder made there and removed at once tells; or it is a link to nothing),
     else None."""
+    if path.is_symlink() and not path.exists():
+        return f"{path}: a link to {os.readlink(path)}, which does not exist"
     for p in (path, *path.parents):
         if p.exists():
-            return None if p.is_dir() else f"{path}: {p} is a file; give a folder"
+            if not p.is_dir():
+                return f"{path}: {p} is a file; give a folder"
+            try:
+                os.rmdir(tempfile.mkdtemp(prefix=".write-check-", dir=p))
+            except OSError as e:
+                return f"{path}: cannot write in {p} ({e.strerror or e})"
+            return None
     return None
+
+
+def read_sweep(path: Path) -> dict:
+    """``scripts/sweep.py``'s ``sweep.json`` at ``path``: a JSON object whose "runs" is a list of runs, each an
+    object with a "config" object naming its task, model and seed; a ValueError saying what is wrong otherwise."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable JSON file ({e})") from None
+    runs = data.get("runs") if isinstance(data, dict) else None
+    if not isinstance(runs, list):
+        raise ValueError(f'{path}: not a sweep.json (a JSON object with a list of runs under "runs")')
+    for k, r in enumerate(runs):
+        c = r.get("config") if isinstance(r, dict) else None
+        if not (isinstance(c, dict) and all(key in c for key in ("task", "model", "seed"))):
+            raise ValueError(f"{path}: run {k} has no config naming its task, model and seed")
+    return data
 
 
 def interrupted(e: BaseException) -> bool:

@@ -61,7 +61,8 @@ Writes ``log.json`` (the configuration, the commit, and per iteration or control
 times, rollouts, Newton iterations), ``loss.png`` and ``best.gif`` (open loop: the rollout of the best iterate, the
 smallest loss, none for mujoco-fd; MPC: the executed trajectory, MuJoCo's for mujoco-fd) under ``--out``, and
 while a run goes, ``progress.jsonl`` (one line per finished iteration, or per executed control step with ``--mpc``:
-what an interrupted run keeps).
+what an interrupted run keeps). A run first removes those four files from the folder (an earlier run's, which
+would otherwise pass for its own: a best.gif where this run writes none).
 :func:`run_experiment` (a config dict in, a JSON-able dict out) is the whole experiment; ``scripts/sweep.py`` runs
 it over a grid.
 
@@ -95,6 +96,8 @@ from cfd_torch._validate import is_int, is_real  # noqa: E402
 from cfd_torch.envs import TASKS, core_class, make_core, rollout  # noqa: E402
 from cfd_torch.envs.core import EnvState, task_at  # noqa: E402
 from cfd_torch.envs.render import write_gif  # noqa: E402
+
+OUTPUTS = ("log.json", "loss.png", "best.gif", "progress.jsonl")  # what a run writes in its --out folder
 
 
 def task_loss(reward_distance: torch.Tensor, alive: torch.Tensor, kind: str) -> torch.Tensor:
@@ -517,6 +520,8 @@ def run_experiment(config: dict) -> dict:
     out_dir = Path(cfg["out"]) if cfg["out"] is not None else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
+        for name in OUTPUTS:  # an earlier run's files would sit beside this run's as if they were its
+            (out_dir / name).unlink(missing_ok=True)
     task, model = cfg["task"], cfg["model"]
     core = make_core(f"cfd_torch/{task}-v0", **_core_kwargs(cfg))
     s0 = core.reset(cfg["seed"], 1)

@@ -22,7 +22,6 @@ and model made with different settings, whose mean would mix two experiments).
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _cli import folder_problem  # noqa: E402
+from _cli import folder_problem, read_sweep  # noqa: E402
 from _settings import DEFAULTS, MODEL_ONLY  # noqa: E402
 
 
@@ -190,7 +189,11 @@ def main() -> None:
     for d in args.sweeps:
         if not (d / "sweep.json").is_file():
             ap.error(f"{d} has no sweep.json (a folder written by scripts/sweep.py --out)")
-        for r in json.loads((d / "sweep.json").read_text())["runs"]:
+        try:
+            sweep = read_sweep(d / "sweep.json")
+        except ValueError as e:
+            ap.error(str(e))
+        for r in sweep["runs"]:
             c = r["config"]
             if args.seeds is not None and c["seed"] not in args.seeds:
                 continue

@@ -46,7 +46,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _cli import folder_problem, interrupted  # noqa: E402
+from _cli import folder_problem, interrupted, read_sweep  # noqa: E402
 from _provenance import REVISION_ENV, git_revision  # noqa: E402
 from _settings import DEFAULTS, MODEL_ONLY, MODELS  # noqa: E402
 from optimize import _check_settings, add_arguments, check_seed, run_experiment  # noqa: E402
@@ -285,7 +285,10 @@ def main() -> None:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         ap.error(f"--out: another sweep is writing to {args.out}")
-    old = json.loads(path.read_text()) if args.resume and path.exists() else {}
+    try:
+        old = read_sweep(path) if args.resume and path.exists() else {}
+    except ValueError as e:
+        ap.error(f"--resume: {e}")
     runs, sweeps = old.get("runs", []), old.get("sweeps", [])
     # --resume continues the same experiment: each task and model's runs (one row of the table, one curve of the
     # plot) share their settings; a new cell is checked against every earlier run of its task and model

@@ -66,7 +66,8 @@ def test_two_iterations_per_model(model, tmp_path):
     its backward (gb: 1 + 2 sampled rollouts, no backward); the files written. The local barriers' and MuJoCo's
     gradient is exactly zero there (the pole is 0.5 m from the box), so their runs stop after the first evaluation
     (mujoco-fd's: 1 + its step-size sweep's 5 x 2 x 6 central differences) with ``stopped_at`` 0; ours and gb's
-    are not zero and run on."""
+    are not zero and run on. An earlier run's files in the folder go first (this run writes no GIF)."""
+    (tmp_path / "best.gif").write_text("an earlier run's")
     r = run_experiment(
         {
             "task": "Push",
@@ -100,6 +101,7 @@ def test_two_iterations_per_model(model, tmp_path):
     saved = json.loads((tmp_path / "log.json").read_text())
     assert saved["config"]["model"] == model and len(saved["log"]) == len(log)
     assert (tmp_path / "loss.png").stat().st_size > 0
+    assert not (tmp_path / "best.gif").exists()
 
 
 def test_mujoco_twin_pushes_the_box_like_the_simulator():

@@ -195,6 +195,44 @@ def test_plot_results_refuses_an_out_that_is_a_file(scripts_path, monkeypatch, c
     assert f"error: --out {afile / 'sub'}: {afile} is a file; give a folder" in capsys.readouterr().err
 
 
+def test_an_out_folder_that_cannot_be_written_is_refused(scripts_path, tmp_path):
+    """Beside a file in the way: a folder the process cannot make, and a link to nothing (they raised from mkdir
+    or from the first file written, after the first rollout)."""
+    from _cli import folder_problem
+
+    assert folder_problem(tmp_path / "new" / "sub") is None
+    assert list(tmp_path.iterdir()) == []  # the check leaves nothing behind
+    if Path("/proc/self").is_dir():  # Linux: no folder can be made in /proc, not even by root
+        assert folder_problem(Path("/proc/cfd-out")).startswith("/proc/cfd-out: cannot write in /proc (")
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "gone")
+    assert folder_problem(link) == f"{link}: a link to {tmp_path / 'gone'}, which does not exist"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "not a readable JSON file"),
+        ("[1, 2]", "not a sweep.json"),
+        ('{"runs": null}', "not a sweep.json"),
+        ('{"runs": [1]}', "run 0 has no config naming its task, model and seed"),
+        ('{"runs": [{"config": {"task": "Push"}}]}', "run 0 has no config naming its task, model and seed"),
+    ],
+)
+def test_plot_results_refuses_a_malformed_sweep_json(
+    scripts_path, monkeypatch, capsys, tmp_path, text, message
+):
+    """A usage error saying what is wrong (a traceback from inside the loop before)."""
+    import plot_results
+
+    (tmp_path / "sweep.json").write_text(text)
+    monkeypatch.setattr(sys, "argv", ["plot_results.py", str(tmp_path), "--out", str(tmp_path / "plots")])
+    with pytest.raises(SystemExit) as exit_:
+        plot_results.main()
+    assert exit_.value.code == 2
+    assert f"{tmp_path / 'sweep.json'}: {message}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("script", ["stacked_books", "impact_phase", "impact_model_1d", "rolling_ball"])
 def test_an_experiment_script_refuses_an_out_that_is_a_file(
     scripts_path, monkeypatch, capsys, tmp_path, script
