@@ -28,7 +28,7 @@ import torch.utils._pytree as pytree
 import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
-from cfd_torch._validate import check_positive, is_real, usable_device
+from cfd_torch._validate import FLOATS, check_positive, is_real, usable_device
 from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
 from cfd_torch.sim.types import allow_in_torch_load
@@ -294,7 +294,7 @@ class TaskCore(abc.ABC):
     def __init__(
         self, scene: Scene, *, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64
     ):
-        if dtype not in (torch.float32, torch.float64):
+        if dtype not in FLOATS:
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.scene = scene
         self.device = usable_device(device)
