@@ -677,6 +677,39 @@ def test_numba_depth_first_and_tensor_breadth_first_traversals_agree(split):
 
 
 @pytest.mark.parametrize("split", SPLITS)
+def test_partial_hessians_equal_the_whole_ones_in_the_blocks_asked_for(split):
+    """``hessian_of`` (the simulator's Newton iterations name the bodies that move): where one body of a pair is
+    asked for, the CPU kernels form only its 6 x 6 block, bit for bit the whole Hessian's, and leave the other rows
+    and columns zero; values and gradients are unchanged. Pairs in contact (blend bands, leaf pairs, weights
+    inherited through the band) and far apart (the far pairs' moments), with either body the asked one."""
+    bsh_a, bsh_b = _bsh("ico1"), _bsh("box")
+    near = _random_configs("ico1", "box", 4, seed=7, gap=(1.5 * MARGIN, 3 * MARGIN))
+    far = _random_configs("ico1", "box", 2, seed=8, gap=(20 * MARGIN, 0.5))
+    pose = torch.cat([near[0], far[0], near[1], far[1]])
+    forest = _traverse.forest_of((bsh_a, bsh_b), F64, torch.device("cpu"))
+    pair_body = torch.stack([torch.arange(6), torch.arange(6) + 6], 1)
+    pair_root = forest.roots[None].expand(6, 2)
+    kw = {"mu": 1.0, "margin": MARGIN, "eps": 0.01, "split": split, "tol": 1e-12, "max_iter": 100, "order": 2}
+    whole = _traverse.traverse(forest, pair_body, pair_root, pose, **kw)
+    assert whole[3]["leaf_pairs"] > 0
+    ask = torch.tensor(
+        [[True, False], [False, True], [True, True], [True, False], [True, False], [False, True]]
+    )
+    part = _traverse.traverse(forest, pair_body, pair_root, pose, hessian_of=ask, **kw)
+    assert torch.equal(part[0], whole[0]) and torch.equal(part[1], whole[1])
+    for p in range(6):
+        lo, hi = (0 if ask[p, 0] else 6), (12 if ask[p, 1] else 6)
+        block = whole[2][p, lo:hi, lo:hi]
+        assert float(block.abs().max()) > 0
+        assert torch.equal(part[2][p, lo:hi, lo:hi], block)
+        rest = part[2][p].clone()
+        rest[lo:hi, lo:hi] = 0.0
+        assert float(rest.abs().max()) == 0.0
+    with pytest.raises(ValueError, match="hessian_of"):
+        _traverse.traverse(forest, pair_body, pair_root, pose, hessian_of=ask[:5], **kw)
+
+
+@pytest.mark.parametrize("split", SPLITS)
 def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
     """The CPU kernels start with fixed buffers (stack, leaves, weight table) and, when one fills up, grow it and
     traverse the body pair again from its saved rows: started at capacity 1 (every buffer grows, mid-pair, many
@@ -706,7 +739,7 @@ def test_numba_kernels_grow_their_buffers_without_changing_the_result(split):
         for caps in ((STACK_CAP, TABLE_CAP, LEAF_CAP), (1, 1, 1)):
             out = (np.zeros(n), np.zeros((n, 12)), np.zeros((n, 12, 12)))
             res = traverse_nodes(*geo, pair_body, pair_root, R, dR, d2R, t, 1.0, eps, 2 * MARGIN, split == "both",
-                                 order, *out, *caps)  # fmt: skip
+                                 order, *out, np.zeros(n, np.int64), *caps)  # fmt: skip
             runs.append((res, out))
         (res0, out0), (res1, out1) = runs
         n_leaf = res0[7]

@@ -194,7 +194,23 @@ def _node_threads(P: int, leaves: int | None = None) -> int:
 
 
 def _traverse_cpu(
-    forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess, hint
+    forest,
+    pair_body,
+    pair_root,
+    R,
+    dR,
+    d2R,
+    t,
+    mu,
+    eps,
+    min_width,
+    split,
+    order,
+    value,
+    grad,
+    hess,
+    hside,
+    hint,
 ):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
     weights' Hessians stay in the kernel's weight tables: ``ld2w`` is None) and those tables: (the leaves' entries
@@ -222,6 +238,7 @@ def _traverse_cpu(
     def run(rows: torch.Tensor | None):
         pb, pr = (pair_body, pair_root) if rows is None else (pair_body[rows], pair_root[rows])
         ep = eps if rows is None else eps[rows]
+        hs = hside if rows is None else hside[rows]
         n = pb.shape[0]
         v = value if rows is None else torch.zeros(n, dtype=dt)
         # the kernel only writes grad / hess at order >= 1 / 2; below that it gets empty placeholders
@@ -234,7 +251,7 @@ def _traverse_cpu(
         out = traverse_nodes(
             forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pb.numpy(),
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
-            int(order), v.numpy(), g.numpy(), h.numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
+            int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
         )  # fmt: skip
         return out, v, g, h
 
@@ -307,6 +324,7 @@ def traverse(
     backend: str = "auto",
     leaves_only: bool = False,
     warm: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    hessian_of: torch.Tensor | None = None,
 ):
     """BSH potential of P body pairs at once.
 
@@ -323,6 +341,9 @@ def traverse(
         warm: warm-start the leaf pairs' plane solves (numba kernels only): (ids (P,) a stable identifier of each
             body pair across calls, keys (W,) sorted, planes (W, 4)) from an earlier call; a leaf pair is keyed by
             (id, leaf I, leaf J). The optimum does not depend on the start, to the plane solve's tolerance.
+        hessian_of: (P, 2) bool, whose Hessian blocks each body pair needs (order 2): where exactly one body is
+            True, the numba kernels form only its 6 x 6 block and leave hess[p]'s other rows and columns zero (the
+            tensor path forms every block). None: all.
 
     Returns:
         value (P,), grad (P, 12) | None, hess (P, 12, 12) | None, stats dict (with ``warm``, also this call's
@@ -348,11 +369,19 @@ def traverse(
     hess = torch.zeros(P, 12, 12, dtype=dt, device=dev) if order >= 2 else None
     min_width = BAND_MARGINS * float(margin)
     eps = _pair_eps(eps, P, dev)
+    hside = torch.zeros(
+        P, dtype=torch.int64
+    )  # hessian_span's code: 0 both bodies, 1 body a only, 2 body b only
+    if hessian_of is not None and order >= 2 and P:
+        if hessian_of.shape != (P, 2) or hessian_of.dtype != torch.bool:
+            raise ValueError(f"hessian_of must be ({P}, 2) bool")
+        h = hessian_of.cpu()
+        hside = torch.where(h[:, 0] & ~h[:, 1], 1, torch.where(h[:, 1] & ~h[:, 0], 2, 0))
 
     if dev.type == "cpu" and backend != "torch":
         known = warm[1].numel() if warm is not None and warm[1].numel() else None  # the step's leaf pairs
         leaves, n_pairs, levels, wtable = _traverse_cpu(
-            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess,
+            forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess, hside,
             hint=known,
         )  # fmt: skip
         I = pair_root[:0, 0]  # skip the tensor traversal below
@@ -500,7 +529,7 @@ def traverse(
                 dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy(),
                 d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
                 int(order), value.numpy(), grad.numpy() if grad is not None else z.reshape(0, 12).numpy(),
-                hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(),
+                hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(), hside.numpy(),
             )  # fmt: skip
 
             def accumulate(part: tuple[int, int, int]) -> None:

@@ -37,8 +37,19 @@ def _split_rule(leaf_i, leaf_j, radius_i, radius_j, split_both):
     return si, not si
 
 
+@numba.njit(**_JIT)
+def hessian_span(side):
+    """The coordinates lo..hi-1 of a body pair's 12 whose Hessian is formed: ``side`` 0 all (0, 12), 1 body a's
+    (0, 6), 2 body b's (6, 12)."""
+    if side == 1:
+        return 0, 6
+    if side == 2:
+        return 6, 12
+    return 0, 12
+
+
 @numba.njit(nogil=True, **_JIT)
-def _far_moments(Z, M, dr, d, inv_r, g1, g2, CI, CJ):
+def _far_moments(Z, M, dr, d, inv_r, g1, g2, CI, CJ, zact, nz, lo, hi):
     """Add one far node pair's Hessian, as moments, to its body pair's sums (expanded by :func:`_far_expand`).
 
     The Hessian of f(r), r = |d|, d = x_a - x_b = R_a C_I + t_a - R_b C_J - t_b, in the 12 pose coordinates is
@@ -52,41 +63,55 @@ def _far_moments(Z, M, dr, d, inv_r, g1, g2, CI, CJ):
         M[7:16]    += (g1 / r) C_I C_I^T          M[16:25] += (g1 / r) C_I C_J^T  M[25:34] += (g1 / r) C_J C_J^T
         M[34:43]   += g1 u C_I^T                  M[43:52] += g1 u C_J^T
 
-    (about a third of the work of forming each 12 x 12 Hessian)."""
+    (about a third of the work of forming each 12 x 12 Hessian). Only the moments of the coordinates lo..hi-1 are
+    summed: the entries ``zact[:nz]`` of z, and the sums over C_I (body a, coordinates 0..5) or C_J (b, 6..11)."""
     al = g2 - g1 * inv_r
     be = g1 * inv_r
     z0, z1, z2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
     z = (z0, z1, z2, dr[3], dr[4], dr[5], dr[9], dr[10], dr[11])
-    for a in range(9):
+    for ia in range(nz):
+        a = zact[ia]
         za = al * z[a]
-        for c in range(a, 9):
+        for ic in range(ia, nz):
+            c = zact[ic]
             Z[a, c] += za * z[c]
     M[0] += be
+    on_a = lo == 0
+    on_b = hi == 12
     for m in range(3):
         bi = be * CI[m]
         bj = be * CJ[m]
-        M[1 + m] += bi
-        M[4 + m] += bj
+        if on_a:
+            M[1 + m] += bi
+        if on_b:
+            M[4 + m] += bj
         for n in range(3):
-            M[7 + 3 * m + n] += bi * CI[n]
-            M[16 + 3 * m + n] += bi * CJ[n]
-            M[25 + 3 * m + n] += bj * CJ[n]
+            if on_a:
+                M[7 + 3 * m + n] += bi * CI[n]
+            if on_a and on_b:
+                M[16 + 3 * m + n] += bi * CJ[n]
+            if on_b:
+                M[25 + 3 * m + n] += bj * CJ[n]
     for i in range(3):
         gu = g1 * z[i]
         for m in range(3):
-            M[34 + 3 * i + m] += gu * CI[m]
-            M[43 + 3 * i + m] += gu * CJ[m]
+            if on_a:
+                M[34 + 3 * i + m] += gu * CI[m]
+            if on_b:
+                M[43 + 3 * i + m] += gu * CJ[m]
 
 
 @numba.njit(nogil=True, **_JIT)
-def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
+def _far_expand(hess, p, Z, M, dR, d2R, ba, bb, lo, hi):
     """Add the far node pairs' Hessian from their moments (:func:`_far_moments`) to the upper triangle of
-    hess[p]."""
+    hess[p] over the coordinates lo..hi-1."""
+    on_a = lo == 0
+    on_b = hi == 12
     # the 12 coordinates as entries of z (sign, index): t_a = +u, omega_a = +u^T A, t_b = -u, omega_b = -u^T B
     zi = (0, 1, 2, 3, 4, 5, 0, 1, 2, 6, 7, 8)
     zs = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, -1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
-    for a in range(12):
-        for c in range(a, 12):
+    for a in range(lo, hi):
+        for c in range(a, hi):
             i, j = zi[a], zi[c]
             hess[p, a, c] += zs[a] * zs[c] * (Z[i, j] if i <= j else Z[j, i])
     be = M[0]
@@ -98,14 +123,20 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
             SA[i, k] = dR[ba, i, 0, k] * M[1] + dR[ba, i, 1, k] * M[2] + dR[ba, i, 2, k] * M[3]
             SB[i, k] = dR[bb, i, 0, k] * M[4] + dR[bb, i, 1, k] * M[5] + dR[bb, i, 2, k] * M[6]
     for i in range(3):
-        hess[p, i, i] += be  # t_a t_a: I
-        hess[p, 6 + i, 6 + i] += be  # t_b t_b: I
-        hess[p, i, 6 + i] -= be  # t_a t_b: -I
+        if on_a:
+            hess[p, i, i] += be  # t_a t_a: I
+        if on_b:
+            hess[p, 6 + i, 6 + i] += be  # t_b t_b: I
+        if on_a and on_b:
+            hess[p, i, 6 + i] -= be  # t_a t_b: -I
         for k in range(3):
-            hess[p, i, 3 + k] += SA[i, k]  # t_a omega_a: A
-            hess[p, i, 9 + k] -= SB[i, k]  # t_a omega_b: -B
-            hess[p, 3 + k, 6 + i] -= SA[i, k]  # omega_a t_b: -A^T
-            hess[p, 6 + i, 9 + k] += SB[i, k]  # t_b omega_b: B
+            if on_a:
+                hess[p, i, 3 + k] += SA[i, k]  # t_a omega_a: A
+            if on_a and on_b:
+                hess[p, i, 9 + k] -= SB[i, k]  # t_a omega_b: -B
+                hess[p, 3 + k, 6 + i] -= SA[i, k]  # omega_a t_b: -A^T
+            if on_b:
+                hess[p, 6 + i, 9 + k] += SB[i, k]  # t_b omega_b: B
     # sum (g1 / r) A^T A, A^T B, B^T B: sum_i,m,n dR[i, m, k] dR'[i, n, l] (sum (g1 / r) C C'^T)[m, n]
     for k in range(3):
         for l in range(3):
@@ -119,13 +150,18 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb):
                         if l >= k:
                             aa += dR[ba, i, m, k] * dR[ba, i, n, l] * M[7 + 3 * m + n]
                             bb2 += dR[bb, i, m, k] * dR[bb, i, n, l] * M[25 + 3 * m + n]
-            hess[p, 3 + k, 9 + l] -= ab  # omega_a omega_b: -A^T B
+            if on_a and on_b:
+                hess[p, 3 + k, 9 + l] -= ab  # omega_a omega_b: -A^T B
             if l >= k:
-                hess[p, 3 + k, 3 + l] += aa
-                hess[p, 9 + k, 9 + l] += bb2
+                if on_a:
+                    hess[p, 3 + k, 3 + l] += aa
+                if on_b:
+                    hess[p, 9 + k, 9 + l] += bb2
     # g1 u . d2d: + sum_i,m d2R_a[i, m, k, l] (g1 u C_I^T)[i, m] on omega_a omega_a, - the same of b
-    add_rotation_terms(hess, p, 3, M[34:43].reshape((3, 3)), d2R, ba, 1.0)
-    add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
+    if on_a:
+        add_rotation_terms(hess, p, 3, M[34:43].reshape((3, 3)), d2R, ba, 1.0)
+    if on_b:
+        add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
 
 
 # the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
@@ -137,11 +173,12 @@ _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
 
 @numba.njit(nogil=True, **_JIT)
 def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
-                Mom, n_pairs, far):  # fmt: skip
+                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
+                Mom, zact, nz, n_pairs, far):  # fmt: skip
     """Traverse body pair p (bodies ba, bb) from its stack (sI, sJ, sK, ``top`` entries), accumulating its central
-    terms into value[p], grad[p], hess[p] (the upper triangle) and its far node pairs' moments into Z, Mom (``far``:
-    whether some were added); leaves are appended from index n_leaf, weight table entries from nw.
+    terms into value[p], grad[p], hess[p] (the upper triangle of its coordinates lo..hi-1: 0..11, or one body's
+    0..5 or 6..11, :func:`hessian_span`) and its far node pairs' moments into Z, Mom (``far``: whether some were
+    added); leaves are appended from index n_leaf, weight table entries from nw (their Hessians over lo..hi-1).
 
     Returns (status, top, n_leaf, nw, n_pairs, far): status ``_DONE``, or which buffer is full (the stack, the
     leaves, the weight table), checked before a node pair is taken off the stack (each needs at most 3 more stack
@@ -201,8 +238,8 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
             for c in range(12):
                 dr[c] = u0 * dd[0, c] + u1 * dd[1, c] + u2 * dd[2, c]
             if order >= 2 and not plain:
-                for a in range(12):  # the upper triangle (the only one read)
-                    for c in range(a, 12):
+                for a in range(lo, hi):  # the upper triangle (the only one read)
+                    for c in range(a, hi):
                         d2r[a, c] = (
                             dd[0, a] * dd[0, c] + dd[1, a] * dd[1, c] + dd[2, a] * dd[2, c] - dr[a] * dr[c]
                         ) * inv_r
@@ -215,8 +252,10 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                             for m in range(3):
                                 acc_a += ui * d2R[ba, i, m, kk, ll] * CI[m]
                                 acc_b += ui * d2R[bb, i, m, kk, ll] * CJ[m]
-                        d2r[3 + kk, 3 + ll] += acc_a
-                        d2r[9 + kk, 9 + ll] -= acc_b
+                        if lo == 0:
+                            d2r[3 + kk, 3 + ll] += acc_a
+                        if hi == 12:
+                            d2r[9 + kk, 9 + ll] -= acc_b
         # central term W * phi * P_c(r)
         if phi > 0.0:
             sq = math.sqrt(inv_r)
@@ -233,11 +272,11 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                 if order >= 2:  # the upper triangle (mirrored when the body pair is done)
                     g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
                     if plain:
-                        _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ)
+                        _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ, zact, nz, lo, hi)
                         far = True
                         if wid != 0:  # an ancestor in the band: the weight's derivatives
-                            for a in range(12):
-                                for c in range(a, 12):
+                            for a in range(lo, hi):
+                                for c in range(a, hi):
                                     hess[p, a, c] += g * wd2[wid, a, c] + g1 * (
                                         wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c]
                                     )
@@ -254,10 +293,10 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                 # children's weight's (W (1 - phi)), from the same products; the weight tables' Hessians are
                 # read only in their upper triangles
                 if wid == 0:  # weight 1, no derivatives (no ancestor in the band): most node pairs
-                    for a in range(12):
+                    for a in range(lo, hi):
                         ga = g2 * dr[a]
                         pa = phi2 * dr[a]
-                        for c in range(a, 12):
+                        for c in range(a, hi):
                             d2 = d2r[a, c]
                             hess[p, a, c] += ga * dr[c] + g1 * d2
                             wd2[nw, a, c] = (
@@ -266,10 +305,10 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                                 - W * (pa * dr[c] + phi1 * d2)
                             )
                 else:
-                    for a in range(12):
+                    for a in range(lo, hi):
                         ga = g2 * dr[a]
                         pa = phi2 * dr[a]
-                        for c in range(a, 12):
+                        for c in range(a, hi):
                             d2 = d2r[a, c]
                             cr = wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c]
                             hess[p, a, c] += g * wd2[wid, a, c] + g1 * cr + W * (ga * dr[c] + g1 * d2)
@@ -300,8 +339,12 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
 def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split_both,
-                   order, value, grad, hess, stack_cap, table_cap, leaf_cap):  # fmt: skip
+                   order, value, grad, hess, hside, stack_cap, table_cap, leaf_cap):  # fmt: skip
     """Accumulate central terms into value (P,), grad (P, 12), hess (P, 12, 12); return the leaf pairs.
+
+    ``hside`` (P,) int64: which of each body pair's Hessian blocks to form (:func:`hessian_span`): 0 all, 1 body
+    a's only (coordinates 0..5), 2 body b's only (6..11); the other rows and columns of hess[p] are left as they
+    are. Values and gradients are always whole.
 
     Inherited weights live in a table, not on the stack: entry 0 is the weight 1 (zero derivatives) that every
     node pair starts with, and a node pair in the blend band (0 < s < 1) that descends appends its children's weight
@@ -339,8 +382,16 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         dd[k, 6 + k] = -1.0
     Z = np.zeros((9, 9))
     Mom = np.zeros(52)
+    zact = np.empty(9, np.int64)  # the entries of _far_moments' z that the body pair's Hessian span needs
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
+        lo, hi = hessian_span(hside[p])
+        nz = 0
+        for a in range(9):
+            if (3 <= a < 6 and lo != 0) or (a >= 6 and hi != 12):
+                continue
+            zact[nz] = a
+            nz += 1
         if order >= 2:
             Z[:] = 0.0
             Mom[:] = 0.0
@@ -350,8 +401,8 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         while True:
             status, top, n_leaf, nw, n_pairs, far = _pair_nodes(
                 p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
-                grad, hess, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
-                Mom, n_pairs, far,
+                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
+                Mom, zact, nz, n_pairs, far,
             )  # fmt: skip
             if status == _DONE:
                 break
@@ -366,10 +417,10 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                 if order >= 2:
                     wd2 = _grow(wd2, 0)
         if far:
-            _far_expand(hess, p, Z, Mom, dR, d2R, ba, bb)
+            _far_expand(hess, p, Z, Mom, dR, d2R, ba, bb, lo, hi)
         if order >= 2:  # central terms were accumulated into the upper triangle
-            for a in range(12):
-                for c in range(a + 1, 12):
+            for a in range(lo, hi):
+                for c in range(a + 1, hi):
                     hess[p, c, a] = hess[p, a, c]
     return LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_pairs
 
@@ -515,7 +566,7 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
 
 @numba.njit(nogil=True, **_JIT)  # (called from several threads at once, on the leaves of disjoint body pairs)
 def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb, ba, bb, dR, d2R, mu, order, value,
-                              grad, hess):  # fmt: skip
+                              grad, hess, hside):  # fmt: skip
     """Add the leaf terms w * P_exact to value/grad/hess of their body pairs, from the leaf Hessians' factors.
 
     Chain rule to pose space with x_v = R X_v + t: J (18, 12) has identity blocks for the translations and
@@ -527,7 +578,8 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     per vertex v, and W (18, 4). With J_v = [I | A_v] (A_v = dR X_v) the vertex's rows of the (18, 12) pose
     Jacobian, J^T hess_x J = sum_v (2 mu / s_v^3) d_v d_v^T - mu U U^T with d_v = J_v^T n and U = J^T W (12, 4):
     about a fifth of the work of the dense products. The second-order rotation term uses G = sum_v g_v X_v^T per side,
-    summed (weighted) over the body pair's leaves and contracted with its d2R once.
+    summed (weighted) over the body pair's leaves and contracted with its d2R once. Only the Hessian blocks of
+    ``hside`` (P,) (:func:`traverse_nodes`) are formed.
     """
     L = lp.shape[0]
     A = np.empty((6, 3, 3))
@@ -568,18 +620,21 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         if order < 2:
             continue
         n0, n1, n2 = Pl[e, 0], Pl[e, 1], Pl[e, 2]
+        lo, hi = hessian_span(hside[p])
         # weight 1 without derivatives (no ancestor in the blend band: most leaves near contact): the leaf's
         # Hessian goes straight into its pair's upper triangle
         hl = hess[p] if wid == 0 else hq
         if wid != 0:
-            for a in range(12):
-                for c in range(12):
+            for a in range(lo, hi):
+                for c in range(lo, hi):
                     hq[a, c] = 0.0
-        for a in range(12):
+        for a in range(lo, hi):
             for m in range(4):
                 U[a, m] = 0.0
         for v in range(6):
             o = 0 if v < 3 else 6
+            if o < lo or o >= hi:  # a body whose Hessian blocks are not formed
+                continue
             sv = S[e, v]
             cv = 2.0 * mu / (sv * sv * sv)
             dv[0], dv[1], dv[2] = n0, n1, n2
@@ -595,14 +650,16 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                 U[o + 2, m] += w2
                 for k in range(3):
                     U[o + 3 + k, m] += A[v, 0, k] * w0 + A[v, 1, k] * w1 + A[v, 2, k] * w2
-        for a in range(12):
-            for c in range(a, 12):
+        for a in range(lo, hi):
+            for c in range(a, hi):
                 acc = U[a, 0] * U[c, 0] + U[a, 1] * U[c, 1] + U[a, 2] * U[c, 2] + U[a, 3] * U[c, 3]
                 hl[a, c] -= mu * acc
         # the second-order rotation terms: the body pair's d2R are shared by its leaves, so only w G_s,
         # G_s = sum_v g_v X_v^T (3 x 3) per side, is summed here and contracted once per pair below
         sides[p, 0], sides[p, 1] = ba[e], bb[e]
         for side in range(2):
+            if 6 * side < lo or 6 * side >= hi:
+                continue
             for i in range(3):
                 for m in range(3):
                     acc = 0.0
@@ -611,8 +668,8 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                         acc += gx[e, 3 * v + i] * X[m]
                     G2[p, side, i, m] += w * acc
         if wid != 0:
-            for a in range(12):  # the upper triangle (mirrored below)
-                for c in range(a, 12):
+            for a in range(lo, hi):  # the upper triangle (mirrored below)
+                for c in range(a, hi):
                     hess[p, a, c] += (
                         P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
                     )
@@ -620,10 +677,14 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     if order >= 2:  # the rotation terms; hq and the leaf terms were added to the upper triangles: mirror them
         for p in range(hess.shape[0]):
             if touched[p]:
+                lo, hi = hessian_span(hside[p])
                 for side in range(2):
-                    add_rotation_terms(hess, p, 3 if side == 0 else 9, G2[p, side], d2R, sides[p, side], 1.0)
-                for a in range(12):
-                    for c in range(a + 1, 12):
+                    if lo <= 6 * side < hi:
+                        add_rotation_terms(
+                            hess, p, 3 if side == 0 else 9, G2[p, side], d2R, sides[p, side], 1.0
+                        )
+                for a in range(lo, hi):
+                    for c in range(a + 1, hi):
                         hess[p, c, a] = hess[p, a, c]
 
 

@@ -48,6 +48,9 @@ class CfdContact:
     """
 
     warm_start = True  # evaluate() takes ids / warm: the leaf pairs' plane solves start from earlier planes
+    partial_hessian = (
+        True  # evaluate() takes hessian_of: the blocks of the bodies that do not move are skipped
+    )
 
     def __init__(
         self,
@@ -118,10 +121,12 @@ class CfdContact:
         order: int,
         ids: torch.Tensor | None = None,
         warm: object | None = None,
+        hessian_of: torch.Tensor | None = None,
     ) -> ContactEval:
         """The potential of each pair; with ``ids``, the leaf pairs' plane solves start from the planes in ``warm``
         (an earlier ContactEval's ``warm``: sorted keys (W,) of (id, leaf, leaf) and planes (W, 4)) and the
-        result carries this call's planes (CPU kernels; elsewhere ``warm`` stays None)."""
+        result carries this call's planes (CPU kernels; elsewhere ``warm`` stays None). ``hessian_of`` (P, 2)
+        bool: whose Hessian blocks to form (the CPU kernels leave the others zero; see ``traverse``)."""
         c = self.config
         if pairs.shape[0] == 0:
             z = poses.new_zeros(0)
@@ -140,7 +145,7 @@ class CfdContact:
             forest, rows, roots, table.detach(), mu=c.stiffness, margin=c.margin, eps=self._pair_eps(pairs),
             split=c.split,
             order=order, tol=c.pair_tol, max_iter=c.pair_max_iter, backend=c.backend,
-            warm=(ids, keys, planes) if use_warm else None,
+            warm=(ids, keys, planes) if use_warm else None, hessian_of=hessian_of,
         )  # fmt: skip
         v, g, h, st = out[:4]
         scale = self._pair_scale(pairs)

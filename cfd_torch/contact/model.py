@@ -66,6 +66,10 @@ class ContactModel(Protocol):
     identify the pair rows stably across calls, ``warm`` is the ``ContactEval.warm`` of an earlier call; the
     simulator passes them only to a model whose attribute ``warm_start`` is True (a model with the plain
     three-argument ``evaluate`` works unchanged), and the result must not depend on them beyond its tolerances.
+    Optional partial Hessians: ``hessian_of`` (P, 2) bool, whose 6 x 6 blocks of each pair's Hessian the caller
+    reads; where exactly one body of a pair is True, the model may leave the other's rows and columns zero. The
+    simulator's Newton iterations pass it, naming the bodies that move, only to a model whose attribute
+    ``partial_hessian`` is True.
 
     ``infeasible(poses, pairs, scale=None)``: (P,) bool, the pairs whose potential is +inf; ``scale`` (N,) scales
     each body about its frame origin first (the reachability check shrinks moving bodies). Must agree exactly with

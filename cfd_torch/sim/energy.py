@@ -110,7 +110,7 @@ class EnergyEval(NamedTuple):
         grad: (A, Q) dL/dq.
         hess: (A, Q, Q) d2L/dq2 (exact; friction's exact Hessian).
         contact_hess: (A, 6N, 6N) the contact Hessian over all bodies' poses (its cross blocks with the bodies the
-            map does not move feed the adjoint).
+            map does not move feed the adjoint; an evaluation with ``moving_hessian`` may leave them zero).
         scale: (A,) the magnitude L is computed from (|L| plus each body's own terms and the contact and friction
             terms it takes part in): the line search treats differences below 1e-12 of it as rounding.
         majorizer_gap: (A, Q, Q) friction's quadratic majorizer minus its exact Hessian (positive semi-definite),
@@ -446,12 +446,15 @@ def incremental_potential(
     scene_ids: torch.Tensor | None = None,
     warm: object | None = None,
     batch: BatchRows | None = None,
+    moving_hessian: bool = False,
 ) -> EnergyEval:
     """L of every scene of ``prob`` at q (B, Q), with derivatives up to ``order`` (0, 1 or 2); with ``active``
     (B, M) bool over the moving bodies, only the terms that involve an active body (see :class:`EnergyEval`).
     ``scene_ids`` (B,) name the scenes stably across calls (their pairs' ids for the contact model's warm start,
     ``warm`` from an earlier evaluation of the same step). ``batch``: ``batch_rows(prob, q.device)``, when the
-    caller evaluates ``prob`` many times (default: computed here)."""
+    caller evaluates ``prob`` many times (default: computed here). ``moving_hessian``: the contact model may leave
+    out the blocks of ``contact_hess`` of the bodies that do not move (``ContactModel.partial_hessian``); ``hess``
+    is the same either way."""
     scene = prob.scene
     B, N = prob.q_t.shape[:2]
     c = batch_rows(prob, q.device) if batch is None else batch
@@ -483,13 +486,17 @@ def incremental_potential(
     node_pairs = leaf_pairs = 0
     if pairs.shape[0]:
         sel = pairs if on is None else pairs[on]
+        kw = {}
+        if moving_hessian and order >= 2 and getattr(scene.contact_model, "partial_hessian", False):
+            moves = c.pair_moving < Nd
+            kw["hessian_of"] = moves if on is None else moves[on]
         if scene_ids is None or not getattr(scene.contact_model, "warm_start", False):
-            ce = scene.contact_model.evaluate(poses, sel, order)
+            ce = scene.contact_model.evaluate(poses, sel, order, **kw)
         else:
             rows = torch.arange(pairs.shape[0], device=q.device)
             rows = rows if on is None else rows[on]
             ids = scene_ids.to(q.device)[rows // P] * P + rows % P
-            ce = scene.contact_model.evaluate(poses, sel, order, ids=ids, warm=warm)
+            ce = scene.contact_model.evaluate(poses, sel, order, ids=ids, warm=warm, **kw)
         node_pairs, leaf_pairs = ce.node_pairs, ce.leaf_pairs
         v = ce.value
         if on is None:

@@ -88,6 +88,7 @@ class NewtonResult(NamedTuple):
         work: (evaluations, node pairs, leaf pairs) of the energy evaluations this solve made (``first`` excluded).
         stepped: (B,) bool, the scenes that took the converged step after ``at``'s evaluation (q is up to ``tol``
             per coordinate from ``at``'s point there).
+        at_q: (B, Q) the point of ``at``'s evaluation (q where not ``stepped``).
     """
 
     q: torch.Tensor
@@ -97,6 +98,7 @@ class NewtonResult(NamedTuple):
     alpha: torch.Tensor
     work: tuple[int, int, int]
     stepped: torch.Tensor
+    at_q: torch.Tensor
 
 
 def _assign(cur: EnergyEval, idx: torch.Tensor, ev: EnergyEval) -> None:
@@ -288,6 +290,7 @@ def newton(
     reason = torch.full((B,), int(Stop.MAX_ITER), dtype=torch.long, device=dev)
     alpha_last = torch.ones(B, dtype=q.dtype, device=dev)
     stepped = torch.zeros(B, dtype=torch.bool, device=dev)
+    at_q = q.clone()  # where a stepped scene's ``cur`` was evaluated (the others': q)
     majorized = torch.zeros(B, dtype=torch.bool, device=dev)  # this iteration follows a rejected full step
     active = torch.isfinite(cur.value)
     reason[~active] = int(Stop.INFEASIBLE_START)
@@ -370,6 +373,7 @@ def newton(
                 dn = idx[dpos]
                 q_fin = q[dn] + p[dpos]
                 take = displacement(q[dn], q_fin, dn) <= final_move
+                at_q[dn[take]] = q[dn[take]]
                 q[dn[take]] = q_fin[take]
                 stepped[dn[take]] = True
                 # a converged step that moves some vertex further (a tol loose against the contact margin) is
@@ -575,4 +579,5 @@ def newton(
             if bool(later.any()):
                 _assign(cur, idx[later], ev)
         majorized[idx] = later
-    return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves), stepped)
+    at_q = torch.where(stepped[:, None], at_q, q)
+    return NewtonResult(q, cur, iters, reason, alpha_last, (evals, nodes, leaves), stepped, at_q)

@@ -80,9 +80,10 @@ class WarmStarts:
         self.data = (keys[first], planes[order][first])
 
 
-def _energy(prob: StepProblem, warm: WarmStarts | None = None):
+def _energy(prob: StepProblem, warm: WarmStarts | None = None, moving_hessian: bool = False):
     """(q (A, Q), scenes (A,), order, active (A, M) | None) -> L of those scenes of ``prob`` (the leaf pairs'
-    plane solves warm-started from ``warm``, which each evaluation updates)."""
+    plane solves warm-started from ``warm``, which each evaluation updates; ``moving_hessian``: see
+    :func:`incremental_potential`)."""
     B = prob.q_t.shape[0]
     every = torch.arange(B, device=prob.q_t.device)
     rows = batch_rows(prob, prob.q_t.device)  # (what the evaluations of all B scenes share)
@@ -95,8 +96,17 @@ def _energy(prob: StepProblem, warm: WarmStarts | None = None):
             active = None
         sub, batch = (prob, rows) if whole else (select_scenes(prob, scenes), None)
         if warm is None:
-            return incremental_potential(sub, q, order, active, batch=batch)
-        ev = incremental_potential(sub, q, order, active, scene_ids=scenes, warm=warm.data, batch=batch)
+            return incremental_potential(sub, q, order, active, batch=batch, moving_hessian=moving_hessian)
+        ev = incremental_potential(
+            sub,
+            q,
+            order,
+            active,
+            scene_ids=scenes,
+            warm=warm.data,
+            batch=batch,
+            moving_hessian=moving_hessian,
+        )
         warm.update(ev.warm)
         return ev
 
@@ -123,7 +133,8 @@ def _newton(
     prob: StepProblem, q: torch.Tensor, first: EnergyEval | None, tol: float, warm: WarmStarts | None = None
 ) -> tuple[NewtonResult, Work]:
     s = prob.scene.solver
-    energy = _energy(prob, warm)
+    # Newton reads the Hessian of the moving bodies only (the adjoint's cross blocks come from solve_step's end)
+    energy = _energy(prob, warm, moving_hessian=s.fast)
     work: Work = (0, 0, 0)
     if first is None:
         first = energy(q, torch.arange(q.shape[0], device=q.device), 2)
@@ -265,7 +276,8 @@ def start(prob: StepProblem, warm: WarmStarts | None = None) -> tuple[torch.Tens
     work: Work = (0, 0, 0)
     if bool(ok_t.all()):
         all_ = torch.arange(B, device=dev)
-        ev = _energy(prob, warm)(extrap, all_, 2)  # the usual start: evaluated with derivatives at once
+        # the usual start: evaluated with derivatives at once, for Newton (the moving bodies' Hessian)
+        ev = _energy(prob, warm, moving_hessian=scene.solver.fast)(extrap, all_, 2)
         work = _work(ev)
         good = torch.isfinite(ev.value) & path_clear(prob, q_t, extrap, all_)
         if bool(good.all()):
@@ -324,7 +336,9 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
     Newton's converged step after their last evaluation): the adjoint's Hessian is then that of the solution. Newton
     takes that step, up to ``newton_tol``, unevaluated; friction's Hessian varies on the scale of its slip threshold
     eps_v dt (1e-6 m at the defaults), so at a sticking contact the Hessian before the step gave gradients up to
-    1e-2 relative off (a session-45 audit)."""
+    1e-2 relative off (a session-45 audit). With ``exact_end`` the result's ``at.contact_hess`` is whole (the cross
+    blocks with the bodies that do not move, which the adjoint reads and Newton's evaluations leave out where the
+    contact model allows: a scene that did not step is evaluated again at its point)."""
     warm = WarmStarts() if prob.scene.solver.fast else None
     if (
         warm is not None and prob.lagged is not None
@@ -385,16 +399,31 @@ def solve_step(prob: StepProblem, exact_end: bool = False) -> tuple[NewtonResult
             f"{f', scene {b}' if B > 1 else ''}): reduce dt, or let the step retry in sub-steps "
             "(SolverConfig.substeps)"
         )
-    if exact_end and bool(res.stepped.any()):
-        sc = torch.nonzero(res.stepped)[:, 0]
-        ev = _energy(prob, warm)(res.q[sc], sc, 2)
-        work = _add(work, _work(ev))
-        # (a scene whose Hessian there is not positive definite, which Newton's test held a step of at most tol
-        # before, keeps that evaluation)
-        ok = torch.isfinite(ev.value) & (torch.linalg.cholesky_ex(ev.hess)[1] == 0)
+    partial = bool(
+        s.fast and getattr(prob.scene.contact_model, "partial_hessian", False) and prob.scene.pairs.shape[0]
+    )
+    if exact_end and (partial or bool(res.stepped.any())):
         at = EnergyEval(*(x.clone() if isinstance(x, torch.Tensor) else x for x in res.at))
-        _assign(at, sc[ok], _rows(ev, ok))
         stepped = res.stepped.clone()
-        stepped[sc[ok]] = False
-        res = res._replace(at=at, stepped=stepped)
+        at_q = res.at_q.clone()
+        redo = torch.zeros_like(stepped)  # the scenes whose ``at`` Newton left without its cross blocks
+        if bool(stepped.any()):
+            sc = torch.nonzero(stepped)[:, 0]
+            ev = _energy(prob, warm)(res.q[sc], sc, 2)
+            work = _add(work, _work(ev))
+            # (a scene whose Hessian there is not positive definite, which Newton's test held a step of at most tol
+            # before, keeps the evaluation at that point)
+            ok = torch.isfinite(ev.value) & (torch.linalg.cholesky_ex(ev.hess)[1] == 0)
+            _assign(at, sc[ok], _rows(ev, ok))
+            stepped[sc[ok]] = False
+            at_q[sc[ok]] = res.q[sc[ok]]
+            redo[sc[~ok]] = True
+        if partial:
+            redo = redo | ~res.stepped
+        if bool(redo.any()):
+            sc = torch.nonzero(redo)[:, 0]
+            ev = _energy(prob, warm)(at_q[sc], sc, 2)
+            work = _add(work, _work(ev))
+            _assign(at, sc, ev)
+        res = res._replace(at=at, stepped=stepped, at_q=at_q)
     return res, work
