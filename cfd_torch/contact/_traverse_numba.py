@@ -164,6 +164,22 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb, lo, hi):
         add_rotation_terms(hess, p, 9, M[43:52].reshape((3, 3)), d2R, bb, -1.0)
 
 
+@numba.njit(nogil=True, **_JIT)
+def _expand_inherited(hess, p, wd1, wd2, ws, wds, first, last, lo, hi):
+    """Add to the upper triangle of hess[p] (coordinates lo..hi-1) the weight derivatives' part of the far terms
+    below each weight table entry e in first..last-1: their Hessian's sum over those terms w_e f_k(r_k) is
+    (sum f_k) d2w_e + dw_e (sum f_k' dr_k)^T + (sum f_k' dr_k) dw_e^T, from the sums ws[e] and wds[e]."""
+    for e in range(first, last):
+        if ws[e] == 0.0:  # no far term below this entry
+            continue
+        se = ws[e]
+        for a in range(lo, hi):
+            wa = wd1[e, a]
+            sa = wds[e, a]
+            for c in range(a, hi):
+                hess[p, a, c] += se * wd2[e, a, c] + wa * wds[e, c] + sa * wd1[e, c]
+
+
 # the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
 # that leaves out arguments with defaults through its slow path, about half a millisecond per call)
 STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 256, 256
@@ -173,12 +189,15 @@ _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
 
 @numba.njit(nogil=True, **_JIT)
 def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
-                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
-                Mom, zact, nz, n_pairs, far):  # fmt: skip
+                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, ws, wds, nw, dd, dr, d2r,
+                d, Z, Mom, zact, nz, n_pairs, far):  # fmt: skip
     """Traverse body pair p (bodies ba, bb) from its stack (sI, sJ, sK, ``top`` entries), accumulating its central
     terms into value[p], grad[p], hess[p] (the upper triangle of its coordinates lo..hi-1: 0..11, or one body's
     0..5 or 6..11, :func:`hessian_span`) and its far node pairs' moments into Z, Mom (``far``: whether some were
     added); leaves are appended from index n_leaf, weight table entries from nw (their Hessians over lo..hi-1).
+    The far node pairs below a table entry e (an ancestor in the blend band) add their central terms' sums to
+    ws[e] (the values) and wds[e] (their radial derivatives times dr), expanded with the entry's weight
+    derivatives once per entry by :func:`_expand_inherited`.
 
     Returns (status, top, n_leaf, nw, n_pairs, far): status ``_DONE``, or which buffer is full (the stack, the
     leaves, the weight table), checked before a node pair is taken off the stack (each needs at most 3 more stack
@@ -274,12 +293,10 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                     if plain:
                         _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ, zact, nz, lo, hi)
                         far = True
-                        if wid != 0:  # an ancestor in the band: the weight's derivatives
+                        if wid != 0:  # an ancestor in the band: the weight's derivatives, summed per entry
+                            ws[wid] += g
                             for a in range(lo, hi):
-                                for c in range(a, hi):
-                                    hess[p, a, c] += g * wd2[wid, a, c] + g1 * (
-                                        wd1[wid, a] * dr[c] + dr[a] * wd1[wid, c]
-                                    )
+                                wds[wid, a] += g1 * dr[a]
                     # (else: a node pair in the band, 0 < s < 1; its Hessian term is added below, in one pass
                     # with its children's weight's Hessian)
         if s >= 1.0:
@@ -317,6 +334,10 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                 for a in range(12):
                     wd1[nw, a] = h * wd1[wid, a] - W * phi1 * dr[a]
             wv[nw] = W * h
+            if order >= 2:
+                ws[nw] = 0.0
+                for a in range(12):
+                    wds[nw, a] = 0.0
             wid = nw
             nw += 1
         leaf_i = child[I, 0] < 0
@@ -365,6 +386,8 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     wv = np.empty(table_cap)
     wd1 = np.zeros((table_cap if order >= 1 else 1, 12))
     wd2 = np.zeros((table_cap if order >= 2 else 1, 12, 12))
+    ws = np.zeros(table_cap if order >= 2 else 1)
+    wds = np.zeros((table_cap if order >= 2 else 1, 12))
     wv[0] = 1.0
     nw = 1
     LI = np.empty(leaf_cap, np.int64)
@@ -398,11 +421,12 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
         top = 1
         far = False
+        first = nw  # the weight table entries of this body pair: first..nw-1
         while True:
             status, top, n_leaf, nw, n_pairs, far = _pair_nodes(
                 p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
-                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, nw, dd, dr, d2r, d, Z,
-                Mom, zact, nz, n_pairs, far,
+                grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, ws, wds, nw, dd, dr,
+                d2r, d, Z, Mom, zact, nz, n_pairs, far,
             )  # fmt: skip
             if status == _DONE:
                 break
@@ -416,6 +440,10 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     wd1 = _grow(wd1, 0)
                 if order >= 2:
                     wd2 = _grow(wd2, 0)
+                    ws = _grow(ws, 0)
+                    wds = _grow(wds, 0)
+        if order >= 2 and nw > first:
+            _expand_inherited(hess, p, wd1, wd2, ws, wds, first, nw, lo, hi)
         if far:
             _far_expand(hess, p, Z, Mom, dR, d2R, ba, bb, lo, hi)
         if order >= 2:  # central terms were accumulated into the upper triangle
@@ -572,7 +600,8 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     Chain rule to pose space with x_v = R X_v + t: J (18, 12) has identity blocks for the translations and
     dR[..., k] X_v for the rotations; hess_q = J^T hess_x J + sum_v grad_x_v . d2R X_v (rotation blocks). Then the
     product rule with the weight: value w P, grad P dw + w gq, hess P d2w + dw gq^T + gq dw^T + w hq, the leaf's
-    weight w, dw, d2w being entry ``lwid`` of the weight table (wv, wd1, wd2) of :func:`traverse_nodes`.
+    weight w, dw, d2w being entry ``lwid`` of the weight table (wv, wd1, wd2) of :func:`traverse_nodes`: w hq is
+    added leaf by leaf, the weight derivatives' part once per table entry from the sums of P and gq over its leaves.
 
     hess_x = mu (D - W W^T) (``_pair_numba.solve_pairs`` with ``lowrank``): D is block diagonal, 2 n n^T / s_v^3
     per vertex v, and W (18, 4). With J_v = [I | A_v] (A_v = dR X_v) the vertex's rows of the (18, 12) pose
@@ -584,8 +613,11 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     L = lp.shape[0]
     A = np.empty((6, 3, 3))
     gq = np.empty(12)
-    hq = np.empty((12, 12))
     U = np.empty((12, 4))
+    T = wv.shape[0] if order >= 2 else 0
+    Ps = np.zeros(T)  # per weight table entry: the sum of its leaves' P ...
+    gqs = np.zeros((T, 12))  # ... and of their gq
+    entry_pair = np.full(T, -1, np.int64)  # the body pair of each entry with leaves (-1: none)
     dv = np.empty(6)
     touched = np.zeros(hess.shape[0], np.bool_)  # the body pairs whose Hessian rows received a leaf
     G2 = np.zeros((hess.shape[0], 2, 3, 3))  # per body pair and side: sum of w G_s (below)
@@ -621,13 +653,9 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
             continue
         n0, n1, n2 = Pl[e, 0], Pl[e, 1], Pl[e, 2]
         lo, hi = hessian_span(hside[p])
-        # weight 1 without derivatives (no ancestor in the blend band: most leaves near contact): the leaf's
-        # Hessian goes straight into its pair's upper triangle
-        hl = hess[p] if wid == 0 else hq
-        if wid != 0:
-            for a in range(lo, hi):
-                for c in range(lo, hi):
-                    hq[a, c] = 0.0
+        # w hq straight into the pair's upper triangle (w = 1 for most leaves near contact: no ancestor in the band)
+        hl = hess[p]
+        wmu = w * mu
         for a in range(lo, hi):
             for m in range(4):
                 U[a, m] = 0.0
@@ -636,7 +664,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
             if o < lo or o >= hi:  # a body whose Hessian blocks are not formed
                 continue
             sv = S[e, v]
-            cv = 2.0 * mu / (sv * sv * sv)
+            cv = w * (2.0 * mu / (sv * sv * sv))
             dv[0], dv[1], dv[2] = n0, n1, n2
             for k in range(3):
                 dv[3 + k] = A[v, 0, k] * n0 + A[v, 1, k] * n1 + A[v, 2, k] * n2
@@ -653,7 +681,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         for a in range(lo, hi):
             for c in range(a, hi):
                 acc = U[a, 0] * U[c, 0] + U[a, 1] * U[c, 1] + U[a, 2] * U[c, 2] + U[a, 3] * U[c, 3]
-                hl[a, c] -= mu * acc
+                hl[a, c] -= wmu * acc
         # the second-order rotation terms: the body pair's d2R are shared by its leaves, so only w G_s,
         # G_s = sum_v g_v X_v^T (3 x 3) per side, is summed here and contracted once per pair below
         sides[p, 0], sides[p, 1] = ba[e], bb[e]
@@ -668,13 +696,23 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                         acc += gx[e, 3 * v + i] * X[m]
                     G2[p, side, i, m] += w * acc
         if wid != 0:
-            for a in range(lo, hi):  # the upper triangle (mirrored below)
-                for c in range(a, hi):
-                    hess[p, a, c] += (
-                        P * wd2[wid, a, c] + wd1[wid, a] * gq[c] + gq[a] * wd1[wid, c] + w * hq[a, c]
-                    )
+            Ps[wid] += P
+            for a in range(12):
+                gqs[wid, a] += gq[a]
+            entry_pair[wid] = p
         touched[p] = True
-    if order >= 2:  # the rotation terms; hq and the leaf terms were added to the upper triangles: mirror them
+    for k in range(T):  # P d2w + dw gq^T + gq dw^T, summed over each entry's leaves (upper triangles)
+        p = entry_pair[k]
+        if p < 0:
+            continue
+        lo, hi = hessian_span(hside[p])
+        sp = Ps[k]
+        for a in range(lo, hi):
+            wa = wd1[k, a]
+            ga = gqs[k, a]
+            for c in range(a, hi):
+                hess[p, a, c] += sp * wd2[k, a, c] + wa * gqs[k, c] + ga * wd1[k, c]
+    if order >= 2:  # the rotation terms; the leaf terms were added to the upper triangles: mirror them
         for p in range(hess.shape[0]):
             if touched[p]:
                 lo, hi = hessian_span(hside[p])
