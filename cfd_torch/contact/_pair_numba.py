@@ -552,7 +552,7 @@ def solve_pairs(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, va
                      want_hess, P, val, grad, hess, status, resid, lowrank, WTo, So, P0, has0, O)  # fmt: skip
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)  # (called from several threads at once)
 def solve_pairs_serial(X, C, mu, delta, lam, tol, max_iter, want_grad, want_hess, P, val, grad, hess, status, resid,
                        lowrank, WTo, So, P0, has0, O):  # fmt: skip
     """:func:`solve_pairs` on the calling thread (the same results)."""

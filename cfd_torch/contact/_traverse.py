@@ -36,6 +36,7 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from .._threads import parallel_kernels, start_numba_pool
@@ -193,6 +194,77 @@ def _node_threads(P: int, leaves: int | None = None) -> int:
     return min(numba.get_num_threads(), 4)
 
 
+class _LeafStage:
+    """The leaf pairs of the CPU traversal's parts: their plane solves (warm-started), their warm-start table and
+    their terms added to their body pairs' value, gradient and Hessian (``accumulate_leaves_lowrank``), run for
+    each part in the thread that traversed it (``serial``: a pool thread, whose plane solves run on it alone)."""
+
+    def __init__(self, forest, R, t, dR, d2R, mu, margin, tol, max_iter, order, warm):
+        z = torch.zeros(0, dtype=R.dtype)
+        self.forest, self.mu, self.margin, self.tol, self.max_iter, self.order = (
+            forest, mu, margin, tol, max_iter, order
+        )  # fmt: skip
+        self.Rn, self.tn = R.contiguous().numpy(), t.contiguous().numpy()
+        self.dRn = dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy()
+        self.d2Rn = d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy()
+        self.warm = warm
+        self.tables: list[
+            tuple[torch.Tensor, torch.Tensor]
+        ] = []  # each part's warm-start table (keys, planes)
+
+    def run(self, out, pb, rows, hs, v, g, h, serial: bool) -> None:
+        from ._traverse_numba import accumulate_leaves_lowrank, leaf_inputs, warm_table
+        from .pair import _solve
+
+        LI, LJ, lp, lwid, wv, wd1, wd2, n, _ = out
+        if n == 0:
+            return
+        LI, LJ, lp, lwid = LI[:n], LJ[:n], lp[:n], lwid[:n]
+        z = torch.zeros(0, dtype=v.dtype)
+        warm = self.warm
+        if warm is None:
+            ids, wkeys, wplanes = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4))
+        else:
+            ids = (warm[0] if rows is None else warm[0][rows]).contiguous().numpy()
+            wkeys, wplanes = warm[1].contiguous().numpy(), warm[2].contiguous().numpy()
+        pbn = pb.numpy()
+        Xa, Xb, X, keys, P0, has0 = leaf_inputs(
+            self.forest.tris.numpy(), self.forest.tri.numpy(), LI, LJ, lp, pbn, self.Rn, self.tn, ids, wkeys,
+            wplanes, self.forest.centre.shape[0],
+        )  # fmt: skip
+        order = self.order
+        # (X from the library's own meshes: no input checks)
+        sol = _solve(
+            torch.from_numpy(X), mu=float(self.mu), margin=float(self.margin), tol=float(self.tol),
+            max_iter=int(self.max_iter), want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True,
+            start=(torch.from_numpy(P0), torch.from_numpy(has0)) if warm is not None and wkeys.shape[0] else None,
+            serial=serial,
+        )  # fmt: skip
+        pv, Pl = sol.value.numpy(), sol.plane.contiguous().numpy()
+        if warm is not None:
+            self.tables.append(
+                tuple(torch.from_numpy(x) for x in warm_table(keys, pv, Pl, sol.centre.numpy()))
+            )  # (list.append: atomic)
+        WT, gaps = sol.hess if sol.hess is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
+        gx = sol.grad if sol.grad is not None else z.reshape(0, 18)
+        accumulate_leaves_lowrank(
+            lp, lwid, wv, wd1, wd2, pv, gx.numpy(), WT.numpy(), gaps.numpy(), Pl, Xa, Xb, pbn[lp, 0], pbn[lp, 1],
+            self.dRn, self.d2Rn, float(self.mu), int(order), v.numpy(),
+            g.numpy() if g is not None else z.reshape(0, 12).numpy(),
+            h.numpy() if h is not None else z.reshape(0, 12, 12).numpy(), hs.contiguous().numpy(),
+        )  # fmt: skip
+
+    def warm_table(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The parts' warm-start tables as one, sorted by key (the parts' keys are disjoint: their body pairs
+        are)."""
+        if not self.tables:
+            return torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, dtype=torch.float64)
+        keys = torch.cat([k for k, _ in self.tables])
+        planes = torch.cat([p for _, p in self.tables])
+        order = torch.argsort(keys, stable=True)
+        return keys[order], planes[order]
+
+
 def _traverse_cpu(
     forest,
     pair_body,
@@ -211,12 +283,14 @@ def _traverse_cpu(
     hess,
     hside,
     hint,
+    leaf_stage=None,
 ):
     """Node traversal by the numba kernel (accumulates central terms in place); returns the leaf pairs (their
-    weights' Hessians stay in the kernel's weight tables: ``ld2w`` is None) and those tables: (the leaves' entries
-    lwid in the concatenated table, each part's table (wv, wd1, wd2) as the kernel wrote it, the parts' leaf bounds,
-    the parts' offsets in the concatenation).
+    weights' Hessians are not kept: ``ld2w`` is None), the node pairs and -1 (levels: not counted).
     ``hint``: the leaf pairs of earlier evaluations of the same step, or None (see :func:`_node_threads`).
+    ``leaf_stage``: a :class:`_LeafStage`: each part's leaf pairs are then solved and added to value, grad and
+    hess in the thread that traversed it, and the result is (leaf pairs, node pairs, warm-start table (keys,
+    planes) of the solved leaf pairs).
 
     Several body pairs are traversed by up to four threads, each taking every n-th pair (the kernel is serial
     within a body pair); the results are the same as one thread's, their leaves in another order."""
@@ -253,6 +327,8 @@ def _traverse_cpu(
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
             int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
         )  # fmt: skip
+        if leaf_stage is not None:
+            leaf_stage.run(out, pb, rows, hs, v, g, h, serial=k > 1)
         return out, v, g, h
 
     k = _node_threads(P, hint)
@@ -261,22 +337,25 @@ def _traverse_cpu(
     else:
         chunks = [torch.arange(i, P, k) for i in range(k)]
         parts = list(zip(chunks, _pool().map(run, chunks), strict=True))
+    if leaf_stage is not None:
+        n_leaf = n_pairs = 0
+        for rows, ((*_, n_l, n_p), v, g, h) in parts:
+            if rows is not None:
+                value[rows] = v
+                if grad is not None:
+                    grad[rows] = g
+                if hess is not None:
+                    hess[rows] = h
+            n_leaf, n_pairs = n_leaf + int(n_l), n_pairs + int(n_p)
+        return n_leaf, n_pairs, leaf_stage.warm_table()
     cols: list[list[torch.Tensor]] = [[] for _ in range(6)]  # LI, LJ, lp, lwid, wv, wd1
-    bounds = [0]  # each part's leaves: [bounds[i], bounds[i + 1]) (their body pairs are the part's only)
-    offsets = []  # each part's first entry in the concatenated weight table (wv, wd1)
-    # each part's own table (wv, wd1, wd2) for the leaf accumulation: the weight Hessians are not concatenated
-    # (several MB per evaluation on a rack of balls)
-    tables = []
     n_pairs = 0
-    offset = 0
-    for rows, ((LI, LJ, lp, lwid, wv, wd1, wd2, n_leaf, n_p), v, g, h) in parts:
+    offset = 0  # each part's first entry in the concatenated weight table (wv, wd1)
+    for rows, ((LI, LJ, lp, lwid, wv, wd1, _, n, n_p), v, g, h) in parts:
         if rows is not None:
             value[rows] = v
             if grad is not None:
                 grad[rows] = g
-            if hess is not None:
-                hess[rows] = h
-        n = n_leaf
         lp_t = torch.from_numpy(lp[:n])
         for c, x in zip(
             cols,
@@ -285,17 +364,13 @@ def _traverse_cpu(
             strict=True,
         ):  # fmt: skip
             c.append(x)
-        offsets.append(offset)
-        tables.append((wv, wd1, wd2))
         offset += wv.shape[0]
         n_pairs += int(n_p)
-        bounds.append(bounds[-1] + n)
     LI, LJ, lp, wid, wv, wd1 = (_cat(c) for c in cols)
-    table = (wid, tables, bounds, offsets)
     leaves = []
     if wid.numel():
         leaves.append((LI, LJ, lp, wv[wid], wd1[wid] if order >= 1 else None, None))
-    return leaves, n_pairs, -1, table
+    return leaves, n_pairs, -1
 
 
 def _pair_eps(eps: float | torch.Tensor, P: int, device: torch.device) -> torch.Tensor:
@@ -380,13 +455,20 @@ def traverse(
 
     if dev.type == "cpu" and backend != "torch":
         known = warm[1].numel() if warm is not None and warm[1].numel() else None  # the step's leaf pairs
-        leaves, n_pairs, levels, wtable = _traverse_cpu(
+        if not leaves_only:  # the leaf pairs solved and summed in the traversal's threads
+            stage = _LeafStage(forest, R, t, dR, d2R, mu, margin, tol, max_iter, order, warm)
+            n_leaf, n_pairs, warm_out = _traverse_cpu(
+                forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess,
+                hside, hint=known, leaf_stage=stage,
+            )  # fmt: skip
+            return _finish(value, grad, hess, n_pairs, n_leaf, -1, warm_out if warm is not None else None)
+        leaves, n_pairs, levels = _traverse_cpu(
             forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess, hside,
             hint=known,
         )  # fmt: skip
         I = pair_root[:0, 0]  # skip the tensor traversal below
     else:
-        leaves, n_pairs, levels, wtable = [], 0, 0, None
+        leaves, n_pairs, levels = [], 0, 0
         eye = torch.eye(3, dtype=dt, device=dev)
         # frontier
         I, J, pid = pair_root[:, 0], pair_root[:, 1], torch.arange(P, device=dev)
@@ -488,102 +570,49 @@ def traverse(
         return (*(_cat(x) for x in cols[:4]), _cat(cols[4]) if order >= 1 else None)
     n_leaf = 0
     pv = None
-    warm_out = (pair_root.new_zeros(0), value.new_zeros(0, 4))  # (no leaf pairs, or the tensor path)
+    warm_out = (pair_root.new_zeros(0), value.new_zeros(0, 4))  # (the tensor path keeps no warm starts)
     if leaves:
         LI, LJ, lp, lw, ldw, ld2w = (_cat(x) if x[0] is not None else None for x in zip(*leaves, strict=True))
         n_leaf = LI.numel()
-        fused = dev.type == "cpu" and backend != "torch"
-        if fused:  # the numba kernels, with the leaf Hessians as low-rank factors
-            from ._traverse_numba import accumulate_leaves_lowrank, leaf_inputs, warm_table
-            from .pair import _solve
+        # the tensor path (the CPU kernels' leaf pairs are solved and summed in _traverse_cpu)
+        ba, bb = pair_body[lp, 0], pair_body[lp, 1]
+        Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
+        wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
+        wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
+        if order == 0:
+            from .pair import pair_potential
 
-            z = torch.zeros(0, dtype=dt)
-            M = forest.centre.shape[0]
-            ids, wkeys, wplanes = warm if warm is not None else (lp[:0], lp[:0], z.reshape(0, 4))
-            Xa, Xb, X, keys, P0, has0 = (
-                torch.from_numpy(x)
-                for x in leaf_inputs(
-                    forest.tris.numpy(), forest.tri.numpy(), LI.numpy(), LJ.numpy(), lp.numpy(), pair_body.numpy(),
-                    R.contiguous().numpy(), t.contiguous().numpy(), ids.contiguous().numpy(),
-                    wkeys.contiguous().numpy(), wplanes.contiguous().numpy(), M,
-                )
-            )  # fmt: skip
-            ba, bb = 2 * lp, 2 * lp + 1  # (pair_body: body pair p's rows 2 p, 2 p + 1)
-            # (X from the library's own meshes: no input checks)
-            sol = _solve(
-                X, mu=float(mu), margin=float(margin), tol=float(tol), max_iter=int(max_iter),
-                want_grad=order >= 1, want_hess=order >= 2, backend="numba", lowrank=True,
-                start=(P0, has0) if warm is not None and wkeys.numel() else None,
-            )  # fmt: skip
-            pv, Pl, gx, fac = sol.value, sol.plane, sol.grad, sol.hess
-            if warm is not None:
-                warm_out = tuple(
-                    torch.from_numpy(x)
-                    for x in warm_table(keys.numpy(), pv.numpy(), Pl.contiguous().numpy(), sol.centre.numpy())
-                )
-            WT, gaps = fac if fac is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
-            lwid, tables, bounds, offsets = wtable
-            gx = gx if gx is not None else z.reshape(0, 18)
-            per_leaf = [x.numpy() for x in (lp, lwid, pv, gx, WT, gaps, Pl, Xa, Xb, ba, bb)]
-            shared = (
-                dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy(),
-                d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy(), float(mu),
-                int(order), value.numpy(), grad.numpy() if grad is not None else z.reshape(0, 12).numpy(),
-                hess.numpy() if hess is not None else z.reshape(0, 12, 12).numpy(), hside.numpy(),
-            )  # fmt: skip
-
-            def accumulate(part: tuple[int, int, int]) -> None:
-                a, b, i = part  # the leaves of part i, with its own weight table
-                x = [t[a:b] if t.shape[0] else t for t in per_leaf]
-                accumulate_leaves_lowrank(x[0], x[1] - offsets[i], *tables[i], *x[2:], *shared)
-
-            parts = [(a, b, i) for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)) if b > a]
-            if len(parts) > 1:  # the parts' body pairs are disjoint: their rows of value/grad/hess too
-                list(_pool().map(accumulate, parts))
-            elif parts:
-                accumulate(parts[0])
-            pv = None
+            with torch.no_grad():
+                pv = pair_potential(wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter, backend=backend)
+            gq = hq = None
         else:
-            ba, bb = pair_body[lp, 0], pair_body[lp, 1]
-            Xa, Xb = forest.tris[forest.tri[LI]], forest.tris[forest.tri[LJ]]  # (L, 3, 3) body frame
-            wa = Xa @ R[ba].transpose(1, 2) + t[ba][:, None, :]
-            wb = Xb @ R[bb].transpose(1, 2) + t[bb][:, None, :]
-            if order == 0:
-                from .pair import pair_potential
-
-                with torch.no_grad():
-                    pv = pair_potential(
-                        wa, wb, mu=mu, margin=margin, tol=tol, max_iter=max_iter, backend=backend
-                    )
-                gq = hq = None
-            else:
-                der = pair_potential_derivatives(
-                    wa,
-                    wb,
-                    mu=mu,
-                    margin=margin,
-                    hessian=order >= 2,
-                    tol=tol,
-                    max_iter=max_iter,
-                    backend=backend,
-                )
-                pv = der.value
-                # J (L, 18, 12): x_k = R X_k + t
-                L_ = n_leaf
-                Jx = torch.zeros(L_, 6, 3, 12, dtype=dt, device=dev)
-                Jx[:, :3, :, 0:3] = eye
-                Jx[:, 3:, :, 6:9] = eye
-                Jx[:, :3, :, 3:6] = torch.einsum("eimk,evm->evik", dR[ba], Xa)
-                Jx[:, 3:, :, 9:12] = torch.einsum("eimk,evm->evik", dR[bb], Xb)
-                Jx = Jx.reshape(L_, 18, 12)
-                gx = der.grad  # (L, 18)
-                gq = torch.einsum("ei,eik->ek", gx, Jx)
-                hq = None
-                if order >= 2:
-                    hq = Jx.transpose(1, 2) @ der.hessian @ Jx
-                    g6 = gx.reshape(L_, 6, 3)
-                    hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
-                    hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
+            der = pair_potential_derivatives(
+                wa,
+                wb,
+                mu=mu,
+                margin=margin,
+                hessian=order >= 2,
+                tol=tol,
+                max_iter=max_iter,
+                backend=backend,
+            )
+            pv = der.value
+            # J (L, 18, 12): x_k = R X_k + t
+            L_ = n_leaf
+            Jx = torch.zeros(L_, 6, 3, 12, dtype=dt, device=dev)
+            Jx[:, :3, :, 0:3] = eye
+            Jx[:, 3:, :, 6:9] = eye
+            Jx[:, :3, :, 3:6] = torch.einsum("eimk,evm->evik", dR[ba], Xa)
+            Jx[:, 3:, :, 9:12] = torch.einsum("eimk,evm->evik", dR[bb], Xb)
+            Jx = Jx.reshape(L_, 18, 12)
+            gx = der.grad  # (L, 18)
+            gq = torch.einsum("ei,eik->ek", gx, Jx)
+            hq = None
+            if order >= 2:
+                hq = Jx.transpose(1, 2) @ der.hessian @ Jx
+                g6 = gx.reshape(L_, 6, 3)
+                hq[:, 3:6, 3:6] += torch.einsum("evi,eimkl,evm->ekl", g6[:, :3], d2R[ba], Xa)
+                hq[:, 9:12, 9:12] += torch.einsum("evi,eimkl,evm->ekl", g6[:, 3:], d2R[bb], Xb)
     if leaves and pv is not None:
         v, gv, hv = _product(lw, ldw, ld2w, pv, gq, hq)
         _segment_add(value, lp, v, P)
@@ -594,13 +623,20 @@ def traverse(
         if hv is not None:
             hv = torch.where(inf[:, None, None], torch.zeros((), dtype=dt, device=dev), hv)
             _segment_add(hess, lp, hv, P)
+    return _finish(value, grad, hess, n_pairs, n_leaf, levels, warm_out if warm is not None else None)
+
+
+def _finish(value, grad, hess, n_pairs: int, n_leaf: int, levels: int, warm_out):
+    """``traverse``'s result: derivatives zero where a pair's value is +inf, the stats, and the warm-start table
+    when one was asked for (``warm_out`` not None)."""
     infp = torch.isinf(value) if grad is not None else None
     if infp is not None and bool(infp.any()):
-        grad = torch.where(infp[:, None], torch.zeros((), dtype=dt, device=dev), grad)
+        zero = torch.zeros((), dtype=value.dtype, device=value.device)
+        grad = torch.where(infp[:, None], zero, grad)
         if hess is not None:
-            hess = torch.where(infp[:, None, None], torch.zeros((), dtype=dt, device=dev), hess)
+            hess = torch.where(infp[:, None, None], zero, hess)
     stats = {"node_pairs": int(n_pairs), "leaf_pairs": int(n_leaf), "levels": int(levels)}
-    if warm is not None:
+    if warm_out is not None:
         return value, grad, hess, stats, warm_out
     return value, grad, hess, stats
 

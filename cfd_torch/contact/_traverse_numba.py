@@ -726,7 +726,7 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
                         hess[p, c, a] = hess[p, a, c]
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)  # (called from several threads at once)
 def leaf_inputs(tris, tri, LI, LJ, lp, pair_body, R, t, ids, wkeys, wplanes, M):
     """The inputs of L leaf pairs' plane solves, in one pass.
 
@@ -774,7 +774,7 @@ def leaf_inputs(tris, tri, LI, LJ, lp, pair_body, R, t, ids, wkeys, wplanes, M):
     return Xa, Xb, X, keys, P0, has0
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)  # (called from several threads at once)
 def warm_table(keys, value, plane, centre):
     """The warm-start table of solved leaf pairs: the keys (K,) of those with a finite value, sorted, and their
     planes (K, 4) moved from frames centred at ``centre`` (L, 3) to the frame of the solve's input (n, d - n.c)."""

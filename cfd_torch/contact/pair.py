@@ -177,14 +177,15 @@ def to_world(plane: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
 
 
 def _solve(
-    X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None
+    X, *, mu, margin, tol, max_iter, want_grad, want_hess, backend, lowrank=False, start=None, serial=False
 ) -> _Solved:
     """Solve (K, 6, 3) float64 pairs, each in a frame centred near it (``_geometry.frame_origin``; translation-
     invariant: far from the origin, a gap n.x + d computed in the input's frame would cancel its digits away).
 
     ``lowrank`` (numba backend only): hess is returned as its factors (W^T (K, 4, 18), gaps (K, 6)), see
     ``_pair_numba.solve_pairs``. ``start`` (numba backend only): (P0 (K, 4), has0 (K,) bool) warm-start planes in
-    the input's frame, used where set and strictly feasible."""
+    the input's frame, used where set and strictly feasible. ``serial`` (numba backend): solve on the calling
+    thread (a pool thread with a share of the work) instead of numba's threads."""
     K = X.shape[0]
     X = X.detach()
     if lowrank and not _use_numba(X, backend):
@@ -192,7 +193,7 @@ def _solve(
     if _use_numba(X, backend):
         from ._pair_numba import PARALLEL_MIN_PAIRS, solve_pairs, solve_pairs_serial
 
-        if K < PARALLEL_MIN_PAIRS or not parallel_kernels():
+        if serial or K < PARALLEL_MIN_PAIRS or not parallel_kernels():
             solve_pairs = solve_pairs_serial  # noqa: F811
         else:
             start_numba_pool()
