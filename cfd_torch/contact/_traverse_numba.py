@@ -48,9 +48,29 @@ def hessian_span(side):
     return 0, 12
 
 
+# a far node pair's row in the far buffer F (20, capacity): its (Hessian) moments' factors
+_F_AL, _F_Z, _F_BE, _F_CI, _F_CJ, _F_GU, _F_ROWS = 0, 1, 10, 11, 14, 17, 20
+
+
 @numba.njit(nogil=True, **_JIT)
-def _far_moments(Z, M, dr, d, inv_r, g1, g2, CI, CJ, zact, nz, lo, hi):
-    """Add one far node pair's Hessian, as moments, to its body pair's sums (expanded by :func:`_far_expand`).
+def _far_row(F, k, dr, d, inv_r, g1, g2, CI, CJ):
+    """Write far node pair k's factors into column k of F (summed by :func:`_far_moments`)."""
+    F[_F_AL, k] = g2 - g1 * inv_r
+    for i in range(3):
+        u = d[i] * inv_r
+        F[_F_Z + i, k] = u
+        F[_F_Z + 3 + i, k] = dr[3 + i]
+        F[_F_Z + 6 + i, k] = dr[9 + i]
+        F[_F_CI + i, k] = CI[i]
+        F[_F_CJ + i, k] = CJ[i]
+        F[_F_GU + i, k] = g1 * u
+    F[_F_BE, k] = g1 * inv_r
+
+
+@numba.njit(nogil=True, fastmath={"reassoc"}, **_JIT)
+def _far_moments(F, nf, Z, M, zact, nz, lo, hi):
+    """A body pair's far node pairs' Hessian as moments (expanded by :func:`_far_expand`), summed over the nf
+    columns of F (:func:`_far_row`; the sums in any order: vectorised).
 
     The Hessian of f(r), r = |d|, d = x_a - x_b = R_a C_I + t_a - R_b C_J - t_b, in the 12 pose coordinates is
     (g2 - g1 / r) dr dr^T + (g1 / r) dd^T dd + g1 u . d2d with f' = g1, f'' = g2, u = d / r, dd = [I, A, -I, -B],
@@ -58,47 +78,66 @@ def _far_moments(Z, M, dr, d, inv_r, g1, g2, CI, CJ, zact, nz, lo, hi):
     pair's rotation derivatives are the same for all its node pairs, and A, B, d2d are linear in the node centres,
     so the sums over node pairs need only:
 
-        Z (9, 9)   += (g2 - g1 / r) z z^T, z = [u, u^T A, -u^T B]  (the upper triangle)
-        M[0]       += g1 / r                      M[1:4] += (g1 / r) C_I          M[4:7] += (g1 / r) C_J
-        M[7:16]    += (g1 / r) C_I C_I^T          M[16:25] += (g1 / r) C_I C_J^T  M[25:34] += (g1 / r) C_J C_J^T
-        M[34:43]   += g1 u C_I^T                  M[43:52] += g1 u C_J^T
+        Z (9, 9)   = sum (g2 - g1 / r) z z^T, z = [u, u^T A, -u^T B]  (the upper triangle)
+        M[0]       = sum g1 / r                   M[1:4] = sum (g1 / r) C_I       M[4:7] = sum (g1 / r) C_J
+        M[7:16]    = sum (g1 / r) C_I C_I^T       M[16:25] = sum (g1 / r) C_I C_J^T  M[25:34] = sum (g1 / r) C_J C_J^T
+        M[34:43]   = sum g1 u C_I^T               M[43:52] = sum g1 u C_J^T
 
-    (about a third of the work of forming each 12 x 12 Hessian). Only the moments of the coordinates lo..hi-1 are
-    summed: the entries ``zact[:nz]`` of z, and the sums over C_I (body a, coordinates 0..5) or C_J (b, 6..11)."""
-    al = g2 - g1 * inv_r
-    be = g1 * inv_r
-    z0, z1, z2 = d[0] * inv_r, d[1] * inv_r, d[2] * inv_r
-    z = (z0, z1, z2, dr[3], dr[4], dr[5], dr[9], dr[10], dr[11])
-    for ia in range(nz):
-        a = zact[ia]
-        za = al * z[a]
-        for ic in range(ia, nz):
-            c = zact[ic]
-            Z[a, c] += za * z[c]
-    M[0] += be
+    Only the moments of the coordinates lo..hi-1 are formed: the entries ``zact[:nz]`` of z, and the sums over C_I
+    (body a, coordinates 0..5) or C_J (b, 6..11)."""
     on_a = lo == 0
     on_b = hi == 12
+    for ia in range(nz):
+        a = zact[ia]
+        for ic in range(ia, nz):
+            c = zact[ic]
+            acc = 0.0
+            for k in range(nf):
+                acc += F[_F_AL, k] * F[_F_Z + a, k] * F[_F_Z + c, k]
+            Z[a, c] = acc
+    acc = 0.0
+    for k in range(nf):
+        acc += F[_F_BE, k]
+    M[0] = acc
     for m in range(3):
-        bi = be * CI[m]
-        bj = be * CJ[m]
         if on_a:
-            M[1 + m] += bi
+            acc = 0.0
+            for k in range(nf):
+                acc += F[_F_BE, k] * F[_F_CI + m, k]
+            M[1 + m] = acc
         if on_b:
-            M[4 + m] += bj
+            acc = 0.0
+            for k in range(nf):
+                acc += F[_F_BE, k] * F[_F_CJ + m, k]
+            M[4 + m] = acc
         for n in range(3):
             if on_a:
-                M[7 + 3 * m + n] += bi * CI[n]
+                acc = 0.0
+                for k in range(nf):
+                    acc += F[_F_BE, k] * F[_F_CI + m, k] * F[_F_CI + n, k]
+                M[7 + 3 * m + n] = acc
             if on_a and on_b:
-                M[16 + 3 * m + n] += bi * CJ[n]
+                acc = 0.0
+                for k in range(nf):
+                    acc += F[_F_BE, k] * F[_F_CI + m, k] * F[_F_CJ + n, k]
+                M[16 + 3 * m + n] = acc
             if on_b:
-                M[25 + 3 * m + n] += bj * CJ[n]
+                acc = 0.0
+                for k in range(nf):
+                    acc += F[_F_BE, k] * F[_F_CJ + m, k] * F[_F_CJ + n, k]
+                M[25 + 3 * m + n] = acc
     for i in range(3):
-        gu = g1 * z[i]
         for m in range(3):
             if on_a:
-                M[34 + 3 * i + m] += gu * CI[m]
+                acc = 0.0
+                for k in range(nf):
+                    acc += F[_F_GU + i, k] * F[_F_CI + m, k]
+                M[34 + 3 * i + m] = acc
             if on_b:
-                M[43 + 3 * i + m] += gu * CJ[m]
+                acc = 0.0
+                for k in range(nf):
+                    acc += F[_F_GU + i, k] * F[_F_CJ + m, k]
+                M[43 + 3 * i + m] = acc
 
 
 @numba.njit(nogil=True, **_JIT)
@@ -184,34 +223,38 @@ def _expand_inherited(hess, p, wd1, wd2, ws, wds, first, last, lo, hi):
 # that leaves out arguments with defaults through its slow path, about half a millisecond per call)
 STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 256, 256
 # the kernels' status codes
-_DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT = 0, 1, 2, 3, 4
+_DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT, _FULL_FAR = 0, 1, 2, 3, 4, 5
 
 
 @numba.njit(nogil=True, **_JIT)
 def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_width, split_both, order, value,
                 grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, ws, wds, nw, dd, dr, d2r,
-                d, Z, Mom, zact, nz, n_pairs, far):  # fmt: skip
+                d, F, nf, n_pairs):  # fmt: skip
     """Traverse body pair p (bodies ba, bb) from its stack (sI, sJ, sK, ``top`` entries), accumulating its central
     terms into value[p], grad[p], hess[p] (the upper triangle of its coordinates lo..hi-1: 0..11, or one body's
-    0..5 or 6..11, :func:`hessian_span`) and its far node pairs' moments into Z, Mom (``far``: whether some were
-    added); leaves are appended from index n_leaf, weight table entries from nw (their Hessians over lo..hi-1).
+    0..5 or 6..11, :func:`hessian_span`) but for its far node pairs' Hessians, whose factors are appended to F from
+    column nf (order 2; :func:`_far_moments` sums them); leaves are appended from index n_leaf, weight table entries
+    from nw (their Hessians over lo..hi-1).
     The far node pairs below a table entry e (an ancestor in the blend band) add their central terms' sums to
     ws[e] (the values) and wds[e] (their radial derivatives times dr), expanded with the entry's weight
     derivatives once per entry by :func:`_expand_inherited`.
 
-    Returns (status, top, n_leaf, nw, n_pairs, far): status ``_DONE``, or which buffer is full (the stack, the
-    leaves, the weight table), checked before a node pair is taken off the stack (each needs at most 3 more stack
-    entries, one leaf and one table entry): the caller grows that buffer and calls again with the returned state,
+    Returns (status, top, n_leaf, nw, n_pairs, nf): status ``_DONE``, or which buffer is full (the stack, the
+    leaves, the weight table, the far buffer), checked before a node pair is taken off the stack (each needs at most
+    3 more stack entries, one leaf, one table entry and one far column): the caller grows that buffer and calls
+    again with the returned state,
     which goes on where this call stopped. The buffers are arguments, never reassigned here: numba
     reference-counts an array variable reassigned inside a loop at every iteration, which cost three times the
     traversal's own work."""
     while top > 0:
         if top + 3 > sI.shape[0]:
-            return _FULL_STACK, top, n_leaf, nw, n_pairs, far
+            return _FULL_STACK, top, n_leaf, nw, n_pairs, nf
         if n_leaf == LI.shape[0]:
-            return _FULL_LEAVES, top, n_leaf, nw, n_pairs, far
+            return _FULL_LEAVES, top, n_leaf, nw, n_pairs, nf
         if nw == wv.shape[0]:
-            return _FULL_WEIGHTS, top, n_leaf, nw, n_pairs, far
+            return _FULL_WEIGHTS, top, n_leaf, nw, n_pairs, nf
+        if order >= 2 and nf == F.shape[1]:
+            return _FULL_FAR, top, n_leaf, nw, n_pairs, nf
         top -= 1
         I, J, wid = sI[top], sJ[top], sK[top]
         W = wv[wid]
@@ -291,8 +334,8 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                 if order >= 2:  # the upper triangle (mirrored when the body pair is done)
                     g2 = phi2 * pc + 2.0 * phi1 * pc1 + phi * pc2
                     if plain:
-                        _far_moments(Z, Mom, dr, d, inv_r, W * g1, W * g2, CI, CJ, zact, nz, lo, hi)
-                        far = True
+                        _far_row(F, nf, dr, d, inv_r, W * g1, W * g2, CI, CJ)
+                        nf += 1
                         if wid != 0:  # an ancestor in the band: the weight's derivatives, summed per entry
                             ws[wid] += g
                             for a in range(lo, hi):
@@ -355,7 +398,7 @@ def _pair_nodes(p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps_p, min_
                 cj = child[J, b] if sj else J
                 sI[top], sJ[top], sK[top] = ci, cj, wid
                 top += 1
-    return _DONE, top, n_leaf, nw, n_pairs, far
+    return _DONE, top, n_leaf, nw, n_pairs, nf
 
 
 @numba.njit(nogil=True, **_JIT)  # (called from several Python threads at once, on disjoint body pairs)
@@ -405,6 +448,7 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
         dd[k, 6 + k] = -1.0
     Z = np.zeros((9, 9))
     Mom = np.zeros(52)
+    F = np.empty((_F_ROWS, stack_cap if order >= 2 else 0))  # the far node pairs' factors, one column each
     zact = np.empty(9, np.int64)  # the entries of _far_moments' z that the body pair's Hessian span needs
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
@@ -415,22 +459,23 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                 continue
             zact[nz] = a
             nz += 1
-        if order >= 2:
-            Z[:] = 0.0
-            Mom[:] = 0.0
         sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
         top = 1
-        far = False
+        nf = 0
         first = nw  # the weight table entries of this body pair: first..nw-1
         while True:
-            status, top, n_leaf, nw, n_pairs, far = _pair_nodes(
+            status, top, n_leaf, nw, n_pairs, nf = _pair_nodes(
                 p, ba, bb, centre, radius, child, R, dR, d2R, t, mu, eps[p], min_width, split_both, order, value,
                 grad, hess, lo, hi, sI, sJ, sK, top, LI, LJ, lp, lwid, n_leaf, wv, wd1, wd2, ws, wds, nw, dd, dr,
-                d2r, d, Z, Mom, zact, nz, n_pairs, far,
+                d2r, d, F, nf, n_pairs,
             )  # fmt: skip
             if status == _DONE:
                 break
-            if status == _FULL_STACK:
+            if status == _FULL_FAR:
+                G = np.empty((_F_ROWS, 2 * F.shape[1] + 1))
+                G[:, :nf] = F[:, :nf]
+                F = G
+            elif status == _FULL_STACK:
                 sI, sJ, sK = _grow(sI, 0), _grow(sJ, 0), _grow(sK, 0)
             elif status == _FULL_LEAVES:
                 LI, LJ, lp, lwid = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lwid, 0)
@@ -444,7 +489,8 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                     wds = _grow(wds, 0)
         if order >= 2 and nw > first:
             _expand_inherited(hess, p, wd1, wd2, ws, wds, first, nw, lo, hi)
-        if far:
+        if nf:
+            _far_moments(F, nf, Z, Mom, zact, nz, lo, hi)
             _far_expand(hess, p, Z, Mom, dR, d2R, ba, bb, lo, hi)
         if order >= 2:  # central terms were accumulated into the upper triangle
             for a in range(lo, hi):
