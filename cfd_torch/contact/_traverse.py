@@ -255,14 +255,16 @@ class _LeafStage:
         )  # fmt: skip
 
     def warm_table(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The parts' warm-start tables as one, sorted by key (the parts' keys are disjoint: their body pairs
-        are)."""
+        """The parts' warm-start tables merged into one, sorted by key (the parts' keys are disjoint: their body
+        pairs are)."""
+        from ._traverse_numba import warm_merge
+
         if not self.tables:
             return torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, dtype=torch.float64)
-        keys = torch.cat([k for k, _ in self.tables])
-        planes = torch.cat([p for _, p in self.tables])
-        order = torch.argsort(keys, stable=True)
-        return keys[order], planes[order]
+        keys, planes = (x.numpy() for x in self.tables[0])
+        for k, p in self.tables[1:]:
+            keys, planes = warm_merge(k.numpy(), p.numpy(), keys, planes)
+        return torch.from_numpy(keys), torch.from_numpy(planes)
 
 
 def _traverse_cpu(

@@ -838,7 +838,7 @@ def warm_table(keys, value, plane, centre):
     return out_k, out_p
 
 
-@numba.njit(**_JIT)
+@numba.njit(nogil=True, **_JIT)
 def warm_merge(new_keys, new_planes, old_keys, old_planes):
     """Two warm-start tables (sorted distinct keys (W,), planes (W, 4)) merged into one, sorted, where a key in
     both keeps the new plane."""
@@ -851,11 +851,13 @@ def warm_merge(new_keys, new_planes, old_keys, old_planes):
             if j < m and new_keys[i] == old_keys[j]:
                 j += 1  # the old entry of the same key is dropped
             keys[k] = new_keys[i]
-            planes[k] = new_planes[i]
+            for c in range(4):
+                planes[k, c] = new_planes[i, c]
             i += 1
         else:
             keys[k] = old_keys[j]
-            planes[k] = old_planes[j]
+            for c in range(4):
+                planes[k, c] = old_planes[j, c]
             j += 1
         k += 1
     return keys[:k], planes[:k]
