@@ -221,7 +221,7 @@ def _expand_inherited(hess, p, wd1, wd2, ws, wds, first, last, lo, hi):
 
 # the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
 # that leaves out arguments with defaults through its slow path, about half a millisecond per call)
-STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 256, 256
+STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 8192, 256
 # the kernels' status codes
 _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT, _FULL_FAR = 0, 1, 2, 3, 4, 5
 
@@ -426,12 +426,15 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     sI = np.empty(stack_cap, np.int64)
     sJ = np.empty(stack_cap, np.int64)
     sK = np.empty(stack_cap, np.int64)
+    # (np.empty: an entry is written where it is made, over what is read of it; entry 0 is the weight 1)
     wv = np.empty(table_cap)
-    wd1 = np.zeros((table_cap if order >= 1 else 1, 12))
-    wd2 = np.zeros((table_cap if order >= 2 else 1, 12, 12))
-    ws = np.zeros(table_cap if order >= 2 else 1)
-    wds = np.zeros((table_cap if order >= 2 else 1, 12))
+    wd1 = np.empty((table_cap if order >= 1 else 1, 12))
+    wd2 = np.empty((table_cap if order >= 2 else 1, 12, 12))
+    ws = np.empty(table_cap if order >= 2 else 1)
+    wds = np.empty((table_cap if order >= 2 else 1, 12))
     wv[0] = 1.0
+    wd1[0] = 0.0
+    wd2[0] = 0.0
     nw = 1
     LI = np.empty(leaf_cap, np.int64)
     LJ = np.empty(leaf_cap, np.int64)
@@ -660,7 +663,10 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
     A = np.empty((6, 3, 3))
     gq = np.empty(12)
     U = np.empty((12, 4))
-    T = wv.shape[0] if order >= 2 else 0
+    T = 0  # the weight table entries the leaves use
+    if order >= 2:
+        for e in range(L):
+            T = max(T, lwid[e] + 1)
     Ps = np.zeros(T)  # per weight table entry: the sum of its leaves' P ...
     gqs = np.zeros((T, 12))  # ... and of their gq
     entry_pair = np.full(T, -1, np.int64)  # the body pair of each entry with leaves (-1: none)
