@@ -197,7 +197,8 @@ def _node_threads(P: int, leaves: int | None = None) -> int:
 class _LeafStage:
     """The leaf pairs of the CPU traversal's parts: their plane solves (warm-started), their warm-start table and
     their terms added to their body pairs' value, gradient and Hessian (``accumulate_leaves_lowrank``), run for
-    each part in the thread that traversed it (``serial``: a pool thread, whose plane solves run on it alone)."""
+    each part in the thread that traversed it (``serial``: a pool thread, whose plane solves run on it alone).
+    What the parts share, read only."""
 
     def __init__(self, forest, R, t, dR, d2R, mu, margin, tol, max_iter, order, warm):
         z = torch.zeros(0, dtype=R.dtype)
@@ -208,17 +209,17 @@ class _LeafStage:
         self.dRn = dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy()
         self.d2Rn = d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy()
         self.warm = warm
-        self.tables: list[
-            tuple[torch.Tensor, torch.Tensor]
-        ] = []  # each part's warm-start table (keys, planes)
 
-    def run(self, out, pb, rows, hs, v, g, h, serial: bool) -> None:
+    def run(self, out, pb, rows, hs, v, g, h, serial: bool):
+        """Solve and add the leaf pairs of one part (``out``: its ``traverse_nodes`` result; its body pairs ``pb``,
+        rows ``rows`` of the whole (None: all), Hessian spans ``hs``, sums v, g, h); returns its warm-start table
+        (keys, planes) with warm starts, else None."""
         from ._traverse_numba import accumulate_leaves_lowrank, leaf_inputs, warm_table
         from .pair import _solve
 
         LI, LJ, lp, lwid, wv, wd1, wd2, n, _ = out
         if n == 0:
-            return
+            return None
         LI, LJ, lp, lwid = LI[:n], LJ[:n], lp[:n], lwid[:n]
         z = torch.zeros(0, dtype=v.dtype)
         warm = self.warm
@@ -241,10 +242,7 @@ class _LeafStage:
             serial=serial,
         )  # fmt: skip
         pv, Pl = sol.value.numpy(), sol.plane.contiguous().numpy()
-        if warm is not None:
-            self.tables.append(
-                tuple(torch.from_numpy(x) for x in warm_table(keys, pv, Pl, sol.centre.numpy()))
-            )  # (list.append: atomic)
+        table = warm_table(keys, pv, Pl, sol.centre.numpy()) if warm is not None else None
         WT, gaps = sol.hess if sol.hess is not None else (z.reshape(0, 4, 18), z.reshape(0, 6))
         gx = sol.grad if sol.grad is not None else z.reshape(0, 18)
         accumulate_leaves_lowrank(
@@ -253,18 +251,21 @@ class _LeafStage:
             g.numpy() if g is not None else z.reshape(0, 12).numpy(),
             h.numpy() if h is not None else z.reshape(0, 12, 12).numpy(), hs.contiguous().numpy(),
         )  # fmt: skip
+        return table
 
-    def warm_table(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The parts' warm-start tables merged into one, sorted by key (the parts' keys are disjoint: their body
-        pairs are)."""
-        from ._traverse_numba import warm_merge
 
-        if not self.tables:
-            return torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, dtype=torch.float64)
-        keys, planes = (x.numpy() for x in self.tables[0])
-        for k, p in self.tables[1:]:
-            keys, planes = warm_merge(k.numpy(), p.numpy(), keys, planes)
-        return torch.from_numpy(keys), torch.from_numpy(planes)
+def _merge_warm(tables: list) -> tuple[torch.Tensor, torch.Tensor]:
+    """The parts' warm-start tables (sorted keys, planes; None for a part without leaf pairs) as one, sorted by key
+    (the parts' keys are disjoint: their body pairs are)."""
+    from ._traverse_numba import warm_merge
+
+    tables = [x for x in tables if x is not None]
+    if not tables:
+        return torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, dtype=torch.float64)
+    keys, planes = tables[0]
+    for k, p in tables[1:]:
+        keys, planes = warm_merge(k, p, keys, planes)
+    return torch.from_numpy(keys), torch.from_numpy(planes)
 
 
 def _traverse_cpu(
@@ -329,9 +330,8 @@ def _traverse_cpu(
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
             int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
         )  # fmt: skip
-        if leaf_stage is not None:
-            leaf_stage.run(out, pb, rows, hs, v, g, h, serial=k > 1)
-        return out, v, g, h
+        table = leaf_stage.run(out, pb, rows, hs, v, g, h, serial=k > 1) if leaf_stage is not None else None
+        return out, v, g, h, table
 
     k = _node_threads(P, hint)
     if k == 1:
@@ -341,7 +341,7 @@ def _traverse_cpu(
         parts = list(zip(chunks, _pool().map(run, chunks), strict=True))
     if leaf_stage is not None:
         n_leaf = n_pairs = 0
-        for rows, ((*_, n_l, n_p), v, g, h) in parts:
+        for rows, ((*_, n_l, n_p), v, g, h, _t) in parts:
             if rows is not None:
                 value[rows] = v
                 if grad is not None:
@@ -349,11 +349,11 @@ def _traverse_cpu(
                 if hess is not None:
                     hess[rows] = h
             n_leaf, n_pairs = n_leaf + int(n_l), n_pairs + int(n_p)
-        return n_leaf, n_pairs, leaf_stage.warm_table()
+        return n_leaf, n_pairs, _merge_warm([x[1][4] for x in parts])
     cols: list[list[torch.Tensor]] = [[] for _ in range(6)]  # LI, LJ, lp, lwid, wv, wd1
     n_pairs = 0
     offset = 0  # each part's first entry in the concatenated weight table (wv, wd1)
-    for rows, ((LI, LJ, lp, lwid, wv, wd1, _, n, n_p), v, g, _h) in parts:
+    for rows, ((LI, LJ, lp, lwid, wv, wd1, _, n, n_p), v, g, _h, _t) in parts:
         if rows is not None:
             value[rows] = v
             if grad is not None:

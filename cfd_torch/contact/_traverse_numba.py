@@ -204,19 +204,24 @@ def _far_expand(hess, p, Z, M, dR, d2R, ba, bb, lo, hi):
 
 
 @numba.njit(nogil=True, **_JIT)
+def _add_entry_terms(hess, p, wd1, wd2, e, total, grads, lo, hi):
+    """hess[p] += total d2w_e + dw_e grads^T + grads dw_e^T over the upper triangle of the coordinates lo..hi-1:
+    the weight derivatives' part of the Hessian of the terms w_e f_k below weight table entry e, from their sums
+    ``total`` (of f_k) and ``grads`` (12,) (of their gradients)."""
+    for a in range(lo, hi):
+        wa = wd1[e, a]
+        ga = grads[a]
+        for c in range(a, hi):
+            hess[p, a, c] += total * wd2[e, a, c] + wa * grads[c] + ga * wd1[e, c]
+
+
+@numba.njit(nogil=True, **_JIT)
 def _expand_inherited(hess, p, wd1, wd2, ws, wds, first, last, lo, hi):
-    """Add to the upper triangle of hess[p] (coordinates lo..hi-1) the weight derivatives' part of the far terms
-    below each weight table entry e in first..last-1: their Hessian's sum over those terms w_e f_k(r_k) is
-    (sum f_k) d2w_e + dw_e (sum f_k' dr_k)^T + (sum f_k' dr_k) dw_e^T, from the sums ws[e] and wds[e]."""
+    """Add to hess[p] the weight derivatives' part of the far terms below each weight table entry e in
+    first..last-1 (:func:`_add_entry_terms`), from their sums ws[e] (values) and wds[e] (f_k' dr_k)."""
     for e in range(first, last):
-        if ws[e] == 0.0:  # no far term below this entry
-            continue
-        se = ws[e]
-        for a in range(lo, hi):
-            wa = wd1[e, a]
-            sa = wds[e, a]
-            for c in range(a, hi):
-                hess[p, a, c] += se * wd2[e, a, c] + wa * wds[e, c] + sa * wd1[e, c]
+        if ws[e] != 0.0:  # (0: no far term below this entry)
+            _add_entry_terms(hess, p, wd1, wd2, e, ws[e], wds[e], lo, hi)
 
 
 # the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
@@ -755,15 +760,9 @@ def accumulate_leaves_lowrank(lp, lwid, wv, wd1, wd2, pv, gx, WT, S, Pl, Xa, Xb,
         touched[p] = True
     for k in range(T):  # P d2w + dw gq^T + gq dw^T, summed over each entry's leaves (upper triangles)
         p = entry_pair[k]
-        if p < 0:
-            continue
-        lo, hi = hessian_span(hside[p])
-        sp = Ps[k]
-        for a in range(lo, hi):
-            wa = wd1[k, a]
-            ga = gqs[k, a]
-            for c in range(a, hi):
-                hess[p, a, c] += sp * wd2[k, a, c] + wa * gqs[k, c] + ga * wd1[k, c]
+        if p >= 0:
+            lo, hi = hessian_span(hside[p])
+            _add_entry_terms(hess, p, wd1, wd2, k, Ps[k], gqs[k], lo, hi)
     if order >= 2:  # the rotation terms; the leaf terms were added to the upper triangles: mirror them
         for p in range(hess.shape[0]):
             if touched[p]:
