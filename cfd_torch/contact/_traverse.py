@@ -328,12 +328,15 @@ def _traverse_cpu(
         out = traverse_nodes(
             forest.centre.numpy(), forest.radius.numpy(), forest.child.numpy(), pb.numpy(),
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
-            int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, TABLE_CAP, LEAF_CAP,
+            int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, table_cap, LEAF_CAP,
         )  # fmt: skip
         table = leaf_stage.run(out, pb, rows, hs, v, g, h, serial=k > 1) if leaf_stage is not None else None
         return out, v, g, h, table
 
     k = _node_threads(P, hint)
+    # the weight tables' first capacity: about a part's leaf pairs in the step's earlier evaluations (a rack of balls
+    # on a table: 8,192 entries a thread, which doubling from TABLE_CAP wrote and copied several times over)
+    table_cap = TABLE_CAP if not hint else max(TABLE_CAP, 1 << max(0, (hint // k).bit_length()))
     if k == 1:
         parts = [(None, run(None))]
     else:

@@ -226,7 +226,7 @@ def _expand_inherited(hess, p, wd1, wd2, ws, wds, first, last, lo, hi):
 
 # the buffers' first capacities (the kernels grow them as needed; passed by the callers: numba dispatches a call
 # that leaves out arguments with defaults through its slow path, about half a millisecond per call)
-STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 8192, 256
+STACK_CAP, TABLE_CAP, LEAF_CAP = 1024, 256, 256
 # the kernels' status codes
 _DONE, _FULL_STACK, _FULL_LEAVES, _FULL_WEIGHTS, _HIT, _FULL_FAR = 0, 1, 2, 3, 4, 5
 
