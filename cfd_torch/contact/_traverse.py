@@ -356,11 +356,7 @@ def _traverse_cpu(
     cols: list[list[torch.Tensor]] = [[] for _ in range(6)]  # LI, LJ, lp, lwid, wv, wd1
     n_pairs = 0
     offset = 0  # each part's first entry in the concatenated weight table (wv, wd1)
-    for rows, ((LI, LJ, lp, lwid, wv, wd1, _, n, n_p), v, g, _h, _t) in parts:
-        if rows is not None:
-            value[rows] = v
-            if grad is not None:
-                grad[rows] = g
+    for rows, ((LI, LJ, lp, lwid, wv, wd1, _, n, n_p), *_) in parts:  # (leaves only: the sums are not read)
         lp_t = torch.from_numpy(lp[:n])
         for c, x in zip(
             cols,
