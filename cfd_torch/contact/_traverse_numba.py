@@ -18,11 +18,14 @@ from .._geometry import segment_hits_triangle_nb, tri_tri_closest_nb
 from .._rotation_numba import add_rotation_terms
 
 _JIT = {"cache": True, "error_model": "numpy"}
+# Counters handed to other kernels start as np.int64(...), not as bare literals: type inference would first compile
+# the callee for the literal (Literal[int](1)) and then again for int64, seconds of compile each on a cold cache.
 
 
 @numba.njit(**_JIT)
-def _grow(a, n):
-    b = np.empty((max(2 * a.shape[0], n),) + a.shape[1:], dtype=a.dtype)
+def _grow(a):
+    """a in a buffer twice its size."""
+    b = np.empty((2 * a.shape[0],) + a.shape[1:], dtype=a.dtype)
     b[: a.shape[0]] = a
     return b
 
@@ -440,13 +443,13 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     wv[0] = 1.0
     wd1[0] = 0.0
     wd2[0] = 0.0
-    nw = 1
+    nw = np.int64(1)
     LI = np.empty(leaf_cap, np.int64)
     LJ = np.empty(leaf_cap, np.int64)
     lp = np.empty(leaf_cap, np.int64)
     lwid = np.empty(leaf_cap, np.int64)
-    n_leaf = 0
-    n_pairs = 0
+    n_leaf = np.int64(0)
+    n_pairs = np.int64(0)
     dd = np.zeros((3, 12))
     dr = np.zeros(12)
     d2r = np.zeros((12, 12))
@@ -461,15 +464,15 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
         lo, hi = hessian_span(hside[p])
-        nz = 0
+        nz = np.int64(0)
         for a in range(9):
             if (3 <= a < 6 and lo != 0) or (a >= 6 and hi != 12):
                 continue
             zact[nz] = a
             nz += 1
         sI[0], sJ[0], sK[0] = pair_root[p, 0], pair_root[p, 1], 0
-        top = 1
-        nf = 0
+        top = np.int64(1)
+        nf = np.int64(0)
         first = nw  # the weight table entries of this body pair: first..nw-1
         while True:
             status, top, n_leaf, nw, n_pairs, nf = _pair_nodes(
@@ -484,17 +487,17 @@ def traverse_nodes(centre, radius, child, pair_body, pair_root, R, dR, d2R, t, m
                 G[:, :nf] = F[:, :nf]
                 F = G
             elif status == _FULL_STACK:
-                sI, sJ, sK = _grow(sI, 0), _grow(sJ, 0), _grow(sK, 0)
+                sI, sJ, sK = _grow(sI), _grow(sJ), _grow(sK)
             elif status == _FULL_LEAVES:
-                LI, LJ, lp, lwid = _grow(LI, 0), _grow(LJ, 0), _grow(lp, 0), _grow(lwid, 0)
+                LI, LJ, lp, lwid = _grow(LI), _grow(LJ), _grow(lp), _grow(lwid)
             else:
-                wv = _grow(wv, 0)
+                wv = _grow(wv)
                 if order >= 1:
-                    wd1 = _grow(wd1, 0)
+                    wd1 = _grow(wd1)
                 if order >= 2:
-                    wd2 = _grow(wd2, 0)
-                    ws = _grow(ws, 0)
-                    wds = _grow(wds, 0)
+                    wd2 = _grow(wd2)
+                    ws = _grow(ws)
+                    wds = _grow(wds)
         if order >= 2 and nw > first:
             _expand_inherited(hess, p, wd1, wd2, ws, wds, first, nw, lo, hi)
         if nf:
@@ -636,13 +639,13 @@ def penetrating_pairs(centre, radius, child, tri, tris, pair_body, pair_root, R,
     for p in range(P):
         ba, bb = pair_body[p, 0], pair_body[p, 1]
         sI[0], sJ[0] = pair_root[p, 0], pair_root[p, 1]
-        top = 1
+        top = np.int64(1)
         while True:
             status, top = _pair_hits(ba, bb, scale[ba], scale[bb], centre, radius, child, tri, tris, R, t, margin,
                                      eps[p], min_width, split_both, sI, sJ, top, A, B, q)  # fmt: skip
             if status != _FULL_STACK:
                 break
-            sI, sJ = _grow(sI, 0), _grow(sJ, 0)
+            sI, sJ = _grow(sI), _grow(sJ)
         out[p] = 1 if status == _HIT else 0
 
 
