@@ -121,7 +121,22 @@ actions[:10] = -cue / cue.norm(dim=-1, keepdim=True)  # the cue ball driven at t
 actions.requires_grad_(True)
 out = rollout(core, state, actions)
 out.rewards.sum().backward()
-np.savez(sys.argv[1], q=out.q.detach().numpy(), grad=actions.grad.numpy())
+# the plane solve's and the traversal's own kernels compiled in this process (none where loaded from the cache) and
+# those with a literal-typed argument (add_rotation_terms, a few lines imported from elsewhere, takes its literal
+# block offsets 3 and 9)
+from numba.core import types
+from numba.core.dispatcher import Dispatcher
+from cfd_torch.contact import _pair_numba, _traverse_numba
+kernels = [
+    f for m in (_pair_numba, _traverse_numba) for f in vars(m).values()
+    if isinstance(f, Dispatcher) and f.py_func.__module__ == m.__name__
+]
+compiled = sorted(f.py_func.__name__ for f in kernels if f.signatures)
+literal = sorted(
+    f"{f.py_func.__name__}{sig}" for f in kernels for sig in f.signatures
+    if any(isinstance(t, types.Literal) for t in sig)
+)
+np.savez(sys.argv[1], q=out.q.detach().numpy(), grad=actions.grad.numpy(), compiled=compiled, literal=literal)
 """
 
 
@@ -129,7 +144,8 @@ np.savez(sys.argv[1], q=out.q.detach().numpy(), grad=actions.grad.numpy())
 def test_a_first_run_compiling_the_kernels_equals_later_runs_loading_them(tmp_path):
     """A fresh clone's first run compiles numba's kernels in the process; later runs load them from its cache. With
     fastmath (FMA contraction, reciprocal multiplication) in the pair kernel the two rounded differently (a 4-scene
-    break shot's positions 5e-16 m apart at step 30, its gradient 9e-22): the first run was not reproduced."""
+    break shot's positions 5e-16 m apart at step 30, its gradient 9e-22): the first run was not reproduced. The
+    first run compiles no contact kernel twice (for a literal argument and for int64)."""
     script = tmp_path / "break.py"
     script.write_text(_CACHE_SCRIPT)
     env = {
@@ -150,3 +166,8 @@ def test_a_first_run_compiling_the_kernels_equals_later_runs_loading_them(tmp_pa
         np.abs(cold["grad"]).max() > 0 and np.abs(cold["q"][-1] - cold["q"][0]).max() > 0.1
     )  # the balls broke
     assert np.array_equal(cold["q"], warm["q"]) and np.array_equal(cold["grad"], warm["grad"])
+    # numba compiles a kernel called from another with a constant argument (``f(0, ...)``, a counter ``top = 1``
+    # before its loop) once for the literal's type and again for int64: the serial plane solve's
+    # ``_solve_range(0, ...)`` cost a second 40 s compile of the whole solve, the traversal's counters seconds more
+    assert {"_solve_range", "solve_pairs_serial", "_pair_nodes", "_far_moments"} <= set(cold["compiled"])
+    assert cold["literal"].size == 0, cold["literal"]
