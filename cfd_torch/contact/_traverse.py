@@ -200,20 +200,16 @@ class _LeafStage:
     each part in the thread that traversed it (``serial``: a pool thread, whose plane solves run on it alone).
     What the parts share, read only."""
 
-    def __init__(self, forest, R, t, dR, d2R, mu, margin, tol, max_iter, order, warm):
-        z = torch.zeros(0, dtype=R.dtype)
+    def __init__(self, forest, mu, margin, tol, max_iter, order, warm):
         self.forest, self.mu, self.margin, self.tol, self.max_iter, self.order = (
             forest, mu, margin, tol, max_iter, order
         )  # fmt: skip
-        self.Rn, self.tn = R.contiguous().numpy(), t.contiguous().numpy()
-        self.dRn = dR.contiguous().numpy() if dR is not None else z.reshape(0, 3, 3, 3).numpy()
-        self.d2Rn = d2R.contiguous().numpy() if d2R is not None else z.reshape(0, 3, 3, 3, 3).numpy()
         self.warm = warm
 
-    def run(self, out, pb, rows, hs, v, g, h, serial: bool):
+    def run(self, out, pb, rows, hs, v, g, h, poses, serial: bool):
         """Solve and add the leaf pairs of one part (``out``: its ``traverse_nodes`` result; its body pairs ``pb``,
-        rows ``rows`` of the whole (None: all), Hessian spans ``hs``, sums v, g, h); returns its warm-start table
-        (keys, planes) with warm starts, else None."""
+        rows ``rows`` of the whole (None: all), Hessian spans ``hs``, sums v, g, h; ``poses``: the traversal's
+        arrays R, dR, d2R, t); returns its warm-start table (keys, planes) with warm starts, else None."""
         from ._traverse_numba import accumulate_leaves_lowrank, leaf_inputs, warm_table
         from .pair import _solve
 
@@ -229,8 +225,9 @@ class _LeafStage:
             ids = (warm[0] if rows is None else warm[0][rows]).contiguous().numpy()
             wkeys, wplanes = warm[1].contiguous().numpy(), warm[2].contiguous().numpy()
         pbn = pb.numpy()
+        Rn, dRn, d2Rn, tn = poses
         Xa, Xb, X, keys, P0, has0 = leaf_inputs(
-            self.forest.tris.numpy(), self.forest.tri.numpy(), LI, LJ, lp, pbn, self.Rn, self.tn, ids, wkeys,
+            self.forest.tris.numpy(), self.forest.tri.numpy(), LI, LJ, lp, pbn, Rn, tn, ids, wkeys,
             wplanes, self.forest.centre.shape[0],
         )  # fmt: skip
         order = self.order
@@ -247,9 +244,7 @@ class _LeafStage:
         gx = sol.grad if sol.grad is not None else z.reshape(0, 18)
         accumulate_leaves_lowrank(
             lp, lwid, wv, wd1, wd2, pv, gx.numpy(), WT.numpy(), gaps.numpy(), Pl, Xa, Xb, pbn[lp, 0], pbn[lp, 1],
-            self.dRn, self.d2Rn, float(self.mu), int(order), v.numpy(),
-            g.numpy() if g is not None else z.reshape(0, 12).numpy(),
-            h.numpy() if h is not None else z.reshape(0, 12, 12).numpy(), hs.contiguous().numpy(),
+            dRn, d2Rn, float(self.mu), int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(),
         )  # fmt: skip
         return table
 
@@ -330,7 +325,9 @@ def _traverse_cpu(
             pr.contiguous().numpy(), *common, ep.contiguous().numpy(), float(min_width), split == "both",
             int(order), v.numpy(), g.numpy(), h.numpy(), hs.contiguous().numpy(), STACK_CAP, table_cap, LEAF_CAP,
         )  # fmt: skip
-        table = leaf_stage.run(out, pb, rows, hs, v, g, h, serial=k > 1) if leaf_stage is not None else None
+        table = (
+            leaf_stage.run(out, pb, rows, hs, v, g, h, common[:4], k > 1) if leaf_stage is not None else None
+        )
         return out, v, g, h, table
 
     k = _node_threads(P, hint)
@@ -457,7 +454,7 @@ def traverse(
     if dev.type == "cpu" and backend != "torch":
         known = warm[1].numel() if warm is not None and warm[1].numel() else None  # the step's leaf pairs
         if not leaves_only:  # the leaf pairs solved and summed in the traversal's threads
-            stage = _LeafStage(forest, R, t, dR, d2R, mu, margin, tol, max_iter, order, warm)
+            stage = _LeafStage(forest, mu, margin, tol, max_iter, order, warm)
             n_leaf, n_pairs, warm_out = _traverse_cpu(
                 forest, pair_body, pair_root, R, dR, d2R, t, mu, eps, min_width, split, order, value, grad, hess,
                 hside, hint=known, leaf_stage=stage,
