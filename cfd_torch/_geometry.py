@@ -201,9 +201,12 @@ def triangle_closest_points(tri_a: Tensor, tri_b: Tensor) -> TriangleClosestPoin
     Raises:
         ValueError: on a shape other than (K, 3, 3), a non-float dtype, or mismatched dtype, device or K.
     """
+    from ._validate import check_dense  # (_validate imports this module's kernels)
+
     for name, tri in (("tri_a", tri_a), ("tri_b", tri_b)):
         if not isinstance(tri, Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(tri).__name__}")
+        check_dense(tri, name)
         if tri.dim() != 3 or tri.shape[1:] != (3, 3):
             raise ValueError(f"{name} must have shape (K, 3, 3), got {tuple(tri.shape)}")
         if not tri.is_floating_point():
@@ -295,9 +298,12 @@ def segment_hits_triangle(p: Tensor, q: Tensor, tri: Tensor) -> Tensor:
         ValueError: a shape other than (..., 3) / (..., 3, 3), a non-float dtype, mismatched dtypes or devices, or
             leading dims that do not broadcast.
     """
+    from ._validate import check_dense  # (_validate imports this module's kernels)
+
     for name, x, tail in (("p", p, (3,)), ("q", q, (3,)), ("tri", tri, (3, 3))):
         if not isinstance(x, Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        check_dense(x, name)
         if x.dim() < len(tail) or tuple(x.shape[-len(tail) :]) != tail:
             want = "(..., 3)" if len(tail) == 1 else "(..., 3, 3)"
             raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")

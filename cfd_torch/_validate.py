@@ -131,10 +131,18 @@ def _index_str(mask: torch.Tensor) -> str:
     return "(" + ", ".join(str(int(i)) for i in idx) + ")"
 
 
+def check_dense(x: torch.Tensor, name: str) -> None:
+    """A TypeError naming ``name`` unless ``x`` is a dense (strided) tensor: sparse and other layouts failed deep
+    inside torch, with messages that named none of the caller's arguments."""
+    if x.layout != torch.strided:
+        raise TypeError(f"{name} must be a dense (strided) tensor, got layout {x.layout}")
+
+
 def check_finite_tensor(x: object, name: str, *, allow_inf: bool = False) -> None:
     """Require a floating-point tensor without NaN (and without inf unless ``allow_inf``)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    check_dense(x, name)
     if x.dtype not in FLOATS:
         raise ValueError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
     with outside_transforms():
@@ -177,6 +185,7 @@ def check_triangles(tri: object, name: str) -> None:
     """
     if not isinstance(tri, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(tri).__name__}")
+    check_dense(tri, name)
     check_not_meta(tri, name)
     if tri.dim() < 2 or tri.shape[-2:] != (3, 3):
         raise ValueError(f"{name} must have shape (..., 3, 3) (three vertices, xyz), got {tuple(tri.shape)}")

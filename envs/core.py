@@ -28,7 +28,7 @@ import torch.utils._pytree as pytree
 import trimesh
 
 from cfd_torch import Action, Params, Scene, State, step
-from cfd_torch._validate import FLOATS, check_positive, is_real, usable_device
+from cfd_torch._validate import FLOATS, check_positive, is_real, max_coord, usable_device
 from cfd_torch._validate import is_int as _is_int
 from cfd_torch.sim.bodies import RigidBody
 from cfd_torch.sim.types import allow_in_torch_load
@@ -451,7 +451,8 @@ class TaskCore(abc.ABC):
         """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
         and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6), ``t`` (B,)
         int64 and >= 0, and the task variables a start of this task has (the same keys, shapes after the batch, float or
-        int64), the float ones finite and each within its range (:meth:`check_task`)."""
+        int64), the float ones (positions) finite and within the contact functions' coordinate limit (1e30 m in
+        float64, 1e12 m in float32), and each within its range (:meth:`check_task`)."""
         if not isinstance(state, EnvState):
             raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
         fields = {"state.q": state.q, "state.q_prev": state.q_prev, "state.t": state.t}
@@ -507,6 +508,12 @@ class TaskCore(abc.ABC):
                 )
             if is_float and not bool(torch.isfinite(v).all()):
                 raise ValueError(f"state.task[{k!r}] contains NaN or inf")
+            if is_float and bool((v.abs() > max_coord(self.dtype)).any()):
+                i = int(torch.nonzero(v.flatten(1).abs().amax(1) > max_coord(self.dtype))[0, 0])
+                raise ValueError(
+                    f"state.task[{k!r}] holds a coordinate beyond {max_coord(self.dtype):g} m (environment {i}): the "
+                    f"limit on positions in {self.dtype} (the rewards' squared distances would overflow)"
+                )
         self.check_task(state.task)
 
     @functools.cached_property

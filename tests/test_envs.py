@@ -563,6 +563,12 @@ def test_task_arguments_actions_and_states_are_checked():
             r"state.t must be an int64 tensor of shape \(2,\)",
         ),
         ({"task": {"target": s32.task["target"] * float("nan")}}, ValueError, r"\['target'\] contains NaN"),
+        # a goal beyond the coordinate limit made the reward -inf (its squared distance overflowed)
+        (
+            {"task": {"target": s32.task["target"] * torch.tensor([[1.0], [1e13]])}},
+            ValueError,
+            r"state.task\['target'\] holds a coordinate beyond 1e\+12 m \(environment 1\)",
+        ),
         # an integer pose failed inside the pusher's action code (torch's "expected m1 and m2 to have the same
         # dtype"); a negative step count passed
         ({"q": s32.q.long()}, TypeError, "state.q is torch.int64 on cpu but this core is torch.float32"),
@@ -585,6 +591,12 @@ def test_task_arguments_actions_and_states_are_checked():
     ):
         with pytest.raises(err, match=match):
             core32.step(dataclasses.replace(s32, **change), torch.zeros(2, 2))
+    with pytest.raises(
+        ValueError, match=r"state.task\['target'\] holds a coordinate beyond 1e\+30 m \(environment 0"
+    ):
+        core.step(
+            dataclasses.replace(s0, task={"target": s0.task["target"] + 1e160}), torch.zeros(2, 2, dtype=F64)
+        )
     with pytest.raises(ValueError, match=r"overflows torch.float32 \(largest \|a_i\| 1e\+39\)"):
         core32.step(s32, np.full((2, 2), 1e39))  # (a non-tensor was cast first, and called NaN or inf)
     with warnings.catch_warnings():  # an action that requires grad is checked quietly (torch warned)

@@ -17,7 +17,7 @@ import pytest
 import torch
 import trimesh
 
-from cfd_torch import BSH, Action, Scene, State, rigid_body, rollout, step
+from cfd_torch import BSH, Action, Scene, State, StepError, pair_forces, rigid_body, rollout, step
 from cfd_torch._validate import self_intersection
 
 F64, F32 = torch.float64, torch.float32
@@ -628,6 +628,48 @@ def test_a_non_finite_target_names_the_kinematic_body(scene, state):
         step(scene, batch, Action(target=torch.stack([state.q[2:3], target])))
 
 
+def test_targets_and_poses_out_of_range_are_refused_by_name(scene, state):
+    """A kinematic target's rotation vector beyond 1e6 rad (it was stepped as some arbitrary rotation) and
+    translations beyond 1e30 m in the state, a target or pair_forces' poses (pair_forces returned zero forces at
+    1e160 m) get the contact functions' errors, naming the argument and the body."""
+    turned = state.q[2:3].clone()
+    turned[0, 5] = 2e6
+    with _says("action.target has a rotation vector longer than 1e+06 rad (first at body 2)"):
+        step(scene, state, Action(target=turned))
+    far = state.q[2:3].clone()
+    far[0, 0] = 1e31
+    batch = State(state.q.expand(2, -1, -1), state.q_prev.expand(2, -1, -1))
+    with _says("action.target has a translation beyond 1e+30 m (first at scene 1, body 2)"):
+        step(scene, batch, Action(target=torch.stack([state.q[2:3], far])))
+    q = state.q.clone()
+    q[0, 1] = -1e160
+    with _says("state.q has a translation beyond 1e+30 m (first at body 0)"):
+        step(scene, State(q, state.q_prev))
+    with _says("q has a translation beyond 1e+30 m (first at body 0)"):
+        pair_forces(scene, q)
+    with _says("poses has a translation beyond 1e+30 m (first at body 0)"):
+        scene.initial_state(q)
+
+
+@pytest.mark.parametrize("far", [1e5, 1e17, 1e25])
+def test_a_move_too_long_for_the_path_check_is_a_step_error_before_any_sampling(scene, state, far):
+    """A target 1e5 m away took 1.3 GB and 21 s of path samples; at 1e17 m their count wrapped around int64 and the
+    paddle passed through the box unchecked. Now a path of more than MAX_PATH_SAMPLES pieces is refused at once;
+    a target 10 m away carries the box along."""
+    from cfd_torch.sim.feasibility import MAX_PATH_SAMPLES
+
+    target = state.q[2:3].clone()
+    target[0, 0] = far
+    with _says(f"a body would move {far - 0.3:.3g} m in one step", StepError):
+        step(scene, state, Action(target=target))
+    assert far / scene.path_spacing > MAX_PATH_SAMPLES
+    target[0, 0] = 10.0
+    assert float(step(scene, state, Action(target=target)).q[0, 0]) > 9.5
+    fast = scene.initial_state(state.q, torch.tensor([[0.0, 0.0, 1e8, 0, 0, 0]] + [[0.0] * 6] * 2, dtype=F64))
+    with _says("a body would move 1e+06 m in one step", StepError):
+        step(scene, fast)
+
+
 def test_action_must_be_an_action(scene, state):
     with _raises("action must be a cfd_torch.Action", err=TypeError):
         step(scene, state, {"force": torch.zeros(3, 3, dtype=F64)})
@@ -958,7 +1000,6 @@ def test_float32_gradients_that_overflow_are_refused():
     assert bool(torch.isfinite(g).all()) and float(g.abs().max()) > 1e33
     with _says("pair_potential's gradient overflows torch.float32"):
         torch.autograd.grad(g.sum(), a)
-    from cfd_torch import pair_forces
 
     ground = trimesh.creation.box((1.0, 1.0, 0.05))
     ground.apply_translation([0.0, 0.0, -0.025])
@@ -998,7 +1039,7 @@ def test_a_stiffness_that_could_overflow_float64_is_refused_by_name():
 def test_bsh_vertices_and_small_arguments_are_checked_by_name():
     """Complex, boolean, ragged or meta vertices; a non-tensor pose array, an exclude generator, a scene that is
     not one, a density of a static body, a non-bool hessian flag and a zero dt are named, not silently used."""
-    from cfd_torch import contact_potential, pair_forces, pair_potential_derivatives
+    from cfd_torch import contact_potential, pair_potential_derivatives
 
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     V, F = np.asarray(box.vertices), np.asarray(box.faces)
@@ -1034,8 +1075,46 @@ def test_bsh_vertices_and_small_arguments_are_checked_by_name():
         Scene(ground)
     with _says("hessian must be a bool, got 'no'", TypeError):
         pair_potential_derivatives(torch.eye(3, dtype=F64), torch.eye(3, dtype=F64) + 2, hessian="no")
+    # the other functions' flags ("no" read as True; a tensor failed inside torch as ambiguous)
+    from cfd_torch import mesh_potential_derivatives
+
+    with _says("hessian must be a bool, got 'no'", TypeError):
+        mesh_potential_derivatives(bsh, poses[0], bsh, poses[1], hessian="no")
+    with _says("hessian must be a bool, got 'False'", TypeError):
+        contact_potential([bsh, bsh], poses, hessian="False")
+    with _says("grad must be a bool or None, got tensor([False,  True])", TypeError):
+        contact_potential([bsh, bsh], poses, grad=torch.tensor([False, True]))
     with _says("dt must be a finite positive number"):
         State(poses, poses.clone()).velocity(0.0)
+
+
+def test_sparse_tensors_are_refused_by_name():
+    """Sparse tensors failed inside torch ("Could not run 'aten::ne.Scalar' with arguments from the 'SparseCPU'
+    backend", "reshape is not implemented for sparse tensors"), naming none of the caller's arguments."""
+    from cfd_torch import contact_potential, mesh_potential, pair_potential
+
+    box = trimesh.creation.box((0.2, 0.2, 0.2))
+    body = rigid_body(box)
+    scene = Scene([body, body], dt=0.01, gravity=(0, 0, 0))
+    q = torch.tensor([[0.0] * 6, [1.0, 0, 0, 0, 0, 0]], dtype=F64)
+    tri = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=F64)
+    p = scene.params()
+    for call, name in (
+        (lambda: pair_potential(tri, (tri + 1).to_sparse()), "tri_b"),
+        (lambda: mesh_potential(body.bsh, q[0].to_sparse(), body.bsh, q[1]), "pose_a"),
+        (lambda: contact_potential([body.bsh, body.bsh], q.to_sparse()), "poses"),
+        (lambda: scene.initial_state(q.to_sparse()), "poses"),
+        (lambda: step(scene, State(q, q.to_sparse())), "state.q_prev"),
+        (
+            lambda: step(scene, State(q, q), Action(torque=torch.zeros(2, 3, dtype=F64).to_sparse())),
+            "action.torque",
+        ),
+        (lambda: step(scene, State(q, q), params=p._replace(mass=p.mass.to_sparse())), "params.mass"),
+        (lambda: pair_forces(scene, q.to_sparse()), "q"),
+        (lambda: BSH.build(torch.tensor(box.vertices).to_sparse(), box.faces), "vertices"),
+    ):
+        with _says(f"{name} must be a dense (strided) tensor, got layout torch.sparse_coo", TypeError):
+            call()
 
 
 def test_rotation_vectors_beyond_a_million_radians_are_refused():
@@ -1055,7 +1134,7 @@ def test_rotation_vectors_beyond_a_million_radians_are_refused():
 def test_every_entry_taking_poses_refuses_rotation_vectors_beyond_a_million_radians():
     """As the step does (the contact functions took |omega| = 1e15 rad silently, where float64 cannot say which
     rotation it is); 1e4 rad is a rotation like any other."""
-    from cfd_torch import contact_potential, mesh_potential, mesh_potential_derivatives, pair_forces
+    from cfd_torch import contact_potential, mesh_potential, mesh_potential_derivatives
 
     ball = rigid_body(trimesh.creation.icosphere(subdivisions=1, radius=0.1), density=500.0)
     scene = Scene([ball, ball], dt=0.01, gravity=(0, 0, 0))

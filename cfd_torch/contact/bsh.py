@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._validate import check_mesh, check_not_meta, is_real
+from .._validate import check_dense, check_mesh, check_not_meta, is_real
 
 __all__ = ["BSH"]
 
@@ -102,6 +102,7 @@ class BSH:
         for x, name in ((vertices, "vertices"), (faces, "faces")):
             if isinstance(x, torch.Tensor):
                 check_not_meta(x, name)
+                check_dense(x, name)
         # copies: the hierarchy must not change when the caller later writes into its arrays
         try:
             V = np.array(_numpy(vertices))

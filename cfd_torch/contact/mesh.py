@@ -34,6 +34,7 @@ from .._validate import (
     FLOATS,
     check_alike,
     check_count,
+    check_dense,
     check_not_meta,
     check_positive,
     check_rotation_length,
@@ -73,6 +74,7 @@ def _check_pose_kind(pose: object, name: str) -> None:
     """A pose must be a (..., 6) float32 or float64 tensor."""
     if not isinstance(pose, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
+    check_dense(pose, name)
     if pose.dim() < 1 or pose.shape[-1] != 6:
         raise ValueError(
             f"{name} must have shape (..., 6) (translation, rotation vector), got {tuple(pose.shape)}"
@@ -186,6 +188,8 @@ def mesh_potential_derivatives(
         NotImplementedError: under ``vmap`` or forward-mode AD.
     """
     refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
+    if not isinstance(hessian, bool):
+        raise TypeError(f"hessian must be a bool, got {hessian!r}")
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
     _check_params(mu, margin, eps, split, tol, max_iter)
     dt = pose_a.dtype

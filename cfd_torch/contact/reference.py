@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from .._validate import check_positive, check_stiffness
+from .._validate import check_dense, check_positive, check_stiffness
 from ..config import DEFAULT_CONTACT
 from ..rotation import rotation_matrix
 from .bsh import BSH
@@ -44,6 +44,7 @@ def _check_args(bsh_a, pose_a, bsh_b, pose_b, mu, margin, eps, split) -> None:
     for name, pose in (("pose_a", pose_a), ("pose_b", pose_b)):
         if not isinstance(pose, torch.Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(pose).__name__}")
+        check_dense(pose, name)
         if pose.shape != (6,):
             raise ValueError(
                 f"{name} must have shape (6,) (translation, rotation vector), got {tuple(pose.shape)}"

@@ -28,6 +28,7 @@ from .._autograd import (
 from .._validate import (
     FAR,
     FLOATS,
+    check_dense,
     check_not_meta,
     check_rotation_length,
     is_int,
@@ -171,10 +172,15 @@ def contact_potential(
     """
     if not isinstance(poses, torch.Tensor):
         raise TypeError(f"poses must be a (N, 6) torch.Tensor, got {type(poses).__name__}")
+    check_dense(poses, "poses")
     if poses.dim() != 2 or poses.shape[1] != 6:
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
     refuse_vmap("contact_potential", poses)
     check_not_meta(poses, "poses")
+    if not isinstance(hessian, bool):
+        raise TypeError(f"hessian must be a bool, got {hessian!r}")
+    if grad is not None and not isinstance(grad, bool):
+        raise TypeError(f"grad must be a bool or None, got {grad!r}")
     N = poses.shape[0]
     if N == 0:
         raise ValueError("poses must hold at least one body, got a (0, 6) tensor")

@@ -9,14 +9,14 @@ from __future__ import annotations
 import torch
 
 from .._autograd import outside_transforms, plain
-from .._validate import FLOATS, check_rotation_length
+from .._validate import FAR, FLOATS, check_dense, check_rotation_length, max_coord
 from .feasibility import contained, infeasible_reason
 from .types import Params
 
 __all__ = [
     "check_ctrl",
     "check_params",
-    "check_rotations",
+    "check_pose_range",
     "check_state_tensor",
     "check_targets_clear",
     "first_row",
@@ -40,6 +40,7 @@ def check_state_tensor(
     ``bodies``: the scene's body of each of the n rows (default: row k is body k), for the messages."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    check_dense(x, name)
     ok = (
         x.shape[-2:] == (n, cols)
         and x.dim() in (2, 3)
@@ -66,10 +67,19 @@ def check_state_tensor(
             raise ValueError(f"{name} contains NaN or inf (first at {first_row(bad, bodies)})")
 
 
-def check_rotations(x: torch.Tensor, name: str) -> None:
-    """Poses ``x`` ([B,] n, 6) must have rotation vectors no longer than ``MAX_ROTATION`` (a clear ValueError naming
-    ``name`` and the first row)."""
-    check_rotation_length(x, name, first_row)
+def check_pose_range(x: torch.Tensor, name: str, bodies: list[int] | None = None) -> None:
+    """Poses ``x`` ([B,] n, 6) must have translations within the contact functions' float64 limit (1e30 m) and
+    rotation vectors no longer than ``MAX_ROTATION`` (a clear ValueError naming ``name`` and the first row;
+    ``bodies``: the scene's body of each row, as in :func:`first_row`). The step computes in float64 whatever
+    the dtype, so float32 poses get the float64 limit."""
+    limit = max_coord(torch.float64)
+    with outside_transforms():
+        far = plain(x).detach()[..., :3].abs().amax(-1) > limit
+    if bool(far.any()):
+        raise ValueError(
+            f"{name} has a translation beyond {limit:g} m (first at {first_row(far, bodies)}): {FAR}"
+        )
+    check_rotation_length(x, name, lambda m: first_row(m, bodies))
 
 
 def first_row(bad: torch.Tensor, bodies: list[int] | None = None, what: str = "body") -> str:
@@ -111,6 +121,7 @@ def check_params(
         x = getattr(params, name)
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"params.{name} must be a torch.Tensor, got {type(x).__name__}")
+        check_dense(x, f"params.{name}")
         if x.dtype not in FLOATS:
             raise ValueError(f"params.{name} must be float32 or float64, got {x.dtype}")
         if x.device != device:
@@ -230,6 +241,7 @@ def check_ctrl(ctrl, U: int, B: int | None, like: torch.Tensor, name: str = "act
     what = "the scene's actuators" if name == "action.ctrl" else "the kinematic robots' coordinates"
     if not isinstance(ctrl, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(ctrl).__name__}")
+    check_dense(ctrl, name)
     if not ctrl.is_floating_point():
         raise ValueError(f"{name} must be a float tensor, got {ctrl.dtype}")
     if ctrl.device != like.device or ctrl.dtype != like.dtype:

@@ -35,6 +35,7 @@ import torch
 from .._geometry import _AMBIGUOUS, ray_crossings_nb, segment_hits_triangle
 from ..rotation import quaternion, quaternion_multiply, rotation_matrix, rotation_vector
 from .energy import StepProblem
+from .types import StepError
 
 __all__ = [
     "infeasible_pairs",
@@ -163,10 +164,33 @@ def displacement(prob: StepProblem, q0: torch.Tensor, q1: torch.Tensor, scenes: 
     return (d[..., :3].norm(dim=-1) + d[..., 3:].norm(dim=-1) * r).amax(1)
 
 
+# the most pieces one path of a path check is cut into: a move of 100 m per step at the default 1 mm margin, a
+# few hundred MB of collision queries for a few bodies; a longer path is refused before its samples are made
+MAX_PATH_SAMPLES = 100_000
+
+
+def _pieces(dist: torch.Tensor, spacing: float) -> torch.Tensor:
+    """(A,) int64: the pieces at most ``spacing`` long that the straight paths of lengths ``dist`` (A,) are cut into
+    (at least 1); a StepError where a path needs more than MAX_PATH_SAMPLES (the count is checked as a float: past
+    2^63 an int64 would wrap, and a 1e17 m move was checked at one point)."""
+    n = torch.ceil(dist / spacing)
+    over = ~(n <= MAX_PATH_SAMPLES)  # (NaN too)
+    if bool(over.any()):
+        k = int(torch.nonzero(over)[0, 0])
+        raise StepError(
+            f"a body would move {float(dist[k]):.3g} m in one step (its largest vertex displacement): the "
+            f"no-tunnelling path check would take {float(n[k]):.3g} samples path_spacing = {spacing:.3g} m apart, "
+            f"more than {MAX_PATH_SAMPLES:,}; lower dt or the bodies' velocities (state.q - state.q_prev), move "
+            "kinematic targets (action.target) less per step, or raise ccd_spacing where it sets path_spacing "
+            "(Scene.path_spacing)"
+        )
+    return n.long().clamp_min(1)
+
+
 def _spaced(dist: torch.Tensor, spacing: float, x0: torch.Tensor, x1: torch.Tensor):
     """Points of the straight paths x0 -> x1 (A, ...) of lengths ``dist`` (A,) at most ``spacing`` apart, ends
     excluded: the points (S, ...) and the index of each one's path (S,)."""
-    n = torch.ceil(dist / spacing).long().clamp_min(1)
+    n = _pieces(dist, spacing)
     path = torch.repeat_interleave(torch.arange(len(n), device=x0.device), n - 1)
     first = torch.cumsum(n - 1, 0) - (n - 1)
     k = torch.arange(len(path), device=x0.device) - first[path] + 1
@@ -330,7 +354,7 @@ def reachable(
     if not bool(sel.any()):
         return ok, blocked
     scenes = torch.arange(B, device=q0.device)
-    n = torch.ceil(displacement(prob, q0, q1, scenes) / scene.path_spacing).long()
+    n = _pieces(displacement(prob, q0, q1, scenes), scene.path_spacing)
     shrink = scene.solver.reach_shrink
     kin = scene.kinematics
     dyn = kin.bodies.to(q0.device)

@@ -20,7 +20,7 @@ from ..contact.ipc import IpcContact
 from ..contact.model import ContactModel
 from ..contact.scene import body_pairs
 from ..contact.sdrs import SdrsContact
-from ._checks import check_rotations, check_state_tensor
+from ._checks import check_pose_range, check_state_tensor
 from .articulation import ArticulatedKinematics, Articulation
 from .bodies import RigidBody, inner_radius, refine_obstacles, thickness
 from .kinematics import FreeBodies
@@ -533,10 +533,11 @@ class Scene:
 
         Raises:
             TypeError: poses or velocities is not a tensor.
-            ValueError: poses or velocities of the wrong shape, dtype or device, with NaN/inf, a rotation vector
-                longer than 1e6 rad, or (a planar scene) velocities out of its plane."""
+            ValueError: poses or velocities of the wrong shape, dtype or device, with NaN/inf, a translation
+                beyond 1e30 m, a rotation vector longer than 1e6 rad, or (a planar scene) velocities out of its
+                plane."""
         check_state_tensor(poses, "poses", self.num_bodies)
-        check_rotations(poses, "poses")
+        check_pose_range(poses, "poses")
         if velocities is None:
             return State(poses, poses.clone())
         check_state_tensor(velocities, "velocities", self.num_bodies, like=poses, like_name="poses")

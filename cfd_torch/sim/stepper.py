@@ -25,7 +25,7 @@ from .._validate import FLOATS, is_int, narrowed
 from ._checks import (
     check_ctrl,
     check_params,
-    check_rotations,
+    check_pose_range,
     check_state_tensor,
     check_targets_clear,
 )
@@ -277,8 +277,8 @@ def _check_start(scene: Scene, state: State) -> None:
     B = state.q.shape[0] if state.q.dim() == 3 else 1
     if B == 0:
         raise ValueError("state.q: a batch of no scenes (shape (0, N, 6)); give at least one")
-    check_rotations(state.q, "state.q")
-    check_rotations(state.q_prev, "state.q_prev")
+    check_pose_range(state.q, "state.q")
+    check_pose_range(state.q_prev, "state.q_prev")
     if scene.planar:  # the planar map turns bodies about z: only from poses without roll and pitch
         dyn = scene.dynamic.to(state.q.device)
         for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
@@ -324,8 +324,9 @@ def step(
         scene: bodies and settings.
         state: State(q, q_prev), each ([B,] N, 6), float32 or float64 (solved in float64, returned in its dtype:
             a float32 state knows velocities only to its coordinates' spacing over dt, so slow motion is rounded
-            away); rotation vectors no longer than 1e6 rad.
-        action: an :class:`Action`: forces ([B,] N, 3), torques ([B,] N, 3), kinematic targets ([B,] K, 6), and for
+            away); translations within 1e30 m, rotation vectors no longer than 1e6 rad.
+        action: an :class:`Action`: forces ([B,] N, 3), torques ([B,] N, 3), kinematic targets ([B,] K, 6: poses in
+            the ranges of the state's), and for
             articulations actuator controls ``ctrl`` and kinematic joint targets ``joints`` (see :class:`Action`);
             unbatched fields are shared by a batch; None: nothing acts, kinematic bodies stay put.
         params: differentiable mass / second moment / friction coefficient / servo gains kp and kv, shared ((Nd,),
@@ -385,6 +386,8 @@ def step(
     check_state_tensor(
         target, "action.target", K, 6, B if batched else 0, like=state.q, bodies=scene.kinematic[:K].tolist()
     )
+    if action.target is not None:
+        check_pose_range(target, "action.target", scene.kinematic[:K].tolist())
     U = scene.num_actuators
     ctrl = action.ctrl if action.ctrl is not None else torch.zeros(U, dtype=dtype, device=dev)
     check_ctrl(ctrl, U, B if batched else None, state.q)
@@ -513,9 +516,9 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
 
     Raises:
         TypeError: scene is not a Scene, or q not a tensor.
-        ValueError: q of the wrong shape or dtype, with NaN/inf or a rotation vector longer than 1e6 rad; some pair
-            penetrates or is within the contact margin (its potential is +inf: no force); q is float32 and a force
-            overflows it (pass q as float64)."""
+        ValueError: q of the wrong shape or dtype, with NaN/inf, a translation beyond 1e30 m or a rotation vector
+            longer than 1e6 rad; some pair penetrates or is within the contact margin (its potential is +inf: no
+            force); q is float32 and a force overflows it (pass q as float64)."""
     refuse_transforms(
         "cfd_torch.pair_forces: torch.func transforms (grad, jacrev, vmap, jvp) and forward-mode AD do not pass "
         "through it (contact forces are not differentiated); call it on plain tensors (q.detach())",
@@ -524,7 +527,7 @@ def pair_forces(scene: Scene, q: torch.Tensor) -> torch.Tensor:
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a cfd_torch.Scene, got {type(scene).__name__}")
     check_state_tensor(q, "q", scene.num_bodies)
-    check_rotations(q, "q")
+    check_pose_range(q, "q")
     poses = (q if q.dim() == 3 else q[None]).detach().to(torch.float64)
     B, N = poses.shape[:2]
     pairs = scene_pairs(scene, B).to(poses.device)
