@@ -140,6 +140,17 @@ class EnvState:
                 raise IndexError(f"index {int(index)} is out of range for a batch of {B} environments")
             i = int(index) % B
             index = slice(i, i + 1)
+        elif isinstance(index, torch.Tensor) and index.dtype != torch.bool:
+            if index.is_floating_point() or index.is_complex():
+                raise TypeError(
+                    f"index must be an int, a slice or an index tensor, got a {index.dtype} tensor"
+                )
+            B = self.batch_size
+            out = (index < -B) | (index >= B)
+            if bool(out.any()):
+                raise IndexError(
+                    f"index {int(index[out].flatten()[0])} is out of range for a batch of {B} environments"
+                )
         return EnvState(
             self.q[index], self.q_prev[index], self.t[index], {k: v[index] for k, v in self.task.items()}
         )

@@ -382,6 +382,12 @@ def test_core_checks_its_inputs():
     torch.testing.assert_close(s3.select(torch.tensor(1)).q, s3.q[1:2], rtol=0, atol=0)
     with pytest.raises(TypeError, match="index must be an int, a slice or an index tensor"):
         s3.select(True)
+    # index tensors: floats and indices out of range were torch's IndexErrors, naming nothing
+    torch.testing.assert_close(s3.select(torch.tensor([2, -3])).q, s3.q[[2, 0]], rtol=0, atol=0)
+    with pytest.raises(TypeError, match="got a torch.float32 tensor"):
+        s3.select(torch.tensor([0.0]))
+    with pytest.raises(IndexError, match="index 5 is out of range for a batch of 3 environments"):
+        s3.select(torch.tensor([1, 5]))
     # seeds as 0-d tensors or arrays are ints; a bool batch size is refused with a sequence too
     torch.testing.assert_close(core.reset([torch.tensor(3)]).q, core.reset(3).q, rtol=0, atol=0)
     torch.testing.assert_close(core.reset(np.array(3)).q, core.reset(3).q, rtol=0, atol=0)

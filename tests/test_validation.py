@@ -675,6 +675,11 @@ def test_action_must_be_an_action(scene, state):
         step(scene, state, {"force": torch.zeros(3, 3, dtype=F64)})
 
 
+def test_params_on_a_device_torch_cannot_use_is_named(scene):
+    with _says("device 'foo' is not usable with this torch build"):
+        scene.params(device="foo")
+
+
 def test_params_on_another_device(scene, state):
     p = scene.params()
     with _raises("params.mass is on meta"):

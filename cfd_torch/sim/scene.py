@@ -11,7 +11,15 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from .._validate import FLOATS, body_pair, check_pair_eps, check_pair_mu, closed_surface, is_real
+from .._validate import (
+    FLOATS,
+    body_pair,
+    check_pair_eps,
+    check_pair_mu,
+    closed_surface,
+    is_real,
+    usable_device,
+)
 from ..config import ContactConfig, FrictionConfig, SolverConfig, with_potential
 from ..contact._traverse import build_forest
 from ..contact.bsh import BSH
@@ -508,9 +516,11 @@ class Scene:
         (empty without simulated robots).
 
         Raises:
-            ValueError: ``dtype`` is not torch.float32 or torch.float64 (the dtypes ``step`` takes)."""
+            ValueError: ``dtype`` is not torch.float32 or torch.float64 (the dtypes ``step`` takes), or ``device``
+                is not one this torch build can hold data on."""
         if dtype not in FLOATS:
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+        device = usable_device(device)
         d = self.kinematics.bodies.tolist()
         return Params(
             torch.tensor([self.bodies[i].mass for i in d], dtype=dtype, device=device),
