@@ -460,7 +460,7 @@ class TaskCore(abc.ABC):
 
     def check_state(self, state: EnvState) -> None:
         """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
-        and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6), ``t`` (B,)
+        and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6) finite, ``t`` (B,)
         int64 and >= 0, and the task variables a start of this task has (the same keys, shapes after the batch, float or
         int64), the float ones (positions) finite and within the contact functions' coordinate limit (1e30 m in
         float64, 1e12 m in float32), and each within its range (:meth:`check_task`)."""
@@ -490,6 +490,10 @@ class TaskCore(abc.ABC):
             raise ValueError(
                 f"state.q_prev has shape {tuple(state.q_prev.shape)}, state.q {tuple(state.q.shape)}"
             )
+        for name, x in (("state.q", state.q), ("state.q_prev", state.q_prev)):
+            bad = ~torch.isfinite(x.detach()).flatten(1).all(1)
+            if bool(bad.any()):
+                raise ValueError(f"{name} contains NaN or inf (environment {int(torch.nonzero(bad)[0, 0])})")
         if state.t.shape != (B,) or state.t.dtype != torch.int64:
             raise ValueError(
                 f"state.t must be an int64 tensor of shape ({B},), got {state.t.dtype} {tuple(state.t.shape)}"

@@ -163,8 +163,13 @@ def rollout(
     Returns:
         A :class:`Rollout`.
     """
+    if not isinstance(core, TaskCore):
+        raise TypeError(f"core must be a task core (cfd_torch.envs.make_core), got {type(core).__name__}")
     if not isinstance(state, EnvState):
         raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
+    core.check_state(state)  # (the start's observation reads it before any step checks it)
+    if horizon is not None and (not is_int(horizon) or horizon < 0):
+        raise ValueError(f"horizon must be an int >= 0 or None, got {horizon!r}")
     if isinstance(policy, torch.Tensor):
         if policy.dim() == 2:
             policy = policy[:, None, :].expand(-1, state.batch_size, -1)

@@ -1071,6 +1071,10 @@ def test_mjcf_physics_the_step_does_not_model_is_refused():
         ('damping="-1"', "", "joint 'j1': damping must be finite and >= 0, got -1"),
         ('stiffness="-3"', "", "joint 'j1': stiffness must be finite and >= 0, got -3"),
         ('armature="inf"', "", "joint 'j1': armature must be finite and >= 0, got inf"),
+        # a NaN limit loaded as no limit at all (MuJoCo only warned on stderr): the joint passed through it
+        ('limited="true" range="nan 1"', "", r"joint 'j1': range must be finite, got \[nan, 0.0174"),
+        ('limited="true" range="-inf 1"', "", r"joint 'j1': range must be finite, got \[-inf, 0.0174"),
+        ('springref="inf"', "", r"joint 'j1': springref must be finite, got \[inf\]"),
         (
             "",
             '<actuator><position name="p" joint="j1" kp="-30"/></actuator>',

@@ -363,6 +363,17 @@ def test_core_checks_its_inputs():
         core.step(s.sim, torch.zeros(2, 2, dtype=F64))
     with pytest.raises(ValueError, match="horizon 5 exceeds the 3 actions"):
         rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), 5)
+    # the start state is checked before its observation reads it (a Push state in a Billiards rollout failed as
+    # "shape '[2, 32]' is invalid", an out-of-range ball as an IndexError; a NaN state gave NaN observations)
+    billiards = make_core("cfd_torch/Billiards-v0")
+    with pytest.raises(ValueError, match=r"state.q must be a \(B, 16, 6\) tensor"):
+        rollout(billiards, s, torch.zeros(1, 2, 2, dtype=F64))
+    with pytest.raises(ValueError, match=r"state.q contains NaN or inf \(environment 0\)"):
+        rollout(core, dataclasses.replace(s, q=s.q * float("nan")), torch.zeros(0, 2, 2, dtype=F64))
+    with pytest.raises(ValueError, match="horizon must be an int >= 0 or None, got '1'"):
+        rollout(core, s, torch.zeros(3, 2, 2, dtype=F64), "1")
+    with pytest.raises(TypeError, match="core must be a task core"):
+        rollout("core", s, torch.zeros(3, 2, 2, dtype=F64))
     s32 = make_core("cfd_torch/Push-v0", dtype=torch.float32).reset([4, 5])
     assert s32.q.dtype == torch.float32 and s32.batch_size == 2
     # seeds: NumPy integers are ints; strings, floats and bool batch sizes are refused

@@ -492,6 +492,13 @@ def test_recentre_rotation_checks_its_poses():
             recentre_rotation(bad)
     with _says("q contains NaN or inf"):
         recentre_rotation(torch.full((6,), float("nan")))
+    # 1e300 rad came back NaN, 1e20 rad as 0: beyond 1e6 rad refused, as by every function taking poses
+    big = torch.zeros(2, 6, dtype=F64)
+    big[1, 3:5] = 1e300
+    with _says("q has a rotation vector longer than 1e+06 rad (first at index (1,))"):
+        recentre_rotation(big)
+    big[1, 3:5] = 7e5  # (|omega| 9.9e5 rad: wrapped)
+    assert float(recentre_rotation(big)[1, 3:].norm()) <= math.pi
 
 
 # ------------------------------------------------------------------------------------------------ the step

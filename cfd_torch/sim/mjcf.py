@@ -892,6 +892,15 @@ def _joint_spec(m: mujoco.MjModel, j: int) -> JointSpec:
     ):  # negative values add energy: the step's joint terms would have no minimum
         if not 0 <= float(value) < math.inf:
             raise ValueError(f"joint '{joint.name}': {what} must be finite and >= 0, got {float(value):g}")
+    for what, value in (
+        ("range", m.jnt_range[j] if m.jnt_limited[j] else np.zeros(2)),  # (NaN read as no limit at all)
+        ("axis", m.jnt_axis[j]),
+        ("pos", m.jnt_pos[j]),
+        ("ref", m.qpos0[qadr : qadr + 1]),
+        ("springref", m.qpos_spring[qadr : qadr + 1]),
+    ):
+        if not np.isfinite(value).all():
+            raise ValueError(f"joint '{joint.name}': {what} must be finite, got {np.asarray(value).tolist()}")
     return JointSpec(
         name=joint.name,
         kind=kind,
