@@ -460,10 +460,10 @@ class TaskCore(abc.ABC):
 
     def check_state(self, state: EnvState) -> None:
         """A clear TypeError or ValueError naming the field unless ``state`` is an EnvState of this core's dtype
-        and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6) finite, ``t`` (B,)
-        int64 and >= 0, and the task variables a start of this task has (the same keys, shapes after the batch, float or
-        int64), the float ones (positions) finite and within the contact functions' coordinate limit (1e30 m in
-        float64, 1e12 m in float32), and each within its range (:meth:`check_task`)."""
+        and device whose every field has the batch size of ``state.q``: ``q`` and ``q_prev`` (B, N, 6) finite,
+        ``t`` (B,) int64 and >= 0, and the task variables a start of this task has (the same keys, shapes after the
+        batch, float or int64), the float ones (positions) finite and within the contact functions' coordinate
+        limit (1e30 m in float64, 1e12 m in float32), and each within its range (:meth:`check_task`)."""
         if not isinstance(state, EnvState):
             raise TypeError(f"state must be an EnvState, got {type(state).__name__}")
         fields = {"state.q": state.q, "state.q_prev": state.q_prev, "state.t": state.t}
