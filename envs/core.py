@@ -563,6 +563,12 @@ class TaskCore(abc.ABC):
             raise ValueError(
                 f"action: |a|^2 overflows {self.dtype} (largest |a_i| {largest:.3g}); actions are in [-1, 1]"
             )
+        if not bool(torch.isfinite(self.action_cost * (action.detach() * action.detach()).sum(1)).all()):
+            largest = float(given.detach().abs().max())
+            raise ValueError(
+                f"action: the reward's action_cost |a|^2 overflows {self.dtype} (action_cost {self.action_cost:g}, "
+                f"largest |a_i| {largest:.3g}); actions are in [-1, 1]"
+            )
         return action
 
     def _to(self, state: EnvState) -> EnvState:

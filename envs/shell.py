@@ -202,6 +202,8 @@ class CoreVectorEnv(VectorEnv):
         _check_shell_arguments(render_mode, width, height)
         self.core = self.core_class(device=device, dtype=dtype, **task)
         self.num_envs = num_envs
+        if not isinstance(batched, (bool, np.bool_)):
+            raise TypeError(f"batched must be a bool, got {batched!r}")
         self.batched = bool(batched)
         self.render_mode = render_mode
         if max_episode_steps is not None and not (

@@ -420,6 +420,12 @@ def test_kinematic_robot_follows_its_joints_exactly_and_pushes():
         step(scene, state, Action(joints=torch.zeros(3, dtype=F64)))
     with pytest.raises(ValueError, match=r"action.ctrl must have shape \(0,\)"):
         step(scene, state, Action(ctrl=torch.zeros(1, dtype=F64)))
+    with pytest.raises(
+        ValueError, match=r"action.joints has a coordinate beyond 1e\+06 \(rad or m; first at coordinate 1\)"
+    ):
+        step(
+            scene, state, Action(joints=torch.tensor([0.0, 1e20], dtype=F64))
+        )  # (it turned the link arbitrarily)
     # a static block beside the arm: joints that put a link into it are refused, naming action.joints (the arm
     # overlapping its own static base is not contact)
     block = trimesh.creation.box((0.1, 0.1, 0.1))

@@ -444,6 +444,8 @@ def test_shells_check_action_shapes_before_stepping():
         torch.testing.assert_close(st.q, q, rtol=0, atol=0)  # nothing stepped
     with pytest.raises(ValueError, match="num_envs must be a positive int"):
         gym.make_vec("cfd_torch/Push-v0", True, vectorization_mode="vector_entry_point")
+    with pytest.raises(TypeError, match="batched must be a bool, got 'no'"):  # (it read as True)
+        gym.make_vec("cfd_torch/Push-v0", 2, vectorization_mode="vector_entry_point", batched="no")
     vec.close()
 
 
@@ -556,6 +558,12 @@ def test_task_arguments_actions_and_states_are_checked():
         core.step(s0, torch.zeros(2, 2, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"action: \|a\|\^2 overflows"):
         core.step(s0, torch.full((2, 2), 1e160, dtype=F64))
+    # a large action_cost made the reward -inf (float32: even at actions in [-1, 1])
+    big = make_core("cfd_torch/Push-v0", action_cost=1e300, dtype=torch.float32)
+    with pytest.raises(
+        ValueError, match=r"the reward's action_cost \|a\|\^2 overflows torch.float32 \(action_cost 1e\+300"
+    ):
+        big.step(big.reset(0, 2), torch.ones(2, 2))
     with pytest.raises(TypeError, match="state.q is torch.float32 on cpu but this core is torch.float64"):
         core.step(make_core("cfd_torch/Push-v0", dtype=torch.float32).reset(0, 2), torch.zeros(2, 2))
     # every field of the state is checked, not only q: a float64 goal in a float32 core made the observations and

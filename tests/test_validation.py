@@ -1098,6 +1098,17 @@ def test_bsh_vertices_and_small_arguments_are_checked_by_name():
         contact_potential([bsh, bsh], poses, grad=torch.tensor([False, True]))
     with _says("dt must be a finite positive number"):
         State(poses, poses.clone()).velocity(0.0)
+    # the velocity of a NaN state was NaN, a tiny dt's -inf; other shapes failed inside torch, dtypes were promoted
+    with _says("State.q or State.q_prev contains NaN or inf"):
+        State(poses, poses * float("nan")).velocity(0.01)
+    with _says("the velocity (q - q_prev) / dt overflows torch.float64"):
+        State(poses, poses + 1.0).velocity(1e-320)
+    with _says(
+        "State.q (torch.float64 (2, 6) on cpu) and State.q_prev (torch.float32 (2, 6) on cpu) must match"
+    ):
+        State(poses, poses.float()).velocity(0.01)
+    with _says("must match in shape, dtype and device"):
+        State(poses, poses[:1]).velocity(0.01)
 
 
 def test_sparse_tensors_are_refused_by_name():

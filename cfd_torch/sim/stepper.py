@@ -28,6 +28,7 @@ from ._checks import (
     check_pose_range,
     check_state_tensor,
     check_targets_clear,
+    first_row,
 )
 from .adjoint import StepFn
 from .energy import end_poses, scene_pairs
@@ -416,6 +417,15 @@ def step(
             check_ctrl(
                 action.joints, scene.num_kinematic_coords, B if batched else None, state.q, "action.joints"
             )
+            far = (
+                action.joints.detach().abs() > MAX_ROTATION
+            )  # (1e20 rad turned a link to an arbitrary angle)
+            if bool(far.any()):
+                raise ValueError(
+                    f"action.joints has a coordinate beyond {MAX_ROTATION:g} (rad or m; first at "
+                    f"{first_row(far, what='coordinate')}): beyond 1e6 rad a hinge angle's float64 spacing exceeds "
+                    "1.2e-10 rad, too coarse to say which angle it is; wrap hinge targets to within a few turns"
+                )
             joints = action.joints.expand(B, -1) if action.joints.dim() == 1 else action.joints
             links = scene.kinematic_link_poses(joints, _batch(state.q, B)).to(dtype)
         target = torch.cat([target, links], 1)

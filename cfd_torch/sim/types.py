@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._autograd import outside_transforms, plain
 from .._validate import check_positive
 
 __all__ = ["State", "Trajectory", "Action", "Params", "StepInfo", "StepError"]
@@ -28,9 +29,26 @@ class State(NamedTuple):
         """([B,] N, 6) backward-difference generalised velocity (q - q_prev) / dt.
 
         Raises:
-            ValueError: dt is not a finite positive Python number (a tensor is refused too)."""
+            TypeError: q or q_prev is not a tensor.
+            ValueError: dt is not a finite positive Python number (a tensor is refused too); q and q_prev differ in
+                shape, dtype or device, hold NaN/inf, or give a velocity that overflows their dtype (a tiny dt)."""
         check_positive(dt, "dt")
-        return (self.q - self.q_prev) / dt
+        for name, x in (("q", self.q), ("q_prev", self.q_prev)):
+            if not isinstance(x, torch.Tensor):
+                raise TypeError(f"State.{name} must be a torch.Tensor, got {type(x).__name__}")
+        q, q_prev = self.q, self.q_prev
+        if q.shape != q_prev.shape or q.dtype != q_prev.dtype or q.device != q_prev.device:
+            raise ValueError(
+                f"State.q ({q.dtype} {tuple(q.shape)} on {q.device}) and State.q_prev ({q_prev.dtype} "
+                f"{tuple(q_prev.shape)} on {q_prev.device}) must match in shape, dtype and device"
+            )
+        v = (q - q_prev) / dt
+        with outside_transforms():  # (values read from the plain tensors: it may run under torch.func.vmap)
+            if not bool(torch.isfinite(plain(v).detach()).all()):
+                if not (bool(torch.isfinite(plain(q)).all()) and bool(torch.isfinite(plain(q_prev)).all())):
+                    raise ValueError("State.q or State.q_prev contains NaN or inf")
+                raise ValueError(f"the velocity (q - q_prev) / dt overflows {q.dtype} at dt = {dt:g}")
+        return v
 
 
 class Trajectory:
