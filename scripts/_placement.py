@@ -8,7 +8,10 @@ import trimesh
 
 def load_obstacle(path: str) -> trimesh.Trimesh:
     """The triangle mesh in the file ``path`` (any format trimesh reads; a scene's meshes are concatenated)."""
-    mesh = trimesh.load(path, force="mesh")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except (NotImplementedError, ValueError) as err:  # (a format trimesh does not know, e.g. no extension)
+        raise ValueError(f"--obstacle: trimesh cannot read {path}: {err}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"--obstacle: {path} holds no triangle mesh")
     return mesh

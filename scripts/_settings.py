@@ -24,3 +24,26 @@ DEFAULTS = {
 
 # the settings only one model reads (the others' runs are the same whatever they are): setting -> model
 MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
+
+
+def unused_settings(cfg: dict, models) -> tuple[str, str] | None:
+    """The first setting of ``cfg`` given a value other than its default that no run of ``models`` would read, as
+    (its option, why), or None: such a value was silently dropped (``--steps`` without ``--mpc``, ``--gb-samples``
+    for a cfd run)."""
+
+    def given(key: str) -> bool:
+        return cfg.get(key, DEFAULTS[key]) != DEFAULTS[key]
+
+    def opt(key: str) -> str:
+        return "--" + key.replace("_", "-")
+
+    if given("steps") and not cfg.get("mpc"):
+        return opt("steps"), "the number of MPC control steps: it applies with --mpc"
+    if given("smooth_sigma") and not cfg.get("smooth_samples"):
+        return opt("smooth_sigma"), "it applies with --smooth-samples"
+    for key, model in MODEL_ONLY.items():
+        if given(key) and model not in models:
+            return opt(key), f"it applies to the model {model} only"
+    if cfg.get("eps") is not None and not set(models) - {"ipc", "sdrs"}:
+        return "--eps", "this library's blend width: the ipc and sdrs models do not read it"
+    return None

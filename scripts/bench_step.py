@@ -117,7 +117,14 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
-from _cli import int_range, nonnegative_float, nonnegative_int, positive_float, positive_int  # noqa: E402
+from _cli import (  # noqa: E402
+    folder_problem,
+    int_range,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from _provenance import git_commit, git_revision, json_args  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -973,8 +980,13 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
         args.obstacle = args.obstacle.resolve()
         if not args.obstacle.is_file():
             ap.error(f"argument --obstacle: no such file: {args.obstacle}")
-    if args.out.is_file():
-        ap.error(f"argument --out: {args.out} is a file; give a folder")
+    if problem := folder_problem(args.out):
+        ap.error(f"argument --out: {problem}")
+    if args.numba_threads and args.numba_threads > numba.config.NUMBA_NUM_THREADS:
+        ap.error(
+            f"argument --numba-threads: at most {numba.config.NUMBA_NUM_THREADS} (numba's NUMBA_NUM_THREADS), got "
+            f"{args.numba_threads}"
+        )
     if args.friction_eps_v is not None and not args.friction_eps_v >= 1e-30:
         ap.error(
             f"argument --friction-eps-v: must be at least 1e-30 m/s (FrictionConfig.eps_v), got {args.friction_eps_v}"

@@ -89,7 +89,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _cli import folder_problem  # noqa: E402
 from _provenance import git_revision  # noqa: E402
-from _settings import DEFAULTS, FD_STEPS, LOSSES, MODELS, OPTIMISERS, TASK_KWARGS  # noqa: E402
+from _settings import DEFAULTS, FD_STEPS, LOSSES, MODELS, OPTIMISERS, TASK_KWARGS, unused_settings  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from cfd_torch._validate import is_int, is_real  # noqa: E402
@@ -783,6 +783,9 @@ def main() -> None:
         _check_settings({**DEFAULTS, **config})
     except ValueError as err:
         ap.error(str(err))
+    unused = unused_settings(config, [config["model"]])
+    if unused:
+        ap.error(f"argument {unused[0]}: {unused[1]}")
     result = run_experiment(config)
     for r in result["log"]:
         x = f"step {r['step']}" if config["mpc"] else f"iter {r['iter']}"

@@ -48,7 +48,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _cli import folder_problem, interrupted, read_sweep  # noqa: E402
 from _provenance import REVISION_ENV, git_revision  # noqa: E402
-from _settings import DEFAULTS, MODEL_ONLY, MODELS  # noqa: E402
+from _settings import DEFAULTS, MODEL_ONLY, MODELS, unused_settings  # noqa: E402
 from optimize import _check_settings, add_arguments, check_seed, run_experiment  # noqa: E402
 
 from cfd_torch.envs import TASKS  # noqa: E402
@@ -260,6 +260,9 @@ def main() -> None:
         except ValueError as err:
             ap.error(f"argument --seeds: {err}")
     grid = configs(args)
+    unused = unused_settings(grid[0] if grid else {}, sorted({c["model"] for c in grid}))
+    if unused:
+        ap.error(f"argument {unused[0]}: {unused[1]}")
     checked = set()
     for c in (
         grid

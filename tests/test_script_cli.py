@@ -101,6 +101,7 @@ REFUSED = [
     ("bench_step", ["--profile", "--profile-steps", "0"], "--profile-steps"),
     ("bench_step", ["--friction-eps-v", "0"], "--friction-eps-v"),
     ("bench_step", ["--friction-eps-v", "1e-40"], "--friction-eps-v"),  # below FrictionConfig's 1e-30
+    ("bench_step", ["--numba-threads", "100000"], "--numba-threads"),  # numba's own ValueError, a traceback
     ("far_field_directions", ["--angles", "0"], "--angles"),
     ("far_field_directions", ["--horizon", "0"], "--horizon"),
     ("far_field_directions", ["--radii", "-1"], "--radii"),
@@ -136,6 +137,12 @@ REFUSED = [
     ("bench_rollout", ["--action-scale", "-0.5"], "--action-scale"),
     ("bench_rollout", ["--tasks", "Pool"], "--tasks"),
     ("sweep", ["--seeds", "0", str(2**64)], "--seeds"),  # the second seed: only the first was checked
+    # settings the run (or every run of the sweep) does not read: each was silently dropped
+    ("optimize", ["--steps", "5"], "--steps"),  # without --mpc
+    ("optimize", ["--gb-samples", "-3"], "--gb-samples"),  # a cfd run
+    ("optimize", ["--smooth-sigma", "0.5"], "--smooth-sigma"),  # without --smooth-samples
+    ("optimize", ["--model", "ipc", "--eps", "0.5"], "--eps"),
+    ("sweep", ["--models", "cfd", "gb", "--mj-substeps", "3"], "--mj-substeps"),
     # each of these raised a traceback after measuring (the first) or building the output folder (the others)
     ("bench_step", ["--quick", "--cases", "boxes", "--baseline", "no-such-rev"], "--baseline"),
     ("bench_step", ["--quick", "--cases", "push", "--push-speed", "0"], "--push-speed"),  # ZeroDivisionError
