@@ -193,7 +193,14 @@ def main() -> None:
             sweep = read_sweep(d / "sweep.json")
         except ValueError as e:
             ap.error(str(e))
-        for r in sweep["runs"]:
+        for k, r in enumerate(sweep["runs"]):
+            # (a run without its log or summary raised a bare KeyError or IndexError while plotting)
+            log, summary = r.get("log"), r.get("summary")
+            if not (isinstance(log, list) and log and all(isinstance(x, dict) for x in log)):
+                ap.error(f"{d / 'sweep.json'}: run {k} has no log (a non-empty list of its iterations)")
+            if not isinstance(summary, dict):
+                ap.error(f"{d / 'sweep.json'}: run {k} has no summary")
+            r = {**r, "config": DEFAULTS | r["config"]}  # keys added since the run: their defaults
             c = r["config"]
             if args.seeds is not None and c["seed"] not in args.seeds:
                 continue

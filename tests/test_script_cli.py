@@ -224,6 +224,19 @@ def test_an_out_folder_that_cannot_be_written_is_refused(scripts_path, tmp_path)
         ('{"runs": null}', "not a sweep.json"),
         ('{"runs": [1]}', "run 0 has no config naming its task, model and seed"),
         ('{"runs": [{"config": {"task": "Push"}}]}', "run 0 has no config naming its task, model and seed"),
+        # a run without its log or summary: a bare KeyError or IndexError while plotting
+        (
+            '{"runs": [{"config": {"task": "Push", "model": "cfd", "seed": 0}, "summary": {}}]}',
+            "run 0 has no log (a non-empty list of its iterations)",
+        ),
+        (
+            '{"runs": [{"config": {"task": "Push", "model": "cfd", "seed": 0}, "log": [], "summary": {}}]}',
+            "run 0 has no log",
+        ),
+        (
+            '{"runs": [{"config": {"task": "Push", "model": "cfd", "seed": 0}, "log": [{"loss": 1.0}]}]}',
+            "run 0 has no summary",
+        ),
     ],
 )
 def test_plot_results_refuses_a_malformed_sweep_json(
