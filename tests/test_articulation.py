@@ -539,6 +539,9 @@ def test_joint_layouts_that_cannot_be_recovered_are_refused():
         hung.poses(torch.zeros(2, dtype=F64), torch.zeros(6, dtype=F64))
     with pytest.raises(ValueError, match="mount must be"):
         articulation(_xml(hinge.format(1, "0 1 0"), root_joints=slide.format(0, "1 0 0")), mount=[0, 0, 1])
+    for bad in ("abcdef", {}):  # (numpy's "could not convert string to float", float()'s TypeError)
+        with pytest.raises(ValueError, match="mount must be a finite pose"):
+            articulation(_xml(hinge.format(1, "0 1 0"), root_joints=slide.format(0, "1 0 0")), mount=bad)
     # the mount moves the whole robot: the root's frame is the mount's pose composed with the MJCF's pos="0 0 1"
     rows = hung.poses(torch.zeros(2, dtype=F64))
     assert float(rows[0, 2]) == pytest.approx(2.0, abs=1e-12)

@@ -662,8 +662,9 @@ def test_gymnasium_ant_with_servos() -> None:
             None,
             None,
         )
-    with pytest.raises(ValueError, match="servos must be"):
-        gymnasium_ant_xml(servos=(0.0, 1.0))
+    for bad in ((0.0, 1.0), (1.0, 5.0, 3.0), "ab", 5.0):  # (unpacking and conversion errors named nothing)
+        with pytest.raises(ValueError, match="servos must be"):
+            gymnasium_ant_xml(servos=bad)
 
 
 # ------------------------------------------------------------------------------------------------ mesh geoms

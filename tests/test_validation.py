@@ -872,8 +872,12 @@ def test_step_refuses_torch_func_transforms(scene, state):
 
 
 def test_rollout_actions(scene, state):
-    with _raises("actions must be a number of steps >= 0"):
+    with _says("actions must be a number of steps in [0, 1e+09], got -1"):
         rollout(scene, state, -1)
+    with _says("actions must be a number of steps in [0, 1e+09]"):  # (OverflowError: cannot fit 'int')
+        rollout(scene, state, 10**30)
+    with _says("progress must be a bool, got 'yes'", TypeError):
+        rollout(scene, state, 1, progress="yes")
     with _raises("actions must be a sequence", err=TypeError):
         rollout(scene, state, 2.5)
 

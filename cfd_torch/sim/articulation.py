@@ -112,7 +112,12 @@ class Articulation:
             raise ValueError(
                 f"articulation: the root link {links[0].name!r} has a free joint and other joints"
             )
-        self.mount = np.zeros(6) if mount is None else np.asarray(mount, dtype=float).reshape(-1)
+        try:
+            self.mount = np.zeros(6) if mount is None else np.asarray(mount, dtype=float).reshape(-1)
+        except (TypeError, ValueError):  # (numpy's "could not convert string to float" named nothing)
+            raise ValueError(
+                f"mount must be a finite pose (translation, rotation vector) of 6 values, got {mount!r}"
+            ) from None
         if self.mount.shape != (6,) or not np.isfinite(self.mount).all():
             raise ValueError(
                 f"mount must be a finite pose (translation, rotation vector) of 6 values, got {mount!r}"

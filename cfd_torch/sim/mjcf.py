@@ -267,7 +267,10 @@ def gymnasium_ant_xml(servos: tuple[float, float] | None = None) -> str:
     if n != 4:
         raise ValueError(f"gymnasium's ant.xml changed: expected 4 unnamed bodies, found {n}")
     if servos is not None:
-        kp, kv = (float(x) for x in servos)
+        try:
+            kp, kv = (float(x) for x in servos)
+        except (TypeError, ValueError):  # (unpacking and conversion errors named nothing)
+            raise ValueError(f"servos must be (kp > 0, kv >= 0), got {servos!r}") from None
         if not (kp > 0 and kv >= 0 and math.isfinite(kp) and math.isfinite(kv)):
             raise ValueError(f"servos must be (kp > 0, kv >= 0), got {servos!r}")
         patched, n = re.subn(

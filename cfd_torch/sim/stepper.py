@@ -17,6 +17,7 @@ import re
 import time
 from collections.abc import Iterable, Sequence
 
+import numpy as np
 import torch
 
 from .._autograd import outside_transforms, plain, refuse_derivative, refuse_transforms
@@ -57,6 +58,10 @@ def _whole_turns(w: torch.Tensor, toward: torch.Tensor) -> torch.Tensor:
     along = (toward.detach() * u.detach()).sum(-1, keepdim=True)
     k = torch.round((along - n.detach()) / (2.0 * math.pi))
     return torch.where(some & (k != 0), w + (2.0 * math.pi) * k * u, w)
+
+
+# the most steps ``rollout`` takes as a count (its list of actions is made at once)
+_MAX_ROLLOUT_STEPS = 10**9
 
 
 def recentre_rotation(q: torch.Tensor) -> torch.Tensor:
@@ -512,8 +517,12 @@ def rollout(
             f"actions must be a sequence of Action (or None) or a number of steps, got a single "
             f"{type(actions).__name__} (for T steps with one action: [action] * T)"
         )
-    if isinstance(actions, int) and actions < 0:
-        raise ValueError(f"actions must be a number of steps >= 0, got {actions}")
+    if (
+        isinstance(actions, int) and not 0 <= actions <= _MAX_ROLLOUT_STEPS
+    ):  # (10**30: a list's OverflowError)
+        raise ValueError(f"actions must be a number of steps in [0, {_MAX_ROLLOUT_STEPS:.0e}], got {actions}")
+    if not isinstance(progress, (bool, np.bool_)):
+        raise TypeError(f"progress must be a bool, got {progress!r}")
     seq = [None] * actions if isinstance(actions, int) else list(actions)
     if not seq:  # no step checks the inputs: the start state and the parameters are checked here
         _check_start(scene, state)
