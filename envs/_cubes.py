@@ -56,6 +56,14 @@ class CubesCore(TaskCore):
             action_cost=action_cost, cube_size=cube_size, cube_density=cube_density, spread=spread,
             max_speed=max_speed,
         )  # fmt: skip
+        # footprints (discs of the half diagonal plus half the clearance) that cannot fit in the square at all:
+        # refused before a Scene of that many bodies is built (10**6 cubes asked torch for 8 TB)
+        r = math.hypot(cube_size, cube_size) / 2 + _CLEARANCE / 2
+        if num_cubes * math.pi * r * r > (2 * spread + 2 * r) ** 2:
+            raise ValueError(
+                f"spread {spread} m is too small to scatter num_cubes = {num_cubes} cubes of cube_size {cube_size} m "
+                "(their footprints alone cover more than the square): raise spread, or lower num_cubes or cube_size"
+            )
         self.num_cubes = num_cubes
         self.action_body = num_cubes
         self.obs_dim = 4 * (num_cubes + 1) + self._task_obs_dim(num_cubes)

@@ -770,6 +770,9 @@ def test_cube_layouts_that_cannot_be_scattered_are_refused_at_construction():
     for name in ("spread", "cube_size"):
         with pytest.raises(ValueError, match=f"{name} must be a finite positive number"):
             make_core("cfd_torch/Sort-v0", **{name: 0.0})
+    # far too many to fit: refused before a scene of that many bodies is built (it asked torch for 8 TB)
+    with pytest.raises(ValueError, match="their footprints alone cover more than the square"):
+        make_core("cfd_torch/Sort-v0", num_cubes=10**6)
     obs, _ = gym.make("cfd_torch/Gather-v0", spread=0.5).reset(seed=3)  # tight, but it fits
     assert obs.shape == (46,)
 
