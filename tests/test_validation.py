@@ -878,6 +878,15 @@ def test_rollout_actions(scene, state):
         rollout(scene, state, 10**30)
     with _says("progress must be a bool, got 'yes'", TypeError):
         rollout(scene, state, 1, progress="yes")
+    # Trajectory's own constructor took lists and mismatched shapes (indexing failed later, or paired wrong rows)
+    from cfd_torch import Trajectory
+
+    traj = rollout(scene, state, 1)
+    assert len(traj[0:1]) == 1 and torch.equal(traj[1].q_prev, traj.q_prev[1])
+    with _says("Trajectory.q must be a torch.Tensor, got list", TypeError):
+        Trajectory([[0.0] * 6], traj.q_prev)
+    with _says("Trajectory.q and q_prev must be (T + 1, [B,] N, 6) tensors of one shape"):
+        Trajectory(traj.q, traj.q_prev[:1])
     with _raises("actions must be a sequence", err=TypeError):
         rollout(scene, state, 2.5)
 

@@ -59,6 +59,14 @@ class Trajectory:
     """
 
     def __init__(self, q: torch.Tensor, q_prev: torch.Tensor) -> None:
+        for name, x in (("q", q), ("q_prev", q_prev)):
+            if not isinstance(x, torch.Tensor):
+                raise TypeError(f"Trajectory.{name} must be a torch.Tensor, got {type(x).__name__}")
+        if q.shape != q_prev.shape or q.dim() not in (3, 4) or q.shape[-1] != 6:
+            raise ValueError(
+                "Trajectory.q and q_prev must be (T + 1, [B,] N, 6) tensors of one shape, got "
+                f"{tuple(q.shape)} and {tuple(q_prev.shape)}"
+            )
         self.q = q
         self.q_prev = q_prev
 
