@@ -26,10 +26,11 @@ DEFAULTS = {
 MODEL_ONLY = {"gb_samples": "gb", "gb_sigma": "gb", "fd_step": "mujoco-fd", "mj_substeps": "mujoco-fd"}
 
 
-def unused_settings(cfg: dict, models) -> tuple[str, str] | None:
+def unused_settings(cfg: dict, models, model_only: bool = True) -> tuple[str, str] | None:
     """The first setting of ``cfg`` given a value other than its default that no run of ``models`` would read, as
     (its option, why), or None: such a value was silently dropped (``--steps`` without ``--mpc``, ``--gb-samples``
-    for a cfd run)."""
+    for a cfd run). ``model_only`` False skips the settings of :data:`MODEL_ONLY` (a resumed sweep's earlier runs
+    may be of their model)."""
 
     def given(key: str) -> bool:
         return cfg.get(key, DEFAULTS[key]) != DEFAULTS[key]
@@ -41,7 +42,7 @@ def unused_settings(cfg: dict, models) -> tuple[str, str] | None:
         return opt("steps"), "the number of MPC control steps: it applies with --mpc"
     if given("smooth_sigma") and not cfg.get("smooth_samples"):
         return opt("smooth_sigma"), "it applies with --smooth-samples"
-    for key, model in MODEL_ONLY.items():
+    for key, model in MODEL_ONLY.items() if model_only else ():
         if given(key) and model not in models:
             return opt(key), f"it applies to the model {model} only"
     if cfg.get("eps") is not None and not set(models) - {"ipc", "sdrs"}:

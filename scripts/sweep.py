@@ -260,7 +260,7 @@ def main() -> None:
         except ValueError as err:
             ap.error(f"argument --seeds: {err}")
     grid = configs(args)
-    unused = unused_settings(grid[0] if grid else {}, sorted({c["model"] for c in grid}))
+    unused = unused_settings(grid[0] if grid else {}, sorted({c["model"] for c in grid}), not args.resume)
     if unused:
         ap.error(f"argument {unused[0]}: {unused[1]}")
     checked = set()
