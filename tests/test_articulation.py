@@ -1054,8 +1054,10 @@ def test_joint_outside_its_limits_is_refused_by_name():
         step(scene, State(q, q.clone()))
 
 
-def test_mjcf_physics_the_step_does_not_model_is_refused():
+def test_mjcf_physics_the_step_does_not_model_is_refused(tmp_path, monkeypatch):
     from cfd_torch.sim.articulation import articulation
+
+    monkeypatch.chdir(tmp_path)  # (MuJoCo writes its warning about the NaN below to MUJOCO_LOG.TXT here)
 
     two = """<mujoco><worldbody><body name="b" pos="0 0 1"><geom type="sphere" size="0.05"/>
       <body name="a1"><joint name="j1" type="hinge" axis="0 1 0" {j1}/><geom type="capsule" fromto="0 0 0 0 0 -0.5"
