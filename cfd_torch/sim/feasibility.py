@@ -172,7 +172,7 @@ MAX_PATH_SAMPLES = 100_000
 def _pieces(dist: torch.Tensor, spacing: float) -> torch.Tensor:
     """(A,) int64: the pieces at most ``spacing`` long that the straight paths of lengths ``dist`` (A,) are cut into
     (at least 1); a StepError where a path needs more than MAX_PATH_SAMPLES (the count is checked as a float: past
-    2^63 an int64 would wrap, and a 1e17 m move was checked at one point)."""
+    2^63 an int64 wraps, and a wrapped count would check the path at one point)."""
     n = torch.ceil(dist / spacing)
     over = ~(n <= MAX_PATH_SAMPLES)  # (NaN too)
     if bool(over.any()):

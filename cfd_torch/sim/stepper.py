@@ -422,9 +422,8 @@ def step(
             check_ctrl(
                 action.joints, scene.num_kinematic_coords, B if batched else None, state.q, "action.joints"
             )
-            far = (
-                action.joints.detach().abs() > MAX_ROTATION
-            )  # (1e20 rad turned a link to an arbitrary angle)
+            # (a hinge target of 1e20 rad is no particular angle)
+            far = action.joints.detach().abs() > MAX_ROTATION
             if bool(far.any()):
                 raise ValueError(
                     f"action.joints has a coordinate beyond {MAX_ROTATION:g} (rad or m; first at "
@@ -517,9 +516,8 @@ def rollout(
             f"actions must be a sequence of Action (or None) or a number of steps, got a single "
             f"{type(actions).__name__} (for T steps with one action: [action] * T)"
         )
-    if (
-        isinstance(actions, int) and not 0 <= actions <= _MAX_ROLLOUT_STEPS
-    ):  # (10**30: a list's OverflowError)
+    # (a count the list of actions cannot hold raised an OverflowError)
+    if isinstance(actions, int) and not 0 <= actions <= _MAX_ROLLOUT_STEPS:
         raise ValueError(f"actions must be a number of steps in [0, {_MAX_ROLLOUT_STEPS:.0e}], got {actions}")
     if not isinstance(progress, (bool, np.bool_)):
         raise TypeError(f"progress must be a bool, got {progress!r}")
