@@ -37,7 +37,13 @@ __all__ = ["EnvState", "StepOut", "TaskCore", "disc", "marker_rows", "stack_stat
 
 
 def real_array(x: object, name: str) -> np.ndarray:
-    """``x`` as a float64 array; a TypeError naming ``name`` if it is not real numbers (complex, bool, text)."""
+    """``x`` as a float64 array; a TypeError naming ``name`` if it is not real numbers (complex, bool, text) or is a
+    tensor that requires grad (the array would drop its gradient: torch's "Can't call numpy()" named nothing)."""
+    if isinstance(x, torch.Tensor) and x.requires_grad:
+        raise TypeError(
+            f"{name} requires grad, but this takes plain arrays and is not differentiated: step a task core "
+            "(cfd_torch.envs.make_core) for gradients, or pass it detached"
+        )
     array = np.asarray(x)
     if array.dtype.kind not in "iuf":
         raise TypeError(f"{name} must be an array of real numbers, got dtype {array.dtype}")

@@ -636,6 +636,8 @@ def test_task_arguments_actions_and_states_are_checked():
     env.reset(seed=0)
     with pytest.raises(TypeError, match="action must be an array of real numbers, got dtype complex128"):
         env.step(np.array([0.5 + 1j, 0.0]))
+    with pytest.raises(TypeError, match="action requires grad, but this takes plain arrays"):
+        env.step(torch.zeros(2, dtype=F64, requires_grad=True))  # (torch's "Can't call numpy()")
     with pytest.raises(TypeError, match="action must be an array of real numbers"):
         env.step(["a", "b"])
 
