@@ -100,17 +100,37 @@ FAR = (
 MAX_ROTATION = 1e6
 
 
-def check_rotation_length(pose: torch.Tensor, name: str, where) -> None:
+def check_rotation_length(
+    pose: torch.Tensor,
+    name: str,
+    where,
+    advice: str = "wrap it to the same rotation (cfd_torch.recentre_rotation)",
+) -> None:
     """A ValueError naming ``name`` and ``where(mask)`` (the first offending pose of the (...,) mask) if some pose
-    of ``pose`` (..., 6) has a rotation vector longer than :data:`MAX_ROTATION`."""
+    of ``pose`` (..., 6) has a rotation vector longer than :data:`MAX_ROTATION`; ``advice`` ends the message."""
     with outside_transforms():
         turns = plain(pose).detach()[..., 3:].norm(dim=-1) > MAX_ROTATION
     if bool(turns.any()):
         raise ValueError(
             f"{name} has a rotation vector longer than {MAX_ROTATION:g} rad (first at {where(turns)}): beyond 1e6 "
             "rad the float64 spacing of a rotation vector exceeds 1.2e-10 rad (about a step's newton_tol), too "
-            "coarse to say which rotation it is; wrap it to the same rotation (cfd_torch.recentre_rotation)"
+            f"coarse to say which rotation it is; {advice}"
         )
+
+
+def check_translation_range(pose: torch.Tensor, name: str, where, limit: float) -> None:
+    """A ValueError naming ``name`` and ``where(mask)`` (the first offending pose of the (...,) mask) if some pose
+    of ``pose`` (..., 6) has a translation coordinate beyond ``limit`` [m] in magnitude (:func:`max_coord`)."""
+    with outside_transforms():
+        far = plain(pose).detach()[..., :3].abs().amax(-1) > limit
+    if bool(far.any()):
+        raise ValueError(f"{name} has a translation beyond {limit:g} m (first at {where(far)}): {FAR}")
+
+
+def check_bool(x: object, name: str) -> None:
+    """A TypeError naming ``name`` unless ``x`` is a Python bool (a string such as "no" would read as True)."""
+    if not isinstance(x, bool):
+        raise TypeError(f"{name} must be a bool, got {x!r}")
 
 
 def check_alike(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:

@@ -30,9 +30,9 @@ import torch
 
 from .._autograd import VALUES_ONLY, ClosedFormPotential, outside_transforms, plain, refuse_vmap, values_only
 from .._validate import (
-    FAR,
     FLOATS,
     check_alike,
+    check_bool,
     check_count,
     check_dense,
     check_not_meta,
@@ -40,6 +40,7 @@ from .._validate import (
     check_rotation_length,
     check_stiffness,
     check_tolerance,
+    check_translation_range,
     max_coord,
     narrowed,
     widened,
@@ -91,12 +92,7 @@ def _check_pose_values(pose: torch.Tensor, name: str) -> None:
         bad = ~torch.isfinite(plain(pose)).all(-1)
         if bool(bad.any()):
             raise ValueError(f"{name} contains NaN or inf (first at batch index {_first_index(bad)})")
-        limit = max_coord(pose.dtype)
-        far = plain(pose)[..., :3].abs().amax(-1) > limit
-        if bool(far.any()):
-            raise ValueError(
-                f"{name} has a translation beyond {limit:g} m (first at batch index {_first_index(far)}): {FAR}"
-            )
+    check_translation_range(pose, name, lambda m: f"batch index {_first_index(m)}", max_coord(pose.dtype))
     check_rotation_length(pose, name, lambda m: f"batch index {_first_index(m)}")
 
 
@@ -188,8 +184,7 @@ def mesh_potential_derivatives(
         NotImplementedError: under ``vmap`` or forward-mode AD.
     """
     refuse_vmap("mesh_potential_derivatives", pose_a, pose_b)
-    if not isinstance(hessian, bool):
-        raise TypeError(f"hessian must be a bool, got {hessian!r}")
+    check_bool(hessian, "hessian")
     batch = _pair_batch(bsh_a, pose_a, bsh_b, pose_b)
     _check_params(mu, margin, eps, split, tol, max_iter)
     dt = pose_a.dtype

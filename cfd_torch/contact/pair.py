@@ -40,6 +40,7 @@ from .._geometry import frame_origin
 from .._threads import parallel_kernels, start_numba_pool
 from .._validate import (
     check_alike,
+    check_bool,
     check_count,
     check_positive,
     check_stiffness,
@@ -462,8 +463,7 @@ def pair_potential_derivatives(
         :func:`pair_potential` under autograd for derivatives of these).
     """
     refuse_vmap("pair_potential_derivatives", tri_a, tri_b)
-    if not isinstance(hessian, bool):
-        raise TypeError(f"hessian must be a bool, got {hessian!r}")
+    check_bool(hessian, "hessian")
     X, batch = _prepare(tri_a, tri_b, mu, margin, tol, max_iter, "pair_potential_derivatives")
     with outside_transforms(), torch.no_grad():  # values only: not connected to autograd or torch.func
         sol = _solve(

@@ -26,11 +26,12 @@ from .._autograd import (
     vmap_error,
 )
 from .._validate import (
-    FAR,
     FLOATS,
+    check_bool,
     check_dense,
     check_not_meta,
     check_rotation_length,
+    check_translation_range,
     is_int,
     max_coord,
     narrowed,
@@ -177,8 +178,7 @@ def contact_potential(
         raise ValueError(f"poses must be a (N, 6) tensor, got {getattr(poses, 'shape', type(poses))}")
     refuse_vmap("contact_potential", poses)
     check_not_meta(poses, "poses")
-    if not isinstance(hessian, bool):
-        raise TypeError(f"hessian must be a bool, got {hessian!r}")
+    check_bool(hessian, "hessian")
     if grad is not None and not isinstance(grad, bool):
         raise TypeError(f"grad must be a bool or None, got {grad!r}")
     N = poses.shape[0]
@@ -201,12 +201,9 @@ def contact_potential(
         bad = ~torch.isfinite(plain(poses)).all(1)
         if bool(bad.any()):
             raise ValueError(f"poses contains NaN or inf (first at body {int(torch.nonzero(bad)[0])})")
-        limit = max_coord(poses.dtype)
-        far = plain(poses)[:, :3].abs().amax(1) > limit
-        if bool(far.any()):
-            raise ValueError(
-                f"poses has a translation beyond {limit:g} m (first at body {int(torch.nonzero(far)[0])}): {FAR}"
-            )
+    check_translation_range(
+        poses, "poses", lambda m: f"body {int(torch.nonzero(m)[0])}", max_coord(poses.dtype)
+    )
     check_rotation_length(poses, "poses", lambda m: f"body {int(torch.nonzero(m)[0])}")
     _check_params(mu, margin, eps, split, tol, max_iter)
     if grad is None:

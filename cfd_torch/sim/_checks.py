@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from .._autograd import outside_transforms, plain
-from .._validate import FAR, FLOATS, check_dense, check_rotation_length, max_coord
+from .._validate import FLOATS, check_dense, check_rotation_length, check_translation_range, max_coord
 from .feasibility import contained, infeasible_reason
 from .types import Params
 
@@ -72,13 +72,7 @@ def check_pose_range(x: torch.Tensor, name: str, bodies: list[int] | None = None
     rotation vectors no longer than ``MAX_ROTATION`` (a clear ValueError naming ``name`` and the first row;
     ``bodies``: the scene's body of each row, as in :func:`first_row`). The step computes in float64 whatever
     the dtype, so float32 poses get the float64 limit."""
-    limit = max_coord(torch.float64)
-    with outside_transforms():
-        far = plain(x).detach()[..., :3].abs().amax(-1) > limit
-    if bool(far.any()):
-        raise ValueError(
-            f"{name} has a translation beyond {limit:g} m (first at {first_row(far, bodies)}): {FAR}"
-        )
+    check_translation_range(x, name, lambda m: first_row(m, bodies), max_coord(torch.float64))
     check_rotation_length(x, name, lambda m: first_row(m, bodies))
 
 
