@@ -529,12 +529,14 @@ class TaskCore(abc.ABC):
                 )
             if is_float and not bool(torch.isfinite(v).all()):
                 raise ValueError(f"state.task[{k!r}] contains NaN or inf")
-            if is_float and bool((v.abs() > max_coord(self.dtype)).any()):
-                i = int(torch.nonzero(v.flatten(1).abs().amax(1) > max_coord(self.dtype))[0, 0])
-                raise ValueError(
-                    f"state.task[{k!r}] holds a coordinate beyond {max_coord(self.dtype):g} m (environment {i}): the "
-                    f"limit on positions in {self.dtype} (the rewards' squared distances would overflow)"
-                )
+            if is_float:
+                far = v.reshape(B, -1).abs().amax(1) > max_coord(self.dtype)
+                if bool(far.any()):
+                    raise ValueError(
+                        f"state.task[{k!r}] holds a coordinate beyond {max_coord(self.dtype):g} m (environment "
+                        f"{int(torch.nonzero(far)[0, 0])}): the limit on positions in {self.dtype} (the rewards' "
+                        "squared distances would overflow)"
+                    )
         self.check_task(state.task)
 
     @functools.cached_property
@@ -564,12 +566,13 @@ class TaskCore(abc.ABC):
         if not bool(torch.isfinite(action).all()):
             raise ValueError("action contains NaN or inf")
         given, action = action, action.to(dtype=self.dtype, device=self.device)
-        if not bool(torch.isfinite((action * action).sum(1)).all()):
+        square = (action.detach() * action.detach()).sum(1)
+        if not bool(torch.isfinite(square).all()):
             largest = float(given.detach().abs().max())  # (as given: in the core's dtype it may read inf)
             raise ValueError(
                 f"action: |a|^2 overflows {self.dtype} (largest |a_i| {largest:.3g}); actions are in [-1, 1]"
             )
-        if not bool(torch.isfinite(self.action_cost * (action.detach() * action.detach()).sum(1)).all()):
+        if not bool(torch.isfinite(self.action_cost * square).all()):
             largest = float(given.detach().abs().max())
             raise ValueError(
                 f"action: the reward's action_cost |a|^2 overflows {self.dtype} (action_cost {self.action_cost:g}, "
